@@ -1,0 +1,31 @@
+# LiteBIRD: HWP synchronous signal x TES nonlinearity -> requirement on sigma_g1.
+# Stages live in workflow/rules (one file each); the physics in src/hwp_tes_systematics.
+from snakemake.utils import min_version
+
+min_version("9.0")
+
+
+configfile: "config/config.yaml"
+
+
+from hwp_tes_systematics import paths
+from hwp_tes_systematics.config import check_config
+
+check_config(config, source="Snakemake config")
+
+
+include: "workflow/rules/common.smk"
+include: "workflow/rules/hwp_power.smk"
+include: "workflow/rules/kw_conversion.smk"
+include: "workflow/rules/tes_response.smk"
+
+
+rule all:
+    input:
+        paths.HWP_POWER_TABLE,
+        paths.KW_CONVERSION_TABLE,
+        paths.TES_RESPONSE_TABLE,
+        paths.FIG1_HWP_CURVES,
+        paths.FIG2_HWP_DIFFERENTIAL,
+        paths.FIG3_HWP_EMISSION,
+        paths.FIG4_TES_RESPONSE,

@@ -1,0 +1,143 @@
+"""Configuration: JSON-schema validation with clear messages, and typed accessors.
+
+The schema (``data/config.schema.yaml``) describes every key with its unit and
+source and forbids unknown keys. Semantic checks that a schema cannot express
+(channel names exist in the instrument model, curve files exist) follow.
+"""
+
+from __future__ import annotations
+
+import copy
+from importlib import resources
+from pathlib import Path
+
+import jsonschema
+import yaml
+
+from . import instrument
+from .hwp_power import HwpCurves, OpticalElement, read_hwp_curves
+
+SCHEMA_RESOURCE = "config.schema.yaml"
+
+
+class ConfigError(ValueError):
+    """The configuration is invalid; the message names the key and what was expected."""
+
+
+def schema_path() -> Path:
+    """Path of the configuration JSON schema shipped with the package."""
+    return Path(str(resources.files("hwp_tes_systematics") / "data" / SCHEMA_RESOURCE))
+
+
+def load_schema() -> dict:
+    with open(schema_path()) as handle:
+        return yaml.safe_load(handle)
+
+
+def _key_path(error: jsonschema.ValidationError) -> str:
+    return ".".join(str(part) for part in error.absolute_path) or "<top level>"
+
+
+def validate_config(config: dict, source: str = "configuration") -> None:
+    """Validate against the schema; raise ConfigError naming the offending key."""
+    validator = jsonschema.Draft202012Validator(load_schema())
+    errors = sorted(validator.iter_errors(config), key=lambda e: list(e.absolute_path))
+    if not errors:
+        return
+    messages = []
+    for error in errors[:10]:
+        key = _key_path(error)
+        if error.validator == "additionalProperties":
+            messages.append(f"{key}: {error.message} (mistyped or unknown key?)")
+        else:
+            messages.append(f"{key} = {error.instance!r}: {error.message}")
+    raise ConfigError(f"{source} is invalid:\n  " + "\n  ".join(messages))
+
+
+def deep_merge(base: dict, override: dict) -> dict:
+    """Recursively update a copy of ``base`` with ``override`` (as Snakemake's --configfile)."""
+    merged = copy.deepcopy(base)
+    for key, value in override.items():
+        if isinstance(value, dict) and isinstance(merged.get(key), dict):
+            merged[key] = deep_merge(merged[key], value)
+        else:
+            merged[key] = copy.deepcopy(value)
+    return merged
+
+
+def load_config(*paths: str | Path) -> dict:
+    """Read YAML files, merge them in order, validate and check the result."""
+    config: dict = {}
+    for path in paths:
+        path = Path(path)
+        if not path.is_file():
+            raise ConfigError(f"configuration file {path}: not found")
+        with open(path) as handle:
+            try:
+                content = yaml.safe_load(handle) or {}
+            except yaml.YAMLError as error:
+                raise ConfigError(f"configuration file {path}: not valid YAML ({error})") from error
+        config = deep_merge(config, content)
+    check_config(config, source=" + ".join(str(p) for p in paths))
+    return config
+
+
+def check_config(config: dict, source: str = "configuration") -> None:
+    """Schema validation plus semantic checks (channels exist, curve files readable)."""
+    validate_config(config, source)
+    imo_location = config["instrument"]["imo_location"]
+    try:
+        channels = selected_channels(config)
+        instrument.check_channel_names(
+            config["instrument"]["systematics_channels"],
+            "instrument.systematics_channels",
+            imo_location,
+        )
+        instrument.check_channel_names(
+            list(config["instrument"]["detector_pairs"]), "instrument.detector_pairs", imo_location
+        )
+        instrument.check_channel_names([config["tes"]["figure_channel"]], "tes.figure_channel")
+    except instrument.InstrumentModelError as error:
+        raise ConfigError(f"{source}: {error}") from error
+    outside = [c for c in config["instrument"]["systematics_channels"] if c not in channels]
+    if outside:
+        raise ConfigError(
+            f"{source}: instrument.systematics_channels {outside} are not among "
+            f"instrument.channels {channels}"
+        )
+    if config["tes"]["tbath_k"] >= config["tes"]["tc_k"]:
+        raise ConfigError(
+            f"{source}: tes.tbath_k = {config['tes']['tbath_k']} must be below "
+            f"tes.tc_k = {config['tes']['tc_k']} (a TES needs a bath colder than Tc)"
+        )
+
+
+def selected_channels(config: dict) -> list[str]:
+    """The simulated channels in instrument-model order ("all" -> the 22 PTEP channels)."""
+    imo_location = config["instrument"]["imo_location"]
+    every = instrument.all_channel_names(imo_location, config["instrument"]["imo_release"])
+    chosen = config["instrument"]["channels"]
+    if chosen == "all":
+        return every
+    instrument.check_channel_names(chosen, "instrument.channels", imo_location)
+    return [name for name in every if name in chosen]
+
+
+def channel(config: dict, name: str) -> instrument.Channel:
+    """Channel record with the configured detector pair."""
+    pair = config["instrument"]["detector_pairs"].get(name)
+    return instrument.load_channel(
+        name,
+        config["instrument"]["imo_location"],
+        config["instrument"]["imo_release"],
+        tuple(pair) if pair else None,
+    )
+
+
+def telescope_optics(config: dict, telescope: str) -> tuple[HwpCurves, list[OpticalElement], float]:
+    """(HWP curves, elements after the HWP, HWP temperature [K]) of one telescope."""
+    optics = config["optics"]["telescopes"][telescope]
+    curves_path = optics["hwp_curves_csv"]
+    curves = HwpCurves.ideal() if curves_path is None else read_hwp_curves(curves_path)
+    elements = [OpticalElement(**element) for element in optics["elements_after_hwp"]]
+    return curves, elements, float(optics["hwp_temperature_k"])

@@ -1,0 +1,200 @@
+"""LiteBIRD channels and detectors from the public PTEP instrument model.
+
+The PTEP instrument model (IMo, release ``vPTEP``) ships inside litebird_sim as a
+flat file (``lbs.PTEP_IMO_LOCATION``), so reading it needs no network. This module
+turns it into small, frozen :class:`Channel` records holding what the study needs:
+band, noise, beam, sampling, the telescope's HWP rotation rate, and one orthogonal
+detector pair per channel.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+
+TELESCOPES = ("LFT", "MFT", "HFT")
+PAIR_SEARCH_DETECTORS = 16  # detectors searched for the default pair (8 pixels)
+MAX_PAIR_NON_ORTHOGONALITY_DEG = 5.0  # a user-given pair must be this close to 90 deg
+
+
+@dataclass(frozen=True)
+class Channel:
+    """One LiteBIRD frequency channel, as given by the PTEP instrument model."""
+
+    name: str
+    telescope: str
+    bandcenter_ghz: float
+    bandwidth_ghz: float
+    band_freqs_ghz: np.ndarray
+    band_weights: np.ndarray
+    net_detector_ukrts: float
+    fknee_mhz: float
+    fmin_hz: float
+    alpha: float
+    fwhm_arcmin: float
+    sampling_rate_hz: float
+    hwp_rpm: float
+    number_of_detectors: int
+    detector_pair: tuple[str, str]
+
+    @property
+    def hwp_frequency_hz(self) -> float:
+        """f_HWP = rpm / 60."""
+        return self.hwp_rpm / 60.0
+
+
+class InstrumentModelError(ValueError):
+    """Raised when the instrument model lacks a requested channel or detector."""
+
+
+@lru_cache(maxsize=4)
+def open_imo(imo_location: str | None = None):
+    """Open the instrument model; ``None`` means the PTEP flat file inside litebird_sim."""
+    import litebird_sim as lbs
+
+    location = lbs.PTEP_IMO_LOCATION if imo_location is None else imo_location
+    if not Path(location).exists():
+        raise InstrumentModelError(
+            f"instrument.imo_location = {location!r}: no such file or directory "
+            "(expected a litebird_sim IMo flat-file folder or schema.json[.gz])"
+        )
+    return lbs.Imo(flatfile_location=location)
+
+
+@lru_cache(maxsize=4)
+def channel_names_by_telescope(
+    imo_location: str | None = None, release: str = "vPTEP"
+) -> dict[str, list[str]]:
+    """Channel names of each telescope in instrument-model order."""
+    import litebird_sim as lbs
+
+    imo = open_imo(imo_location)
+    names = {}
+    for telescope in TELESCOPES:
+        info = lbs.InstrumentInfo.from_imo(
+            imo, f"/releases/{release}/satellite/{telescope}/instrument_info"
+        )
+        names[telescope] = list(info.channel_names)
+    return names
+
+
+def all_channel_names(imo_location: str | None = None, release: str = "vPTEP") -> list[str]:
+    """All channel names (22 for vPTEP), LFT then MFT then HFT."""
+    by_telescope = channel_names_by_telescope(imo_location, release)
+    return [name for telescope in TELESCOPES for name in by_telescope[telescope]]
+
+
+def telescope_of(channel_name: str, imo_location: str | None = None, release: str = "vPTEP") -> str:
+    """The telescope (LFT, MFT, HFT) that holds ``channel_name``."""
+    for telescope, names in channel_names_by_telescope(imo_location, release).items():
+        if channel_name in names:
+            return telescope
+    raise InstrumentModelError(
+        f"channel {channel_name!r} is not in instrument model release {release!r}; "
+        f"expected one of {all_channel_names(imo_location, release)}"
+    )
+
+
+def pixel_of(detector_name: str) -> str:
+    """Pixel id of a PTEP detector name: its first three fields (wafer, ..., pixel)."""
+    return "_".join(detector_name.split("_")[:3])
+
+
+def most_orthogonal_pair(
+    detector_names: list[str], pol_angles_rad: list[float]
+) -> tuple[str, str]:
+    """The two detectors of one pixel whose polarisation angles are closest to 90 deg apart.
+
+    Ties go to the earlier pair in model order.
+    """
+    best_pair, best_error_rad = None, np.inf
+    for i, angle_i in enumerate(pol_angles_rad):
+        for j in range(i + 1, len(pol_angles_rad)):
+            if pixel_of(detector_names[i]) != pixel_of(detector_names[j]):
+                continue
+            error_rad = abs(np.mod(pol_angles_rad[j] - angle_i, np.pi) - np.pi / 2)
+            if error_rad < best_error_rad - 1e-12:
+                best_pair, best_error_rad = (detector_names[i], detector_names[j]), error_rad
+    if best_pair is None:
+        raise InstrumentModelError("no two detectors of the same pixel among the candidates")
+    return best_pair
+
+
+@lru_cache(maxsize=64)
+def load_channel(
+    channel_name: str,
+    imo_location: str | None = None,
+    release: str = "vPTEP",
+    detector_pair: tuple[str, str] | None = None,
+) -> Channel:
+    """Read one channel, choosing its detector pair.
+
+    ``detector_pair=None`` takes the first orthogonal pair in model order; the
+    detectors' polarisation angles are read from the model to check the pair.
+    """
+    import litebird_sim as lbs
+
+    imo = open_imo(imo_location)
+    telescope = telescope_of(channel_name, imo_location, release)
+    base = f"/releases/{release}/satellite/{telescope}"
+    instrument = lbs.InstrumentInfo.from_imo(imo, f"{base}/instrument_info")
+    info = lbs.FreqChannelInfo.from_imo(imo, f"{base}/{channel_name}/channel_info")
+
+    def pol_angle(detector_name: str) -> float:
+        try:
+            detector = lbs.DetectorInfo.from_imo(
+                imo, f"{base}/{channel_name}/{detector_name}/detector_info"
+            )
+        except Exception as error:  # the IMo raises KeyError or its own error types
+            raise InstrumentModelError(
+                f"detector {detector_name!r} is not in channel {channel_name!r} "
+                f"of release {release!r}"
+            ) from error
+        return float(detector.pol_angle_rad)
+
+    if detector_pair is None:
+        # Detectors come in T/B pairs of the same pixel: search the first few pixels only.
+        candidates = list(info.detector_names[:PAIR_SEARCH_DETECTORS])
+        pair = most_orthogonal_pair(candidates, [pol_angle(name) for name in candidates])
+    else:
+        pair = tuple(detector_pair)
+        angles = [pol_angle(name) for name in pair]
+        error_deg = abs(np.degrees(np.mod(angles[1] - angles[0], np.pi)) - 90.0)
+        if error_deg > MAX_PAIR_NON_ORTHOGONALITY_DEG:
+            raise InstrumentModelError(
+                f"instrument.detector_pairs[{channel_name!r}] = {list(pair)}: polarisation "
+                f"angles {np.degrees(angles)} deg are {error_deg:.1f} deg from orthogonal "
+                f"(expected within {MAX_PAIR_NON_ORTHOGONALITY_DEG} deg)"
+            )
+
+    return Channel(
+        name=channel_name,
+        telescope=telescope,
+        bandcenter_ghz=float(info.bandcenter_ghz),
+        bandwidth_ghz=float(info.bandwidth_ghz),
+        band_freqs_ghz=np.asarray(info.band_freqs_ghz, dtype=float),
+        band_weights=np.asarray(info.band_weights, dtype=float),
+        net_detector_ukrts=float(info.net_detector_ukrts),
+        fknee_mhz=float(info.fknee_mhz),
+        fmin_hz=float(info.fmin_hz),
+        alpha=float(info.alpha),
+        fwhm_arcmin=float(info.fwhm_arcmin),
+        sampling_rate_hz=float(info.sampling_rate_hz),
+        hwp_rpm=float(instrument.hwp_rpm),
+        number_of_detectors=int(info.number_of_detectors),
+        detector_pair=pair,
+    )
+
+
+def check_channel_names(names: list[str], key: str, imo_location: str | None = None) -> None:
+    """Raise a clear error if a configured channel name is not in the instrument model."""
+    known = all_channel_names(imo_location)
+    unknown = [name for name in names if name not in known]
+    if unknown:
+        raise InstrumentModelError(
+            f"config key {key}: unknown channel(s) {unknown}; expected names from the "
+            f"PTEP instrument model: {known}"
+        )

@@ -1,0 +1,29 @@
+"""Every output path of the workflow, made in one place.
+
+Rules use these patterns (with Snakemake wildcards in braces); nothing else joins paths.
+"""
+
+RESULTS = "results"
+LOGS = "logs"
+BENCHMARKS = "benchmarks"
+
+# Stage: HWP power tables and K/W conversion
+HWP_POWER_TABLE = f"{RESULTS}/inputs/hwp_power.csv"
+KW_CONVERSION_TABLE = f"{RESULTS}/inputs/kw_conversion.csv"
+TES_RESPONSE_TABLE = f"{RESULTS}/inputs/tes_response.csv"
+
+# Figures (numbered as in the paper)
+FIG1_HWP_CURVES = f"{RESULTS}/figures/fig1_hwp_absorption_transmission.png"
+FIG2_HWP_DIFFERENTIAL = f"{RESULTS}/figures/fig2_hwp_differential_power.png"
+FIG3_HWP_EMISSION = f"{RESULTS}/figures/fig3_hwp_emission_vs_sky.png"
+FIG4_TES_RESPONSE = f"{RESULTS}/figures/fig4_tes_response.png"
+
+
+def log(rule: str, wildcards: str = "") -> str:
+    """Log file of a rule (wildcards as a '{a}_{b}' pattern, optional)."""
+    return f"{LOGS}/{rule}{'/' + wildcards if wildcards else ''}.log"
+
+
+def benchmark(rule: str, wildcards: str = "") -> str:
+    """Benchmark file of a rule."""
+    return f"{BENCHMARKS}/{rule}{'/' + wildcards if wildcards else ''}.tsv"

@@ -1,0 +1,105 @@
+"""Configuration validation and the PTEP instrument model."""
+
+import copy
+
+import numpy as np
+import pytest
+import yaml
+
+from hwp_tes_systematics import instrument
+from hwp_tes_systematics.config import (
+    ConfigError,
+    check_config,
+    load_config,
+    load_schema,
+    selected_channels,
+)
+
+
+def test_all_22_ptep_channels_with_telescope_hwp_rates():
+    names = instrument.all_channel_names()
+    assert len(names) == 22
+    rpm = {"LFT": 46.0, "MFT": 39.0, "HFT": 61.0}
+    for name in ("L1-040", "M1-140", "H3-402"):
+        channel = instrument.load_channel(name)
+        assert channel.hwp_rpm == rpm[channel.telescope]
+        assert channel.sampling_rate_hz == 31.0
+        a, b = channel.detector_pair
+        assert instrument.pixel_of(a) == instrument.pixel_of(b)
+    assert instrument.load_channel("M1-140").hwp_frequency_hz == pytest.approx(0.65)
+
+
+def test_default_config_is_valid_and_selects_everything(default_config):
+    assert len(selected_channels(default_config)) == 22
+    assert len(default_config["instrument"]["systematics_channels"]) == 10
+
+
+def test_every_schema_key_has_a_description():
+    """Every leaf property of the schema is described (unit and source live there)."""
+
+    def walk(node, path):
+        if isinstance(node, dict):
+            for key, value in node.get("properties", {}).items():
+                assert "description" in value, f"{path}.{key} has no description"
+                walk(value, f"{path}.{key}")
+            for value in node.get("$defs", {}).values():
+                walk(value, path)
+
+    walk(load_schema(), "config")
+
+
+@pytest.mark.parametrize(
+    "mutate, message",
+    [
+        (lambda c: c["tes"].__setitem__("tc_kelvin", 0.17), "tc_kelvin"),
+        (lambda c: c["optics"]["telescopes"]["MFT"].__setitem__("hwp_temperature_k", -20.0),
+         "optics.telescopes.MFT.hwp_temperature_k = -20.0"),
+        (lambda c: c["instrument"].__setitem__("systematics_channels", ["M9-999"]),
+         "M9-999"),
+        (lambda c: c["tes"].__setitem__("tbath_k", 0.2), "tes.tbath_k"),
+        (lambda c: c.__setitem__("master_seed", "abc"), "master_seed"),
+    ],
+)
+def test_bad_config_names_the_key(default_config, mutate, message):
+    config = copy.deepcopy(default_config)
+    mutate(config)
+    with pytest.raises(ConfigError, match=message.replace(".", r"\.")):
+        check_config(config)
+
+
+def test_user_config_merges_over_default(tmp_path, repo, monkeypatch):
+    monkeypatch.chdir(repo)
+    override = tmp_path / "user.yaml"
+    override.write_text(
+        yaml.safe_dump(
+            {"instrument": {"channels": ["M1-140", "L1-040"], "systematics_channels": ["M1-140"]}}
+        )
+    )
+    config = load_config(repo / "config/config.yaml", override)
+    assert selected_channels(config) == ["L1-040", "M1-140"]  # instrument-model order
+    assert config["tes"]["tc_k"] == 0.171  # untouched keys keep their defaults
+
+
+def test_systematics_channels_must_be_simulated(tmp_path, repo, monkeypatch):
+    monkeypatch.chdir(repo)
+    override = tmp_path / "user.yaml"
+    override.write_text(yaml.safe_dump({"instrument": {"channels": ["L1-040"]}}))
+    with pytest.raises(ConfigError, match="not among instrument.channels"):
+        load_config(repo / "config/config.yaml", override)
+
+
+def test_missing_config_file(tmp_path):
+    with pytest.raises(ConfigError, match="not found"):
+        load_config(tmp_path / "missing.yaml")
+
+
+def test_user_detector_pair_must_be_orthogonal():
+    with pytest.raises(instrument.InstrumentModelError, match="not orthogonal|from orthogonal"):
+        instrument.load_channel(
+            "L1-040", detector_pair=("000_000_003_QA_040_T", "000_000_005_UA_040_T")
+        )
+    channel = instrument.load_channel(
+        "L1-040", detector_pair=("000_000_006_UA_040_T", "000_000_006_UA_040_B")
+    )
+    assert channel.detector_pair[0].endswith("_T")
+    assert np.isfinite(channel.fwhm_arcmin)

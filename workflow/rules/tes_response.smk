@@ -1,0 +1,14 @@
+rule tes_response:
+    """Electrothermal TES model at each channel's nominal load: responsivity, saturation
+    and the g1 [1/K], g2 [1/K^2] of its expansion; the paper's Fig. 4. No wildcards."""
+    input:
+        kw_conversion=paths.KW_CONVERSION_TABLE,
+    output:
+        table=paths.TES_RESPONSE_TABLE,
+        figure=paths.FIG4_TES_RESPONSE,
+    params:
+        tes=config["tes"],
+    log:
+        paths.log("tes_response"),
+    script:
+        "../scripts/tes_response.py"
