@@ -52,10 +52,11 @@ def test_every_schema_key_has_a_description():
     "mutate, message",
     [
         (lambda c: c["tes"].__setitem__("tc_kelvin", 0.17), "tc_kelvin"),
-        (lambda c: c["optics"]["telescopes"]["MFT"].__setitem__("hwp_temperature_k", -20.0),
-         "optics.telescopes.MFT.hwp_temperature_k = -20.0"),
-        (lambda c: c["instrument"].__setitem__("systematics_channels", ["M9-999"]),
-         "M9-999"),
+        (
+            lambda c: c["optics"]["telescopes"]["MFT"].__setitem__("hwp_temperature_k", -20.0),
+            "optics.telescopes.MFT.hwp_temperature_k = -20.0",
+        ),
+        (lambda c: c["instrument"].__setitem__("systematics_channels", ["M9-999"]), "M9-999"),
         (lambda c: c["tes"].__setitem__("tbath_k", 0.2), "tes.tbath_k"),
         (lambda c: c.__setitem__("master_seed", "abc"), "master_seed"),
     ],
@@ -103,3 +104,11 @@ def test_user_detector_pair_must_be_orthogonal():
     )
     assert channel.detector_pair[0].endswith("_T")
     assert np.isfinite(channel.fwhm_arcmin)
+
+
+def test_config_reference_in_docs_is_in_step_with_schema(repo):
+    from hwp_tes_systematics.config import config_reference_markdown
+
+    assert (repo / "docs/config_reference.md").read_text() == config_reference_markdown(), (
+        "regenerate: python -m hwp_tes_systematics config-reference > docs/config_reference.md"
+    )

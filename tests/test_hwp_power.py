@@ -16,6 +16,10 @@ from hwp_tes_systematics.hwp_power import (
 )
 from hwp_tes_systematics.instrument import Channel
 
+HEADER = (
+    "freq_ghz,absorption_capacitive,absorption_inductive,transmission_capacitive,"
+    "transmission_inductive\n"
+)
 CHAIN = [
     OpticalElement("lens", 5.0, 0.0, 0.8),
     OpticalElement("detector", 0.1, 0.0, 0.5),
@@ -25,14 +29,35 @@ CHAIN = [
 def make_channel(center_ghz=2.0, width_ghz=0.4):
     freqs = np.linspace(center_ghz - width_ghz, center_ghz + width_ghz, 9)
     weights = (np.abs(freqs - center_ghz) <= width_ghz / 2).astype(float)
-    return Channel("T-002", "MFT", center_ghz, width_ghz, freqs, weights, 50.0, 20.0, 0.01, 1.0,
-                   30.0, 31.0, 39.0, 2, ("a", "b"))
+    return Channel(
+        "T-002",
+        "MFT",
+        center_ghz,
+        width_ghz,
+        freqs,
+        weights,
+        50.0,
+        20.0,
+        0.01,
+        1.0,
+        30.0,
+        31.0,
+        39.0,
+        2,
+        ("a", "b"),
+    )
 
 
 def flat_curves(a_cap, a_ind, t_cap, t_ind):
     freqs = np.array([0.1, 1000.0])
-    return HwpCurves(freqs, np.full(2, a_cap), np.full(2, a_ind), np.full(2, t_cap),
-                     np.full(2, t_ind), source="flat")
+    return HwpCurves(
+        freqs,
+        np.full(2, a_cap),
+        np.full(2, a_ind),
+        np.full(2, t_cap),
+        np.full(2, t_ind),
+        source="flat",
+    )
 
 
 def test_gray_body_emission_in_rayleigh_jeans_limit():
@@ -52,8 +77,9 @@ def test_gray_body_emission_in_rayleigh_jeans_limit():
 def test_differential_transmission_of_the_incoming_load():
     channel = make_channel()
     curves = flat_curves(0.0, 0.0, 0.95, 0.90)
-    row = hwp_power_for_channel(channel, curves, 20.0, CHAIN, incoming_load_temperature_k=300.0,
-                                a2_over_delta_p=0.5)
+    row = hwp_power_for_channel(
+        channel, curves, 20.0, CHAIN, incoming_load_temperature_k=300.0, a2_over_delta_p=0.5
+    )
     expected = 0.05 * k * 300.0 * 0.4e9 * 0.4
     assert row["delta_p_transmission_w"] == pytest.approx(expected, rel=1e-3)
     assert row["a2_w"] == pytest.approx(0.5 * expected, rel=1e-3)
@@ -79,18 +105,15 @@ def test_shipped_assumed_curves_are_reproducible(repo):
     [
         ("freq_ghz,absorption_capacitive\n1,0.1\n", "missing column"),
         (
-            "freq_ghz,absorption_capacitive,absorption_inductive,transmission_capacitive,"
-            "transmission_inductive\n1,0.1,0.1,0.9,0.9\n2,abc,0.1,0.9,0.9\n",
+            HEADER + "1,0.1,0.1,0.9,0.9\n2,abc,0.1,0.9,0.9\n",
             "row 1",
         ),
         (
-            "freq_ghz,absorption_capacitive,absorption_inductive,transmission_capacitive,"
-            "transmission_inductive\n2,0.1,0.1,0.9,0.9\n1,0.1,0.1,0.9,0.9\n",
+            HEADER + "2,0.1,0.1,0.9,0.9\n1,0.1,0.1,0.9,0.9\n",
             "strictly increasing",
         ),
         (
-            "freq_ghz,absorption_capacitive,absorption_inductive,transmission_capacitive,"
-            "transmission_inductive\n1,0.2,0.1,0.9,0.9\n2,0.2,0.1,0.9,0.9\n",
+            HEADER + "1,0.2,0.1,0.9,0.9\n2,0.2,0.1,0.9,0.9\n",
             "energy conservation",
         ),
     ],

@@ -141,3 +141,47 @@ def telescope_optics(config: dict, telescope: str) -> tuple[HwpCurves, list[Opti
     curves = HwpCurves.ideal() if curves_path is None else read_hwp_curves(curves_path)
     elements = [OpticalElement(**element) for element in optics["elements_after_hwp"]]
     return curves, elements, float(optics["hwp_temperature_k"])
+
+
+def config_reference_markdown() -> str:
+    """The configuration reference (every key, type, description) as Markdown, from the schema."""
+    schema = load_schema()
+    definitions = schema.get("$defs", {})
+    lines = [
+        "# Configuration reference",
+        "",
+        "Generated from `src/hwp_tes_systematics/data/config.schema.yaml` by",
+        "`python -m hwp_tes_systematics config-reference > docs/config_reference.md`",
+        "(a test keeps the two in step). Unknown keys are errors.",
+        "",
+        "| key | type | description (unit; source) |",
+        "|---|---|---|",
+    ]
+
+    def resolve(node: dict) -> dict:
+        if "$ref" in node:
+            target = definitions[node["$ref"].split("/")[-1]]
+            return {**target, **{k: v for k, v in node.items() if k != "$ref"}}
+        return node
+
+    def type_of(node: dict) -> str:
+        if "oneOf" in node:
+            return " or ".join(type_of(resolve(option)) for option in node["oneOf"])
+        if "const" in node:
+            return f"`{node['const']}`"
+        kind = node.get("type", "")
+        return "/".join(kind) if isinstance(kind, list) else kind
+
+    def walk(node: dict, prefix: str) -> None:
+        for key, child in node.get("properties", {}).items():
+            child = resolve(child)
+            name = f"{prefix}{key}"
+            description = " ".join(child.get("description", "").split())
+            lines.append(f"| `{name}` | {type_of(child)} | {description} |")
+            walk(child, f"{name}.")
+            items = child.get("items")
+            if isinstance(items, dict):
+                walk(resolve(items), f"{name}[].")
+
+    walk(schema, "")
+    return "\n".join(lines) + "\n"

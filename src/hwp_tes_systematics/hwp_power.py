@@ -153,8 +153,8 @@ def chain_emission_w(bandpass: Bandpass, elements: list[OpticalElement]) -> floa
         if element.emissivity == 0.0:
             continue
         spectral = single_mode_spectral_power_w_per_hz(bandpass.freqs_ghz, element.temperature_k)
-        total_w += element.emissivity * efficiency_after(elements, index) * bandpass.integrate(
-            spectral
+        total_w += (
+            element.emissivity * efficiency_after(elements, index) * bandpass.integrate(spectral)
         )
     return total_w
 
@@ -214,7 +214,9 @@ def sky_to_detector_efficiency(channel, curves: HwpCurves, elements: list[Optica
     """eta(nu) = (t_c + t_i)/2 eta_down on the channel's band: the CMB's path to the detector."""
     bandpass = channel_bandpass(channel)
     on_band = curves.on(bandpass.freqs_ghz)
-    mean_transmission = 0.5 * (on_band["transmission_capacitive"] + on_band["transmission_inductive"])
+    mean_transmission = 0.5 * (
+        on_band["transmission_capacitive"] + on_band["transmission_inductive"]
+    )
     return bandpass, mean_transmission * downstream_efficiency(elements)
 
 

@@ -103,9 +103,7 @@ def pixel_of(detector_name: str) -> str:
     return "_".join(detector_name.split("_")[:3])
 
 
-def most_orthogonal_pair(
-    detector_names: list[str], pol_angles_rad: list[float]
-) -> tuple[str, str]:
+def most_orthogonal_pair(detector_names: list[str], pol_angles_rad: list[float]) -> tuple[str, str]:
     """The two detectors of one pixel whose polarisation angles are closest to 90 deg apart.
 
     Ties go to the earlier pair in model order.

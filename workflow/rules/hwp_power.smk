@@ -8,10 +8,10 @@ rule hwp_power:
         fig_curves=paths.FIG1_HWP_CURVES,
         fig_differential=paths.FIG2_HWP_DIFFERENTIAL,
         fig_emission=paths.FIG3_HWP_EMISSION,
+    log:
+        paths.log("hwp_power"),
     params:
         instrument=config["instrument"],
         optics=config["optics"],
-    log:
-        paths.log("hwp_power"),
     script:
         "../scripts/hwp_power.py"

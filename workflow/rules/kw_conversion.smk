@@ -6,11 +6,11 @@ rule kw_conversion:
         curves=hwp_curve_files(),
     output:
         table=paths.KW_CONVERSION_TABLE,
+    log:
+        paths.log("kw_conversion"),
     params:
         instrument=config["instrument"],
         optics=config["optics"],
         kw_conversion=config["kw_conversion"],
-    log:
-        paths.log("kw_conversion"),
     script:
         "../scripts/kw_conversion.py"

@@ -6,9 +6,9 @@ rule tes_response:
     output:
         table=paths.TES_RESPONSE_TABLE,
         figure=paths.FIG4_TES_RESPONSE,
-    params:
-        tes=config["tes"],
     log:
         paths.log("tes_response"),
+    params:
+        tes=config["tes"],
     script:
         "../scripts/tes_response.py"

@@ -30,8 +30,12 @@ def plot_curves(curves: dict, table: pd.DataFrame, path) -> None:
         for row, quantity in enumerate(("absorption", "transmission")):
             ax = axes[row, column]
             for axis_name, color in AXIS_COLORS.items():
-                ax.plot(hwp.freqs_ghz, getattr(hwp, f"{quantity}_{axis_name}"), color=color,
-                        label=axis_name)
+                ax.plot(
+                    hwp.freqs_ghz,
+                    getattr(hwp, f"{quantity}_{axis_name}"),
+                    color=color,
+                    label=axis_name,
+                )
             for center in _telescope_rows(table, telescope)["bandcenter_ghz"]:
                 ax.axvline(center, color="gray", ls="--", lw=0.8)
             ax.set_ylabel(quantity)
@@ -77,12 +81,24 @@ def plot_emission_vs_sky(
     for ax, (telescope, hwp) in zip(axes, curves.items()):
         freqs_ghz = hwp.freqs_ghz
         planck_hwp = blackbody_nu(freqs_ghz, hwp_temperature_k[telescope]) * MJY_PER_SR_PER_SI
-        ax.plot(freqs_ghz, hwp.absorption_inductive * planck_hwp, color="tab:blue",
-                label=f"HWP {hwp_temperature_k[telescope]:g} K, inductive")
-        ax.plot(freqs_ghz, hwp.absorption_capacitive * planck_hwp, color="tab:orange",
-                label=f"HWP {hwp_temperature_k[telescope]:g} K, capacitive")
-        ax.plot(freqs_ghz, blackbody_nu(freqs_ghz, t_cmb_k) * MJY_PER_SR_PER_SI, color="tab:red",
-                label=f"CMB {t_cmb_k:g} K")
+        ax.plot(
+            freqs_ghz,
+            hwp.absorption_inductive * planck_hwp,
+            color="tab:blue",
+            label=f"HWP {hwp_temperature_k[telescope]:g} K, inductive",
+        )
+        ax.plot(
+            freqs_ghz,
+            hwp.absorption_capacitive * planck_hwp,
+            color="tab:orange",
+            label=f"HWP {hwp_temperature_k[telescope]:g} K, capacitive",
+        )
+        ax.plot(
+            freqs_ghz,
+            blackbody_nu(freqs_ghz, t_cmb_k) * MJY_PER_SR_PER_SI,
+            color="tab:red",
+            label=f"CMB {t_cmb_k:g} K",
+        )
         dust = (
             DUST_MAX_353GHZ_MJY_PER_SR
             * (freqs_ghz / 353.0) ** DUST_BETA

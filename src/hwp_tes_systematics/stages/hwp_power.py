@@ -45,9 +45,7 @@ def run(config: dict, table_csv: str, fig_curves: str, fig_differential: str, fi
     table = hwp_power_table(config)
     write_csv(table, table_csv)
     log.info("wrote %s (%d channels)", table_csv, len(table))
-    curves = {
-        telescope: cfg.telescope_optics(config, telescope)[0] for telescope in ("MFT", "HFT")
-    }
+    curves = {telescope: cfg.telescope_optics(config, telescope)[0] for telescope in ("MFT", "HFT")}
     hwp_temperature_k = {
         telescope: cfg.telescope_optics(config, telescope)[2] for telescope in ("MFT", "HFT")
     }

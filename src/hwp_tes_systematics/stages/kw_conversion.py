@@ -48,8 +48,9 @@ def kw_conversion_table(config: dict, hwp_table: pd.DataFrame) -> pd.DataFrame:
         if not (np.isfinite(row["kelvin_per_watt"]) and row["kelvin_per_watt"] > 0):
             raise ValueError(f"{name}: K/W factor {row['kelvin_per_watt']} is not finite > 0")
         rows.append(row)
-        log.info("%s: C = %.4e K/W, A_2 = %.4e K_CMB", name, row["kelvin_per_watt"],
-                 row["a2_k_cmb"])
+        log.info(
+            "%s: C = %.4e K/W, A_2 = %.4e K_CMB", name, row["kelvin_per_watt"], row["a2_k_cmb"]
+        )
     return pd.DataFrame(rows)
 
 
