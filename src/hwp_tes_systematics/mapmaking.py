@@ -1,0 +1,103 @@
+"""Binned map-making from normal equations accumulated chunk by chunk.
+
+Each sample of detector k sees the pixel p through the row a = [1, rho cos 2 alpha,
+rho sin 2 alpha] (alpha = 2 chi - theta_det + psi). Weighting each detector by
+w_k = 1 / sigma_k^2, the binned map of pixel p solves
+
+    (sum a^T w a) m_p = sum a^T w d,
+
+the same estimator as litebird_sim's ``make_binned_map``. The 3 x 3 matrix does
+not depend on the TOD, so one accumulation serves any number of TODs: the
+no-systematics map and each detector's nonlinearity template. Memory holds one
+chunk of TOD plus (6 + 3 x n_tods) numbers per pixel.
+"""
+
+from __future__ import annotations
+
+import healpy as hp
+import numpy as np
+
+# the six independent entries of the symmetric 3x3 matrix, as (row, column)
+MATRIX_ENTRIES = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+
+
+class NormalEquations:
+    """Accumulates sum a^T w a (per pixel) and sum a^T w d for several TODs."""
+
+    def __init__(self, nside: int, n_tods: int):
+        self.nside = nside
+        self.npix = hp.nside2npix(nside)
+        self.n_tods = n_tods
+        self.matrix = np.zeros((6, self.npix))
+        self.rhs = np.zeros((n_tods, 3, self.npix))
+        self.hits = np.zeros(self.npix, dtype=np.int64)
+
+    def add(
+        self, pixels, cos_2alpha, sin_2alpha, weights, pol_efficiency, tods, tod_detectors=None
+    ) -> None:
+        """Add samples: pixels, angles (n_det, n); weights, pol_efficiency (n_det,);
+        tods: a sequence of n_tods arrays (n_det, n). ``tod_detectors[i]``, if given and
+        not None, is the only detector whose samples TOD i has (the others are zero)."""
+        if len(tods) != self.n_tods:
+            raise ValueError(f"expected {self.n_tods} TODs, got {len(tods)}")
+        if tod_detectors is None:
+            tod_detectors = [None] * self.n_tods
+        for det in range(pixels.shape[0]):
+            pix = pixels[det]
+            rows = (
+                np.ones(pix.size),
+                pol_efficiency[det] * cos_2alpha[det],
+                pol_efficiency[det] * sin_2alpha[det],
+            )
+            weight = float(weights[det])
+            self.hits += np.bincount(pix, minlength=self.npix)
+            for entry, (i, j) in enumerate(MATRIX_ENTRIES):
+                self.matrix[entry] += weight * np.bincount(
+                    pix, weights=rows[i] * rows[j], minlength=self.npix
+                )
+            for index, tod in enumerate(tods):
+                if tod_detectors[index] not in (None, det):
+                    continue
+                weighted = weight * tod[det]
+                for i in range(3):
+                    self.rhs[index, i] += np.bincount(
+                        pix, weights=rows[i] * weighted, minlength=self.npix
+                    )
+
+    def full_matrix(self) -> np.ndarray:
+        """(npix, 3, 3) symmetric matrices."""
+        full = np.empty((self.npix, 3, 3))
+        for entry, (i, j) in enumerate(MATRIX_ENTRIES):
+            full[:, i, j] = full[:, j, i] = self.matrix[entry]
+        return full
+
+    def merge(self, other: NormalEquations) -> None:
+        """Add another accumulation (e.g. from another process or time range)."""
+        self.matrix += other.matrix
+        self.rhs += other.rhs
+        self.hits += other.hits
+
+
+def condition_numbers(matrices: np.ndarray) -> np.ndarray:
+    """cond = lambda_max / lambda_min of each symmetric 3x3 matrix (inf if singular)."""
+    eigenvalues = np.linalg.eigvalsh(matrices)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cond = eigenvalues[:, -1] / eigenvalues[:, 0]
+    cond[~(eigenvalues[:, 0] > 0)] = np.inf
+    return cond
+
+
+def solve_maps(equations: NormalEquations, max_condition_number: float):
+    """Binned I, Q, U maps for each accumulated TOD; ill-conditioned pixels = UNSEEN.
+
+    Returns (maps (n_tods, 3, npix), condition (npix,), good (npix,) bool).
+    """
+    matrices = equations.full_matrix()
+    cond = condition_numbers(matrices)
+    good = (equations.hits > 0) & (cond < max_condition_number)
+    maps = np.full((equations.n_tods, 3, equations.npix), hp.UNSEEN)
+    if good.any():
+        rhs = np.moveaxis(equations.rhs[:, :, good], 2, 0)  # (n_good, n_tods, 3)
+        solution = np.linalg.solve(matrices[good], np.swapaxes(rhs, 1, 2))  # (n_good, 3, n_tods)
+        maps[:, :, good] = np.moveaxis(solution, 0, 2).swapaxes(0, 1)
+    return maps, cond, good

@@ -1,0 +1,233 @@
+"""Stage: TOD -> 4f notch -> binned maps for one (channel, seed), linear in g1.
+
+The nonlinear TOD of detector k is d_k + g1_k d_k^2. Notch filter F and binning M
+are linear, so the map for any draw of g1 is
+
+    m(g1) = M F d + sum_k g1_k M F (d_k^2) = m_nosys + sum_k g1_k T_k.
+
+One simulation gives m_nosys and the per-detector templates T_k; the sigma_g1
+grid is a parameter of the later stages, not of the simulation. The mission is
+processed chunk by chunk (normal equations accumulated), so memory does not grow
+with its duration.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import h5py
+import numpy as np
+import psutil
+from tqdm import tqdm
+
+from .. import config as cfg
+from ..hwpss_removal import remove_hwp_harmonics
+from ..io import atomic_path
+from ..mapmaking import NormalEquations, solve_maps
+from ..notch import filter_chunk_with_margins, margin_samples
+from ..tod import MissionPlan, PairSimulator
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class PairMapSettings:
+    """Everything one (channel, seed) job needs besides the sky."""
+
+    master_seed: int
+    seed: int
+    nside: int
+    plan: MissionPlan
+    a2_k_cmb: float
+    notch_width_divisor: float
+    notch_margin_s: float
+    max_condition_number: float
+    removed_hwp_harmonics: tuple[int, ...] = (2,)
+    threads: int = 1
+
+    @classmethod
+    def from_config(cls, config: dict, channel, seed: int, a2_k_cmb: float, threads: int = 1):
+        simulation = config["simulation"]
+        return cls(
+            master_seed=config["master_seed"],
+            seed=seed,
+            nside=config["maps"]["nside"],
+            plan=MissionPlan(
+                start_time_tdb=simulation["mission_start_tdb"],
+                duration_s=simulation["duration_days"] * 86400.0,
+                chunk_duration_s=simulation["chunk_duration_s"],
+                sampling_rate_hz=channel.sampling_rate_hz,
+            ),
+            a2_k_cmb=a2_k_cmb,
+            notch_width_divisor=config["notch"]["width_divisor"],
+            notch_margin_s=config["notch"]["margin_s"],
+            max_condition_number=config["maps"]["max_condition_number"],
+            removed_hwp_harmonics=tuple(config["maps"]["removed_hwp_harmonics"]),
+            threads=threads,
+        )
+
+
+def chunk_tods(
+    simulator: PairSimulator, settings: PairMapSettings, sky_iqu_k: np.ndarray
+) -> Iterator[tuple[object, slice, np.ndarray]]:
+    """Yield (pointing, inner slice, total TOD d with margins [K_CMB]) chunk by chunk."""
+    margin = margin_samples(settings.plan.sampling_rate_hz, settings.notch_margin_s)
+    chunks = settings.plan.chunks()
+    for chunk, first, n_samples in tqdm(
+        chunks, desc=simulator.channel.name, mininterval=10, disable=len(chunks) < 2
+    ):
+        pointing = simulator.pointing(first - margin, n_samples + 2 * margin)
+        tod = (
+            simulator.scan_sky(pointing, sky_iqu_k)
+            + simulator.dipole(pointing)
+            + simulator.hwpss(pointing, settings.a2_k_cmb)
+            + simulator.noise(pointing, settings.master_seed, settings.seed, chunk)
+        )
+        yield pointing, slice(margin, margin + n_samples), tod
+
+
+def filter_tod(tod: np.ndarray, pointing, margin_slice: slice, simulator, settings) -> np.ndarray:
+    """HWP-harmonic template removal, then the paper's 4 f_HWP notch, on a chunk with
+    margins; returns the inner samples. Linear in the TOD."""
+    f_hwp_hz = simulator.channel.hwp_frequency_hz
+    cleaned = remove_hwp_harmonics(tod, pointing.hwp_angle_rad, settings.removed_hwp_harmonics)
+    return filter_chunk_with_margins(
+        cleaned,
+        margin_slice.start,
+        settings.plan.sampling_rate_hz,
+        f_hwp_hz,
+        4 * f_hwp_hz / settings.notch_width_divisor,
+        workers=settings.threads,
+    )
+
+
+def detector_weights(simulator: PairSimulator) -> np.ndarray:
+    """w_k = 1 / sigma_k^2 with sigma_k = NET_k sqrt(f_s) [K^-2] (as litebird_sim's binner)."""
+    sigma_k = np.array([d.net_ukrts for d in simulator.detectors]) * 1e-6
+    return 1.0 / (sigma_k**2 * simulator.plan.sampling_rate_hz)
+
+
+def accumulate(simulator, settings, sky_iqu_k, g1_per_k=None) -> NormalEquations:
+    """Normal equations of the notch-filtered TOD.
+
+    g1_per_k None: the linear decomposition, TODs [F d, F d_0^2, F d_1^2, ...];
+    otherwise the direct nonlinear simulation, one TOD F (d + g1 d^2).
+    """
+    n_det = simulator.n_detectors
+    linear = g1_per_k is None
+    equations = NormalEquations(settings.nside, 1 + n_det if linear else 1)
+    weights = detector_weights(simulator)
+    peak_rss_mb = 0.0
+    for pointing, inner, tod in chunk_tods(simulator, settings, sky_iqu_k):
+        if linear:
+            tods = [filter_tod(tod, pointing, inner, simulator, settings)]
+            squares = filter_tod(tod**2, pointing, inner, simulator, settings)
+            tods += [squares for _ in range(n_det)]
+            owners = [None, *range(n_det)]
+        else:
+            nonlinear = tod + np.asarray(g1_per_k)[:, None] * tod**2
+            tods, owners = [filter_tod(nonlinear, pointing, inner, simulator, settings)], None
+        equations.add(
+            pointing.pixels[:, inner],
+            pointing.cos_2alpha[:, inner],
+            pointing.sin_2alpha[:, inner],
+            weights,
+            simulator.pol_efficiency,
+            tods,
+            owners,
+        )
+        peak_rss_mb = max(peak_rss_mb, psutil.Process().memory_info().rss / 2**20)
+    log.info(
+        "%s seed %d: peak RSS during chunks %.0f MB",
+        simulator.channel.name,
+        settings.seed,
+        peak_rss_mb,
+    )
+    return equations
+
+
+def write_pair_maps(path, equations: NormalEquations, settings, simulator, metadata: dict) -> None:
+    """HDF5: nosys (3, npix), templates (n_det, 3, npix), hits, condition [K_CMB]."""
+    maps, condition, good = solve_maps(equations, settings.max_condition_number)
+    with atomic_path(path) as temporary, h5py.File(temporary, "w") as out:
+        out.create_dataset("nosys", data=maps[0])
+        out.create_dataset("templates", data=maps[1:])
+        out.create_dataset("hits", data=equations.hits)
+        out.create_dataset("condition", data=condition)
+        out.attrs.update(
+            {
+                "units": "K_CMB",
+                "coordinates": "Galactic",
+                "ordering": "RING",
+                "nside": settings.nside,
+                "channel": simulator.channel.name,
+                "seed": settings.seed,
+                "detectors": simulator.detector_names,
+                "pol_angles_rad": simulator.pol_angles_rad,
+                "a2_k_cmb": settings.a2_k_cmb,
+                "duration_s": settings.plan.duration_s,
+                "observed_fraction": float(good.mean()),
+                "model": "m(g1) = nosys + sum_k g1_k templates[k]; g1 in 1/K",
+                **metadata,
+            }
+        )
+
+
+def run(config: dict, channel_name: str, seed: int, kw_csv: str, out_h5: str, threads: int = 1):
+    """Simulate one (channel, seed) and write its maps and templates."""
+    import pandas as pd
+
+    from .. import sky
+
+    started = time.perf_counter()
+    channel = cfg.channel(config, channel_name)
+    kw = pd.read_csv(kw_csv).set_index("channel")
+    carries_systematics = channel_name in config["instrument"]["systematics_channels"]
+    a2_k_cmb = float(kw.loc[channel_name, "a2_k_cmb"]) if carries_systematics else 0.0
+    settings = PairMapSettings.from_config(config, channel, seed, a2_k_cmb, threads)
+    simulator = PairSimulator(
+        channel,
+        settings.plan,
+        settings.nside,
+        config["instrument"]["imo_location"],
+        config["instrument"]["imo_release"],
+        threads,
+    )
+    sky_maps = sky.channel_sky_map(
+        channel,
+        settings.nside,
+        3 * settings.nside - 1,
+        config["simulation"]["cmb_r"],
+        config["master_seed"],
+        seed,
+        config["simulation"]["pysm_local_data"],
+    )
+    log.info(
+        "%s seed %d: sky ready (%s); A_2 = %.4g K_CMB; %d chunks",
+        channel_name,
+        seed,
+        sky_maps["foreground_source"],
+        a2_k_cmb,
+        len(settings.plan.chunks()),
+    )
+    equations = accumulate(simulator, settings, sky_maps["total"])
+    write_pair_maps(
+        out_h5,
+        equations,
+        settings,
+        simulator,
+        {"foreground_source": sky_maps["foreground_source"]},
+    )
+    elapsed_s = time.perf_counter() - started
+    samples = settings.plan.n_samples * simulator.n_detectors
+    log.info(
+        "%s seed %d: wrote %s in %.1f s (%.0f ns per detector-sample)",
+        channel_name,
+        seed,
+        out_h5,
+        elapsed_s,
+        1e9 * elapsed_s / samples,
+    )
