@@ -56,11 +56,11 @@ class MissionPlan:
 
     @property
     def n_samples(self) -> int:
-        return int(round(self.duration_s * self.sampling_rate_hz))
+        return round(self.duration_s * self.sampling_rate_hz)
 
     @property
     def samples_per_chunk(self) -> int:
-        return int(round(self.chunk_duration_s * self.sampling_rate_hz))
+        return round(self.chunk_duration_s * self.sampling_rate_hz)
 
     def chunks(self) -> list[tuple[int, int, int]]:
         """(chunk index, first sample, number of samples) covering the mission."""
