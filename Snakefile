@@ -9,7 +9,7 @@ configfile: "config/config.yaml"
 
 
 from hwp_tes_systematics import paths
-from hwp_tes_systematics.config import check_config
+from hwp_tes_systematics.config import check_config, selected_channels
 
 check_config(config, source="Snakemake config")
 
@@ -18,6 +18,9 @@ include: "workflow/rules/common.smk"
 include: "workflow/rules/hwp_power.smk"
 include: "workflow/rules/kw_conversion.smk"
 include: "workflow/rules/tes_response.smk"
+include: "workflow/rules/sky.smk"
+include: "workflow/rules/maps.smk"
+include: "workflow/rules/tod_figures.smk"
 
 
 rule all:
@@ -29,3 +32,5 @@ rule all:
         paths.FIG2_HWP_DIFFERENTIAL,
         paths.FIG3_HWP_EMISSION,
         paths.FIG4_TES_RESPONSE,
+        expand(paths.PAIR_MAPS, channel=CHANNELS, seed=SEEDS),
+        rules.tod_figures.output,

@@ -1,34 +1,10 @@
 """Rule-level tests: the HWP-power, K/W and TES rules on the default config in a temp dir."""
 
-import shutil
-import subprocess
-import sys
-
 import pandas as pd
 import pytest
+from helpers import make_workdir, snakemake
 
 pytestmark = pytest.mark.slow
-
-
-def make_workdir(repo, tmp_path):
-    """A copy of the workflow (Snakefile, rules, scripts, config) in a temporary directory."""
-    for item in ("Snakefile", "workflow", "config"):
-        source = repo / item
-        if source.is_dir():
-            shutil.copytree(source, tmp_path / item)
-        else:
-            shutil.copy(source, tmp_path / item)
-    return tmp_path
-
-
-def snakemake(workdir, *targets, extra=()):
-    return subprocess.run(
-        [sys.executable, "-m", "snakemake", "--cores", "1", "--nolock", *extra, *targets],
-        cwd=workdir,
-        check=False,
-        capture_output=True,
-        text=True,
-    )
 
 
 def test_hwp_power_kw_and_tes_rules(repo, tmp_path):

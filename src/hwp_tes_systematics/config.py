@@ -97,6 +97,9 @@ def check_config(config: dict, source: str = "configuration") -> None:
             list(config["instrument"]["detector_pairs"]), "instrument.detector_pairs", imo_location
         )
         instrument.check_channel_names([config["tes"]["figure_channel"]], "tes.figure_channel")
+        instrument.check_channel_names(
+            [config["figures"]["tod_channel"]], "figures.tod_channel", imo_location
+        )
     except instrument.InstrumentModelError as error:
         raise ConfigError(f"{source}: {error}") from error
     outside = [c for c in config["instrument"]["systematics_channels"] if c not in channels]

@@ -5,18 +5,32 @@ Rules use these patterns (with Snakemake wildcards in braces); nothing else join
 
 RESULTS = "results"
 LOGS = "logs"
-BENCHMARKS = "benchmarks"
+BENCHMARKS = f"{RESULTS}/benchmarks"
 
 # Stage: HWP power tables and K/W conversion
 HWP_POWER_TABLE = f"{RESULTS}/inputs/hwp_power.csv"
 KW_CONVERSION_TABLE = f"{RESULTS}/inputs/kw_conversion.csv"
 TES_RESPONSE_TABLE = f"{RESULTS}/inputs/tes_response.csv"
 
+# Stage: foreground maps per channel (band-integrated, beam-smoothed)
+FOREGROUND_MAP = f"{RESULTS}/sky/foreground_{{channel}}.fits"
+
+# Stage: per-(channel, seed) TOD -> notch -> binned maps and g1 templates
+PAIR_MAPS = f"{RESULTS}/maps/{{channel}}/seed{{seed}}.h5"
+
+# Stage: TOD figures and an example recording in litebird_sim's HDF5 format
+TOD_SAMPLE = f"{RESULTS}/tod/{{channel}}_sample.h5"
+
 # Figures (numbered as in the paper)
 FIG1_HWP_CURVES = f"{RESULTS}/figures/fig1_hwp_absorption_transmission.png"
 FIG2_HWP_DIFFERENTIAL = f"{RESULTS}/figures/fig2_hwp_differential_power.png"
 FIG3_HWP_EMISSION = f"{RESULTS}/figures/fig3_hwp_emission_vs_sky.png"
 FIG4_TES_RESPONSE = f"{RESULTS}/figures/fig4_tes_response.png"
+FIG5_TOD_CHUNK = f"{RESULTS}/figures/fig5_tod_chunk_{{channel}}.png"
+FIG6_TOD_SPECTRA = f"{RESULTS}/figures/fig6_tod_spectra_{{channel}}.png"
+FIG_NOTCH_TRANSFER = f"{RESULTS}/figures/notch_transfer_function.png"
+FIG_NOTCH_BB = f"{RESULTS}/figures/notch_effect_on_cmb_{{channel}}.png"
+NOTCH_SPECTRA = f"{RESULTS}/maps/notch_effect_{{channel}}.csv"
 
 
 def log(rule: str, wildcards: str = "") -> str:

@@ -5,3 +5,29 @@ def hwp_curve_files():
     """The HWP curve tables named in the config (rerun the HWP stage when one changes)."""
     telescopes = config["optics"]["telescopes"].values()
     return [t["hwp_curves_csv"] for t in telescopes if t["hwp_curves_csv"] is not None]
+
+
+wildcard_constraints:
+    channel="[LMH][1-4]-[0-9]{3}",
+    seed=r"\d+",
+
+
+CHANNELS = selected_channels(config)
+SEEDS = list(range(config["simulation"]["seeds"]))
+
+
+def simulation_config():
+    """The config sections a simulation job depends on (a change reruns the job)."""
+    keys = ("master_seed", "instrument", "simulation", "notch", "maps")
+    return {key: config[key] for key in keys}
+
+
+def pair_maps_mem_mb(wildcards, attempt):
+    """Memory of one (channel, seed) job: one chunk of TOD and pointing, plus the maps."""
+    samples = 31.0 * min(
+        config["simulation"]["chunk_duration_s"],
+        config["simulation"]["duration_days"] * 86400.0,
+    )
+    chunk_mb = 2 * samples * 8 * 40 / 2**20  # ~40 doubles per detector-sample in flight
+    maps_mb = 12 * config["maps"]["nside"] ** 2 * 8 * 20 / 2**20
+    return int(1500 + chunk_mb + maps_mb) * attempt

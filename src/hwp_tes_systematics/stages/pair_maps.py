@@ -176,7 +176,15 @@ def write_pair_maps(path, equations: NormalEquations, settings, simulator, metad
         )
 
 
-def run(config: dict, channel_name: str, seed: int, kw_csv: str, out_h5: str, threads: int = 1):
+def run(
+    config: dict,
+    channel_name: str,
+    seed: int,
+    kw_csv: str,
+    foreground_fits: str,
+    out_h5: str,
+    threads: int = 1,
+):
     """Simulate one (channel, seed) and write its maps and templates."""
     import pandas as pd
 
@@ -196,35 +204,32 @@ def run(config: dict, channel_name: str, seed: int, kw_csv: str, out_h5: str, th
         config["instrument"]["imo_release"],
         threads,
     )
-    sky_maps = sky.channel_sky_map(
-        channel,
+    foreground = sky.read_sky_map(foreground_fits, nside=settings.nside)
+    foreground_source = sky.read_sky_header(foreground_fits).get("FGSOURCE", "unknown")
+    cmb = sky.cmb_map(
         settings.nside,
         3 * settings.nside - 1,
         config["simulation"]["cmb_r"],
         config["master_seed"],
         seed,
-        config["simulation"]["pysm_local_data"],
+        channel.fwhm_arcmin,
     )
     log.info(
-        "%s seed %d: sky ready (%s); A_2 = %.4g K_CMB; %d chunks",
+        "%s seed %d: sky ready (foreground: %s); A_2 = %.4g K_CMB; %d chunks",
         channel_name,
         seed,
-        sky_maps["foreground_source"],
+        foreground_source,
         a2_k_cmb,
         len(settings.plan.chunks()),
     )
-    equations = accumulate(simulator, settings, sky_maps["total"])
+    equations = accumulate(simulator, settings, cmb + foreground)
     write_pair_maps(
-        out_h5,
-        equations,
-        settings,
-        simulator,
-        {"foreground_source": sky_maps["foreground_source"]},
+        out_h5, equations, settings, simulator, {"foreground_source": foreground_source}
     )
     elapsed_s = time.perf_counter() - started
     samples = settings.plan.n_samples * simulator.n_detectors
     log.info(
-        "%s seed %d: wrote %s in %.1f s (%.0f ns per detector-sample)",
+        "%s seed %d: wrote %s in %.1f s (%.0f ns per detector-sample, start-up included)",
         channel_name,
         seed,
         out_h5,

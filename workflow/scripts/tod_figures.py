@@ -1,0 +1,13 @@
+"""Rule tod_figures: Figs. 5, 6 and the notch transfer function."""
+
+from hwp_tes_systematics.io import setup_logging
+from hwp_tes_systematics.stages import tod_figures
+
+setup_logging(snakemake.log[0])
+tod_figures.run(
+    snakemake.params.config,
+    kw_csv=snakemake.input.kw_conversion,
+    fig_chunk=snakemake.output.fig_chunk[0],
+    fig_spectra=snakemake.output.fig_spectra[0],
+    fig_notch=snakemake.output.fig_notch,
+)
