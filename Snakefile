@@ -21,6 +21,7 @@ include: "workflow/rules/tes_response.smk"
 include: "workflow/rules/sky.smk"
 include: "workflow/rules/maps.smk"
 include: "workflow/rules/tod_figures.smk"
+include: "workflow/rules/notch.smk"
 
 
 rule all:
@@ -34,3 +35,4 @@ rule all:
         paths.FIG4_TES_RESPONSE,
         expand(paths.PAIR_MAPS, channel=CHANNELS, seed=SEEDS),
         rules.tod_figures.output,
+        rules.notch_effect.output,

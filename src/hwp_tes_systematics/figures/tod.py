@@ -87,3 +87,57 @@ def plot_notch_transfer(f_hwp_by_telescope: dict, width_divisor: float, path) ->
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     save_figure(fig, path)
+
+
+def plot_notch_effect(table, channel_name, f_hwp_hz, width_divisor, path) -> None:
+    """Input CMB EE/BB with and without the notch, and the notch's transfer F_XX(ell)."""
+    ell = table["ell"].to_numpy()
+    keep = ell >= 2
+    fig, (spectra, ratio) = subplots(2, 1, figsize=(7.5, 7), sharex=True)
+    d_ell = ell * (ell + 1) / (2 * np.pi) * 1e12  # D_ell in uK^2
+    curves = (
+        ("cmb_ee_k2", "transfer_ee", "tab:blue", "CMB EE"),
+        ("cmb_bb_k2", "transfer_bb", "tab:red", "CMB BB (lensing)"),
+    )
+    for spectrum, transfer, color, label in curves:
+        spectra.loglog(ell[keep], (d_ell * table[spectrum])[keep], color=color, label=label)
+        spectra.loglog(
+            ell[keep],
+            (d_ell * table[spectrum] * table[transfer])[keep],
+            color=color,
+            ls="--",
+            label=f"{label} through the notch",
+        )
+    tensor = 0.01 * table["tensor_bb_r1_k2"] * table["transfer_bb"]
+    spectra.loglog(
+        ell[keep],
+        (d_ell * 0.01 * table["tensor_bb_r1_k2"])[keep],
+        color="tab:green",
+        label="tensor BB, r = 0.01",
+    )
+    spectra.loglog(
+        ell[keep],
+        (d_ell * tensor)[keep],
+        color="tab:green",
+        ls="--",
+        label="tensor BB, r = 0.01, through the notch",
+    )
+    spectra.set_ylabel(r"$D_\ell$ [$\mu$K$^2$]")
+    spectra.set_ylim(1e-6, None)
+    fsky = float(table["observed_fraction"].iloc[0])
+    delta_f = 4 * f_hwp_hz / width_divisor
+    spectra.set_title(
+        f"{channel_name}: CMB through the 4 f_HWP notch "
+        f"(delta f = {delta_f:.3f} Hz; measured on {100 * fsky:.0f}% of sky)"
+    )
+    spectra.legend(fontsize=7, ncol=2)
+    ratio.semilogx(ell[keep], table["transfer_ee"][keep], color="tab:blue", label="EE -> EE")
+    ratio.semilogx(ell[keep], table["transfer_bb"][keep], color="tab:red", label="BB -> BB")
+    ratio.axhline(1.0, color="gray", lw=0.8)
+    ratio.set_ylim(0, 1.2)
+    ratio.set_xlabel(r"multipole $\ell$")
+    ratio.set_ylabel(r"$F_\ell$ = $C_\ell$(notch) / $C_\ell$(no notch)")
+    ratio.legend(fontsize=8)
+    for ax in (spectra, ratio):
+        ax.grid(alpha=0.3)
+    save_figure(fig, path)

@@ -110,15 +110,21 @@ def detector_weights(simulator: PairSimulator) -> np.ndarray:
     return 1.0 / (sigma_k**2 * simulator.plan.sampling_rate_hz)
 
 
-def accumulate(simulator, settings, sky_iqu_k, g1_per_k=None) -> NormalEquations:
-    """Normal equations of the notch-filtered TOD.
+def accumulate(
+    simulator, settings, sky_iqu_k, g1_per_k=None, on_chunk=None, reference_iqu_k=None
+) -> NormalEquations:
+    """Normal equations of the filtered TOD (F = notch after HWP-harmonic removal).
 
     g1_per_k None: the linear decomposition, TODs [F d, F d_0^2, F d_1^2, ...];
     otherwise the direct nonlinear simulation, one TOD F (d + g1 d^2).
+    ``reference_iqu_k``, if given, adds the TOD F(scan of that map) last: the input
+    CMB through the same pointing, filter and binning, the reference of the residual.
+    ``on_chunk(samples_done, rss_mb)`` is called after each chunk (benchmarks).
     """
     n_det = simulator.n_detectors
     linear = g1_per_k is None
-    equations = NormalEquations(settings.nside, 1 + n_det if linear else 1)
+    n_tods = (1 + n_det if linear else 1) + (reference_iqu_k is not None)
+    equations = NormalEquations(settings.nside, n_tods)
     weights = detector_weights(simulator)
     peak_rss_mb = 0.0
     for pointing, inner, tod in chunk_tods(simulator, settings, sky_iqu_k):
@@ -129,7 +135,11 @@ def accumulate(simulator, settings, sky_iqu_k, g1_per_k=None) -> NormalEquations
             owners = [None, *range(n_det)]
         else:
             nonlinear = tod + np.asarray(g1_per_k)[:, None] * tod**2
-            tods, owners = [filter_tod(nonlinear, pointing, inner, simulator, settings)], None
+            tods, owners = [filter_tod(nonlinear, pointing, inner, simulator, settings)], [None]
+        if reference_iqu_k is not None:
+            reference = simulator.scan_sky(pointing, reference_iqu_k)
+            tods.append(filter_tod(reference, pointing, inner, simulator, settings))
+            owners.append(None)
         equations.add(
             pointing.pixels[:, inner],
             pointing.cos_2alpha[:, inner],
@@ -139,7 +149,10 @@ def accumulate(simulator, settings, sky_iqu_k, g1_per_k=None) -> NormalEquations
             tods,
             owners,
         )
-        peak_rss_mb = max(peak_rss_mb, psutil.Process().memory_info().rss / 2**20)
+        rss_mb = psutil.Process().memory_info().rss / 2**20
+        peak_rss_mb = max(peak_rss_mb, rss_mb)
+        if on_chunk is not None:
+            on_chunk(inner.stop - inner.start, rss_mb)
     log.info(
         "%s seed %d: peak RSS during chunks %.0f MB",
         simulator.channel.name,
@@ -150,11 +163,14 @@ def accumulate(simulator, settings, sky_iqu_k, g1_per_k=None) -> NormalEquations
 
 
 def write_pair_maps(path, equations: NormalEquations, settings, simulator, metadata: dict) -> None:
-    """HDF5: nosys (3, npix), templates (n_det, 3, npix), hits, condition [K_CMB]."""
+    """HDF5 [K_CMB]: nosys (3, npix), templates (n_det, 3, npix), cmb_reference (3, npix)
+    (the input CMB alone through the same pointing, filter and binning), hits, condition."""
     maps, condition, good = solve_maps(equations, settings.max_condition_number)
+    n_det = simulator.n_detectors
     with atomic_path(path) as temporary, h5py.File(temporary, "w") as out:
         out.create_dataset("nosys", data=maps[0])
-        out.create_dataset("templates", data=maps[1:])
+        out.create_dataset("templates", data=maps[1 : 1 + n_det])
+        out.create_dataset("cmb_reference", data=maps[1 + n_det])
         out.create_dataset("hits", data=equations.hits)
         out.create_dataset("condition", data=condition)
         out.attrs.update(
@@ -222,7 +238,7 @@ def run(
         a2_k_cmb,
         len(settings.plan.chunks()),
     )
-    equations = accumulate(simulator, settings, cmb + foreground)
+    equations = accumulate(simulator, settings, cmb + foreground, reference_iqu_k=cmb)
     write_pair_maps(
         out_h5, equations, settings, simulator, {"foreground_source": foreground_source}
     )

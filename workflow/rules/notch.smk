@@ -1,0 +1,15 @@
+rule notch_effect:
+    """Noise-free CMB TOD of figures.tod_channel binned with and without the 4f notch: the
+    filter's transfer function on the sky's EE and BB spectra. No wildcards."""
+    output:
+        spectra=expand(paths.NOTCH_SPECTRA, channel=config["figures"]["tod_channel"]),
+        figure=expand(paths.FIG_NOTCH_BB, channel=config["figures"]["tod_channel"]),
+    params:
+        config=simulation_config(),
+        channel=config["figures"]["tod_channel"],
+    log:
+        paths.log("notch_effect"),
+    benchmark:
+        paths.benchmark("notch_effect")
+    script:
+        "../scripts/notch_effect.py"

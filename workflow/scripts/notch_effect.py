@@ -1,0 +1,12 @@
+"""Rule notch_effect: the notch's transfer function on the CMB EE/BB spectra."""
+
+from hwp_tes_systematics.io import setup_logging
+from hwp_tes_systematics.stages import notch_effect
+
+setup_logging(snakemake.log[0])
+notch_effect.run(
+    snakemake.params.config,
+    snakemake.params.channel,
+    out_csv=snakemake.output.spectra[0],
+    out_png=snakemake.output.figure[0],
+)
