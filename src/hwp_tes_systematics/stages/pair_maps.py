@@ -111,19 +111,20 @@ def detector_weights(simulator: PairSimulator) -> np.ndarray:
 
 
 def accumulate(
-    simulator, settings, sky_iqu_k, g1_per_k=None, on_chunk=None, reference_iqu_k=None
+    simulator, settings, sky_iqu_k, g1_per_k=None, on_chunk=None, references_iqu_k=()
 ) -> NormalEquations:
     """Normal equations of the filtered TOD (F = notch after HWP-harmonic removal).
 
     g1_per_k None: the linear decomposition, TODs [F d, F d_0^2, F d_1^2, ...];
     otherwise the direct nonlinear simulation, one TOD F (d + g1 d^2).
-    ``reference_iqu_k``, if given, adds the TOD F(scan of that map) last: the input
-    CMB through the same pointing, filter and binning, the reference of the residual.
+    Each map in ``references_iqu_k`` adds the TOD F(scan of that map) at the end: a
+    sky component alone (input CMB, foregrounds) through the same pointing, filter and
+    binning, the references of the component-separation residuals.
     ``on_chunk(samples_done, rss_mb)`` is called after each chunk (benchmarks).
     """
     n_det = simulator.n_detectors
     linear = g1_per_k is None
-    n_tods = (1 + n_det if linear else 1) + (reference_iqu_k is not None)
+    n_tods = (1 + n_det if linear else 1) + len(references_iqu_k)
     equations = NormalEquations(settings.nside, n_tods)
     weights = detector_weights(simulator)
     peak_rss_mb = 0.0
@@ -136,7 +137,7 @@ def accumulate(
         else:
             nonlinear = tod + np.asarray(g1_per_k)[:, None] * tod**2
             tods, owners = [filter_tod(nonlinear, pointing, inner, simulator, settings)], [None]
-        if reference_iqu_k is not None:
+        for reference_iqu_k in references_iqu_k:
             reference = simulator.scan_sky(pointing, reference_iqu_k)
             tods.append(filter_tod(reference, pointing, inner, simulator, settings))
             owners.append(None)
@@ -163,14 +164,16 @@ def accumulate(
 
 
 def write_pair_maps(path, equations: NormalEquations, settings, simulator, metadata: dict) -> None:
-    """HDF5 [K_CMB]: nosys (3, npix), templates (n_det, 3, npix), cmb_reference (3, npix)
-    (the input CMB alone through the same pointing, filter and binning), hits, condition."""
+    """HDF5 [K_CMB]: nosys (3, npix), templates (n_det, 3, npix), cmb_reference and
+    foreground_reference (3, npix) (each sky component alone through the same pointing,
+    filter and binning), hits, condition."""
     maps, condition, good = solve_maps(equations, settings.max_condition_number)
     n_det = simulator.n_detectors
     with atomic_path(path) as temporary, h5py.File(temporary, "w") as out:
         out.create_dataset("nosys", data=maps[0])
         out.create_dataset("templates", data=maps[1 : 1 + n_det])
         out.create_dataset("cmb_reference", data=maps[1 + n_det])
+        out.create_dataset("foreground_reference", data=maps[2 + n_det])
         out.create_dataset("hits", data=equations.hits)
         out.create_dataset("condition", data=condition)
         out.attrs.update(
@@ -238,7 +241,9 @@ def run(
         a2_k_cmb,
         len(settings.plan.chunks()),
     )
-    equations = accumulate(simulator, settings, cmb + foreground, reference_iqu_k=cmb)
+    equations = accumulate(
+        simulator, settings, cmb + foreground, references_iqu_k=(cmb, foreground)
+    )
     write_pair_maps(
         out_h5, equations, settings, simulator, {"foreground_source": foreground_source}
     )
