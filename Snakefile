@@ -10,6 +10,7 @@ configfile: "config/config.yaml"
 
 from hwp_tes_systematics import paths
 from hwp_tes_systematics.config import check_config, selected_channels
+from hwp_tes_systematics.systematics import case_names
 
 check_config(config, source="Snakemake config")
 
@@ -22,6 +23,10 @@ include: "workflow/rules/sky.smk"
 include: "workflow/rules/maps.smk"
 include: "workflow/rules/tod_figures.smk"
 include: "workflow/rules/notch.smk"
+include: "workflow/rules/component_separation.smk"
+include: "workflow/rules/spectra.smk"
+include: "workflow/rules/likelihood.smk"
+include: "workflow/rules/requirement.smk"
 
 
 rule all:
@@ -33,6 +38,6 @@ rule all:
         paths.FIG2_HWP_DIFFERENTIAL,
         paths.FIG3_HWP_EMISSION,
         paths.FIG4_TES_RESPONSE,
-        expand(paths.PAIR_MAPS, channel=CHANNELS, seed=SEEDS),
+        paths.REQUIREMENT,
         rules.tod_figures.output,
         rules.notch_effect.output,

@@ -108,6 +108,12 @@ def check_config(config: dict, source: str = "configuration") -> None:
             f"{source}: instrument.systematics_channels {outside} are not among "
             f"instrument.channels {channels}"
         )
+    spectra_lmax = config["component_separation"]["lmax"] or 2 * config["maps"]["nside"]
+    if config["likelihood"]["lmax"] > spectra_lmax:
+        raise ConfigError(
+            f"{source}: likelihood.lmax = {config['likelihood']['lmax']} exceeds the spectra's "
+            f"lmax = {spectra_lmax} (component_separation.lmax, default 2 maps.nside)"
+        )
     if config["tes"]["tbath_k"] >= config["tes"]["tc_k"]:
         raise ConfigError(
             f"{source}: tes.tbath_k = {config['tes']['tbath_k']} must be below "

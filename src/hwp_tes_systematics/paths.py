@@ -21,6 +21,14 @@ PAIR_MAPS = f"{RESULTS}/maps/{{channel}}/seed{{seed}}.h5"
 # Stage: TOD figures and an example recording in litebird_sim's HDF5 format
 TOD_SAMPLE = f"{RESULTS}/tod/{{channel}}_sample.h5"
 
+# Stages: component separation, spectra, likelihood, requirement (per seed and case)
+HILC = f"{RESULTS}/hilc/seed{{seed}}/{{case}}.h5"
+RESIDUAL_SPECTRA = f"{RESULTS}/spectra/seed{{seed}}/{{case}}.csv"
+NOISE_MODEL = f"{RESULTS}/spectra/noise_model.csv"
+LIKELIHOOD = f"{RESULTS}/likelihood/seed{{seed}}/{{case}}.json"
+DELTA_R_TABLE = f"{RESULTS}/delta_r.csv"
+REQUIREMENT = f"{RESULTS}/requirement.json"
+
 # Figures (numbered as in the paper)
 FIG1_HWP_CURVES = f"{RESULTS}/figures/fig1_hwp_absorption_transmission.png"
 FIG2_HWP_DIFFERENTIAL = f"{RESULTS}/figures/fig2_hwp_differential_power.png"
@@ -31,6 +39,8 @@ FIG6_TOD_SPECTRA = f"{RESULTS}/figures/fig6_tod_spectra_{{channel}}.png"
 FIG_NOTCH_TRANSFER = f"{RESULTS}/figures/notch_transfer_function.png"
 FIG_NOTCH_BB = f"{RESULTS}/figures/notch_effect_on_cmb_{{channel}}.png"
 NOTCH_SPECTRA = f"{RESULTS}/maps/notch_effect_{{channel}}.csv"
+FIG7_LIKELIHOODS = f"{RESULTS}/figures/fig7_likelihoods.png"
+FIG8_REQUIREMENT = f"{RESULTS}/figures/fig8_requirement.png"
 
 
 def log(rule: str, wildcards: str = "") -> str:

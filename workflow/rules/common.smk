@@ -10,6 +10,7 @@ def hwp_curve_files():
 wildcard_constraints:
     channel="[LMH][1-4]-[0-9]{3}",
     seed=r"\d+",
+    case=r"nosys|sigma[0-9.]+e[-+]?[0-9]+",
 
 
 CHANNELS = selected_channels(config)
@@ -31,3 +32,28 @@ def pair_maps_mem_mb(wildcards, attempt):
     chunk_mb = 2 * samples * 8 * 40 / 2**20  # ~40 doubles per detector-sample in flight
     maps_mb = 12 * config["maps"]["nside"] ** 2 * 8 * 20 / 2**20
     return int(1500 + chunk_mb + maps_mb) * attempt
+
+
+CASES = case_names(config["requirement"]["sigma_g1_per_k"])
+
+
+def analysis_config():
+    """The config sections the map-level analysis depends on."""
+    keys = ("master_seed", "instrument", "maps", "component_separation", "requirement")
+    return {key: config[key] for key in keys}
+
+
+def channel_maps_of_seed(wildcards):
+    """{channel: maps file} of realization ``seed`` for all channels."""
+    return {
+        channel: paths.PAIR_MAPS.format(channel=channel, seed=wildcards.seed)
+        for channel in CHANNELS
+    }
+
+
+def spectra_of_seed(wildcards):
+    """{case: residual spectra file} of realization ``seed``."""
+    return {
+        case: paths.RESIDUAL_SPECTRA.format(seed=wildcards.seed, case=case)
+        for case in CASES
+    }

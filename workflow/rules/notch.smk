@@ -4,12 +4,12 @@ rule notch_effect:
     output:
         spectra=expand(paths.NOTCH_SPECTRA, channel=config["figures"]["tod_channel"]),
         figure=expand(paths.FIG_NOTCH_BB, channel=config["figures"]["tod_channel"]),
-    params:
-        config=simulation_config(),
-        channel=config["figures"]["tod_channel"],
     log:
         paths.log("notch_effect"),
     benchmark:
         paths.benchmark("notch_effect")
+    params:
+        config=simulation_config(),
+        channel=config["figures"]["tod_channel"],
     script:
         "../scripts/notch_effect.py"

@@ -1,0 +1,135 @@
+"""Result figures: likelihoods of r (cf. Fig. 7 of the study) and the requirement (cf. Fig. 8)."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+
+from . import save_figure, subplots
+
+X_RANGE_OVER_R68 = 3.0  # the likelihood panel extends to this many times the largest r68
+
+
+def sigma_label(sigma_g1_per_k: float | None) -> str:
+    """Legend label of a sigma_g1 [1/K] value; None or 0: no systematics."""
+    if sigma_g1_per_k is None or sigma_g1_per_k == 0:
+        return "no systematics"
+    return f"sigma_g1 = {sigma_g1_per_k:.0e} K^-1"
+
+
+def plot_likelihoods(
+    r_grid,
+    curves: Mapping[str, np.ndarray],
+    r68: Mapping[str, float],
+    path: str | os.PathLike,
+    fraction: float = 0.68,
+) -> Path:
+    """Normalised likelihoods L(r) (each scaled to a peak of 1) with their 68 % points.
+
+    ``r_grid``: common grid of r; ``curves``: {label: L(r) on r_grid} (e.g. one per
+    sigma_g1, labels from :func:`sigma_label`, and "no systematics"); ``r68``: {label: r}
+    marked with a dotted vertical line of the curve's colour. x from 0 to
+    ``X_RANGE_OVER_R68`` times the largest r68. Writes the PNG atomically; returns its path.
+    """
+    path = Path(path)
+    r_grid = np.asarray(r_grid, dtype=float)
+    figure, axis = subplots(figsize=(7.0, 4.5))
+    for index, (label, curve) in enumerate(curves.items()):
+        curve = np.asarray(curve, dtype=float)
+        if curve.shape != r_grid.shape:
+            raise ValueError(f"curve {label!r}: shape {curve.shape}, r_grid {r_grid.shape}")
+        color = f"C{index % 10}"
+        peak = np.max(curve)
+        scaled = curve / peak if peak > 0 else curve
+        value = r68.get(label)
+        text = label if value is None else f"{label} (r{100 * fraction:.0f} = {value:.3g})"
+        axis.plot(r_grid, scaled, color=color, label=text)
+        if value is not None:
+            axis.axvline(value, color=color, linestyle=":", linewidth=1.2)
+    finite = [float(v) for v in r68.values() if v is not None and np.isfinite(v) and v > 0]
+    x_max = X_RANGE_OVER_R68 * max(finite) if finite else float(r_grid[-1])
+    axis.set_xlim(0.0, min(x_max, float(r_grid[-1])))
+    axis.set_ylim(0.0, 1.08)
+    axis.set_xlabel("tensor-to-scalar ratio r")
+    axis.set_ylabel("L(r) / max L")
+    axis.set_title(f"Likelihood of r; dotted: {100 * fraction:.0f} % points")
+    axis.ticklabel_format(axis="x", style="sci", scilimits=(-3, 3))
+    axis.grid(alpha=0.3)
+    axis.legend(fontsize="small")
+    save_figure(figure, path)
+    return path
+
+
+def plot_requirement(
+    sigma,
+    mean,
+    std,
+    k: float,
+    exponent: float,
+    budget: float,
+    requirement: float | None,
+    path: str | os.PathLike,
+    *,
+    exponent_sigma: float | None = None,
+) -> Path:
+    """Mean delta r over seeds versus sigma_g1 [1/K] (log-log), cf. Fig. 8 of the study.
+
+    Error bars: ``std`` (scatter of delta r across seeds; NaN drawn without bar, and
+    clipped so the lower end stays > 0 on the log axis); dashed: the quadratic fit
+    k sigma^2 (k in K^2); solid black: the ``budget`` (paper: 6.5e-6,
+    ``requirement.DELTA_R_BUDGET``); the requirement sigma (None: sqrt(budget / k))
+    marked by a vertical line and its value; the free power-law exponent (and
+    ``exponent_sigma``, if given) in the legend. Points with sigma <= 0 or mean <= 0 are
+    not drawn. Writes the PNG atomically; returns its path.
+    """
+    path = Path(path)
+    sigma = np.asarray(sigma, dtype=float)
+    mean = np.asarray(mean, dtype=float)
+    std = np.nan_to_num(np.asarray(std, dtype=float), nan=0.0)
+    if not sigma.shape == mean.shape == std.shape:
+        raise ValueError("sigma, mean and std must have the same shape")
+    if requirement is None:
+        requirement = float(np.sqrt(budget / k))
+    keep = (sigma > 0) & (mean > 0) & np.isfinite(mean)
+    sigma, mean, std = sigma[keep], mean[keep], std[keep]
+
+    figure, axis = subplots(figsize=(7.0, 4.8))
+    lower = np.minimum(std, 0.999 * mean)  # keep the bar's lower end on the log axis
+    exponent_text = f"{exponent:.3f}"
+    if exponent_sigma is not None and np.isfinite(exponent_sigma):
+        exponent_text += f" +- {exponent_sigma:.3f}"
+    axis.errorbar(
+        sigma,
+        mean,
+        yerr=[lower, std],
+        fmt="o",
+        color="C0",
+        capsize=3,
+        label=f"mean delta r over seeds (+- std); power-law exponent {exponent_text}",
+    )
+    span = np.array([sigma.min(), sigma.max(), requirement]) if sigma.size else [requirement]
+    x = np.logspace(np.log10(np.min(span)) - 0.3, np.log10(np.max(span)) + 0.3, 200)
+    axis.plot(x, k * x**2, "--", color="C0", label=f"quadratic fit k sigma^2, k = {k:.3g} K^2")
+    axis.axhline(budget, color="k", linestyle="-", label=f"budget delta r = {budget:.2g}")
+    axis.axvline(requirement, color="C3", linestyle=":", linewidth=1.5)
+    axis.text(
+        requirement,
+        budget,
+        f"  sigma_g1 < {requirement:.2g} K^-1",
+        color="C3",
+        va="top",
+        ha="left",
+    )
+    axis.set_xscale("log")
+    axis.set_yscale("log")
+    axis.set_xlim(x[0], x[-1])
+    axis.set_xlabel("sigma_g1 [K^-1]")
+    axis.set_ylabel("mean delta r = |r_sys - r_nosys|")
+    axis.set_title("Bias on r versus the nonlinearity spread")
+    axis.grid(alpha=0.3, which="both")
+    axis.legend(fontsize="small", loc="upper left")
+    save_figure(figure, path)
+    return path

@@ -1,0 +1,62 @@
+"""The sigma_g1 cases of the study and the g1 draws, applied to the linear map model.
+
+For realization ``seed``, detector k of a systematics channel gets g1_k = sigma z_k with
+z_k ~ N(0, 1) drawn from the stream ("g1", channel, seed, detector) of the master seed:
+the same z_k for every sigma, so each realization's bias scales exactly as sigma^2
+wherever the map response is linear. The map of a channel is then
+
+    m(sigma) = m_nosys + sigma sum_k z_k T_k.
+
+Cases are named "nosys" (g1 = 0) and "sigma<value>" (e.g. "sigma1e-3", "sigma2.5e-3").
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from . import seeding
+
+NOSYS = "nosys"
+
+
+def case_name(sigma_g1_per_k: float) -> str:
+    """'sigma1e-3' for 1e-3 K^-1, 'sigma2.5e-3' for 2.5e-3 K^-1 (two significant digits)."""
+    return f"sigma{sigma_g1_per_k:.1e}".replace("e-0", "e-").replace(".0e", "e")
+
+
+def case_names(sigma_grid_per_k) -> list[str]:
+    """'nosys' followed by one case per sigma of the grid."""
+    return [NOSYS, *(case_name(sigma) for sigma in sigma_grid_per_k)]
+
+
+def sigma_of_case(case: str, sigma_grid_per_k) -> float:
+    """sigma_g1 [1/K] of a case name (0 for nosys); ValueError if not on the grid."""
+    if case == NOSYS:
+        return 0.0
+    for sigma in sigma_grid_per_k:
+        if case_name(sigma) == case:
+            return float(sigma)
+    raise ValueError(f"case {case!r}: not 'nosys' nor one of {case_names(sigma_grid_per_k)}")
+
+
+def unit_g1_draws(master_seed: int, channel: str, seed: int, detectors) -> np.ndarray:
+    """z_k ~ N(0, 1), one per detector, from the stream ("g1", channel, seed, detector)."""
+    return np.array(
+        [
+            seeding.rng(master_seed, "g1", channel, seed, name).standard_normal()
+            for name in detectors
+        ]
+    )
+
+
+def maps_for_sigma(nosys: np.ndarray, templates: np.ndarray, unit_draws, sigma_g1_per_k: float):
+    """m = m_nosys + sigma sum_k z_k T_k (3, npix) [K_CMB]; unobserved pixels stay UNSEEN."""
+    if sigma_g1_per_k == 0.0:
+        return nosys.copy()
+    import healpy as hp
+
+    seen = nosys[0] != hp.UNSEEN
+    out = nosys.copy()
+    contamination = np.tensordot(np.asarray(unit_draws, dtype=float), templates, axes=1)
+    out[:, seen] += sigma_g1_per_k * contamination[:, seen]
+    return out

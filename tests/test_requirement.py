@@ -1,0 +1,139 @@
+"""Requirement on sigma_g1: delta r, summaries over seeds, quadratic and power-law fits,
+edge cases, and the Fig. 8 figure."""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from hwp_tes_systematics import requirement as rq
+from hwp_tes_systematics.figures.results import plot_requirement
+
+SIGMAS = np.logspace(-4, -1, 4)  # the paper's sigma_g1 grid [1/K]
+K_PAPER = 6.5e-6 / 2e-3**2  # the k [K^2] giving the paper's requirement 2e-3 K^-1
+
+
+def test_delta_r():
+    assert rq.delta_r([0.1, 0.2], [0.3, 0.1]) == pytest.approx([0.2, 0.1])
+    assert rq.delta_r(1e-3, 1e-3) == 0.0
+
+
+def test_summarise_dataframe_and_mapping():
+    table = pd.DataFrame(
+        {
+            "sigma_g1": [1e-3, 1e-3, 1e-3, 1e-2, 1e-2, 0.0],
+            "seed": [0, 1, 2, 0, 1, 0],
+            "delta_r": [1.0, 2.0, 3.0, 10.0, 14.0, 0.5],
+        }
+    )
+    summary = rq.summarise(table)
+    assert list(summary.columns) == list(rq.SUMMARY_COLUMNS)
+    assert summary["sigma_g1"].tolist() == [0.0, 1e-3, 1e-2]
+    row = summary.iloc[1]
+    assert row["mean_delta_r"] == pytest.approx(2.0)
+    assert row["std_delta_r"] == pytest.approx(1.0)  # sample std (ddof = 1)
+    assert row["sem_delta_r"] == pytest.approx(1.0 / np.sqrt(3))
+    assert row["n_seeds"] == 3
+    assert np.isnan(summary.iloc[0]["std_delta_r"])  # one seed
+    same = rq.summarise({1e-2: [10.0, 14.0], 1e-3: [1.0, 2.0, 3.0], 0.0: 0.5})
+    pd.testing.assert_frame_equal(same, summary)
+    with pytest.raises(ValueError, match="missing columns"):
+        rq.summarise(table.drop(columns="delta_r"))
+
+
+def test_fit_quadratic_exact_and_requirement():
+    delta = K_PAPER * SIGMAS**2
+    assert rq.fit_quadratic(SIGMAS, delta) == pytest.approx(K_PAPER, rel=1e-12)
+    weights = [1.0, 4.0, 9.0, 16.0]
+    assert rq.fit_quadratic(SIGMAS, delta, weights) == pytest.approx(K_PAPER, rel=1e-12)
+    assert rq.requirement_sigma(K_PAPER) == pytest.approx(2e-3, rel=1e-12)
+    assert rq.requirement_sigma(4.0, budget=1e-2) == pytest.approx(np.sqrt(1e-2 / 4.0))
+    assert rq.DELTA_R_BUDGET == 6.5e-6
+    with pytest.raises(ValueError, match="k = "):
+        rq.requirement_sigma(0.0)
+
+
+def test_fit_quadratic_log_space_weights():
+    """Log-space fit: ln k is the weighted mean of ln(delta r / sigma^2)."""
+    ratios = np.array([1.0, 2.0, 4.0, 8.0])
+    delta = ratios * SIGMAS**2
+    assert rq.fit_quadratic(SIGMAS, delta) == pytest.approx(np.exp(np.mean(np.log(ratios))))
+    w = np.array([1.0, 0.0001, 0.0001, 0.0001])
+    assert rq.fit_quadratic(SIGMAS, delta, w) == pytest.approx(1.0, rel=1e-3)
+    w = rq.log_weights_from_sem(delta, 0.1 * delta)
+    assert np.allclose(w, 100.0)
+
+
+def test_fit_power_law_exact():
+    amplitude, exponent, exponent_sigma = rq.fit_power_law(SIGMAS, K_PAPER * SIGMAS**2)
+    assert abs(exponent - 2.0) < 1e-10
+    assert amplitude == pytest.approx(K_PAPER, rel=1e-9)
+    assert exponent_sigma < 1e-9
+    _, exponent3, _ = rq.fit_power_law(SIGMAS, 0.5 * SIGMAS**3)
+    assert exponent3 == pytest.approx(3.0, abs=1e-10)
+    _, _, two_point_sigma = rq.fit_power_law(SIGMAS[:2], SIGMAS[:2] ** 2)
+    assert np.isnan(two_point_sigma)  # no degrees of freedom left
+
+
+def test_edge_cases():
+    sigma = np.concatenate([[0.0], SIGMAS])
+    delta = np.concatenate([[1e-9], K_PAPER * SIGMAS**2])
+    # sigma = 0 (no-systematics reference) is excluded silently
+    assert rq.fit_quadratic(sigma, delta) == pytest.approx(K_PAPER, rel=1e-12)
+    bad = delta.copy()
+    bad[1] = 0.0
+    bad[2] = -1e-7
+    with pytest.warns(RuntimeWarning, match="non-positive"):
+        assert rq.fit_quadratic(sigma, bad) == pytest.approx(K_PAPER, rel=1e-12)
+    with pytest.warns(RuntimeWarning, match="non-positive"):
+        _, exponent, _ = rq.fit_power_law(sigma, bad)
+    assert exponent == pytest.approx(2.0, abs=1e-10)
+    bad[3] = np.nan
+    with pytest.warns(RuntimeWarning), pytest.raises(ValueError, match="at least 2"):
+        rq.fit_quadratic(sigma, bad)
+    with pytest.raises(ValueError, match="at least 2"):
+        rq.fit_power_law([0.0, 1e-3], [1e-9, 1e-6])
+    with pytest.raises(ValueError, match="differ"):
+        rq.fit_quadratic(SIGMAS, SIGMAS[:3])
+
+
+def test_noisy_two_seeds_finite():
+    rng = np.random.default_rng(1)
+    rows = [
+        {"sigma_g1": s, "seed": seed, "delta_r": K_PAPER * s**2 * rng.lognormal(0.0, 0.5)}
+        for s in SIGMAS
+        for seed in range(2)
+    ]
+    summary = rq.summarise(pd.DataFrame(rows))
+    assert (summary["n_seeds"] == 2).all()
+    weights = rq.log_weights_from_sem(summary["mean_delta_r"], summary["sem_delta_r"])
+    k = rq.fit_quadratic(summary["sigma_g1"], summary["mean_delta_r"], weights)
+    amplitude, exponent, exponent_sigma = rq.fit_power_law(
+        summary["sigma_g1"], summary["mean_delta_r"]
+    )
+    values = [k, amplitude, exponent, exponent_sigma, rq.requirement_sigma(k)]
+    assert np.all(np.isfinite(values))
+    assert 0.2 * K_PAPER < k < 5 * K_PAPER
+    assert abs(exponent - 2.0) < 0.3
+
+
+def test_plot_requirement(tmp_path):
+    rng = np.random.default_rng(2)
+    mean = K_PAPER * SIGMAS**2 * rng.lognormal(0.0, 0.2, SIGMAS.size)
+    std = 0.5 * mean
+    std[0] = np.nan  # one seed: no bar
+    k = rq.fit_quadratic(SIGMAS, mean)
+    _, exponent, exponent_sigma = rq.fit_power_law(SIGMAS, mean)
+    path = plot_requirement(
+        SIGMAS,
+        mean,
+        std,
+        k,
+        exponent,
+        rq.DELTA_R_BUDGET,
+        rq.requirement_sigma(k),
+        tmp_path / "sub" / "fig8.png",
+        exponent_sigma=exponent_sigma,
+    )
+    assert path.is_file() and path.stat().st_size > 1000
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert not list(path.parent.glob(".*tmp*"))  # written atomically, no leftovers
