@@ -1,5 +1,7 @@
 """Harmonic ILC: bins, beams, map -> a_lm, weights, CMB preservation, foreground removal."""
 
+import itertools
+
 import healpy as hp
 import numpy as np
 import pytest
@@ -326,3 +328,15 @@ def test_map_level_pipeline_with_beams_mask_and_unseen():
     for s in range(3):
         residual = power_in_bins(alm_cmb[s] - cmb_masked[s], bins, lmax)
         assert np.all(residual < 1e-3 * power_in_bins(fg_masked[s], bins, lmax))
+
+
+def test_low_ell_bins_are_merged_until_enough_modes():
+    from hwp_tes_systematics.hilc import merge_bins_for_modes, multipole_bins
+
+    bins = multipole_bins(2, 128, 10)
+    merged = merge_bins_for_modes(bins, fsky=0.1, n_channels=22, min_modes_per_channel=10)
+    assert merged[0][0] == 2 and merged[-1][1] == bins[-1][1]
+    for start, stop in merged:
+        assert 0.1 * sum(2 * ell + 1 for ell in range(start, stop)) >= 220
+    assert all(a[1] == b[0] for a, b in itertools.pairwise(merged))  # contiguous
+    assert merge_bins_for_modes(bins, 1.0, 1, 1) == bins  # nothing to merge

@@ -438,3 +438,28 @@ def apply_ilc(alms_components: np.ndarray, weights: np.ndarray, bins, lmax: int)
     if weights.ndim != 3 or weights.shape[0] != N_STOKES:
         raise ValueError(f"weights of shape {weights.shape}: expected (3, n_bins, n_channels)")
     return np.array([apply_weights(alms[:, s], weights[s], bins, lmax) for s in range(N_STOKES)])
+
+
+def merge_bins_for_modes(bins, fsky: float, n_channels: int, min_modes_per_channel: float):
+    """Merge consecutive bins, from the lowest ell up, until each holds at least
+    ``min_modes_per_channel x n_channels`` effective modes, f_sky sum (2 ell + 1).
+
+    With N effective modes the empirical covariance of n channels biases the ILC by
+    ~ -(n - 1) / N (Delabrouille et al. 2009) and makes its weights noisy: on a small
+    sky fraction the lowest bins need to be wide. A short last bin joins the one before.
+    """
+    bins = _check_bins(bins)
+    needed = min_modes_per_channel * n_channels
+    merged: list[tuple[int, int]] = []
+    start = bins[0][0]
+    for _, stop in bins:
+        modes = fsky * sum(2 * ell + 1 for ell in range(start, stop))
+        if modes >= needed:
+            merged.append((start, stop))
+            start = stop
+    if start < bins[-1][1]:
+        if merged:
+            merged[-1] = (merged[-1][0], bins[-1][1])
+        else:
+            merged.append((start, bins[-1][1]))
+    return merged

@@ -50,3 +50,5 @@ def setup_logging(log_path: str | Path | None = None, level: int = logging.INFO)
         Path(log_path).parent.mkdir(parents=True, exist_ok=True)
         handlers.append(logging.FileHandler(log_path, mode="w"))
     logging.basicConfig(level=level, format=LOG_FORMAT, handlers=handlers, force=True)
+    for chatty in ("healpy", "numba", "matplotlib"):
+        logging.getLogger(chatty).setLevel(logging.WARNING)

@@ -25,7 +25,7 @@ TOD_SAMPLE = f"{RESULTS}/tod/{{channel}}_sample.h5"
 HILC = f"{RESULTS}/hilc/seed{{seed}}/{{case}}.h5"
 RESIDUAL_SPECTRA = f"{RESULTS}/spectra/seed{{seed}}/{{case}}.csv"
 NOISE_MODEL = f"{RESULTS}/spectra/noise_model.csv"
-LIKELIHOOD = f"{RESULTS}/likelihood/seed{{seed}}/{{case}}.json"
+LIKELIHOOD = f"{RESULTS}/likelihood/seed{{seed}}.json"
 DELTA_R_TABLE = f"{RESULTS}/delta_r.csv"
 REQUIREMENT = f"{RESULTS}/requirement.json"
 

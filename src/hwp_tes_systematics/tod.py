@@ -237,8 +237,11 @@ class PairSimulator:
             )
         return tod
 
-    def noise(self, pointing: ChunkPointing, master_seed: int, seed: int, chunk: int):
-        """White + 1/f noise [K_CMB] from the detector NET, fknee, alpha (litebird_sim)."""
+    def noise(
+        self, pointing: ChunkPointing, master_seed: int, seed: int, chunk: int, scale: float = 1.0
+    ):
+        """White + 1/f noise [K_CMB] from the detector NET, fknee, alpha (litebird_sim),
+        times ``scale`` (1 = the instrument model's noise)."""
         import litebird_sim as lbs
 
         observation = pointing.observation
@@ -247,5 +250,7 @@ class PairSimulator:
             seeding.rng(master_seed, "noise", self.channel.name, seed, chunk, name)
             for name in self.detector_names
         ]
-        lbs.add_noise_to_observations(observation, "one_over_f", dets_random=generators)
+        lbs.add_noise_to_observations(
+            observation, "one_over_f", dets_random=generators, scale=scale
+        )
         return observation.tod.copy()

@@ -5,9 +5,11 @@ rule hwp_power:
         curves=hwp_curve_files(),
     output:
         table=paths.HWP_POWER_TABLE,
-        fig_curves=paths.FIG1_HWP_CURVES,
-        fig_differential=paths.FIG2_HWP_DIFFERENTIAL,
-        fig_emission=paths.FIG3_HWP_EMISSION,
+        fig_curves=report(paths.FIG1_HWP_CURVES, category="1. Physical inputs"),
+        fig_differential=report(
+            paths.FIG2_HWP_DIFFERENTIAL, category="1. Physical inputs"
+        ),
+        fig_emission=report(paths.FIG3_HWP_EMISSION, category="1. Physical inputs"),
     log:
         paths.log("hwp_power"),
     params:

@@ -3,7 +3,10 @@ rule notch_effect:
     filter's transfer function on the sky's EE and BB spectra. No wildcards."""
     output:
         spectra=expand(paths.NOTCH_SPECTRA, channel=config["figures"]["tod_channel"]),
-        figure=expand(paths.FIG_NOTCH_BB, channel=config["figures"]["tod_channel"]),
+        figure=report(
+            expand(paths.FIG_NOTCH_BB, channel=config["figures"]["tod_channel"]),
+            category="2. TOD and maps",
+        ),
     log:
         paths.log("notch_effect"),
     benchmark:

@@ -6,8 +6,8 @@ rule requirement:
     output:
         table=paths.DELTA_R_TABLE,
         requirement=paths.REQUIREMENT,
-        fig_likelihoods=paths.FIG7_LIKELIHOODS,
-        fig_requirement=paths.FIG8_REQUIREMENT,
+        fig_likelihoods=report(paths.FIG7_LIKELIHOODS, category="3. Requirement"),
+        fig_requirement=report(paths.FIG8_REQUIREMENT, category="3. Requirement"),
     log:
         paths.log("requirement"),
     params:

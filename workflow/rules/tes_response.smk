@@ -5,7 +5,7 @@ rule tes_response:
         kw_conversion=paths.KW_CONVERSION_TABLE,
     output:
         table=paths.TES_RESPONSE_TABLE,
-        figure=paths.FIG4_TES_RESPONSE,
+        figure=report(paths.FIG4_TES_RESPONSE, category="1. Physical inputs"),
     log:
         paths.log("tes_response"),
     params:

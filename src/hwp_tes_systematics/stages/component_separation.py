@@ -82,11 +82,16 @@ def run(config: dict, seed: int, case: str, map_paths: dict[str, str], out_h5: s
     data_alms = alms_of("data")
     cmb_alms = alms_of("cmb_reference")
     foreground_alms = alms_of("foreground_reference")
-    bins = hilc.multipole_bins(settings["lmin"], lmax, settings["bin_width"])
+    fractions = spectra.fsky_weights(mask)
+    bins = hilc.merge_bins_for_modes(
+        hilc.multipole_bins(settings["lmin"], lmax, settings["bin_width"]),
+        fractions["fsky"],
+        len(names),
+        settings["min_modes_per_channel"],
+    )
     _, weights = hilc.harmonic_ilc(data_alms, bins, lmax)
     residual = hilc.apply_ilc(data_alms - cmb_alms, weights, bins, lmax)
     foreground_residual = hilc.apply_ilc(foreground_alms, weights, bins, lmax)
-    fractions = spectra.fsky_weights(mask)
     with atomic_path(out_h5) as temporary, h5py.File(temporary, "w") as out:
         out.create_dataset("residual_alm", data=residual)
         out.create_dataset("foreground_residual_alm", data=foreground_residual)

@@ -46,6 +46,7 @@ class PairMapSettings:
     notch_margin_s: float
     max_condition_number: float
     removed_hwp_harmonics: tuple[int, ...] = (2,)
+    noise_scale: float = 1.0
     threads: int = 1
 
     @classmethod
@@ -66,6 +67,7 @@ class PairMapSettings:
             notch_margin_s=config["notch"]["margin_s"],
             max_condition_number=config["maps"]["max_condition_number"],
             removed_hwp_harmonics=tuple(config["maps"]["removed_hwp_harmonics"]),
+            noise_scale=simulation["noise_scale"],
             threads=threads,
         )
 
@@ -84,7 +86,9 @@ def chunk_tods(
             simulator.scan_sky(pointing, sky_iqu_k)
             + simulator.dipole(pointing)
             + simulator.hwpss(pointing, settings.a2_k_cmb)
-            + simulator.noise(pointing, settings.master_seed, settings.seed, chunk)
+            + simulator.noise(
+                pointing, settings.master_seed, settings.seed, chunk, settings.noise_scale
+            )
         )
         yield pointing, slice(margin, margin + n_samples), tod
 
@@ -187,6 +191,7 @@ def write_pair_maps(path, equations: NormalEquations, settings, simulator, metad
                 "detectors": simulator.detector_names,
                 "pol_angles_rad": simulator.pol_angles_rad,
                 "a2_k_cmb": settings.a2_k_cmb,
+                "noise_scale": settings.noise_scale,
                 "duration_s": settings.plan.duration_s,
                 "observed_fraction": float(good.mean()),
                 "model": "m(g1) = nosys + sum_k g1_k templates[k]; g1 in 1/K",

@@ -48,7 +48,9 @@ def sample_tod(config: dict, channel_name: str, a2_k_cmb: float, hours: float):
         simulator.scan_sky(pointing, sky_maps["total"])
         + simulator.dipole(pointing)
         + simulator.hwpss(pointing, a2_k_cmb)
-        + simulator.noise(pointing, config["master_seed"], 0, 0)
+        + simulator.noise(
+            pointing, config["master_seed"], 0, 0, config["simulation"]["noise_scale"]
+        )
     )
     return np.arange(plan.n_samples) / plan.sampling_rate_hz, tod, channel
 
