@@ -223,15 +223,17 @@ def sky_to_detector_efficiency(channel, curves: HwpCurves, elements: list[Optica
 # Assumed curves for the MFT and HFT metal-mesh HWPs (the paper shows them only as
 # plots). Shape: dielectric (polypropylene) loss gives absorption a = 2 pi n tan(delta)
 # d nu / c, linear in frequency; the capacitive axis, whose field concentrates in the
-# dielectric between patches, absorbs about twice the inductive one. Reflection is a
-# residual anti-reflection ripple; the capacitive axis reflects less by 90 % of its
+# dielectric between patches, absorbs about twice the inductive one. The HFT plate is
+# thinner in proportion to its design wavelength, so both plates absorb the same at their
+# own reference frequency (150 and 300 GHz). Reflection is a residual anti-reflection
+# ripple; the capacitive axis reflects less by 90 % of its
 # extra absorption, so the differential transmission is ~10 % of the differential
 # absorption and Delta P is dominated by emission, as the paper states for MHFT.
 ASSUMED_HWP_DESIGNS = {
     # telescope: (f_min, f_max, step [GHz], nu_ref [GHz], a_ind(nu_ref), a_cap(nu_ref),
     #             mean reflection, ripple amplitude, ripple period [GHz])
     "MFT": (70.0, 270.0, 1.0, 150.0, 0.010, 0.020, 0.03, 0.01, 60.0),
-    "HFT": (150.0, 520.0, 2.0, 300.0, 0.015, 0.030, 0.04, 0.01, 120.0),
+    "HFT": (150.0, 520.0, 2.0, 300.0, 0.010, 0.020, 0.04, 0.01, 120.0),
 }
 CAPACITIVE_REFLECTION_COMPENSATION = 0.9
 

@@ -1,0 +1,461 @@
+"""Catalog of candidate effects: forward models of physics the nominal simulation leaves out.
+
+Every effect acts on the nominal TOD of each detector k (see :mod:`.model`),
+
+    d_nom = I(p) + rho (Q cos 2a + U sin 2a) + D + A_2 cos(2 (chi - theta_k)),
+
+and has named per-detector parameters with units. ``templates(ctx)`` returns T of shape
+(n_det, n_param, n) such that, to first order, recording - d_nom = sum_j p_j T_j
+(exactly so for the effects whose ``kind`` is "linear"); ``apply(ctx, params, tod)`` is
+the full forward model used to inject the effect into a simulated recording (the SAME
+equations the diagnosis fits). Legendre polynomials P_j(x) run over the recording,
+x = 2 (t - t0) / (t_end - t0) - 1.
+
+========================  ===================================  =========================================  ==================================================
+effect                    model (parameters, units)            signature                                  told apart from look-alikes by
+========================  ===================================  =========================================  ==================================================
+tes_nonlinearity          d + g1 d^2 + g2 d^3 on the total     4 f_HWP line g1 A_2^2 / 2 with a DC        the 4f line comes WITH a DC shift g1 A_2^2 / 2 and
+                          signal; g1 [1/K], g2 [1/K^2]         shift g1 A_2^2 / 2; 2 f_HWP +- f_dipole    2 f_HWP +- f_spin sidebands 2 g1 A_2 D (the HWPSS
+                                                               lines 2 g1 A_2 D (written g1 A_2 D for     mixing with the dipole); g2 adds a 6 f_HWP line
+                                                               the paper's one-sided amplitude); 6 f      g2 A_2^3 / 4. A 4f HWPSS harmonic has no DC and
+                                                               line g2 A_2^3 / 4                          no sidebands; intensity coupling has sidebands but
+                                                                                                          no 4f line.
+detector_time_constant    IFFT[D(f) / (1 + 2 pi i f tau)];     quadrature (sin) residual of the 2f        one parameter ties the phase lag atan(2 pi f tau)
+                          tau [s]; template -d d_nom/dt        HWPSS: phase lag atan(2 pi f tau) growing  to the amplitude loss 1/sqrt(1 + (2 pi f tau)^2);
+                                                               with harmonic number, amplitude loss       a free 2f phase/amplitude error (hwpss_harmonics)
+                                                               1/sqrt(1 + (2 pi f tau)^2)                 needs two and no sky/dipole lag; the fit with one
+                                                                                                          parameter per detector wins the BIC
+hwpss_harmonics           sum_n c_n cos n(chi - theta) +       lines at n f_HWP (n = 1..6), stationary,   NO DC shift, NO 2f +- f_spin sidebands (unlike
+                          s_n sin n(chi - theta), n = 1..6     nothing else                               the nonlinearity), constant in time (unlike the
+                          (n = 2: the 2f amplitude/phase                                                  HWP temperature drift), one phase per harmonic
+                          error); c_n, s_n [K]                                                            (unlike the time constant)
+hwpss_intensity_coupling  I(t) [a_c cos 2(chi - theta) +       sidebands of 2 f_HWP at the frequencies    amplitude a I, proportional to I and NOT to A_2 I;
+                          a_s sin 2(chi - theta)],             of the intensity signal (2 f_HWP +-        no 4f line and no DC (unlike the nonlinearity,
+                          I = I(p) + D; a_c, a_s [1]           f_spin: the dipole)                        whose sidebands 2 g1 A_2 I cos 2(chi - theta)
+                                                                                                          come with a 4f line g1 A_2^2 / 2)
+gain_drift                [sum_{j=0..3} g_j P_j(x)] d_nom;     residual proportional to the whole         multiplies the dipole and sky too: the dipole
+                          g_j [1]                              signal, growing in time; the dipole        amplitude drifts together with the 2f HWPSS;
+                                                               amplitude drifts                           the HWP temperature drift moves only the 2f
+hwp_temperature_drift     [sum_{j=1..3} c_j P_j(x)]            2f line broadened (sidebands at ~1/T),     only the 2f HWPSS changes: the dipole and the sky
+                          cos 2(chi - theta); c_j [K]          2f demodulated amplitude drifts in time    are untouched (unlike the gain drift)
+glitches                  A exp(-(t - t0)/tau_g), t >= t0      isolated transients in time, broadband     found in the whitened residual by robust (MAD)
+                          (t0 the first hit sample);           spectrum, uncorrelated with chi and the    thresholding, then fitted per event; not periodic
+                          A [K], t0 [s], tau_g [s] per event   sky                                        in chi, no lines
+noise_mismatch            white level w [K sqrt(s)], knee      excess broadband power, no lines           Whittle likelihood of the residual periodogram;
+                          f_knee [Hz], slope alpha of          (P = 2 w^2 (f^a + fk^a)/(f^a + fmin^a))    a template effect explains lines/structure, the
+                          P(f); fmin fixed                                                                noise model only smooth power
+crosstalk                 x * d_nom(other detector);           the other detector's signal: its 2f        the 2f HWPSS changes by -x A_2 (the other
+                          x [1]                                HWPSS (in antiphase for an orthogonal      detector's HWPSS is in antiphase) while the dipole
+                                                               pair), its dipole and its polarisation     and I change by +x: opposite signs, unlike a gain
+                                                               angle (4 chi phase of the other angle)     error (same sign) or a 2f amplitude error (no D)
+========================  ===================================  =========================================  ==================================================
+
+How each parameter is fitted: jointly with the others, by (weighted) linear least
+squares in the whitened Fourier domain for the linear effects; tau by
+``scipy.optimize.least_squares`` from the linearised solution (variable projection over
+the linear parameters); glitches by detection and a per-event nonlinear fit; the noise
+by maximising the Whittle likelihood (see :mod:`.fit` and :mod:`.noise`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.fft
+import scipy.optimize
+
+from ..nonlinearity import apply_nonlinearity
+from .model import Context, per_detector
+
+HWPSS_HARMONICS = (1, 2, 3, 4, 5, 6)
+GAIN_DEGREES = (0, 1, 2, 3)
+HWP_TEMPERATURE_DEGREES = (1, 2, 3)
+
+
+def _value(params: dict, name: str, n_detectors: int) -> np.ndarray:
+    return per_detector(params.get(name, 0.0), n_detectors, name)
+
+
+class Effect:
+    """A candidate effect: named per-detector parameters and a forward model."""
+
+    name: str = ""
+    title: str = ""
+    parameters: dict[str, str] = {}  # parameter -> unit, one value per detector
+    main_parameters: tuple[str, ...] = ()
+    kind: str = "linear"  # "linear", "nonlinear", "events" or "noise"
+    signature: str = ""
+    discrimination: str = ""
+
+    def templates(self, ctx: Context) -> np.ndarray | None:
+        """T (n_det, n_param, n): recording - d_nom = sum_j p_j T_j to first order."""
+        return None
+
+    def apply(self, ctx: Context, params: dict, tod: np.ndarray | None = None) -> np.ndarray:
+        """The TOD ``tod`` (default d_nom) with the effect of ``params`` applied."""
+        raise NotImplementedError(f"{self.name} has no forward model on a TOD")
+
+    def _linear_apply(self, ctx, params, tod):
+        tod = ctx.d_nom if tod is None else tod
+        values = np.stack([_value(params, p, ctx.n_detectors) for p in self.parameters], axis=1)
+        return tod + np.einsum("kj,kjn->kn", values, self.templates(ctx))
+
+    def __repr__(self) -> str:
+        return f"<effect {self.name}>"
+
+
+class TesNonlinearity(Effect):
+    """d_obs = d + g1 d^2 + g2 d^3 on the total signal (TES gain compression).
+
+    With d = A_2 cos x + D (x = 2 (chi - theta)): g1 d^2 = g1 A_2^2 / 2 (DC) +
+    g1 A_2^2 / 2 cos 2x (4 f_HWP) + 2 g1 A_2 D cos x (for D = D0 cos 2 pi f_D t: two lines
+    at 2 f_HWP +- f_D of amplitude g1 A_2 D0 each) + g1 D^2;
+    g2 d^3 adds 3 g2 A_2^3 / 4 cos x and g2 A_2^3 / 4 cos 3x (6 f_HWP).
+    """
+
+    name = "tes_nonlinearity"
+    title = "TES gain nonlinearity"
+    parameters = {"g1": "1/K", "g2": "1/K^2"}
+    main_parameters = ("g1",)
+    signature = (
+        "4 f_HWP line g1 A_2^2/2 with a DC shift of the same size, 2 f_HWP +- f_spin "
+        "sidebands g1 A_2 D each, 6 f_HWP line g2 A_2^3/4"
+    )
+    discrimination = "DC shift and 2f +- f_dipole sidebands accompany the 4f line"
+
+    def templates(self, ctx):
+        d = ctx.d_nom
+        return np.stack([d**2, d**3], axis=1)
+
+    def apply(self, ctx, params, tod=None):
+        tod = ctx.d_nom if tod is None else tod
+        n = tod.shape[0]
+        return apply_nonlinearity(tod, _value(params, "g1", n), _value(params, "g2", n))
+
+
+def single_pole(freqs_hz: np.ndarray, tau_s: float) -> np.ndarray:
+    """H(f) = 1 / (1 + 2 pi i f tau) (numpy's e^{-2 pi i f t} convention: a phase lag)."""
+    return 1.0 / (1.0 + 2j * np.pi * freqs_hz * tau_s)
+
+
+def single_pole_derivative(freqs_hz: np.ndarray, tau_s: float) -> np.ndarray:
+    """dH/dtau = -2 pi i f / (1 + 2 pi i f tau)^2."""
+    return -2j * np.pi * freqs_hz / (1.0 + 2j * np.pi * freqs_hz * tau_s) ** 2
+
+
+class DetectorTimeConstant(Effect):
+    """Single-pole detector response: d_obs = IFFT[D(f) / (1 + 2 pi i f tau)] (circular FFT).
+
+    Linearised, d_obs = d - tau dd/dt: template -d d_nom/dt (spectral derivative). For the
+    2f HWPSS the response is a phase lag atan(2 pi 2 f_HWP tau) and an amplitude factor
+    1/sqrt(1 + (2 pi 2 f_HWP tau)^2); higher harmonics lag more.
+    """
+
+    name = "detector_time_constant"
+    title = "detector time constant"
+    parameters = {"tau": "s"}
+    main_parameters = ("tau",)
+    kind = "nonlinear"
+    signature = (
+        "2 f_HWP residual in quadrature with the HWPSS: phase lag atan(2 pi f tau) and "
+        "amplitude loss 1/sqrt(1 + (2 pi f tau)^2), both from one tau"
+    )
+    discrimination = "one parameter ties phase lag and amplitude loss (a 2f error needs two)"
+
+    def templates(self, ctx):
+        freqs = scipy.fft.rfftfreq(ctx.n_samples, 1.0 / ctx.sampling_rate_hz)
+        spectrum = scipy.fft.rfft(ctx.d_nom, axis=-1)
+        return scipy.fft.irfft(-2j * np.pi * freqs * spectrum, n=ctx.n_samples, axis=-1)[:, None, :]
+
+    def apply(self, ctx, params, tod=None):
+        tod = ctx.d_nom if tod is None else tod
+        tau = _value(params, "tau", tod.shape[0])
+        freqs = scipy.fft.rfftfreq(tod.shape[-1], 1.0 / ctx.sampling_rate_hz)
+        spectrum = scipy.fft.rfft(tod, axis=-1)
+        out = np.empty_like(tod)
+        for k in range(tod.shape[0]):
+            out[k] = scipy.fft.irfft(spectrum[k] * single_pole(freqs, tau[k]), n=tod.shape[-1])
+        return out
+
+
+class HwpssHarmonics(Effect):
+    """HWP synchronous signal left out of the nominal model (which has only A_2 cos 2(chi-theta)).
+
+    sum_n c_n cos n(chi - theta) + s_n sin n(chi - theta), n = 1..6; n = 2 is the error on
+    the 2f amplitude (c_2) and phase (s_2 = A_2 x phase error).
+    """
+
+    name = "hwpss_harmonics"
+    title = "HWP synchronous signal harmonics"
+    parameters = {f"{cs}{n}": "K" for n in HWPSS_HARMONICS for cs in ("c", "s")}
+    main_parameters = tuple(parameters)
+    signature = "lines at n f_HWP, stationary, with no DC shift and no 2f +- f_spin sidebands"
+    discrimination = "no DC, no sidebands, constant in time"
+
+    def templates(self, ctx):
+        angle = ctx.detector_angle
+        rows = []
+        for n in HWPSS_HARMONICS:
+            rows += [np.cos(n * angle), np.sin(n * angle)]
+        return np.stack(rows, axis=1)
+
+    def apply(self, ctx, params, tod=None):
+        return self._linear_apply(ctx, params, tod)
+
+
+class HwpssIntensityCoupling(Effect):
+    """Intensity modulated by the HWP (paper's a_n^opt I term): I(t) [a_c cos 2(chi-theta) + a_s sin].
+
+    I(t) = I(p) + D is the intensity seen; the 2f carrier mixes with it into lines at
+    2 f_HWP +- (the frequencies of I), mainly 2 f_HWP +- f_spin from the dipole.
+    """
+
+    name = "hwpss_intensity_coupling"
+    title = "HWP intensity-to-2f coupling"
+    parameters = {"a2c": "1", "a2s": "1"}
+    main_parameters = ("a2c",)
+    signature = "2 f_HWP +- f_spin sidebands proportional to I (dipole), no 4f line, no DC"
+    discrimination = "sidebands scale with I, not with A_2 I; no 4f line"
+
+    def templates(self, ctx):
+        angle = 2 * ctx.detector_angle
+        return np.stack([ctx.intensity * np.cos(angle), ctx.intensity * np.sin(angle)], axis=1)
+
+    def apply(self, ctx, params, tod=None):
+        return self._linear_apply(ctx, params, tod)
+
+
+class GainDrift(Effect):
+    """Relative gain error and drift: d_obs = [1 + sum_j g_j P_j(x)] d, j = 0..3."""
+
+    name = "gain_drift"
+    title = "gain error and drift"
+    parameters = {f"g{j}": "1" for j in GAIN_DEGREES}
+    main_parameters = ("g1",)
+    signature = "residual proportional to the whole signal (HWPSS and dipole), drifting in time"
+    discrimination = "the dipole amplitude drifts together with the 2f HWPSS"
+
+    def templates(self, ctx):
+        d = ctx.d_nom
+        return np.stack([ctx.legendre(j)[None, :] * d for j in GAIN_DEGREES], axis=1)
+
+    def apply(self, ctx, params, tod=None):
+        tod = ctx.d_nom if tod is None else tod
+        gain = sum(
+            _value(params, f"g{j}", tod.shape[0])[:, None] * ctx.legendre(j)[None, :]
+            for j in GAIN_DEGREES
+        )
+        return (1.0 + gain) * tod
+
+
+class HwpTemperatureDrift(Effect):
+    """Slow modulation of the HWPSS amplitude: [sum_{j=1..3} c_j P_j(x)] cos 2(chi - theta)."""
+
+    name = "hwp_temperature_drift"
+    title = "HWP temperature drift (2f amplitude drift)"
+    parameters = {f"c{j}": "K" for j in HWP_TEMPERATURE_DEGREES}
+    main_parameters = ("c1",)
+    signature = "2 f_HWP demodulated amplitude drifting in time; dipole and sky untouched"
+    discrimination = "only the 2f HWPSS moves, the dipole does not"
+
+    def templates(self, ctx):
+        carrier = np.cos(2 * ctx.detector_angle)
+        return np.stack([ctx.legendre(j)[None, :] * carrier for j in HWP_TEMPERATURE_DEGREES], 1)
+
+    def apply(self, ctx, params, tod=None):
+        return self._linear_apply(ctx, params, tod)
+
+
+@dataclass(frozen=True)
+class GlitchEvent:
+    """A cosmic-ray hit: A exp(-(t - t0)/tau) for t >= t0 (t0 = the first affected sample)."""
+
+    detector: int
+    time_s: float
+    amplitude_k: float
+    tau_s: float
+    sigma_amplitude_k: float = 0.0
+    sigma_tau_s: float = 0.0
+    significance: float = 0.0
+
+
+GLITCH_TAIL_CUT = 25.0  # the exponential tail is evaluated over 25 tau
+
+
+def glitch_profile(times_s: np.ndarray, time_s: float, amplitude_k: float, tau_s: float):
+    """(first index, values) of one event: A exp(-(t - t0)/tau) at samples t >= t0."""
+    first = int(np.searchsorted(times_s, time_s - 1e-9))
+    dt = times_s[1] - times_s[0] if times_s.size > 1 else 1.0
+    length = max(1, int(np.ceil(GLITCH_TAIL_CUT * max(tau_s, 1e-6) / dt)) + 1)
+    stop = min(times_s.size, first + length)
+    values = amplitude_k * np.exp(-(times_s[first:stop] - time_s) / max(tau_s, 1e-9))
+    return first, values
+
+
+def glitch_tod(times_s: np.ndarray, n_detectors: int, events) -> np.ndarray:
+    """Sum of the events' exponential tails, (n_det, n)."""
+    out = np.zeros((n_detectors, times_s.size))
+    for event in events:
+        first, values = glitch_profile(times_s, event.time_s, event.amplitude_k, event.tau_s)
+        out[event.detector, first : first + values.size] += values
+    return out
+
+
+def fit_glitch(
+    residual: np.ndarray,
+    times_s: np.ndarray,
+    index: int,
+    sigma_k: float,
+    detector: int,
+    tau_guess_s: float,
+    window_s: float = 4.0,
+) -> GlitchEvent | None:
+    """Nonlinear least-squares fit of one event at sample ``index`` (the first hit sample).
+
+    Model on a window around the event: c + A exp(-(t - t0)/tau) (t >= t0), with c a local
+    offset (1/f noise, slow signals); ``scipy.optimize.least_squares`` over (c, A, ln tau);
+    uncertainties from the Jacobian with the white noise ``sigma_k`` per sample.
+    """
+    dt = times_s[1] - times_s[0]
+    half = max(8, int(window_s / dt))
+    lo, hi = max(0, index - half // 4), min(times_s.size, index + half)
+    t = times_s[lo:hi]
+    y = residual[lo:hi]
+    t0 = times_s[index]
+    after = t >= t0 - 1e-9
+
+    def model(theta):
+        c, amplitude, log_tau = theta
+        out = np.full_like(t, c)
+        out[after] += amplitude * np.exp(-(t[after] - t0) / np.exp(log_tau))
+        return out
+
+    def fun(theta):
+        return (model(theta) - y) / sigma_k
+
+    start = np.array(
+        [np.median(y[~after]) if np.any(~after) else 0.0, y[after][0], np.log(tau_guess_s)]
+    )
+    start[1] -= start[0]
+    try:
+        solution = scipy.optimize.least_squares(
+            fun,
+            start,
+            bounds=([-np.inf, -np.inf, np.log(0.05 * dt)], [np.inf, np.inf, np.log(5.0)]),
+        )
+    except ValueError:
+        return None
+    jac = solution.jac
+    try:
+        cov = np.linalg.inv(jac.T @ jac)
+    except np.linalg.LinAlgError:
+        return None
+    c, amplitude, log_tau = solution.x
+    tau = float(np.exp(log_tau))
+    sigma_amplitude = float(np.sqrt(max(cov[1, 1], 0.0)))
+    sigma_tau = float(tau * np.sqrt(max(cov[2, 2], 0.0)))
+    return GlitchEvent(
+        detector=detector,
+        time_s=float(t0),
+        amplitude_k=float(amplitude),
+        tau_s=tau,
+        sigma_amplitude_k=sigma_amplitude,
+        sigma_tau_s=sigma_tau,
+        significance=float(abs(amplitude) / sigma_amplitude) if sigma_amplitude > 0 else 0.0,
+    )
+
+
+class Glitches(Effect):
+    """Cosmic-ray glitches: sum_i A_i exp(-(t - t_i)/tau_i) for t >= t_i.
+
+    t_i is the first affected sample (a hit between two samples is the same model with A
+    scaled by exp(-delta/tau)). Detection: samples of the whitened residual above a robust
+    threshold (median absolute deviation), then a nonlinear fit per event (:func:`fit_glitch`).
+    """
+
+    name = "glitches"
+    title = "cosmic-ray glitches"
+    parameters = {"amplitude": "K", "time": "s", "tau": "s"}
+    main_parameters = ("amplitude",)
+    kind = "events"
+    signature = "isolated transients in time, uncorrelated with chi and the sky"
+    discrimination = "not periodic in chi, no lines, localised in time"
+
+    def apply(self, ctx, params, tod=None):
+        tod = ctx.d_nom if tod is None else tod
+        events = params.get("events", [])
+        events = [e if isinstance(e, GlitchEvent) else GlitchEvent(*e) for e in events]
+        return tod + glitch_tod(ctx.times_s, tod.shape[0], events)
+
+
+class NoiseMismatch(Effect):
+    """Noise unlike the configured one: P(f) = 2 w^2 (f^a + fk^a) / (f^a + fmin^a), one-sided.
+
+    w = NET [K sqrt(s)] (white level, sigma per sample = w sqrt(f_s)), fk the knee, a the
+    slope, fmin fixed at the configured value (litebird_sim's "toast" model).
+    """
+
+    name = "noise_mismatch"
+    title = "noise unlike the configured NET / f_knee / alpha"
+    parameters = {"net": "K sqrt(s)", "fknee": "Hz", "alpha": "1"}
+    main_parameters = ("net",)
+    kind = "noise"
+    signature = "excess broadband power, no lines"
+    discrimination = "smooth power spectrum change, explained by no template"
+
+
+class Crosstalk(Effect):
+    """A fraction x of the other detector's signal: d_obs,k = d_k + x_k d_other(k)."""
+
+    name = "crosstalk"
+    title = "crosstalk from the other detector of the pair"
+    parameters = {"x": "1"}
+    main_parameters = ("x",)
+    signature = "the other detector's signal: its (antiphase) 2f HWPSS, dipole and polarisation"
+    discrimination = "2f HWPSS changes by -x A_2 while the dipole changes by +x D"
+
+    def templates(self, ctx):
+        return ctx.other[:, None, :]
+
+    def apply(self, ctx, params, tod=None):
+        tod = ctx.d_nom if tod is None else tod
+        x = _value(params, "x", tod.shape[0])
+        return tod + x[:, None] * tod[ctx.partner]
+
+
+CATALOG: dict[str, Effect] = {
+    effect.name: effect
+    for effect in (
+        TesNonlinearity(),
+        DetectorTimeConstant(),
+        HwpssHarmonics(),
+        HwpssIntensityCoupling(),
+        GainDrift(),
+        HwpTemperatureDrift(),
+        Glitches(),
+        NoiseMismatch(),
+        Crosstalk(),
+    )
+}
+
+
+def get_effect(name: str) -> Effect:
+    try:
+        return CATALOG[name]
+    except KeyError:
+        raise KeyError(f"unknown effect {name!r}; the catalog has {sorted(CATALOG)}") from None
+
+
+def catalog_table() -> list[dict]:
+    """One row per effect: name, parameters with units, signature, discrimination."""
+    return [
+        {
+            "name": e.name,
+            "title": e.title,
+            "parameters": dict(e.parameters),
+            "signature": e.signature,
+            "discrimination": e.discrimination,
+        }
+        for e in CATALOG.values()
+    ]

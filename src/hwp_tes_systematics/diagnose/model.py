@@ -1,0 +1,270 @@
+"""The nominal model of a recording and the context the catalog's forward models work on.
+
+Nominal model (K_CMB), per detector k, for the recorded pointing and HWP angle chi:
+
+    d_nom = I(p) + rho_k [Q(p) cos 2 a + U(p) sin 2 a] + D(t, p) + A_2 cos(2 (chi - theta_k)),
+    a = 2 chi - theta_k + psi_gal,
+
+with p the nearest pixel of the sky map (HEALPix RING, Galactic, nside of the map) to the
+recorded pointing rotated from ecliptic to Galactic coordinates with
+``lbs.rotate_coordinates_e2g``, theta_k the detector's polarisation angle, rho_k its
+polarisation efficiency and D the orbital + solar dipole that litebird_sim computes
+(``add_dipole_to_observations``, ``TOTAL_FROM_LIN_T``) from the start time and the
+recorded pointing, with the spacecraft orbit tabulated exactly as
+:class:`~hwp_tes_systematics.tod.PairSimulator` tabulates it (from one day before the
+start, every hour), so that the dipole of a simulated recording is reproduced to
+~1e-12 K. This is the same data model as the simulation (``tod.py``).
+
+The :class:`Context` holds these pieces per detector (sky intensity, sky polarisation,
+dipole, HWPSS, the total d_nom, the other detector of the pair, the intensity seen
+I(t) = I(p) + D, the HWP angle, the times and the valid-sample mask): everything the
+forward models of :mod:`.effects` need.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import astropy.time
+import numpy as np
+
+ORBIT_MARGIN_S = 86400.0  # orbit table starts one day before the recording (as PairSimulator)
+ORBIT_STEP_S = 3600.0  # spacecraft position/velocity every hour (as PairSimulator)
+F_SPIN_HZ = 0.05 / 60.0  # PTEP spin rate 0.05 rpm
+F_PRECESSION_HZ = 1.0 / (192.348 * 60.0)  # PTEP precession period 192.348 min
+
+
+class SkyMapError(ValueError):
+    """The sky map given to the nominal model is not a (3, 12 nside^2) I, Q, U map."""
+
+
+def check_sky_map(sky_iqu, source: str = "sky_iqu") -> np.ndarray:
+    """Return the sky as a float (3, npix) array, or raise :class:`SkyMapError` naming ``source``."""
+    sky = np.asarray(sky_iqu, dtype=float)
+    if sky.ndim != 2 or sky.shape[0] != 3:
+        raise SkyMapError(
+            f"{source}: sky map of shape {sky.shape}; expected (3, 12 nside^2) = I, Q, U "
+            "in K_CMB, HEALPix RING, Galactic"
+        )
+    npix = sky.shape[1]
+    nside = int(round(np.sqrt(npix / 12)))
+    if nside < 1 or 12 * nside * nside != npix:
+        raise SkyMapError(f"{source}: {npix} pixels per map is not 12 nside^2 for any nside")
+    if not np.all(np.isfinite(sky)):
+        bad = int(np.count_nonzero(~np.isfinite(sky)))
+        raise SkyMapError(
+            f"{source}: {bad} NaN/Inf pixel values (UNSEEN pixels must be filled before use)"
+        )
+    return sky
+
+
+def load_sky(sky_iqu) -> tuple[np.ndarray, str]:
+    """Accept an array or the path of a FITS map (read with ``sky.read_sky_map``)."""
+    if isinstance(sky_iqu, (str, bytes)) or hasattr(sky_iqu, "__fspath__"):
+        from ..sky import read_sky_map
+
+        source = str(sky_iqu)
+        try:
+            values = read_sky_map(source)
+        except Exception as error:  # healpy/astropy raise many types for a bad file
+            raise SkyMapError(f"{source}: cannot read a sky map ({error})") from error
+        return check_sky_map(values, source), source
+    return check_sky_map(sky_iqu), "sky_iqu"
+
+
+def partner_indices(n_detectors: int) -> np.ndarray:
+    """Index of the other detector of each pair: (0, 1), (2, 3), ...; a lone detector is its own."""
+    partner = np.arange(n_detectors) ^ 1
+    partner[partner >= n_detectors] = np.arange(n_detectors)[partner >= n_detectors]
+    return partner
+
+
+@dataclass
+class Context:
+    """Nominal model pieces per detector, (n_det, n) arrays in K_CMB unless stated."""
+
+    times_s: np.ndarray  # (n,) from the start of the recording
+    sampling_rate_hz: float
+    hwp_angle_rad: np.ndarray  # (n,) chi
+    pol_angle_rad: np.ndarray  # (n_det,) theta_k
+    pol_efficiency: np.ndarray  # (n_det,) rho_k
+    sky_intensity: np.ndarray  # I(p)
+    sky_polarization: np.ndarray  # rho (Q cos 2a + U sin 2a)
+    dipole: np.ndarray  # D
+    a2_k: np.ndarray  # (n_det,) A_2
+    valid: np.ndarray  # (n_det, n) True where the sample is used
+    detector_names: list[str]
+    pixels: np.ndarray | None = None  # (n_det, n) Galactic RING pixels at the sky map's nside
+    nside: int | None = None
+    f_spin_hz: float = F_SPIN_HZ
+    f_precession_hz: float = F_PRECESSION_HZ
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def n_detectors(self) -> int:
+        return self.sky_intensity.shape[0]
+
+    @property
+    def n_samples(self) -> int:
+        return self.times_s.size
+
+    @property
+    def duration_s(self) -> float:
+        return self.n_samples / self.sampling_rate_hz
+
+    @cached_property
+    def partner(self) -> np.ndarray:
+        return partner_indices(self.n_detectors)
+
+    @cached_property
+    def detector_angle(self) -> np.ndarray:
+        """chi - theta_k, (n_det, n)."""
+        return self.hwp_angle_rad[None, :] - self.pol_angle_rad[:, None]
+
+    @cached_property
+    def hwpss(self) -> np.ndarray:
+        """A_2 cos(2 (chi - theta_k))."""
+        return self.a2_k[:, None] * np.cos(2 * self.detector_angle)
+
+    @cached_property
+    def sky(self) -> np.ndarray:
+        return self.sky_intensity + self.sky_polarization
+
+    @cached_property
+    def intensity(self) -> np.ndarray:
+        """I(t) = I(p) + D: the intensity the detector sees."""
+        return self.sky_intensity + self.dipole
+
+    @cached_property
+    def d_nom(self) -> np.ndarray:
+        """Total nominal TOD I + pol + D + A_2 cos(2 (chi - theta))."""
+        return self.sky + self.dipole + self.hwpss
+
+    @cached_property
+    def other(self) -> np.ndarray:
+        """The other detector's nominal TOD, row k = d_nom of the partner of k."""
+        return self.d_nom[self.partner]
+
+    @cached_property
+    def legendre_x(self) -> np.ndarray:
+        """Time mapped to [-1, 1] over the recording: x = 2 (t - t0) / (t_end - t0) - 1."""
+        span = self.times_s[-1] - self.times_s[0]
+        if span <= 0:
+            return np.zeros_like(self.times_s)
+        return 2.0 * (self.times_s - self.times_s[0]) / span - 1.0
+
+    def legendre(self, degree: int) -> np.ndarray:
+        """P_degree(x) over the recording, (n,)."""
+        coefficients = np.zeros(degree + 1)
+        coefficients[degree] = 1.0
+        return np.polynomial.legendre.legval(self.legendre_x, coefficients)
+
+    @cached_property
+    def f_hwp_hz(self) -> float:
+        """HWP rotation frequency from the recorded angle (slope of the unwrapped chi)."""
+        return hwp_frequency_hz(self.hwp_angle_rad, self.sampling_rate_hz)
+
+
+def hwp_frequency_hz(hwp_angle_rad: np.ndarray, sampling_rate_hz: float) -> float:
+    """f_HWP = slope of unwrap(chi) / 2 pi, by least squares over the whole recording."""
+    chi = np.unwrap(np.asarray(hwp_angle_rad, dtype=float))
+    if chi.size < 2:
+        return 0.0
+    t = np.arange(chi.size) / sampling_rate_hz
+    slope = np.polyfit(t, chi, 1)[0]
+    return float(abs(slope) / (2 * np.pi))
+
+
+def orbit_for(start_time: astropy.time.Time, duration_s: float):
+    """Spacecraft position and velocity tabulated as PairSimulator does (same dipole)."""
+    import litebird_sim as lbs
+
+    orbit_start = start_time - astropy.time.TimeDelta(ORBIT_MARGIN_S, format="sec")
+    return lbs.spacecraft_pos_and_vel(
+        lbs.SpacecraftOrbit(orbit_start),
+        start_time=orbit_start,
+        time_span_s=duration_s + 2 * ORBIT_MARGIN_S,
+        delta_time_s=ORBIT_STEP_S,
+    )
+
+
+def dipole_tod(recording) -> np.ndarray:
+    """Orbital + solar dipole [K_CMB] at the recorded pointing, (n_det, n) (litebird_sim)."""
+    import litebird_sim as lbs
+
+    observation = lbs.Observation(
+        detectors=[dict(det) for det in recording.detectors],
+        n_samples_global=recording.n_samples,
+        start_time_global=recording.start_time,
+        sampling_rate_hz=recording.sampling_rate_hz,
+        tods=[lbs.TodDescription("tod", lbs.Units.K_CMB, np.float64, "dipole")],
+    )
+    observation.tod[:] = 0.0
+    lbs.add_dipole_to_observations(
+        observation,
+        pos_and_vel=orbit_for(recording.start_time, recording.duration_s),
+        pointings=np.ascontiguousarray(recording.pointings_ecl),
+    )
+    return np.array(observation.tod, dtype=float)
+
+
+def scan_sky(recording, sky: np.ndarray, threads: int = 1):
+    """(I(p), rho (Q cos 2a + U sin 2a), pixels) at the nearest pixel of the sky map."""
+    import ducc0
+    import litebird_sim as lbs
+
+    nside = int(round(np.sqrt(sky.shape[1] / 12)))
+    healpix = ducc0.healpix.Healpix_Base(nside, "RING")
+    n_det, n = recording.n_detectors, recording.n_samples
+    pixels = np.empty((n_det, n), dtype=np.int64)
+    intensity = np.empty((n_det, n))
+    polarization = np.empty((n_det, n))
+    chi = recording.hwp_angle_rad
+    for k in range(n_det):
+        galactic = lbs.rotate_coordinates_e2g(np.ascontiguousarray(recording.pointings_ecl[k]))
+        pixels[k] = healpix.ang2pix(galactic[:, :2], nthreads=threads)
+        alpha = 2 * chi - recording.pol_angles_rad[k] + galactic[:, 2]
+        pix = pixels[k]
+        intensity[k] = sky[0][pix]
+        polarization[k] = recording.pol_efficiency[k] * (
+            sky[1][pix] * np.cos(2 * alpha) + sky[2][pix] * np.sin(2 * alpha)
+        )
+    return intensity, polarization, pixels, nside
+
+
+def per_detector(value, n_detectors: int, name: str) -> np.ndarray:
+    """A scalar or one value per detector as a float (n_det,) array."""
+    array = np.asarray(value, dtype=float)
+    if array.ndim == 0:
+        return np.full(n_detectors, float(array))
+    if array.shape != (n_detectors,):
+        raise ValueError(f"{name}: {array.shape} values for {n_detectors} detectors")
+    return array.copy()
+
+
+def build_context(recording, sky_iqu, a2_k, threads: int = 1) -> Context:
+    """Nominal model pieces of ``recording`` for the sky map ``sky_iqu`` and HWPSS A_2 [K]."""
+    sky, _ = load_sky(sky_iqu)
+    intensity, polarization, pixels, nside = scan_sky(recording, sky, threads)
+    a2 = per_detector(a2_k, recording.n_detectors, "a2_k")
+    return Context(
+        times_s=np.asarray(recording.times_s, dtype=float),
+        sampling_rate_hz=float(recording.sampling_rate_hz),
+        hwp_angle_rad=np.asarray(recording.hwp_angle_rad, dtype=float),
+        pol_angle_rad=recording.pol_angles_rad,
+        pol_efficiency=recording.pol_efficiency,
+        sky_intensity=intensity,
+        sky_polarization=polarization,
+        dipole=dipole_tod(recording),
+        a2_k=a2,
+        valid=~np.asarray(recording.flags, dtype=bool),
+        detector_names=recording.detector_names,
+        pixels=pixels,
+        nside=nside,
+    )
+
+
+def nominal_tod(recording, sky_iqu, a2_k) -> np.ndarray:
+    """d_nom = sky + dipole + A_2 cos(2 (chi - theta)) at the recorded pointing, (n_det, n)."""
+    return build_context(recording, sky_iqu, a2_k).d_nom

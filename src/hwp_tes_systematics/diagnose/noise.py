@@ -1,0 +1,300 @@
+"""Noise of the residual: white + 1/f model, a robust estimate, and the Whittle likelihood.
+
+Model (litebird_sim's "toast" 1/f model, one-sided PSD in K^2/Hz):
+
+    P(f) = 2 w^2 (f^alpha + fk^alpha) / (f^alpha + fmin^alpha),
+
+w the white level (NET) in K sqrt(s) (sigma per sample = w sqrt(f_s)), fk the knee
+frequency, alpha the slope and fmin the frequency below which the spectrum flattens
+(kept at its configured value).
+
+Robust estimate (:func:`estimate_noise`): Welch PSD with MEDIAN averaging over Hann
+segments (a line or a transient in a few segments does not pull it), frequencies near
+the known lines (n f_HWP +- m f_spin, n <= 8, |m| <= 3) excluded, averaged in
+logarithmic frequency bins and fitted in log space, ln P(f_b) against ln P-hat_b with
+weights m_b (the number of Welch bins averaged); the uncertainties are the
+least-squares covariance scaled by the reduced chi^2.
+
+Whittle likelihood (the fit's noise model, :func:`whittle_fit`): for the rfft R_f of n
+samples of which a fraction v is valid, E|R_f|^2 = S_f = P(f) n f_s v / 2 and
+
+    -2 ln L = sum_f [ 2 |R_f - M_f|^2 / S_f + 2 ln S_f ]  (+ const),
+
+each complex mode counting two real degrees of freedom. Weighting the Fourier
+coefficients by 1/S_f is the prewhitening operator of the template fit. The
+noise parameters are fitted by maximising L on the residual periodogram (line bins
+excluded), with the periodogram summed in narrow frequency bins (1/2 % wide) over which
+P is constant to better than 1e-3; their covariance is the inverse Fisher matrix
+F_ij = sum_f d ln S_f / d theta_i  d ln S_f / d theta_j.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.optimize
+import scipy.signal
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """P(f) = 2 net^2 (f^alpha + fknee^alpha) / (f^alpha + fmin^alpha) [K^2/Hz]."""
+
+    net_k_sqrt_s: float
+    fknee_hz: float
+    alpha: float
+    fmin_hz: float
+
+    def psd(self, freqs_hz) -> np.ndarray:
+        return noise_psd(freqs_hz, self.net_k_sqrt_s, self.fknee_hz, self.alpha, self.fmin_hz)
+
+    @classmethod
+    def from_detector(cls, detector: dict) -> NoiseModel:
+        """From litebird_sim detector fields net_ukrts, fknee_mhz, alpha, fmin_hz."""
+        return cls(
+            net_k_sqrt_s=float(detector["net_ukrts"]) * 1e-6,
+            fknee_hz=float(detector.get("fknee_mhz", 0.0)) * 1e-3,
+            alpha=float(detector.get("alpha", 1.0)),
+            fmin_hz=float(detector.get("fmin_hz", 1e-5)),
+        )
+
+
+def noise_psd(freqs_hz, net_k_sqrt_s, fknee_hz, alpha, fmin_hz) -> np.ndarray:
+    """One-sided PSD [K^2/Hz] of the white + 1/f model (see the module docstring)."""
+    f_alpha = np.power(np.abs(np.asarray(freqs_hz, dtype=float)), alpha)
+    return (
+        2.0
+        * net_k_sqrt_s**2
+        * (f_alpha + max(fknee_hz, 0.0) ** alpha)
+        / (f_alpha + max(fmin_hz, 1e-30) ** alpha)
+    )
+
+
+def periodogram_scale(n_samples: int, sampling_rate_hz: float, valid_fraction: float) -> float:
+    """S_f / P(f) = n f_s v / 2 for numpy's unnormalised rfft."""
+    return 0.5 * n_samples * sampling_rate_hz * valid_fraction
+
+
+def line_exclusion_mask(
+    freqs_hz: np.ndarray,
+    f_hwp_hz: float,
+    f_spin_hz: float,
+    half_width_hz: float,
+    max_harmonic: int = 8,
+    max_spin: int = 3,
+) -> np.ndarray:
+    """True at frequencies within ``half_width_hz`` of n f_HWP + m f_spin (n <= 8, |m| <= 3)."""
+    near = np.zeros(freqs_hz.shape, dtype=bool)
+    if f_hwp_hz <= 0:
+        return near
+    for n in range(1, max_harmonic + 1):
+        for m in range(-max_spin, max_spin + 1):
+            center = n * f_hwp_hz + m * f_spin_hz
+            lo, hi = np.searchsorted(freqs_hz, [center - half_width_hz, center + half_width_hz])
+            near[lo:hi] = True
+    return near
+
+
+@dataclass
+class NoiseEstimate:
+    """Noise parameters with uncertainties, and the spectrum they were fitted to."""
+
+    model: NoiseModel
+    sigma_net_k_sqrt_s: float
+    sigma_fknee_hz: float
+    sigma_alpha: float
+    freqs_hz: np.ndarray = field(repr=False)
+    psd: np.ndarray = field(repr=False)  # Welch (median) PSD of the residual [K^2/Hz]
+    used: np.ndarray = field(repr=False)  # frequencies used in the fit
+
+    def as_dict(self) -> dict:
+        return {
+            "net_k_sqrt_s": self.model.net_k_sqrt_s,
+            "sigma_net_k_sqrt_s": self.sigma_net_k_sqrt_s,
+            "fknee_hz": self.model.fknee_hz,
+            "sigma_fknee_hz": self.sigma_fknee_hz,
+            "alpha": self.model.alpha,
+            "sigma_alpha": self.sigma_alpha,
+            "fmin_hz": self.model.fmin_hz,
+        }
+
+
+def welch_segment(n_samples: int) -> int:
+    """Welch segment: a power of two, about n / 8 (at least 256 samples)."""
+    return int(max(256, 2 ** math.floor(math.log2(max(n_samples // 8, 256)))))
+
+
+def _log_bins(freqs, values, weights, per_decade=40):
+    positive = freqs > 0
+    freqs, values, weights = freqs[positive], values[positive], weights[positive]
+    if freqs.size == 0:
+        return freqs, values, weights
+    edges = np.logspace(
+        np.log10(freqs.min()) - 1e-9,
+        np.log10(freqs.max()) + 1e-9,
+        max(2, int(per_decade * np.log10(freqs.max() / freqs.min())) + 2),
+    )
+    index = np.digitize(freqs, edges)
+    count = np.bincount(index, weights=weights, minlength=edges.size + 1)
+    mean_f = np.bincount(index, weights=weights * freqs, minlength=edges.size + 1)
+    mean_v = np.bincount(index, weights=weights * values, minlength=edges.size + 1)
+    keep = count > 0
+    return mean_f[keep] / count[keep], mean_v[keep] / count[keep], count[keep]
+
+
+def estimate_noise(
+    residual: np.ndarray,
+    sampling_rate_hz: float,
+    valid: np.ndarray | None = None,
+    f_hwp_hz: float = 0.0,
+    f_spin_hz: float = 0.0,
+    fmin_hz: float = 1e-5,
+    start: NoiseModel | None = None,
+) -> NoiseEstimate:
+    """Robust white + 1/f fit to the Welch (median) PSD of one detector's residual."""
+    residual = np.asarray(residual, dtype=float)
+    n = residual.size
+    valid_fraction = 1.0 if valid is None else max(float(np.mean(valid)), 1e-3)
+    segment = min(welch_segment(n), n)
+    freqs, psd = scipy.signal.welch(
+        residual,
+        fs=sampling_rate_hz,
+        window="hann",
+        nperseg=segment,
+        noverlap=segment // 2,
+        detrend="constant",
+        average="median",
+    )
+    psd = psd / valid_fraction
+    resolution = sampling_rate_hz / segment
+    exclude = line_exclusion_mask(freqs, f_hwp_hz, f_spin_hz, 3 * resolution)
+    used = (freqs > 1.5 * resolution) & (freqs < 0.98 * sampling_rate_hz / 2) & ~exclude
+    used &= psd > 0
+    f_bin, p_bin, m_bin = _log_bins(freqs[used], psd[used], np.ones(used.sum()))
+    if start is None:
+        high = freqs > 0.25 * sampling_rate_hz / 2
+        white = float(np.median(psd[used & high])) if np.any(used & high) else float(np.median(psd))
+        start = NoiseModel(math.sqrt(max(white, 1e-300) / 2), 0.02, 1.0, fmin_hz)
+    fmin = start.fmin_hz if start.fmin_hz > 0 else fmin_hz
+
+    def residuals(theta):
+        log_net, log_fknee, alpha = theta
+        model = noise_psd(f_bin, math.exp(log_net), math.exp(log_fknee), alpha, fmin)
+        return np.sqrt(m_bin) * (np.log(p_bin) - np.log(model))
+
+    x0 = np.array([math.log(start.net_k_sqrt_s), math.log(max(start.fknee_hz, 1e-5)), start.alpha])
+    lower = [-np.inf, math.log(1e-6), 0.05]
+    upper = [np.inf, math.log(sampling_rate_hz / 2), 6.0]
+    x0 = np.clip(x0, np.array(lower) + 1e-9, np.array(upper) - 1e-9)
+    solution = scipy.optimize.least_squares(residuals, x0, bounds=(lower, upper))
+    dof = max(f_bin.size - 3, 1)
+    scale = float(np.sum(solution.fun**2) / dof)
+    try:
+        cov = np.linalg.inv(solution.jac.T @ solution.jac) * scale
+    except np.linalg.LinAlgError:
+        cov = np.full((3, 3), np.inf)
+    log_net, log_fknee, alpha = solution.x
+    model = NoiseModel(math.exp(log_net), math.exp(log_fknee), float(alpha), fmin)
+    variances = np.clip(np.diag(cov), 0, np.inf)
+    return NoiseEstimate(
+        model=model,
+        sigma_net_k_sqrt_s=model.net_k_sqrt_s * math.sqrt(variances[0]),
+        sigma_fknee_hz=model.fknee_hz * math.sqrt(variances[1]),
+        sigma_alpha=math.sqrt(variances[2]),
+        freqs_hz=freqs,
+        psd=psd,
+        used=used,
+    )
+
+
+@dataclass
+class WhittleFit:
+    model: NoiseModel
+    covariance: np.ndarray  # of (ln net, ln fknee, alpha)
+
+    @property
+    def sigmas(self) -> tuple[float, float, float]:
+        v = np.clip(np.diag(self.covariance), 0, np.inf)
+        return (
+            self.model.net_k_sqrt_s * math.sqrt(v[0]),
+            self.model.fknee_hz * math.sqrt(v[1]),
+            math.sqrt(v[2]),
+        )
+
+
+def _narrow_bins(freqs, power, use, relative_width=0.005):
+    """Sum the periodogram over bins of relative width 1/2 % (>= 1 mode)."""
+    f = freqs[use]
+    p = power[use]
+    if f.size == 0:
+        return f, p, p
+    # bin index: modes closer than relative_width * f share a bin
+    log_f = np.log(np.maximum(f, f[f > 0].min() if np.any(f > 0) else 1.0))
+    index = np.floor(log_f / relative_width).astype(np.int64)
+    index -= index.min()
+    # distinct consecutive indices -> bins
+    boundaries = np.flatnonzero(np.diff(index)) + 1
+    starts = np.concatenate([[0], boundaries])
+    counts = np.diff(np.concatenate([starts, [f.size]]))
+    sum_p = np.add.reduceat(p, starts)
+    mean_f = np.add.reduceat(f, starts) / counts
+    return mean_f, sum_p, counts.astype(float)
+
+
+def whittle_fit(
+    freqs_hz: np.ndarray,
+    power: np.ndarray,
+    use: np.ndarray,
+    scale: float,
+    start: NoiseModel,
+) -> WhittleFit:
+    """Maximum-Whittle-likelihood (net, fknee, alpha) for the periodogram ``power`` = |R_f|^2.
+
+    ``use`` selects the modes (DC and line bins excluded by the caller); ``scale`` = S_f/P(f)
+    (:func:`periodogram_scale`); fmin is kept at ``start.fmin_hz``.
+    """
+    f_bin, p_bin, m_bin = _narrow_bins(freqs_hz, power, use)
+    fmin = start.fmin_hz
+
+    def objective(theta):
+        log_net, log_fknee, alpha = theta
+        s = scale * noise_psd(f_bin, math.exp(log_net), math.exp(log_fknee), alpha, fmin)
+        return float(np.sum(2 * p_bin / s + 2 * m_bin * np.log(s)))
+
+    lower = [-np.inf, math.log(1e-6), 0.05]
+    upper = [np.inf, math.log(max(freqs_hz.max(), 1e-3)), 6.0]
+    x0 = np.array([math.log(start.net_k_sqrt_s), math.log(max(start.fknee_hz, 1e-5)), start.alpha])
+    x0 = np.clip(x0, np.array(lower) + 1e-6, np.array(upper) - 1e-6)
+    # The white level has a closed form given the shape: profile it for a good start.
+    best = scipy.optimize.minimize(
+        objective, x0, method="L-BFGS-B", bounds=list(zip(lower, upper, strict=True))
+    )
+    best = scipy.optimize.minimize(
+        objective,
+        best.x,
+        method="Nelder-Mead",
+        options={"xatol": 1e-6, "fatol": 1e-4, "maxiter": 2000},
+    )
+    theta = best.x
+    theta[2] = float(np.clip(theta[2], lower[2], upper[2]))
+    model = NoiseModel(math.exp(theta[0]), math.exp(theta[1]), float(theta[2]), fmin)
+
+    # Fisher matrix of ln L: sum over modes of d ln S / d theta_i d ln S / d theta_j.
+    step = np.array([1e-5, 1e-4, 1e-4])
+    grads = []
+    for i in range(3):
+        up, down = theta.copy(), theta.copy()
+        up[i] += step[i]
+        down[i] -= step[i]
+        ln_up = np.log(noise_psd(f_bin, math.exp(up[0]), math.exp(up[1]), up[2], fmin))
+        ln_down = np.log(noise_psd(f_bin, math.exp(down[0]), math.exp(down[1]), down[2], fmin))
+        grads.append((ln_up - ln_down) / (2 * step[i]))
+    grads = np.array(grads)
+    fisher = (grads * m_bin) @ grads.T
+    try:
+        covariance = np.linalg.inv(fisher)
+    except np.linalg.LinAlgError:
+        covariance = np.linalg.pinv(fisher)
+    return WhittleFit(model, covariance)
