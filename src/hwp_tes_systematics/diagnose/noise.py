@@ -253,33 +253,43 @@ def whittle_fit(
     """Maximum-Whittle-likelihood (net, fknee, alpha) for the periodogram ``power`` = |R_f|^2.
 
     ``use`` selects the modes (DC and line bins excluded by the caller); ``scale`` = S_f/P(f)
-    (:func:`periodogram_scale`); fmin is kept at ``start.fmin_hz``.
+    (:func:`periodogram_scale`); fmin is kept at ``start.fmin_hz``. The white level is
+    profiled analytically (S = c g(f; fk, alpha) gives c = sum |R_f|^2 / g / N_modes),
+    (ln fk, alpha) by Nelder-Mead.
     """
     f_bin, p_bin, m_bin = _narrow_bins(freqs_hz, power, use)
     fmin = start.fmin_hz
+    total = float(m_bin.sum())
+    bounds = np.array([[math.log(1e-6), math.log(max(freqs_hz.max(), 1e-3))], [0.05, 6.0]])
+
+    def shape(theta):
+        return scale * noise_psd(f_bin, 1.0, math.exp(theta[0]), theta[1], fmin)
 
     def objective(theta):
-        log_net, log_fknee, alpha = theta
-        s = scale * noise_psd(f_bin, math.exp(log_net), math.exp(log_fknee), alpha, fmin)
-        return float(np.sum(2 * p_bin / s + 2 * m_bin * np.log(s)))
+        if np.any(theta < bounds[:, 0]) or np.any(theta > bounds[:, 1]):
+            return np.inf
+        g = shape(theta)
+        c = float(np.sum(p_bin / g)) / total
+        return 2 * total * (1 + math.log(c)) + 2 * float(np.sum(m_bin * np.log(g)))
 
-    lower = [-np.inf, math.log(1e-6), 0.05]
-    upper = [np.inf, math.log(max(freqs_hz.max(), 1e-3)), 6.0]
-    x0 = np.array([math.log(start.net_k_sqrt_s), math.log(max(start.fknee_hz, 1e-5)), start.alpha])
-    x0 = np.clip(x0, np.array(lower) + 1e-6, np.array(upper) - 1e-6)
-    # The white level has a closed form given the shape: profile it for a good start.
-    best = scipy.optimize.minimize(
-        objective, x0, method="L-BFGS-B", bounds=list(zip(lower, upper, strict=True))
-    )
-    best = scipy.optimize.minimize(
-        objective,
-        best.x,
-        method="Nelder-Mead",
-        options={"xatol": 1e-6, "fatol": 1e-4, "maxiter": 2000},
-    )
-    theta = best.x
-    theta[2] = float(np.clip(theta[2], lower[2], upper[2]))
-    model = NoiseModel(math.exp(theta[0]), math.exp(theta[1]), float(theta[2]), fmin)
+    x0 = np.array([math.log(max(start.fknee_hz, 1e-5)), start.alpha])
+    x0 = np.clip(x0, bounds[:, 0] + 1e-6, bounds[:, 1] - 1e-6)
+    best = None
+    for guess in (x0, np.array([x0[0] + 1.0, x0[1]]), np.array([x0[0] - 1.0, x0[1]])):
+        guess = np.clip(guess, bounds[:, 0] + 1e-6, bounds[:, 1] - 1e-6)
+        trial = scipy.optimize.minimize(
+            objective,
+            guess,
+            method="Nelder-Mead",
+            options={"xatol": 1e-5, "fatol": 1e-5, "maxiter": 1000,
+                     "initial_simplex": [guess, guess + [0.5, 0.0], guess + [0.0, 0.3]]},
+        )
+        if best is None or trial.fun < best.fun:
+            best = trial
+    log_fknee, alpha = best.x
+    c = float(np.sum(p_bin / shape(best.x))) / total
+    theta = np.array([0.5 * math.log(c), log_fknee, alpha])
+    model = NoiseModel(math.exp(theta[0]), math.exp(log_fknee), float(alpha), fmin)
 
     # Fisher matrix of ln L: sum over modes of d ln S / d theta_i d ln S / d theta_j.
     step = np.array([1e-5, 1e-4, 1e-4])

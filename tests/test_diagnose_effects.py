@@ -1,0 +1,142 @@
+"""The diagnosis finds injected effects it was not told about, with the right parameters.
+
+Each recording (2 h of the M1-140 pair, written to HDF5 and read back) carries one effect
+(or two) at a clearly detectable but realistic level and its own noise seed; ``diagnose``
+gets the recording, the sky, A_2 and the configured noise only. Checks: the top-ranked
+effect is the injected one, its main parameter(s) lie within 3 sigma of the truth for
+each detector, and chi^2 improves.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from test_diagnose_support import A2_K, KELVIN_PER_WATT, P0_W, names, parameter, recorded, run
+
+pytestmark = pytest.mark.slow
+
+# name, injected parameters, {parameter: per-detector truth} checked at 3 sigma, noise seed
+SINGLE = [
+    ("tes_nonlinearity", {"g1": [-0.04, -0.045]}, {"g1": [-0.04, -0.045]}, 101),
+    ("detector_time_constant", {"tau": [3e-3, 4e-3]}, {"tau": [3e-3, 4e-3]}, 102),
+    (
+        "hwpss_harmonics",
+        {"c1": 20e-6, "s3": 15e-6, "c4": [30e-6, 25e-6], "s4": -10e-6, "c2": 50e-6},
+        {"c1": [20e-6] * 2, "s3": [15e-6] * 2, "c4": [30e-6, 25e-6], "s4": [-10e-6] * 2,
+         "c2": [50e-6] * 2, "s2": [0.0] * 2, "c6": [0.0] * 2},
+        103,
+    ),
+    (
+        "hwpss_intensity_coupling",
+        {"a2c": 0.01, "a2s": -0.004},
+        {"a2c": [0.01] * 2, "a2s": [-0.004] * 2},
+        104,
+    ),
+    ("gain_drift", {"g1": 0.03, "g2": 0.005}, {"g1": [0.03] * 2, "g2": [0.005] * 2, "g0": [0.0] * 2}, 105),
+    ("hwp_temperature_drift", {"c1": 1e-3, "c2": 3e-4}, {"c1": [1e-3] * 2, "c2": [3e-4] * 2}, 106),
+    ("crosstalk", {"x": [0.01, 0.005]}, {"x": [0.01, 0.005]}, 107),
+]
+
+GLITCHES = [(0, 900.0, 3e-3, 0.1), (0, 4100.0, 5e-3, 0.05), (1, 2000.0, 6e-3, 0.2), (1, 6500.0, 2.5e-3, 0.1)]
+
+
+def check_parameters(result, effect, truths):
+    for param, truth in truths.items():
+        for k, value in enumerate(truth):
+            entry = parameter(result, effect, param, k)
+            pull = (entry["value"] - value) / entry["sigma"]
+            assert abs(pull) < 3, f"{effect}.{param}[{k}] = {entry['value']:.4g} +- {entry['sigma']:.2g}, truth {value:.4g}"
+
+
+@pytest.mark.parametrize("effect, injected, truths, seed", SINGLE, ids=[s[0] for s in SINGLE])
+def test_single_effect_found(tmp_path, effect, injected, truths, seed):
+    recording, _ = recorded(tmp_path, [(effect, injected)], noise_seed=seed)
+    result = run(recording)
+    assert result["mismatch_found"]
+    assert names(result)[0] == effect, names(result)
+    assert names(result) == [effect], f"spurious effects: {names(result)}"
+    check_parameters(result, effect, truths)
+    assert result["chi2_after"] < result["chi2_before"]
+    # the fit leaves chi^2 consistent with noise: chi^2 / dof ~ 1
+    assert abs(result["chi2_after"] / result["dof"] - 1) < 5 * math.sqrt(2 / result["dof"])
+
+
+def test_glitches_found(tmp_path):
+    recording, _ = recorded(tmp_path, [("glitches", {"events": GLITCHES})], noise_seed=108)
+    result = run(recording)
+    assert names(result) == ["glitches"]
+    fitted = [p for p in result["effects"][0]["parameters"].values()]
+    for detector, time_s, amplitude, _tau in GLITCHES:
+        name = result["recording"]["detectors"][detector]
+        times = [p for p in fitted if p["parameter"] == "time" and p["detector"] == name]
+        match = [p for p in times if abs(p["value"] - time_s) < 0.1]
+        assert match, f"glitch at {time_s} s in detector {detector} not found"
+    amplitudes = sorted(
+        (p["value"], p["sigma"]) for p in fitted if p["parameter"] == "amplitude"
+    )
+    truth = sorted(a for _, _, a, _ in GLITCHES)
+    assert len(amplitudes) == len(truth)
+    for (value, sigma), expected in zip(amplitudes, truth, strict=True):
+        assert abs(value - expected) < 3 * sigma
+    assert result["chi2_after"] < result["chi2_before"]
+
+
+def test_noise_mismatch_found(tmp_path):
+    recording, _ = recorded(
+        tmp_path, [("noise_mismatch", {"net_ukrts": 64.8, "fknee_mhz": 60.0})], noise_seed=109
+    )
+    result = run(recording)
+    assert names(result) == ["noise_mismatch"]
+    for k in range(2):
+        net = parameter(result, "noise_mismatch", "net", k)
+        assert abs(net["value"] - 64.8e-6) < 3 * net["sigma"]
+        fknee = parameter(result, "noise_mismatch", "fknee", k)
+        assert abs(fknee["value"] - 0.060) < 3 * fknee["sigma"]
+    assert result["chi2_after"] < result["chi2_before"]
+    assert "NET" in result["effects"][0]["evidence"]
+
+
+def test_nonlinearity_and_gain_drift_both_found(tmp_path):
+    effects = [("gain_drift", {"g1": 0.03}), ("tes_nonlinearity", {"g1": -0.04})]
+    recording, _ = recorded(tmp_path, effects, noise_seed=110)
+    result = run(recording)
+    assert sorted(names(result)) == ["gain_drift", "tes_nonlinearity"]
+    for k in range(2):
+        g1 = parameter(result, "tes_nonlinearity", "g1", k)
+        assert abs(g1["value"] + 0.04) < 3 * g1["sigma"]
+        gain = parameter(result, "gain_drift", "g1", k)
+        assert abs(gain["value"] - 0.03) < 3 * gain["sigma"]
+
+
+def test_harmonics_and_glitches_both_found(tmp_path):
+    effects = [("hwpss_harmonics", {"c4": 30e-6, "s1": 40e-6}), ("glitches", {"events": GLITCHES[:2]})]
+    recording, _ = recorded(tmp_path, effects, noise_seed=111)
+    result = run(recording)
+    assert sorted(names(result)) == ["glitches", "hwpss_harmonics"]
+    for k in range(2):
+        c4 = parameter(result, "hwpss_harmonics", "c4", k)
+        assert abs(c4["value"] - 30e-6) < 3 * c4["sigma"]
+
+
+def test_electrothermal_tes_is_diagnosed_as_nonlinearity(tmp_path):
+    """A recording whose nonlinearity comes from the TES model, not from a polynomial."""
+    from hwp_tes_systematics import tes
+
+    recording, _ = recorded(
+        tmp_path,
+        [("tes_electrothermal", {"p0_w": P0_W, "kelvin_per_watt": KELVIN_PER_WATT})],
+        noise_seed=112,
+    )
+    result = run(recording)
+    assert names(result)[0] == "tes_nonlinearity"
+    params = tes.tes_parameters_for_channel(P0_W)
+    half_range_w = 1.05 * A2_K / KELVIN_PER_WATT
+    expected = tes.nonlinearity_coefficients(params, P0_W, KELVIN_PER_WATT, half_range_w)
+    for k in range(2):
+        g1 = parameter(result, "tes_nonlinearity", "g1", k)
+        g2 = parameter(result, "tes_nonlinearity", "g2", k)
+        assert g1["value"] == pytest.approx(expected["g1_per_k"], rel=0.10, abs=3 * g1["sigma"])
+        assert g2["value"] == pytest.approx(expected["g2_per_k2"], rel=0.10, abs=3 * g2["sigma"])
+        assert np.sign(g1["value"]) == np.sign(expected["g1_per_k"])

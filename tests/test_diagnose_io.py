@@ -1,0 +1,192 @@
+"""Recordings on disk (litebird_sim's HDF5 format), the nominal model, and bad input."""
+
+from __future__ import annotations
+
+import shutil
+
+import h5py
+import numpy as np
+import pytest
+from test_diagnose_support import A2_K, CHANNEL, MASTER_SEED, names, recorded, run, sky_map
+
+from hwp_tes_systematics.diagnose import (
+    RecordingError,
+    nominal_tod,
+    read_recording,
+    simulate_recording,
+    write_recording,
+)
+from hwp_tes_systematics.diagnose.model import SkyMapError
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def clean_file(tmp_path_factory):
+    path = tmp_path_factory.mktemp("io") / "clean.h5"
+    recording = simulate_recording(CHANNEL, 0.5, MASTER_SEED, 7, sky_map(), A2_K)
+    write_recording(path, recording)
+    return path, recording
+
+
+def test_file_round_trip(clean_file):
+    path, recording = clean_file
+    read = read_recording(path)
+    np.testing.assert_array_equal(read.tod, recording.tod)  # float64 on disk, not float32
+    np.testing.assert_array_equal(read.pointings_ecl, recording.pointings_ecl)
+    np.testing.assert_array_equal(read.hwp_angle_rad, recording.hwp_angle_rad)
+    assert read.start_time.scale == "tdb"
+    assert abs((read.start_time - recording.start_time).to_value("s")) < 1e-6
+    assert read.detector_names == recording.detector_names
+    np.testing.assert_array_equal(read.pol_angles_rad, recording.pol_angles_rad)
+    assert not read.flags.any()
+    assert read.channel == CHANNEL
+    from litebird_sim.io import read_one_observation
+
+    # litebird_sim itself reads the file too
+    observation = read_one_observation(path, tod_dtype=np.float64)
+    np.testing.assert_array_equal(observation.tod, recording.tod)
+
+
+def test_nominal_model_equals_the_simulation_without_noise(tmp_path):
+    """d_nom from the FILE's pointing and start time reproduces the injected sky+dipole+HWPSS."""
+    noiseless = simulate_recording(
+        CHANNEL, 0.5, MASTER_SEED, 0, sky_map(), A2_K,
+        [("noise_mismatch", {"net_ukrts": 0.0, "fknee_mhz": 0.0})],
+    )
+    write_recording(tmp_path / "noiseless.h5", noiseless)
+    read = read_recording(tmp_path / "noiseless.h5")
+    model = nominal_tod(read, sky_map(), A2_K)
+    assert np.abs(model - noiseless.tod).max() < 1e-9
+    assert np.abs(noiseless.tod).max() > 0.2  # the HWPSS is there
+
+
+def test_nan_stretch_is_masked_not_propagated(clean_file, tmp_path):
+    path, recording = clean_file
+    copy = tmp_path / "gap.h5"
+    shutil.copy(path, copy)
+    with h5py.File(copy, "a") as handle:
+        tod = handle["tod"][()]
+        tod[0, 10_000:13_000] = np.nan
+        tod[1, 20_000:20_500] = np.nan
+        handle["tod"][...] = tod
+    read = read_recording(copy)
+    assert read.flags[0, 10_000:13_000].all() and read.flags[1, 20_000:20_500].all()
+    assert read.flags.sum() == 3500
+    assert np.all(np.isfinite(read.tod))
+    result = run(read)
+    assert not result["mismatch_found"], names(result)
+    assert np.isfinite(result["chi2_before"])
+
+
+def test_flags_dataset_is_read(clean_file, tmp_path):
+    path, _ = clean_file
+    copy = tmp_path / "flags.h5"
+    shutil.copy(path, copy)
+    with h5py.File(copy, "a") as handle:
+        flags = np.zeros(handle["tod"].shape, dtype=np.uint8)
+        flags[1, 100:200] = 1
+        handle.create_dataset("flags", data=flags)
+        tod = handle["tod"][()]
+        tod[1, 150] = np.inf  # Inf in a flagged sample is masked too
+        handle["tod"][...] = tod
+    read = read_recording(copy)
+    assert read.flags[1, 100:200].all() and read.flags.sum() == 100
+    assert read.tod[1, 150] == 0.0
+
+
+def corrupt(source, target, action):
+    shutil.copy(source, target)
+    with h5py.File(target, "a") as handle:
+        action(handle)
+    return target
+
+
+def test_not_hdf5(tmp_path):
+    path = tmp_path / "notes.h5"
+    path.write_text("this is not an HDF5 file\n")
+    with pytest.raises(RecordingError, match=r"notes\.h5.*not an HDF5 file"):
+        read_recording(path)
+    with pytest.raises(RecordingError, match="no such file"):
+        read_recording(tmp_path / "missing.h5")
+
+
+@pytest.mark.parametrize("dataset", ["tod", "pointings", "hwp_angle"])
+def test_missing_dataset(clean_file, tmp_path, dataset):
+    path = corrupt(clean_file[0], tmp_path / "missing.h5", lambda h: h.__delitem__(dataset))
+    with pytest.raises(RecordingError, match=rf"missing\.h5: missing dataset '{dataset}'"):
+        read_recording(path)
+
+
+def test_length_mismatch(clean_file, tmp_path):
+    def shorten(handle):
+        hwp = handle["hwp_angle"][()]
+        del handle["hwp_angle"]
+        handle.create_dataset("hwp_angle", data=hwp[:-10])
+
+    path = corrupt(clean_file[0], tmp_path / "short.h5", shorten)
+    with pytest.raises(RecordingError, match=r"short\.h5: length mismatch: 'hwp_angle'"):
+        read_recording(path)
+
+    def truncate_pointings(handle):
+        pointings = handle["pointings"][()]
+        del handle["pointings"]
+        handle.create_dataset("pointings", data=pointings[:, :-1])
+
+    path = corrupt(clean_file[0], tmp_path / "short2.h5", truncate_pointings)
+    with pytest.raises(RecordingError, match=r"short2\.h5: length mismatch: 'pointings'"):
+        read_recording(path)
+
+
+def test_inf_in_unflagged_samples(clean_file, tmp_path):
+    def add_inf(handle):
+        tod = handle["tod"][()]
+        tod[0, 123] = np.inf
+        handle["tod"][...] = tod
+
+    path = corrupt(clean_file[0], tmp_path / "inf.h5", add_inf)
+    with pytest.raises(RecordingError, match=r"inf\.h5: 1 Inf value.*'tod'.*sample 123"):
+        read_recording(path)
+
+
+def test_all_nan(clean_file, tmp_path):
+    def all_nan(handle):
+        handle["tod"][...] = np.full(handle["tod"].shape, np.nan)
+
+    path = corrupt(clean_file[0], tmp_path / "nan.h5", all_nan)
+    with pytest.raises(RecordingError, match=r"nan\.h5: no valid sample"):
+        read_recording(path)
+
+
+def test_bad_detector_metadata(clean_file, tmp_path):
+    def break_json(handle):
+        handle["tod"].attrs["detectors"] = "[{"
+
+    path = corrupt(clean_file[0], tmp_path / "json.h5", break_json)
+    with pytest.raises(RecordingError, match=r"json\.h5: attribute 'detectors' is not valid JSON"):
+        read_recording(path)
+
+
+def test_wrong_sky_map_shape(clean_file, tmp_path):
+    recording = read_recording(clean_file[0])
+    with pytest.raises(SkyMapError, match=r"sky_iqu: sky map of shape \(2, 12288\)"):
+        run_with_sky(recording, sky_map()[:2])
+    with pytest.raises(SkyMapError, match="not 12 nside"):
+        run_with_sky(recording, sky_map()[:, :1000])
+    bad = tmp_path / "sky.fits"
+    bad.write_text("not a FITS map")
+    with pytest.raises(SkyMapError, match=r"sky\.fits: cannot read a sky map"):
+        run_with_sky(recording, bad)
+
+
+def run_with_sky(recording, sky):
+    from hwp_tes_systematics.diagnose.report import diagnose
+
+    return diagnose(recording, sky, A2_K)
+
+
+def test_recorded_helper_uses_the_file(tmp_path):
+    """The tests' recordings go through the file: what diagnose sees was read from disk."""
+    recording, injected = recorded(tmp_path, [("crosstalk", {"x": 0.0})], noise_seed=5, hours=0.25)
+    assert recording.source.endswith("rec.h5")
+    assert injected == [("crosstalk", {"x": 0.0})]
