@@ -27,6 +27,7 @@ include: "workflow/rules/component_separation.smk"
 include: "workflow/rules/spectra.smk"
 include: "workflow/rules/likelihood.smk"
 include: "workflow/rules/requirement.smk"
+include: "workflow/rules/diagnose.smk"
 
 
 rule all:
@@ -39,5 +40,6 @@ rule all:
         paths.FIG3_HWP_EMISSION,
         paths.FIG4_TES_RESPONSE,
         paths.REQUIREMENT,
+        expand(paths.DIAGNOSIS, recording=RECORDINGS),
         rules.tod_figures.output,
         rules.notch_effect.output,

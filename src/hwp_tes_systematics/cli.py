@@ -1,18 +1,114 @@
-"""Command line: ``python -m hwp_tes_systematics <command>``."""
+"""Command line: ``python -m hwp_tes_systematics <command>``.
+
+config-reference                      print the configuration reference (Markdown)
+diagnose RECORDING.h5 --sky SKY.fits [--config FILE] --out DIR
+                                      locate, name, fit and report what the
+                                      simulation left out of a recording
+"""
 
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
+from pathlib import Path
 
-from .config import config_reference_markdown
+from .config import ConfigError, config_reference_markdown, load_config
+
+DEFAULT_CONFIG = Path("config/config.yaml")
+log = logging.getLogger("hwp_tes_systematics")
+
+
+def run_diagnose(
+    recording_path: str,
+    sky_path: str,
+    config_paths: list[str],
+    out_dir: str,
+    threshold: float,
+    workers: int = 1,
+) -> dict:
+    """Diagnose one recording with the nominal HWPSS and noise of the configured instrument."""
+    from .diagnose.recording import read_recording
+    from .diagnose.report import diagnose
+    from .stages.kw_conversion import channel_a2_k_cmb
+
+    config = load_config(*config_paths)
+    recording = read_recording(recording_path)
+    a2_k = channel_a2_k_cmb(config, recording.channel)
+    log.info(
+        "%s: channel %s, %d detectors, %.2f h; nominal A_2 = %.4g K_CMB",
+        recording_path,
+        recording.channel,
+        recording.n_detectors,
+        recording.n_samples / recording.sampling_rate_hz / 3600,
+        a2_k,
+    )
+    return diagnose(
+        recording, sky_path, a2_k, out_dir=out_dir, delta_bic_threshold=threshold, workers=workers
+    )
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m hwp_tes_systematics", description=__doc__)
+    parser = argparse.ArgumentParser(
+        prog="python -m hwp_tes_systematics",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     commands = parser.add_subparsers(dest="command", required=True)
     commands.add_parser("config-reference", help="print the configuration reference (Markdown)")
+    diagnose = commands.add_parser(
+        "diagnose", help="find, name and fit what the simulation left out of a recording"
+    )
+    diagnose.add_argument("recording", help="litebird_sim HDF5 observation file")
+    diagnose.add_argument(
+        "--sky", required=True, help="HEALPix I, Q, U FITS map, K_CMB, Galactic (RING)"
+    )
+    diagnose.add_argument(
+        "--config",
+        action="append",
+        default=[],
+        help="configuration file merged over config/config.yaml (repeatable)",
+    )
+    diagnose.add_argument("--out", required=True, help="output folder")
+    diagnose.add_argument(
+        "--delta-bic",
+        type=float,
+        default=-10.0,
+        help="an effect is kept if it lowers the BIC by more (default -10)",
+    )
     arguments = parser.parse_args(argv)
+
     if arguments.command == "config-reference":
         sys.stdout.write(config_reference_markdown())
+        return 0
+
+    from .io import setup_logging
+
+    setup_logging()
+    if not DEFAULT_CONFIG.is_file():
+        print(
+            f"error: {DEFAULT_CONFIG} not found: run from the repository's top folder "
+            "(the instrument and HWP configuration live there)",
+            file=sys.stderr,
+        )
+        return 2
+    try:
+        result = run_diagnose(
+            arguments.recording,
+            arguments.sky,
+            [str(DEFAULT_CONFIG), *arguments.config],
+            arguments.out,
+            arguments.delta_bic,
+        )
+    except (ConfigError, ValueError, OSError) as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    if result["mismatch_found"]:
+        names = ", ".join(effect["name"] for effect in result["effects"])
+        print(
+            f"mismatch found: {names}; chi2 {result['chi2_before']:.1f} -> "
+            f"{result['chi2_after']:.1f}; report in {arguments.out}"
+        )
+    else:
+        print(f"no mismatch found (chi2 {result['chi2_before']:.1f}); report in {arguments.out}")
     return 0

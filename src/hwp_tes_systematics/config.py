@@ -100,6 +100,9 @@ def check_config(config: dict, source: str = "configuration") -> None:
         instrument.check_channel_names(
             [config["figures"]["tod_channel"]], "figures.tod_channel", imo_location
         )
+        instrument.check_channel_names(
+            [config["diagnose"]["example_channel"]], "diagnose.example_channel", imo_location
+        )
     except instrument.InstrumentModelError as error:
         raise ConfigError(f"{source}: {error}") from error
     outside = [c for c in config["instrument"]["systematics_channels"] if c not in channels]

@@ -29,6 +29,13 @@ LIKELIHOOD = f"{RESULTS}/likelihood/seed{{seed}}.json"
 DELTA_R_TABLE = f"{RESULTS}/delta_r.csv"
 REQUIREMENT = f"{RESULTS}/requirement.json"
 
+# Stage: diagnosis of recordings (and the workflow's own example recording)
+EXAMPLE_RECORDING = f"{RESULTS}/diagnose/example_recording.h5"
+EXAMPLE_SKY = f"{RESULTS}/diagnose/example_sky.fits"
+DIAGNOSIS_DIR = f"{RESULTS}/diagnose/{{recording}}"
+DIAGNOSIS = f"{RESULTS}/diagnose/{{recording}}/diagnosis.json"
+DIAGNOSIS_REPORT = f"{RESULTS}/diagnose/{{recording}}/diagnosis.md"
+
 # Figures (numbered as in the paper)
 FIG1_HWP_CURVES = f"{RESULTS}/figures/fig1_hwp_absorption_transmission.png"
 FIG2_HWP_DIFFERENTIAL = f"{RESULTS}/figures/fig2_hwp_differential_power.png"

@@ -57,3 +57,13 @@ def spectra_of_seed(wildcards):
         case: paths.RESIDUAL_SPECTRA.format(seed=wildcards.seed, case=case)
         for case in CASES
     }
+
+
+RECORDINGS = ["example", *config["diagnose"]["recordings"]]
+
+
+def recording_inputs(wildcards):
+    """{recording, sky} files of a recording named in diagnose.recordings, or the example."""
+    if wildcards.recording == "example":
+        return {"recording": paths.EXAMPLE_RECORDING, "sky": paths.EXAMPLE_SKY}
+    return dict(config["diagnose"]["recordings"][wildcards.recording])

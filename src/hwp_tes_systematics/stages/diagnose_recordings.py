@@ -1,0 +1,107 @@
+"""Stage: diagnose recordings against their simulation, and make an example recording.
+
+The example is a recording of ``diagnose.example_channel`` whose nonlinearity comes
+from the electrothermal TES model of the ``tes`` section (not from a polynomial), with
+its own noise realization: the workflow checks its own diagnosis on it.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+
+from .. import config as cfg
+from .. import sky
+from ..diagnose.recording import read_recording, simulate_recording, write_recording
+from ..diagnose.report import diagnose
+from .kw_conversion import channel_a2_k_cmb, conversion_row
+from .tes_response import tes_for_channel
+
+log = logging.getLogger(__name__)
+
+EXAMPLE_NOISE_SEED = 1_000_003  # a noise realization no other job uses
+
+
+def make_example(config: dict, out_h5: str, out_sky: str) -> None:
+    """Simulate the example recording (electrothermal TES nonlinearity) and its sky map."""
+    settings = config["diagnose"]
+    name = settings["example_channel"]
+    channel = cfg.channel(config, name)
+    curves, elements, hwp_temperature_k = cfg.telescope_optics(config, channel.telescope)
+    from ..hwp_power import hwp_power_for_channel
+
+    hwp = hwp_power_for_channel(
+        channel,
+        curves,
+        hwp_temperature_k,
+        elements,
+        config["optics"]["incoming_load_temperature_k"],
+        config["optics"]["hwpss_a2_over_delta_p"],
+    )
+    conversion = conversion_row(config, name, hwp)
+    tes_parameters = tes_for_channel(config["tes"], conversion["p_nominal_w"])
+    nside = config["maps"]["nside"]
+    sky_map = sky.channel_sky_map(
+        channel,
+        nside,
+        3 * nside - 1,
+        config["simulation"]["cmb_r"],
+        config["master_seed"],
+        0,
+        config["simulation"]["pysm_local_data"],
+    )
+    sky.write_sky_map(
+        out_sky,
+        sky_map["total"],
+        extra_header={"CHANNEL": name},
+        foreground_source=sky_map["foreground_source"],
+    )
+    effect = (
+        "tes_electrothermal",
+        {
+            "p0_w": conversion["p_nominal_w"],
+            "kelvin_per_watt": conversion["kelvin_per_watt"],
+            "tes_parameters": tes_parameters,
+        },
+    )
+    recording = simulate_recording(
+        name,
+        settings["example_hours"],
+        config["master_seed"],
+        EXAMPLE_NOISE_SEED,
+        sky_map["total"],
+        conversion["a2_k_cmb"],
+        effects=[effect],
+        start_time_tdb=config["simulation"]["mission_start_tdb"],
+    )
+    write_recording(out_h5, recording)
+    log.info(
+        "%s: example recording (%.1f h, electrothermal TES) -> %s",
+        name,
+        settings["example_hours"],
+        out_h5,
+    )
+
+
+def run(config: dict, recording_h5: str, sky_fits: str, out_dir: str, out_json: str) -> None:
+    """Diagnose one recording; writes diagnosis.json, diagnosis.md and figures in out_dir."""
+    recording = read_recording(recording_h5)
+    a2_k = channel_a2_k_cmb(config, recording.channel)
+    result = diagnose(
+        recording,
+        sky_fits,
+        a2_k,
+        out_dir=out_dir,
+        delta_bic_threshold=config["diagnose"]["delta_bic_threshold"],
+    )
+    with open(out_json) as handle:  # written by diagnose(); check it is complete JSON
+        json.load(handle)
+    names = [effect["name"] for effect in result["effects"]]
+    log.info(
+        "%s: mismatch %s %s; chi2 %.1f -> %.1f",
+        recording_h5,
+        result["mismatch_found"],
+        names,
+        result["chi2_before"],
+        result["chi2_after"],
+    )

@@ -1,0 +1,33 @@
+rule example_recording:
+    """An example recording of diagnose.example_channel with the electrothermal TES
+    nonlinearity and its own noise, and the sky map it saw. No wildcards."""
+    input:
+        kw_conversion=paths.KW_CONVERSION_TABLE,
+    output:
+        recording=paths.EXAMPLE_RECORDING,
+        sky=paths.EXAMPLE_SKY,
+    log:
+        paths.log("example_recording"),
+    params:
+        config=config,
+    script:
+        "../scripts/example_recording.py"
+
+
+rule diagnose:
+    """Locate where a recording and its simulation differ, name the missing physics, fit it
+    and report. Wildcards: recording (a name of diagnose.recordings, or "example")."""
+    input:
+        unpack(recording_inputs),
+    output:
+        diagnosis=paths.DIAGNOSIS,
+        report=report(paths.DIAGNOSIS_REPORT, category="4. Diagnosis"),
+    log:
+        paths.log("diagnose", "{recording}"),
+    benchmark:
+        paths.benchmark("diagnose", "{recording}")
+    params:
+        config=config,
+        out_dir=paths.DIAGNOSIS_DIR,
+    script:
+        "../scripts/diagnose.py"

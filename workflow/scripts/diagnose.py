@@ -1,0 +1,13 @@
+"""Rule diagnose: diagnosis of one recording."""
+
+from hwp_tes_systematics.io import setup_logging
+from hwp_tes_systematics.stages import diagnose_recordings
+
+setup_logging(snakemake.log[0])
+diagnose_recordings.run(
+    snakemake.params.config,
+    recording_h5=snakemake.input.recording,
+    sky_fits=snakemake.input.sky,
+    out_dir=snakemake.params.out_dir,
+    out_json=snakemake.output.diagnosis,
+)

@@ -1,0 +1,9 @@
+"""Rule example_recording: a recording with the electrothermal TES nonlinearity."""
+
+from hwp_tes_systematics.io import setup_logging
+from hwp_tes_systematics.stages import diagnose_recordings
+
+setup_logging(snakemake.log[0])
+diagnose_recordings.make_example(
+    snakemake.params.config, snakemake.output.recording, snakemake.output.sky
+)
