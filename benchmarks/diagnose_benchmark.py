@@ -47,7 +47,13 @@ def main() -> None:
     sky_map = sky.cmb_map(arguments.nside, 3 * arguments.nside - 1, 0.0, 1, 0, 30.8)
     started = time.perf_counter()
     recording = simulate_recording(
-        arguments.channel, arguments.hours, 1, 99, sky_map, arguments.a2_k, EFFECTS[arguments.effect]
+        arguments.channel,
+        arguments.hours,
+        1,
+        99,
+        sky_map,
+        arguments.a2_k,
+        EFFECTS[arguments.effect],
     )
     with tempfile.TemporaryDirectory() as folder:
         path = Path(folder) / "recording.h5"
@@ -71,7 +77,10 @@ def main() -> None:
         if arguments.report:
             started = time.perf_counter()
             diagnose(
-                recording, sky_map, arguments.a2_k, out_dir=Path(folder) / "out",
+                recording,
+                sky_map,
+                arguments.a2_k,
+                out_dir=Path(folder) / "out",
                 workers=arguments.workers,
             )
             print(f"diagnose with report and figures: {time.perf_counter() - started:.1f} s")

@@ -51,7 +51,12 @@ def test_file_round_trip(clean_file):
 def test_nominal_model_equals_the_simulation_without_noise(tmp_path):
     """d_nom from the FILE's pointing and start time reproduces the injected sky+dipole+HWPSS."""
     noiseless = simulate_recording(
-        CHANNEL, 0.5, MASTER_SEED, 0, sky_map(), A2_K,
+        CHANNEL,
+        0.5,
+        MASTER_SEED,
+        0,
+        sky_map(),
+        A2_K,
         [("noise_mismatch", {"net_ukrts": 0.0, "fknee_mhz": 0.0})],
     )
     write_recording(tmp_path / "noiseless.h5", noiseless)
@@ -62,7 +67,7 @@ def test_nominal_model_equals_the_simulation_without_noise(tmp_path):
 
 
 def test_nan_stretch_is_masked_not_propagated(clean_file, tmp_path):
-    path, recording = clean_file
+    path, _recording = clean_file
     copy = tmp_path / "gap.h5"
     shutil.copy(path, copy)
     with h5py.File(copy, "a") as handle:
@@ -77,6 +82,26 @@ def test_nan_stretch_is_masked_not_propagated(clean_file, tmp_path):
     result = run(read)
     assert not result["mismatch_found"], names(result)
     assert np.isfinite(result["chi2_before"])
+
+
+def test_nan_pointing_and_hwp_angle_are_masked(clean_file, tmp_path):
+    path, recording = clean_file
+    copy = tmp_path / "nan_pointing.h5"
+    shutil.copy(path, copy)
+    with h5py.File(copy, "a") as handle:
+        pointings = handle["pointings"][()]
+        pointings[1, 500:510, 0] = np.nan
+        handle["pointings"][...] = pointings
+        hwp = handle["hwp_angle"][()]
+        hwp[700:705] = np.nan
+        handle["hwp_angle"][...] = hwp
+    read = read_recording(copy)
+    assert read.flags[1, 500:510].all() and not read.flags[0, 500:510].any()
+    assert read.flags[:, 700:705].all() and read.flags.sum() == 10 + 2 * 5
+    # the HWP angle is bridged over the gap (it turns uniformly)
+    difference = read.hwp_angle_rad[695:710] - recording.hwp_angle_rad[695:710]
+    assert np.abs(np.angle(np.exp(1j * difference))).max() < 1e-9
+    assert np.all(np.isfinite(read.pointings_ecl))
 
 
 def test_flags_dataset_is_read(clean_file, tmp_path):

@@ -50,7 +50,10 @@ def parameter(result: dict, effect: str, name: str, detector: int) -> dict:
         if item["name"] != effect:
             continue
         for entry in item["parameters"].values():
-            if entry["parameter"] == name and entry["detector"] == result["recording"]["detectors"][detector]:
+            if (
+                entry["parameter"] == name
+                and entry["detector"] == result["recording"]["detectors"][detector]
+            ):
                 return entry
     raise KeyError(f"{effect}.{name}[{detector}] not in {[e['name'] for e in result['effects']]}")
 

@@ -11,44 +11,60 @@ the full forward model used to inject the effect into a simulated recording (the
 equations the diagnosis fits). Legendre polynomials P_j(x) run over the recording,
 x = 2 (t - t0) / (t_end - t0) - 1.
 
-========================  ===================================  =========================================  ==================================================
-effect                    model (parameters, units)            signature                                  told apart from look-alikes by
-========================  ===================================  =========================================  ==================================================
-tes_nonlinearity          d + g1 d^2 + g2 d^3 on the total     4 f_HWP line g1 A_2^2 / 2 with a DC        the 4f line comes WITH a DC shift g1 A_2^2 / 2 and
-                          signal; g1 [1/K], g2 [1/K^2]         shift g1 A_2^2 / 2; 2 f_HWP +- f_dipole    2 f_HWP +- f_spin sidebands 2 g1 A_2 D (the HWPSS
-                                                               lines 2 g1 A_2 D (written g1 A_2 D for     mixing with the dipole); g2 adds a 6 f_HWP line
-                                                               the paper's one-sided amplitude); 6 f      g2 A_2^3 / 4. A 4f HWPSS harmonic has no DC and
-                                                               line g2 A_2^3 / 4                          no sidebands; intensity coupling has sidebands but
-                                                                                                          no 4f line.
-detector_time_constant    IFFT[D(f) / (1 + 2 pi i f tau)];     quadrature (sin) residual of the 2f        one parameter ties the phase lag atan(2 pi f tau)
-                          tau [s]; template -d d_nom/dt        HWPSS: phase lag atan(2 pi f tau) growing  to the amplitude loss 1/sqrt(1 + (2 pi f tau)^2);
-                                                               with harmonic number, amplitude loss       a free 2f phase/amplitude error (hwpss_harmonics)
-                                                               1/sqrt(1 + (2 pi f tau)^2)                 needs two and no sky/dipole lag; the fit with one
-                                                                                                          parameter per detector wins the BIC
-hwpss_harmonics           sum_n c_n cos n(chi - theta) +       lines at n f_HWP (n = 1..6), stationary,   NO DC shift, NO 2f +- f_spin sidebands (unlike
-                          s_n sin n(chi - theta), n = 1..6     nothing else                               the nonlinearity), constant in time (unlike the
-                          (n = 2: the 2f amplitude/phase                                                  HWP temperature drift), one phase per harmonic
-                          error); c_n, s_n [K]                                                            (unlike the time constant)
-hwpss_intensity_coupling  I(t) [a_c cos 2(chi - theta) +       sidebands of 2 f_HWP at the frequencies    amplitude a I, proportional to I and NOT to A_2 I;
-                          a_s sin 2(chi - theta)],             of the intensity signal (2 f_HWP +-        no 4f line and no DC (unlike the nonlinearity,
-                          I = I(p) + D; a_c, a_s [1]           f_spin: the dipole)                        whose sidebands 2 g1 A_2 I cos 2(chi - theta)
-                                                                                                          come with a 4f line g1 A_2^2 / 2)
-gain_drift                [sum_{j=0..3} g_j P_j(x)] d_nom;     residual proportional to the whole         multiplies the dipole and sky too: the dipole
-                          g_j [1]                              signal, growing in time; the dipole        amplitude drifts together with the 2f HWPSS;
-                                                               amplitude drifts                           the HWP temperature drift moves only the 2f
-hwp_temperature_drift     [sum_{j=1..3} c_j P_j(x)]            2f line broadened (sidebands at ~1/T),     only the 2f HWPSS changes: the dipole and the sky
-                          cos 2(chi - theta); c_j [K]          2f demodulated amplitude drifts in time    are untouched (unlike the gain drift)
-glitches                  A exp(-(t - t0)/tau_g), t >= t0      isolated transients in time, broadband     found in the whitened residual by robust (MAD)
-                          (t0 the first hit sample);           spectrum, uncorrelated with chi and the    thresholding, then fitted per event; not periodic
-                          A [K], t0 [s], tau_g [s] per event   sky                                        in chi, no lines
-noise_mismatch            white level w [K sqrt(s)], knee      excess broadband power, no lines           Whittle likelihood of the residual periodogram;
-                          f_knee [Hz], slope alpha of          (P = 2 w^2 (f^a + fk^a)/(f^a + fmin^a))    a template effect explains lines/structure, the
-                          P(f); fmin fixed                                                                noise model only smooth power
-crosstalk                 x * d_nom(other detector);           the other detector's signal: its 2f        the 2f HWPSS changes by -x A_2 (the other
-                          x [1]                                HWPSS (in antiphase for an orthogonal      detector's HWPSS is in antiphase) while the dipole
-                                                               pair), its dipole and its polarisation     and I change by +x: opposite signs, unlike a gain
-                                                               angle (4 chi phase of the other angle)     error (same sign) or a 2f amplitude error (no D)
-========================  ===================================  =========================================  ==================================================
+Catalog (model and parameters | signature | how it is told apart from look-alikes):
+
+tes_nonlinearity
+    model   d + g1 d^2 + g2 d^3 on the total signal; g1 [1/K], g2 [1/K^2]
+    sign.   4 f_HWP line g1 A_2^2/2 WITH a DC shift g1 A_2^2/2; lines at 2 f_HWP +- f_dipole
+            (f_spin) of g1 A_2 D each (HWPSS x dipole); 6 f_HWP line g2 A_2^3/4
+    apart   a 4f HWPSS harmonic has no DC shift and no sidebands; intensity coupling has the
+            sidebands but no 4f line and no DC; the sidebands scale as A_2 I (not as I)
+detector_time_constant
+    model   IFFT[D(f) / (1 + 2 pi i f tau)] (single pole); tau [s]; template -d d_nom/dt
+    sign.   2f HWPSS residual in quadrature: phase lag atan(2 pi f tau) growing with the
+            harmonic number, amplitude factor 1/sqrt(1 + (2 pi f tau)^2)
+    apart   one parameter ties lag and amplitude loss; a 2f amplitude/phase error
+            (hwpss_harmonics) needs two per detector: same chi^2, the BIC prefers tau
+hwpss_harmonics
+    model   sum_{n=1..6} c_n cos n(chi - theta) + s_n sin n(chi - theta); c_n, s_n [K]
+            (n = 2: error on the 2f amplitude (c_2) and phase (s_2 / A_2))
+    sign.   lines at n f_HWP, stationary
+    apart   NO DC shift and NO 2f +- f_spin sidebands (unlike the nonlinearity), constant in
+            time (unlike the HWP temperature drift), free phase per harmonic (unlike tau)
+hwpss_intensity_coupling
+    model   I(t) [a_c cos 2(chi - theta) + a_s sin 2(chi - theta)], I = I(p) + D; a_c, a_s [1]
+    sign.   sidebands of 2 f_HWP at the frequencies of I: 2 f_HWP +- f_spin (dipole)
+    apart   proportional to I, not to A_2 I; no 4f line, no DC (a nonlinearity making the
+            same sidebands, g1 = a / (2 A_2), would add a 4f line g1 A_2^2/2)
+gain_drift
+    model   [sum_{j=0..3} g_j P_j(x)] d_nom (gain error g0 and drift); g_j [1]
+    sign.   residual proportional to the whole signal, changing in time; the dipole amplitude
+            drifts together with the 2f HWPSS
+    apart   multiplies the dipole and the sky too; the HWP temperature drift moves only the 2f
+            HWPSS (the difference is g(t) x dipole, at f_spin in the 1/f noise: it needs a
+            drift of a few %/h in a 2-hour recording)
+hwp_temperature_drift
+    model   [sum_{j=1..3} c_j P_j(x)] cos 2(chi - theta); c_j [K]
+    sign.   2f line broadened (sidebands at ~1/T), 2f demodulated amplitude drifting in time
+    apart   dipole and sky untouched (unlike the gain drift)
+glitches
+    model   A exp(-(t - t0)/tau_g) for t >= t0 (t0: first hit sample); A [K], t0 [s],
+            tau_g [s] per event
+    sign.   isolated transients, broadband, uncorrelated with chi and the sky
+    apart   found by robust (MAD) thresholding of the whitened residual and fitted per event;
+            not periodic in chi, no lines
+noise_mismatch
+    model   P(f) = 2 w^2 (f^a + fk^a)/(f^a + fmin^a): w [K sqrt(s)], fk [Hz], a [1];
+            fmin fixed
+    sign.   excess (or deficit of) broadband power, no lines
+    apart   judged on the Fourier modes away from the lines, where no template acts: a
+            template explains structure, the noise model only smooth power
+crosstalk
+    model   d_k + x_k d_nom(other detector); x [1]
+    sign.   the other detector's signal: its 2f HWPSS (in antiphase for an orthogonal pair),
+            its dipole and sky, its polarisation angle (the 4 chi phase of the other angle)
+    apart   the 2f HWPSS changes by -x A_2 while the dipole changes by +x D: opposite signs,
+            unlike a gain error (same sign) or a 2f amplitude error (no dipole)
 
 How each parameter is fitted: jointly with the others, by (weighted) linear least
 squares in the whitened Fourier domain for the linear effects; tau by
@@ -60,6 +76,7 @@ by maximising the Whittle likelihood (see :mod:`.fit` and :mod:`.noise`).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 import scipy.fft
@@ -82,7 +99,7 @@ class Effect:
 
     name: str = ""
     title: str = ""
-    parameters: dict[str, str] = {}  # parameter -> unit, one value per detector
+    parameters: ClassVar[dict[str, str]] = {}  # parameter -> unit, one value per detector
     main_parameters: tuple[str, ...] = ()
     kind: str = "linear"  # "linear", "nonlinear", "events" or "noise"
     signature: str = ""
@@ -116,7 +133,7 @@ class TesNonlinearity(Effect):
 
     name = "tes_nonlinearity"
     title = "TES gain nonlinearity"
-    parameters = {"g1": "1/K", "g2": "1/K^2"}
+    parameters: ClassVar[dict[str, str]] = {"g1": "1/K", "g2": "1/K^2"}
     main_parameters = ("g1",)
     signature = (
         "4 f_HWP line g1 A_2^2/2 with a DC shift of the same size, 2 f_HWP +- f_spin "
@@ -154,7 +171,7 @@ class DetectorTimeConstant(Effect):
 
     name = "detector_time_constant"
     title = "detector time constant"
-    parameters = {"tau": "s"}
+    parameters: ClassVar[dict[str, str]] = {"tau": "s"}
     main_parameters = ("tau",)
     kind = "nonlinear"
     signature = (
@@ -188,7 +205,9 @@ class HwpssHarmonics(Effect):
 
     name = "hwpss_harmonics"
     title = "HWP synchronous signal harmonics"
-    parameters = {f"{cs}{n}": "K" for n in HWPSS_HARMONICS for cs in ("c", "s")}
+    parameters: ClassVar[dict[str, str]] = {
+        f"{cs}{n}": "K" for n in HWPSS_HARMONICS for cs in ("c", "s")
+    }
     main_parameters = tuple(parameters)
     signature = "lines at n f_HWP, stationary, with no DC shift and no 2f +- f_spin sidebands"
     discrimination = "no DC, no sidebands, constant in time"
@@ -213,7 +232,7 @@ class HwpssIntensityCoupling(Effect):
 
     name = "hwpss_intensity_coupling"
     title = "HWP intensity-to-2f coupling"
-    parameters = {"a2c": "1", "a2s": "1"}
+    parameters: ClassVar[dict[str, str]] = {"a2c": "1", "a2s": "1"}
     main_parameters = ("a2c",)
     signature = "2 f_HWP +- f_spin sidebands proportional to I (dipole), no 4f line, no DC"
     discrimination = "sidebands scale with I, not with A_2 I; no 4f line"
@@ -231,7 +250,7 @@ class GainDrift(Effect):
 
     name = "gain_drift"
     title = "gain error and drift"
-    parameters = {f"g{j}": "1" for j in GAIN_DEGREES}
+    parameters: ClassVar[dict[str, str]] = {f"g{j}": "1" for j in GAIN_DEGREES}
     main_parameters = ("g1",)
     signature = "residual proportional to the whole signal (HWPSS and dipole), drifting in time"
     discrimination = "the dipole amplitude drifts together with the 2f HWPSS"
@@ -254,7 +273,7 @@ class HwpTemperatureDrift(Effect):
 
     name = "hwp_temperature_drift"
     title = "HWP temperature drift (2f amplitude drift)"
-    parameters = {f"c{j}": "K" for j in HWP_TEMPERATURE_DEGREES}
+    parameters: ClassVar[dict[str, str]] = {f"c{j}": "K" for j in HWP_TEMPERATURE_DEGREES}
     main_parameters = ("c1",)
     signature = "2 f_HWP demodulated amplitude drifting in time; dipole and sky untouched"
     discrimination = "only the 2f HWPSS moves, the dipole does not"
@@ -351,7 +370,7 @@ def fit_glitch(
         cov = np.linalg.inv(jac.T @ jac)
     except np.linalg.LinAlgError:
         return None
-    c, amplitude, log_tau = solution.x
+    _c, amplitude, log_tau = solution.x
     tau = float(np.exp(log_tau))
     sigma_amplitude = float(np.sqrt(max(cov[1, 1], 0.0)))
     sigma_tau = float(tau * np.sqrt(max(cov[2, 2], 0.0)))
@@ -376,7 +395,7 @@ class Glitches(Effect):
 
     name = "glitches"
     title = "cosmic-ray glitches"
-    parameters = {"amplitude": "K", "time": "s", "tau": "s"}
+    parameters: ClassVar[dict[str, str]] = {"amplitude": "K", "time": "s", "tau": "s"}
     main_parameters = ("amplitude",)
     kind = "events"
     signature = "isolated transients in time, uncorrelated with chi and the sky"
@@ -398,7 +417,7 @@ class NoiseMismatch(Effect):
 
     name = "noise_mismatch"
     title = "noise unlike the configured NET / f_knee / alpha"
-    parameters = {"net": "K sqrt(s)", "fknee": "Hz", "alpha": "1"}
+    parameters: ClassVar[dict[str, str]] = {"net": "K sqrt(s)", "fknee": "Hz", "alpha": "1"}
     main_parameters = ("net",)
     kind = "noise"
     signature = "excess broadband power, no lines"
@@ -410,7 +429,7 @@ class Crosstalk(Effect):
 
     name = "crosstalk"
     title = "crosstalk from the other detector of the pair"
-    parameters = {"x": "1"}
+    parameters: ClassVar[dict[str, str]] = {"x": "1"}
     main_parameters = ("x",)
     signature = "the other detector's signal: its (antiphase) 2f HWPSS, dipole and polarisation"
     discrimination = "2f HWPSS changes by -x A_2 while the dipole changes by +x D"

@@ -29,8 +29,14 @@ the Jacobian, F = J^T J. Glitches: detected in the whitened residual of the othe
 effects by a robust (MAD) threshold and fitted per event (:func:`.effects.fit_glitch`);
 an event is kept if its own Delta chi^2 = (A/sigma_A)^2 exceeds its BIC penalty 3 ln N_eff.
 Noise: Whittle maximum likelihood on the residual periodogram (:func:`.noise.whittle_fit`,
-line bins excluded from the fit). With nonlinear pieces, the pieces are fitted in turn
-(backfitting, up to four passes, until chi^2 changes by less than 0.05).
+line bins excluded from the fit). The nonlinearity acts on the total signal: when other
+signal effects are selected with it, its templates d^2, d^3 are recomputed on
+d = d_nom + (their fitted model) (the full forward model to second order, e.g. a gain
+drift modulating the 4f line), unless that cross term is below Delta chi^2 = 0.01. With
+nonlinear pieces, the pieces are fitted in turn (backfitting, up to four passes, until
+chi^2 changes by less than 0.05). Speed-up: the nonlinear tau fit is skipped when even
+its linearised template, fitted beside the linear effects, gains less than half of its
+BIC penalty plus |threshold| (a large tau, where the linearisation fails, gains a lot).
 
 Selection (:func:`stepwise`). Start from the nominal model (no effect); at each step fit
 every remaining effect jointly with the selected ones and compute
@@ -49,7 +55,13 @@ of the modes AWAY from the lines (n f_HWP +- m f_spin) by more than |threshold|,
 scaled-up noise spectrum would otherwise "explain" most of any large unmodelled line
 (and the leakage of non-stationary lines over the circular FFT). If it is kept, the
 template selection is run again with the fitted noise weights, and the noise decision
-is checked once more on that result.
+is checked once more on that result. Delta chi^2 reported for the noise is the one off
+the lines.
+
+Uncertainties: linear parameters from G^-1 (inverse Fisher matrix of the whitened
+Fourier fit, which includes the 1/f noise correlations); tau with the linear parameters
+from the Jacobian; glitches from the local fit's Jacobian (white noise); noise
+parameters from the Whittle Fisher matrix.
 """
 
 from __future__ import annotations
@@ -146,6 +158,7 @@ class FitResult:
     model_f: list[np.ndarray] | None = field(repr=False)  # rfft of the masked model per detector
     noise_models: list[NoiseModel] = field(repr=False)
     chi2_off_lines: float = math.nan  # the same chi^2 over the modes away from the lines
+    parts: dict | None = field(default=None, repr=False)  # effect -> per-detector rfft model
 
     def bic(self, ln_n_eff: float) -> float:
         return self.chi2 + self.n_params * ln_n_eff
@@ -192,6 +205,7 @@ class FitProblem:
         self.nominal_noise = list(nominal_noise)
         self.s_nom = [self.scale[k] * nominal_noise[k].psd(self.freqs) for k in range(self.n_det)]
         self.w_nom = [self.weights(s) for s in self.s_nom]
+        self.w_nom_off = [w * self.off_lines for w in self.w_nom]
         residual = np.where(self.valid, tod - ctx.d_nom, 0.0)
         self.residual_f = scipy.fft.rfft(residual, axis=-1, workers=workers)
 
@@ -214,6 +228,10 @@ class FitProblem:
                     )
             del templates
         self.d_nom_f = scipy.fft.rfft(ctx.d_nom, axis=-1, workers=workers)
+        self.tau_template_f = [
+            self._masked_one(k, -2j * np.pi * self.freqs * self.d_nom_f[k])
+            for k in range(self.n_det)
+        ]
         # Nominal-noise normal equations of the whole bank: linear fits take sub-blocks.
         self.gram_nom, self.rhs_nom, self.yy_nom = [], [], []
         for k in range(self.n_det):
@@ -262,11 +280,12 @@ class FitProblem:
         """Whittle chi^2 of detector k: (all used modes, only the modes away from the lines)."""
         diff = self.residual_f[k] - model_f
         power = diff.real**2 + diff.imag**2
-        w = self.weights(s)
-        w_off = w * self.off_lines
         if s is self.s_nom[k]:
+            w, w_off = self.w_nom[k], self.w_nom_off[k]
             log_all = log_off = 0.0
         else:
+            w = self.weights(s)
+            w_off = w * self.off_lines
             ratio = np.log(np.where(self.modes, s / self.s_nom[k], 1.0))
             log_all = 2 * float(np.sum(ratio))
             log_off = 2 * float(ratio @ self.off_lines)
@@ -297,14 +316,69 @@ class FitProblem:
         cached = self._cache.get(selected)
         if cached is None or (keep_model and cached.model_f is None):
             kinds = {self.effects[name].kind for name in selected}
-            if kinds <= {"linear"} and not self._composed(selected):
+            cached = None if keep_model else self._tau_screen(selected)
+            if cached is not None:
+                pass
+            elif kinds <= {"linear"} and not self._composed(selected):
                 cached = self._fit_linear(selected)
             else:
                 cached = self._fit_iterative(selected)
             if not keep_model:
                 cached.model_f = None
+                cached.parts = None
             self._cache[selected] = cached
         return cached
+
+    def _tau_screen(self, selected) -> FitResult | None:
+        """Skip the nonlinear tau fit when even its linearised template cannot pass.
+
+        With linear effects only besides tau, the linearised time constant (template
+        -d d_nom/dt, exact to first order in tau) is fitted beside them; if its Delta chi^2
+        is below half the BIC penalty of tau plus |threshold|, tau cannot be selected and
+        the fit without it is returned (tau reported at its linearised value). A large tau,
+        where the linearisation is poor, has a huge linearised Delta chi^2 and is fitted.
+        """
+        name = "detector_time_constant"
+        if name not in selected:
+            return None
+        others = tuple(n for n in selected if n != name)
+        if any(self.effects[n].kind != "linear" for n in others) or self._composed(selected):
+            return None
+        base = self.fit(others)
+        rows = self.rows(others)
+        delta, taus, sigmas = 0.0, [], []
+        for k in range(self.n_det):
+            lin = self.tau_template_f[k][None, :]
+            aug = np.vstack([lin, self.bank[k][rows]]) if rows.size else lin
+            gram = self.gram_nom[k][np.ix_(rows, rows)] if rows.size else np.zeros((0, 0))
+            full = np.zeros((rows.size + 1, rows.size + 1))
+            full[1:, 1:] = gram
+            full[0] = cross(lin, aug, self.w_nom[k])[0]
+            full[:, 0] = full[0]
+            rhs = np.concatenate(
+                [cross(lin, self.residual_f[k], self.w_nom[k]), self.rhs_nom[k][rows]]
+            )
+            a, cov = solve_normal(full, rhs)
+            chi2 = self.yy_nom[k] - 2 * rhs @ a + a @ full @ a
+            delta += base.chi2_per_detector[k] - chi2
+            taus.append(a[0])
+            sigmas.append(math.sqrt(max(cov[0, 0], 0.0)))
+        if delta >= 0.5 * (self.n_det * self.ln_n_eff + abs(DELTA_BIC_THRESHOLD)):
+            return None
+        effects = dict(base.effects)
+        effects[name] = EffectFit(
+            name, values={"tau": np.array(taus)}, sigmas={"tau": np.array(sigmas)}
+        )
+        return FitResult(
+            selected=selected,
+            chi2=base.chi2,
+            chi2_per_detector=base.chi2_per_detector,
+            n_params=base.n_params + self.n_det,
+            effects=effects,
+            model_f=None,
+            noise_models=base.noise_models,
+            chi2_off_lines=base.chi2_off_lines,
+        )
 
     @staticmethod
     def _composed(selected) -> bool:
@@ -343,6 +417,9 @@ class FitProblem:
             model = a @ self.bank[k][rows] if rows.size else np.zeros(self.freqs.size, complex)
             models.append(model)
             off += self.chi2_of(k, model, self.s_nom[k])[1]
+        parts = self._linear_parts(
+            selected, [self.bank[k][rows] for k in range(self.n_det)], values
+        )
         return FitResult(
             selected=selected,
             chi2=float(np.sum(chi2s)),
@@ -352,7 +429,23 @@ class FitProblem:
             model_f=models,
             noise_models=list(self.nominal_noise),
             chi2_off_lines=off,
+            parts=parts,
         )
+
+    def _linear_parts(self, selected, banks, values) -> dict:
+        """Per-effect Fourier models of the linear effects (rows in ``selected`` order)."""
+        parts = {}
+        offset = 0
+        for name in selected:
+            if name not in self.slices:
+                continue
+            width = self.slices[name].stop - self.slices[name].start
+            parts[name] = [
+                values[k][offset : offset + width] @ banks[k][offset : offset + width]
+                for k in range(self.n_det)
+            ]
+            offset += width
+        return parts
 
     def _fit_tau(self, k, y, bank, gram, w, start):
         """Variable projection: tau by least_squares with the linear parameters profiled out.
@@ -361,7 +454,7 @@ class FitProblem:
         """
         sw = np.sqrt(2.0 * w)
         if start is None:  # linearised solution: template -d d_nom/dt beside the others
-            lin = self._masked_one(k, -2j * np.pi * self.freqs * self.d_nom_f[k])[None, :]
+            lin = self.tau_template_f[k][None, :]
             aug = np.vstack([lin, bank]) if bank.shape[0] else lin
             a, _ = solve_normal(cross(aug, aug, w), cross(aug, y, w))
             start = float(a[0])
@@ -430,9 +523,12 @@ class FitProblem:
         covariances = [np.zeros((rows.size, rows.size)) for _ in range(n_det)]
         models = [np.zeros(self.freqs.size, complex) for _ in range(n_det)]
         banks = [self.bank[k][rows] for k in range(n_det)]
+        used_banks = list(banks)
+        tau_parts = [0.0] * n_det
         passes = BACKFIT_PASSES if (has_glitch or has_noise or composed) else 1
         previous_chi2 = math.inf
         for _ in range(passes):
+            updated = False  # did the nonlinearity templates change in this pass?
             for k in range(n_det):
                 w = self.weights(s[k])
                 bank = banks[k]
@@ -452,25 +548,41 @@ class FitProblem:
                     a, cov = solve_normal(gram, cross(bank, y, w))
                     m_tau = 0.0
                 values[k], covariances[k] = a, cov
+                used_banks[k], tau_parts[k] = bank, m_tau
                 models[k] = (a @ bank if rows.size else 0.0) + m_tau + glitch_f[k]
                 if composed:  # the nonlinearity acts on d_nom + the other fitted effects
                     signal_f = a[others] @ bank[others] + m_tau
                     extra = scipy.fft.irfft(signal_f, n=self.n, workers=self.workers)
                     # chi^2 of the cross term 2 g1 d_nom x extra: skip it when negligible
-                    sigma2 = float(np.median(s[k][self.modes])) / self.scale[k] * ctx.sampling_rate_hz / 2
+                    sigma2 = (
+                        float(np.median(s[k][self.modes]))
+                        / self.scale[k]
+                        * ctx.sampling_rate_hz
+                        / 2
+                    )
                     g1 = a[nl_rows[0]]
-                    cross_chi2 = 4 * g1**2 * float(np.sum((ctx.d_nom[k] * extra * self.valid[k]) ** 2)) / sigma2
+                    cross_chi2 = (
+                        4
+                        * g1**2
+                        * float(np.sum((ctx.d_nom[k] * extra * self.valid[k]) ** 2))
+                        / sigma2
+                    )
                     if cross_chi2 < 0.01:
                         continue
                     signal = ctx.d_nom[k] + extra
+                    updated = True
                     banks[k] = bank.copy()
                     banks[k][nl_rows] = scipy.fft.rfft(
-                        np.stack([signal**2, signal**3]) * self.valid[k], axis=-1, workers=self.workers
+                        np.stack([signal**2, signal**3]) * self.valid[k],
+                        axis=-1,
+                        workers=self.workers,
                     )
             if has_glitch:
                 events = []
                 for k in range(n_det):
-                    events += self.detect_glitches(k, self.residual_f[k] - models[k] + glitch_f[k], s[k])
+                    events += self.detect_glitches(
+                        k, self.residual_f[k] - models[k] + glitch_f[k], s[k]
+                    )
                 glitches = self._masked_rfft(glitch_tod(ctx.times_s, n_det, events))
                 for k in range(n_det):
                     models[k] = models[k] - glitch_f[k] + glitches[k]
@@ -489,6 +601,8 @@ class FitProblem:
                     noise_cov[k] = fitted.covariance
                     s[k] = self.scale[k] * fitted.model.psd(self.freqs)
                     noise_fitted[k] = True
+            if not (updated or has_glitch or has_noise):
+                break
             total = sum(self.chi2_of(k, models[k], s[k])[0] for k in range(n_det))
             if abs(previous_chi2 - total) < CONVERGED_CHI2:
                 break
@@ -531,6 +645,9 @@ class FitProblem:
             model_f=models,
             noise_models=noise_models,
             chi2_off_lines=sum(b[1] for b in both),
+            parts=self._linear_parts(selected, used_banks, values)
+            | ({"detector_time_constant": tau_parts} if has_tau else {})
+            | ({"glitches": glitch_f} if has_glitch else {}),
         )
 
     def residual_after(self, result: FitResult) -> np.ndarray:
@@ -539,6 +656,21 @@ class FitProblem:
             result = self.fit(result.selected, keep_model=True)
         diff = self.residual_f - np.array(result.model_f)
         return scipy.fft.irfft(diff, n=self.n, axis=-1, workers=self.workers) * self.valid
+
+    def partial_residuals(self, result: FitResult) -> dict[str, np.ndarray]:
+        """For each selected effect: the residual minus the OTHER effects' fitted models.
+
+        What the data show of that effect alone, (n_det, n) time domain (masked).
+        """
+        if result.parts is None:
+            result = self.fit(result.selected, keep_model=True)
+        total = np.array(result.model_f)
+        out = {}
+        for name in result.selected:
+            own = np.array(result.parts[name]) if name in result.parts else 0.0
+            diff = self.residual_f - (total - own)
+            out[name] = scipy.fft.irfft(diff, n=self.n, axis=-1, workers=self.workers) * self.valid
+        return out
 
     def residual_before(self) -> np.ndarray:
         return scipy.fft.irfft(self.residual_f, n=self.n, axis=-1, workers=self.workers)
@@ -630,7 +762,9 @@ def select_templates(problem, names, threshold, max_effects, noise: bool, steps:
     removed_sets: set = set()
     while len(templates) < max_effects:
         remaining = [
-            n for n in names if n not in templates and frozenset(templates + (n,)) not in removed_sets
+            n
+            for n in names
+            if n not in templates and frozenset(templates + (n,)) not in removed_sets
         ]
         if not remaining:
             break
@@ -647,7 +781,9 @@ def select_templates(problem, names, threshold, max_effects, noise: bool, steps:
         templates += (best,)
         current = trials[best]
         while len(templates) > 1:  # backward elimination
-            removals = {n: problem.fit(tuple(m for m in templates if m != n) + extra) for n in templates}
+            removals = {
+                n: problem.fit(tuple(m for m in templates if m != n) + extra) for n in templates
+            }
             costs = {n: r.bic(ln_n) - current.bic(ln_n) for n, r in removals.items()}
             weakest = min(costs, key=costs.get)
             reduced = frozenset(m for m in templates if m != weakest)
@@ -688,7 +824,7 @@ def stepwise(
     noise_on = False
     noise_test: dict = {}
     if NOISE in names:
-        for _ in range(2):
+        for _ in range(3):  # at most: on, off again (then the selection is redone and kept)
             nominal = problem.fit(templates)
             fitted = problem.fit(templates + (NOISE,))
             dchi2 = fitted.chi2_off_lines - nominal.chi2_off_lines
@@ -710,10 +846,10 @@ def stepwise(
                 note="noise model judged on the modes away from the lines",
             )
             noise_on = wanted
-            if noise_on:  # select the templates again with the fitted noise weights
-                templates = select_templates(
-                    problem, template_names, delta_bic_threshold, max_effects, True, steps
-                )
+            # select the templates again with the new noise weights
+            templates = select_templates(
+                problem, template_names, delta_bic_threshold, max_effects, noise_on, steps
+            )
     final = problem.fit(templates + ((NOISE,) if noise_on else ()))
     delta_chi2, delta_bic = {}, {}
     for name in final.selected:

@@ -9,9 +9,15 @@ noise. The largest z above the threshold ln(N_f / p) (p = the one-sided 5 sigma 
 probability, N_f frequencies searched: a look-elsewhere corrected 5 sigma) is a line:
 its frequency is refined by a parabola through log z, its amplitude and phase fitted by
 least squares (a cos + b sin at that frequency, sigma_a = sqrt(P(f) / T_valid)), the
-sinusoid is subtracted and the search repeated (CLEAN). Each line is named by the
-simplest combination n f_HWP + m f_spin + k f_prec (0 <= n <= 8, |m|, |k| <= 3) within
-max(3 frequency bins, f_prec/2): complexity (n > 0) + |m| + |k|, then distance. The
+sinusoid is subtracted and the search repeated (CLEAN); a peak is searched only once
+(a non-sinusoidal component, e.g. a drifting line, leaves power CLEAN cannot remove) and
+fits below 5 sigma are not reported. The line is fitted with a slowly varying amplitude,
+sum_{j<=3} P_j(x) (a_j cos + b_j sin), so that a drifting line (gain or HWP temperature
+drift) is one line with a "modulation", not a comb of lines. Each line is named by the
+simplest combination n f_HWP + m f_spin + k f_prec (0 <= n <= 8, |m|, |k| <= 3; spin
+and precession terms only when resolved, >= 2 frequency bins) within 3 bins
+(complexity (n > 0) + |m| + |k| first, then distance), and then fitted AT that
+combination's frequency ("offset_hz" is how far the periodogram peak was). The
 dipole sits at f_spin and its precession sidebands, so "2 f_HWP +- f_spin" are the
 HWPSS x dipole intermodulation lines. Excess bands: the mean of |R_f|^2 / S_nom,f over
 logarithmic bands (line bins excluded) against 1 +- 1/sqrt(m).
@@ -35,6 +41,7 @@ dipole maps.
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import asdict, dataclass, field
 
@@ -72,6 +79,8 @@ class Line:
     phase_rad: float
     significance_sigma: float  # A / sigma_A of the least-squares fit
     global_sigma: float  # look-elsewhere corrected significance of the periodogram peak
+    modulation_k: float  # rms of the slow amplitude modulation sum_{j=1..3} P_j(x) (a_j, b_j)
+    modulation_sigma: float  # its significance (chi^2 of a_j, b_j, j >= 1, as sigma)
     identification: str
     n_hwp: int | None
     m_spin: int | None
@@ -82,12 +91,25 @@ class Line:
         return asdict(self)
 
 
-def identify(freq_hz: float, f_hwp_hz: float, f_spin_hz: float, f_prec_hz: float, tol_hz: float):
-    """Simplest n f_HWP + m f_spin + k f_prec within ``tol_hz``: (label, n, m, k, offset)."""
+def identify(
+    freq_hz: float,
+    f_hwp_hz: float,
+    f_spin_hz: float,
+    f_prec_hz: float,
+    tol_hz: float,
+    resolution_hz: float = 0.0,
+):
+    """Simplest n f_HWP + m f_spin + k f_prec within ``tol_hz``: (label, n, m, k, offset).
+
+    A spin or precession term enters only if that frequency is resolved (>= 2
+    ``resolution_hz``): a 2-hour recording cannot tell 2 f_HWP from 2 f_HWP + f_prec.
+    """
     best = None
-    for n in range(0, MAX_HARMONIC + 1):
-        for m in range(-3, 4):
-            for k in range(-3, 4):
+    spins = range(-3, 4) if f_spin_hz >= 2 * resolution_hz else (0,)
+    precessions = range(-3, 4) if f_prec_hz >= 2 * resolution_hz else (0,)
+    for n in range(MAX_HARMONIC + 1):
+        for m in spins:
+            for k in precessions:
                 if n == 0 and (m < 0 or (m == 0 and k <= 0)):
                     continue
                 center = n * f_hwp_hz + m * f_spin_hz + k * f_prec_hz
@@ -119,12 +141,36 @@ def identify(freq_hz: float, f_hwp_hz: float, f_spin_hz: float, f_prec_hz: float
 def sinusoid_fit(residual, times_s, valid, freq_hz):
     """Least-squares a cos(2 pi f t) + b sin(2 pi f t) + c on the valid samples: (a, b)."""
     phase = 2 * np.pi * freq_hz * times_s
-    columns = [np.cos(phase) * valid, np.sin(phase) * valid, valid.astype(float)]
-    y = residual * valid
-    gram = np.array([[u @ v for v in columns] for u in columns])
-    rhs = np.array([u @ y for u in columns])
-    coefficients = np.linalg.lstsq(gram, rhs, rcond=None)[0]
+    design = np.empty((times_s.size, 3))
+    design[:, 0] = np.cos(phase)
+    design[:, 1] = np.sin(phase)
+    design[:, 2] = 1.0
+    design *= valid[:, None]
+    coefficients = np.linalg.lstsq(design.T @ design, design.T @ (residual * valid), rcond=None)[0]
     return float(coefficients[0]), float(coefficients[1])
+
+
+def modulated_line_fit(residual, ctx: Context, valid, freq_hz, degree: int = 3):
+    """Least squares sum_{j<=degree} P_j(x) [a_j cos(2 pi f t) + b_j sin(2 pi f t)] + c.
+
+    Returns (a, b, model): a line with a slowly varying amplitude (a drifting HWPSS or
+    gain) is one component, not a comb of spurious lines around it.
+    """
+    phase = 2 * np.pi * freq_hz * ctx.times_s
+    cos, sin = np.cos(phase), np.sin(phase)
+    design = np.empty((ctx.n_samples, 2 * degree + 3))
+    for j in range(degree + 1):
+        legendre = ctx.legendre(j)
+        design[:, j] = legendre * cos
+        design[:, degree + 1 + j] = legendre * sin
+    design[:, -1] = 1.0
+    weight = valid.astype(float)
+    weighted = design * weight[:, None]
+    coefficients = np.linalg.lstsq(weighted.T @ design, weighted.T @ residual, rcond=None)[0]
+    a = coefficients[: degree + 1]
+    b = coefficients[degree + 1 : 2 * degree + 2]
+    model = design[:, :-1] @ coefficients[:-1]
+    return a, b, model * weight
 
 
 def line_at(residual, times_s, valid, freq_hz, psd_at_f):
@@ -147,6 +193,7 @@ def find_lines(
     noise: NoiseModel,
     max_lines: int = MAX_LINES,
     false_alarm_p: float = FIVE_SIGMA_P,
+    min_significance: float = 5.0,
 ) -> list[Line]:
     """Significant lines of detector k's residual, strongest first (CLEAN, module docstring)."""
     fs = ctx.sampling_rate_hz
@@ -162,36 +209,55 @@ def find_lines(
     searched[-1] = False
     n_trials = int(searched.sum())
     threshold = math.log(n_trials / false_alarm_p)
-    tolerance = max(3 * resolution, 0.5 * ctx.f_precession_hz)
+    tolerance = 3 * resolution
     lines: list[Line] = []
-    for _ in range(max_lines):
+    for _ in range(2 * max_lines):
+        if len(lines) >= max_lines:
+            break
         spectrum = scipy.fft.rfft(work * window)
         z = (spectrum.real**2 + spectrum.imag**2) / norm
         z[~searched] = 0.0
         peak = int(np.argmax(z))
         if z[peak] < threshold:
             break
+        # a component that CLEAN cannot remove (not a sinusoid) is searched only once
+        searched[max(0, peak - 1) : peak + 2] = False
         freq = freqs[peak]
         if 0 < peak < z.size - 1 and z[peak - 1] > 0 and z[peak + 1] > 0:
             lo, mid, hi = np.log(z[peak - 1 : peak + 2])
             denominator = lo - 2 * mid + hi
             if denominator < 0:
                 freq += 0.5 * (lo - hi) / denominator * resolution
-        amplitude, sigma, phase, significance, a, b = line_at(
-            work, ctx.times_s, valid, freq, float(noise.psd(freq))
-        )
         label, n_h, m_s, k_p, offset = identify(
-            freq, ctx.f_hwp_hz, ctx.f_spin_hz, ctx.f_precession_hz, tolerance
+            freq, ctx.f_hwp_hz, ctx.f_spin_hz, ctx.f_precession_hz, tolerance, resolution
         )
+        if offset is not None:  # fit at the exact combination (a modulated line peaks off it)
+            freq -= offset
+        a, b, model = modulated_line_fit(work, ctx, valid, freq)
+        work = work - model
+        duration = valid.sum() / fs
+        sigma = math.sqrt(float(noise.psd(freq)) / duration)
+        amplitude = math.hypot(a[0], b[0])
+        significance = amplitude / sigma if sigma > 0 else 0.0
+        # sum_t P_j^2 = N / (2 j + 1): sigma(a_j) = sigma sqrt(2 j + 1)
+        orders = np.arange(1, a.size)
+        modulation_chi2 = float(np.sum((a[1:] ** 2 + b[1:] ** 2) / (sigma**2 * (2 * orders + 1))))
+        modulation = math.sqrt(float(np.sum((a[1:] ** 2 + b[1:] ** 2) / (2 * (2 * orders + 1)))))
+        if max(significance, math.sqrt(modulation_chi2)) < min_significance:
+            continue
         lines.append(
             Line(
                 detector=ctx.detector_names[k],
                 freq_hz=float(freq),
                 amplitude_k=amplitude,
                 sigma_amplitude_k=sigma,
-                phase_rad=phase,
+                phase_rad=math.atan2(-b[0], a[0]),
                 significance_sigma=significance,
                 global_sigma=p_to_sigma(min(1.0, n_trials * math.exp(-float(z[peak])))),
+                modulation_k=modulation,
+                modulation_sigma=p_to_sigma(
+                    float(scipy.stats.chi2.sf(modulation_chi2, 2 * orders.size))
+                ),
                 identification=label,
                 n_hwp=n_h,
                 m_spin=m_s,
@@ -199,8 +265,6 @@ def find_lines(
                 offset_hz=offset,
             )
         )
-        phase_t = 2 * np.pi * freq * ctx.times_s
-        work = work - valid * (a * np.cos(phase_t) + b * np.sin(phase_t))
     return lines
 
 
@@ -224,7 +288,7 @@ def excess_bands(
         max(2, int(per_decade * np.log10(positive.max() / positive.min())) + 2),
     )
     out = []
-    for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+    for lo, hi in itertools.pairwise(edges):
         band = use & (freqs >= lo) & (freqs < hi)
         m = int(band.sum())
         if m < 10:
@@ -431,7 +495,7 @@ def coarse_pixels(ctx: Context, nside_out: int = SKY_NSIDE):
         return None, None
     if nside <= nside_out:
         return ctx.pixels, nside
-    factor = int(round(math.log2(nside / nside_out)))
+    factor = round(math.log2(nside / nside_out))
     if 2**factor * nside_out != nside:
         return ctx.pixels, nside
     nest = hp.ring2nest(nside, ctx.pixels)
@@ -462,7 +526,12 @@ def sky_residual(residual: np.ndarray, ctx: Context, sigma_sample: np.ndarray) -
         with np.errstate(invalid="ignore", divide="ignore"):
             return np.where(hits > 0, sums / np.maximum(wsum, 1e-300), np.nan)
 
-    residual_map = weighted(residual)
+    # the offset is a nuisance (DC is not fitted): remove each detector's mean first
+    centred = (
+        residual
+        - np.array([residual[k][ctx.valid[k]].mean() for k in range(ctx.n_detectors)])[:, None]
+    )
+    residual_map = weighted(centred)
     intensity_map = weighted(ctx.sky_intensity)
     dipole_map = weighted(ctx.dipole)
     seen = hits > 0

@@ -48,7 +48,7 @@ def check_sky_map(sky_iqu, source: str = "sky_iqu") -> np.ndarray:
             "in K_CMB, HEALPix RING, Galactic"
         )
     npix = sky.shape[1]
-    nside = int(round(np.sqrt(npix / 12)))
+    nside = round(np.sqrt(npix / 12))
     if nside < 1 or 12 * nside * nside != npix:
         raise SkyMapError(f"{source}: {npix} pixels per map is not 12 nside^2 for any nside")
     if not np.all(np.isfinite(sky)):
@@ -214,7 +214,7 @@ def scan_sky(recording, sky: np.ndarray, threads: int = 1):
     import ducc0
     import litebird_sim as lbs
 
-    nside = int(round(np.sqrt(sky.shape[1] / 12)))
+    nside = round(np.sqrt(sky.shape[1] / 12))
     healpix = ducc0.healpix.Healpix_Base(nside, "RING")
     n_det, n = recording.n_detectors, recording.n_samples
     pixels = np.empty((n_det, n), dtype=np.int64)

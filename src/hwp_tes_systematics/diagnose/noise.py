@@ -281,8 +281,12 @@ def whittle_fit(
             objective,
             guess,
             method="Nelder-Mead",
-            options={"xatol": 1e-5, "fatol": 1e-5, "maxiter": 1000,
-                     "initial_simplex": [guess, guess + [0.5, 0.0], guess + [0.0, 0.3]]},
+            options={
+                "xatol": 1e-5,
+                "fatol": 1e-5,
+                "maxiter": 1000,
+                "initial_simplex": [guess, guess + [0.5, 0.0], guess + [0.0, 0.3]],
+            },
         )
         if best is None or trial.fun < best.fun:
             best = trial

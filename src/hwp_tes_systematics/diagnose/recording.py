@@ -273,7 +273,10 @@ def read_recording(path) -> Recording:
     if nan_hwp.any():  # the HWP turns uniformly: bridge the gap so chi stays usable
         good = ~nan_hwp
         unwrapped = np.unwrap(hwp_angle[good])
-        hwp_angle = np.mod(np.interp(np.arange(n), np.flatnonzero(good), unwrapped), 2 * np.pi)
+        filled = np.interp(np.arange(n), np.flatnonzero(good), unwrapped)
+        # back on the file's branch: (-pi, pi] or [0, 2 pi)
+        offset = np.pi if hwp_angle[good].min() < 0 else 0.0
+        hwp_angle[nan_hwp] = np.mod(filled[nan_hwp] + offset, 2 * np.pi) - offset
     channel = str(detectors[0].get("channel", ""))
     return Recording(
         tod=tod,
@@ -312,10 +315,13 @@ def _observation_for(recording: Recording):
     import litebird_sim as lbs
 
     observation = recording.observation
-    if observation is not None and getattr(observation, "pointing_provider", None) is not None:
-        if observation.tod.shape == recording.tod.shape:
-            observation.tod[:] = recording.tod
-            return observation, True
+    if (
+        observation is not None
+        and getattr(observation, "pointing_provider", None) is not None
+        and observation.tod.shape == recording.tod.shape
+    ):
+        observation.tod[:] = recording.tod
+        return observation, True
     detectors = []
     for detector in recording.detectors:
         detector = dict(detector)
@@ -474,7 +480,7 @@ def simulate_recording(
     from .model import check_sky_map
 
     sky = check_sky_map(sky_iqu)
-    nside = int(round(np.sqrt(sky.shape[1] / 12)))
+    nside = round(np.sqrt(sky.shape[1] / 12))
     simulator, pointing, dipole = _simulated_base(channel_name, float(hours), start_time_tdb, nside)
     n_det = simulator.n_detectors
     a2 = per_detector(a2_k, n_det, "a2_k")

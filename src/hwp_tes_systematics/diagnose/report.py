@@ -33,9 +33,9 @@ import scipy.fft
 from ..io import atomic_path
 from .effects import CATALOG
 from .fit import NOISE, FitProblem, stepwise
-from .locate import line_at, locate
+from .locate import dc_offset, drifts, hwp_profile, line_at, locate
 from .model import build_context, load_sky, nominal_tod, per_detector
-from .noise import NoiseModel, estimate_noise
+from .noise import NoiseModel, estimate_noise, periodogram_scale
 from .recording import Recording
 
 log = logging.getLogger(__name__)
@@ -53,8 +53,10 @@ def _nominal_noise_models(recording: Recording, nominal_noise) -> list[NoiseMode
     metadata = recording.nominal_noise()
     if nominal_noise is None:
         items = [None] * n_det
-    elif isinstance(nominal_noise, list) and len(nominal_noise) == n_det and not all(
-        isinstance(x, (int, float)) for x in nominal_noise
+    elif (
+        isinstance(nominal_noise, list)
+        and len(nominal_noise) == n_det
+        and not all(isinstance(x, (int, float)) for x in nominal_noise)
     ):
         items = list(nominal_noise)
     else:
@@ -98,17 +100,24 @@ def _fmt(value_k: float) -> str:
 
 
 class Evidence:
-    """Targeted measurements on the residual BEFORE the fit, compared with the fitted effect."""
+    """Targeted measurements on the residual of one effect, compared with its fitted model.
 
-    def __init__(self, ctx, residual, noise_models, mismatch, a2, workers=1):
+    ``residual`` is the residual minus the fitted models of the OTHER selected effects
+    (what the data show of this effect alone); the harmonics in chi, the DC shift, the
+    2f and dipole drifts (:mod:`.locate`) and the lines at 2 f_HWP +- f_spin are measured
+    on it, with the noise estimated from the residual.
+    """
+
+    def __init__(self, ctx, residual, noise_models, a2, workers=1):
         self.ctx = ctx
         self.residual = residual
         self.noise = noise_models
-        self.mismatch = mismatch
         self.a2 = a2
         self.workers = workers
         self.f_hwp = ctx.f_hwp_hz
         self.f_spin = ctx.f_spin_hz
+        self._harmonics = {}
+        self._drifts = {}
 
     def line(self, k, freq):
         noise = self.noise[k]
@@ -117,24 +126,30 @@ class Evidence:
         )
 
     def harmonic(self, k, n):
-        name = self.ctx.detector_names[k]
-        for h in self.mismatch.harmonics:
-            if h.detector == name and h.n == n:
-                return h
-        return None
+        if k not in self._harmonics:
+            sigma = self.noise[k].net_k_sqrt_s * math.sqrt(self.ctx.sampling_rate_hz)
+            self._harmonics[k] = hwp_profile(self.residual[k], self.ctx, k, sigma)[3]
+        return self._harmonics[k][n - 1]
 
     def drift(self, k, quantity):
-        name = self.ctx.detector_names[k]
-        for d in self.mismatch.drifts:
-            if d["detector"] == name and d["quantity"] == quantity:
-                return d
-        return None
+        if k not in self._drifts:
+            ctx = self.ctx
+            freqs = scipy.fft.rfftfreq(ctx.n_samples, 1.0 / ctx.sampling_rate_hz)
+            scale = periodogram_scale(
+                ctx.n_samples, ctx.sampling_rate_hz, float(ctx.valid[k].mean())
+            )
+            s = scale * self.noise[k].psd(freqs)
+            weights = np.zeros(freqs.size)
+            weights[1:-1] = 1.0 / s[1:-1]
+            residual_f = scipy.fft.rfft(self.residual[k], workers=self.workers)
+            self._drifts[k] = {
+                d["quantity"]: d for d in drifts(residual_f, ctx, k, weights, self.workers)
+            }
+        return self._drifts[k][quantity]
 
     def dipole_amplitude(self, k):
         """Amplitude of the dipole's line at f_spin in the nominal model [K]."""
-        return line_at(
-            self.ctx.dipole[k], self.ctx.times_s, self.ctx.valid[k], self.f_spin, 1.0
-        )[0]
+        return line_at(self.ctx.dipole[k], self.ctx.times_s, self.ctx.valid[k], self.f_spin, 1.0)[0]
 
     def sidebands(self, k):
         lower = self.line(k, 2 * self.f_hwp - self.f_spin)
@@ -142,7 +157,7 @@ class Evidence:
         return lower, upper
 
     def dc(self, k):
-        return self.mismatch.dc_offsets[self.ctx.detector_names[k]]
+        return dc_offset(self.residual[k], self.ctx.valid[k], self.noise[k], self.ctx.duration_s)
 
     # ---------------------------------------------------------------- per effect
     def tes_nonlinearity(self, fit) -> str:
@@ -157,7 +172,7 @@ class Evidence:
             valid = self.ctx.valid[k]
             d = self.ctx.d_nom[k][valid]
             dc_pred = g1 * float(np.mean(d**2)) + g2 * float(np.mean(d**3))
-            (lo, lo_s, _, lo_sig, *_), (hi, hi_s, _, hi_sig, *_) = self.sidebands(k)
+            (lo, _lo_s, _, lo_sig, *_), (hi, _hi_s, _, hi_sig, *_) = self.sidebands(k)
             side_pred = abs(g1) * a2 * self.dipole_amplitude(k)
             text = (
                 f"{name}: 4 f_HWP line {_fmt(h4.amplitude_k)} at {h4.significance_sigma:.1f} sigma "
@@ -207,7 +222,7 @@ class Evidence:
                 if sigma > 0 and amplitude / sigma > 3:
                     found.append(f"{n} f_HWP {_fmt(amplitude)} ({amplitude / sigma:.0f} sigma)")
             dc, dc_sigma = self.dc(k)
-            (lo, _, _, lo_sig, *_), (hi, _, _, hi_sig, *_) = self.sidebands(k)
+            (_lo, _, _, lo_sig, *_), (_hi, _, _, hi_sig, *_) = self.sidebands(k)
             parts.append(
                 f"{name}: lines at {', '.join(found) or 'no single harmonic above 3 sigma'}; "
                 f"no DC shift ({_fmt(dc)} +- {_fmt(dc_sigma)}) and no 2 f_HWP +- f_spin "
@@ -376,6 +391,8 @@ def _line_table(mismatch, ctx, residual_before, residual_after, noise_models):
                 "sigma_k": line.sigma_amplitude_k,
                 "significance_before_sigma": line.significance_sigma,
                 "global_significance_sigma": line.global_sigma,
+                "modulation_before_k": line.modulation_k,
+                "modulation_significance_sigma": line.modulation_sigma,
                 "amplitude_after_k": after[0],
                 "significance_after_sigma": after[3],
             }
@@ -446,12 +463,14 @@ def diagnose(
     problem = FitProblem(ctx, recording.tod, nominal, workers=workers)
     selection = stepwise(problem, delta_bic_threshold=delta_bic_threshold, max_effects=max_effects)
     final = selection.final
+    final = problem.fit(final.selected, keep_model=True)
     residual_after = problem.residual_after(final)
-    evidence = Evidence(ctx, residual, noise_models, mismatch, a2, workers)
+    partial = problem.partial_residuals(final)
 
     effects_out = []
     for name in selection.ranked:
         fit = final.effects[name]
+        evidence = Evidence(ctx, partial[name], noise_models, a2, workers)
         if name == NOISE:
             text = evidence.noise_mismatch(fit, nominal, mismatch.excess_bands)
         else:
@@ -486,8 +505,12 @@ def diagnose(
         "lines": lines,
         "noise": {
             "nominal": [
-                {"net_k_sqrt_s": m.net_k_sqrt_s, "fknee_hz": m.fknee_hz, "alpha": m.alpha,
-                 "fmin_hz": m.fmin_hz}
+                {
+                    "net_k_sqrt_s": m.net_k_sqrt_s,
+                    "fknee_hz": m.fknee_hz,
+                    "alpha": m.alpha,
+                    "fmin_hz": m.fmin_hz,
+                }
                 for m in nominal
             ],
             "estimated": [e.as_dict() for e in estimates],
@@ -510,13 +533,23 @@ def diagnose(
     }
     result = _jsonable(result)
     if out_dir is not None:
-        write_outputs(result, out_dir, ctx, problem, residual, residual_after, mismatch,
-                      noise_models, figures=figures)
+        write_outputs(
+            result,
+            out_dir,
+            ctx,
+            problem,
+            residual,
+            residual_after,
+            mismatch,
+            noise_models,
+            figures=figures,
+        )
     return result
 
 
-def write_outputs(result, out_dir, ctx, problem, residual, residual_after, mismatch,
-                  noise_models, figures=True) -> None:
+def write_outputs(
+    result, out_dir, ctx, problem, residual, residual_after, mismatch, noise_models, figures=True
+) -> None:
     """diagnosis.json, diagnosis.md and the PNG figures in ``out_dir``."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -539,34 +572,42 @@ def markdown_report(result: dict, figure_files: dict | None = None) -> str:
     out = [
         "# Diagnosis of a recording against its simulation",
         "",
-        f"Recording: `{rec['source']}` ({rec['channel']}, detectors {', '.join(rec['detectors'])}, "
-        f"{rec['duration_s'] / 3600:.3g} h at {rec['sampling_rate_hz']:g} Hz, "
-        f"{100 * rec['flagged_fraction']:.2g} % flagged); A_2 = {rec['a2_k']} K; sky: {rec['sky']}.",
+        (
+            f"Recording: `{rec['source']}` ({rec['channel']}, detectors {', '.join(rec['detectors'])}, "
+            f"{rec['duration_s'] / 3600:.3g} h at {rec['sampling_rate_hz']:g} Hz, "
+            f"{100 * rec['flagged_fraction']:.2g} % flagged); A_2 = {rec['a2_k']} K; sky: {rec['sky']}."
+        ),
         "",
     ]
     effects = result["effects"]
     if not result["mismatch_found"]:
         out += [
-            "**No mismatch found**: no effect of the catalog lowers the BIC by more than "
-            f"{-result['delta_bic_threshold']:g}; the residual is consistent with the configured "
-            f"noise (chi2 = {result['chi2_before']:.1f} for N_eff = {result['n_eff']}).",
+            (
+                "**No mismatch found**: no effect of the catalog lowers the BIC by more than "
+                f"{-result['delta_bic_threshold']:g}; the residual is consistent with the configured "
+                f"noise (chi2 = {result['chi2_before']:.1f} for N_eff = {result['n_eff']})."
+            ),
             "",
         ]
     else:
         out += [
-            f"**Mismatch found.** The simulation left out {len(effects)} effect(s); the fit "
-            f"lowers chi2 from {result['chi2_before']:.1f} to {result['chi2_after']:.1f} "
-            f"(N_eff = {result['n_eff']}, dof = {result['dof']}), BIC from "
-            f"{result['bic_before']:.1f} to {result['bic_after']:.1f}.",
+            (
+                f"**Mismatch found.** The simulation left out {len(effects)} effect(s); the fit "
+                f"lowers chi2 from {result['chi2_before']:.1f} to {result['chi2_after']:.1f} "
+                f"(N_eff = {result['n_eff']}, dof = {result['dof']}), BIC from "
+                f"{result['bic_before']:.1f} to {result['bic_after']:.1f}."
+            ),
             "",
         ]
     for rank, effect in enumerate(effects, 1):
         out += [
             f"## {rank}. {effect['title']} (`{effect['name']}`)",
             "",
-            f"*How sure*: removing it from the final model raises chi2 by "
-            f"{effect['delta_chi2']:.4g} and the BIC by {-effect['delta_bic']:.4g} "
-            f"(threshold {-result['delta_bic_threshold']:g}).",
+            (
+                f"*How sure*: removing it from the final model raises chi2 by "
+                f"{effect['delta_chi2']:.4g} and the BIC by {-effect['delta_bic']:.4g} "
+                f"(threshold {-result['delta_bic_threshold']:g})."
+            ),
             "",
             f"*Signature*: {effect['signature']}.",
             "",
@@ -593,14 +634,23 @@ def markdown_report(result: dict, figure_files: dict | None = None) -> str:
         "",
         "## Lines in the residual (before and after the fit)",
         "",
-        "| detector | frequency [Hz] | identification | before | significance | after | significance |",
-        "|---|---|---|---|---|---|---|",
+        (
+            "Amplitudes of the static part of each line; *modulation* is the rms of its slow "
+            "amplitude change over the recording (a drifting line)."
+        ),
+        "",
+        (
+            "| detector | frequency [Hz] | identification | before | significance | modulation "
+            "| after | significance |"
+        ),
+        "|---|---|---|---|---|---|---|---|",
     ]
     for line in result["lines"]:
         out.append(
             f"| {line['detector']} | {line['freq_hz']:.6f} | {line['identification']} | "
             f"{_fmt(line['amplitude_before_k'])} | {line['significance_before_sigma']:.1f} | "
-            f"{_fmt(line['amplitude_after_k'])} | {line['significance_after_sigma']:.1f} |"
+            f"{_fmt(line['modulation_before_k'])} ({line['modulation_significance_sigma']:.1f} "
+            f"sigma) | {_fmt(line['amplitude_after_k'])} | {line['significance_after_sigma']:.1f} |"
         )
     out += ["", "## Noise (configured vs estimated from the residual)", ""]
     for nominal, estimated, det in zip(

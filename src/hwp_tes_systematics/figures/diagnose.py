@@ -36,14 +36,14 @@ def plot_residual_spectrum(ctx, before, after, noise_models, lines, path) -> Non
         duration = ctx.duration_s
         noise_amp = np.sqrt(noise_models[k].psd(freqs[keep]) / duration)
         ax.loglog(freqs[keep], noise_amp, color="k", lw=0.8, label="noise (1 sigma line amplitude)")
+        strongest = {}
         for line in lines:
             if line["detector"] == ctx.detector_names[k]:
-                ax.annotate(
-                    line["identification"],
-                    (line["freq_hz"], line["amplitude_before_k"]),
-                    fontsize=6,
-                    rotation=60,
-                )
+                label = line["identification"]
+                if label not in strongest or line["amplitude_before_k"] > strongest[label][1]:
+                    strongest[label] = (line["freq_hz"], line["amplitude_before_k"])
+        for label, (freq, amplitude) in strongest.items():
+            ax.annotate(label, (freq, amplitude), fontsize=7, rotation=45)
         ax.set_title(ctx.detector_names[k], fontsize=9)
         ax.set_ylabel("amplitude [K]")
         ax.grid(alpha=0.3)
@@ -86,7 +86,7 @@ def plot_residual_timeseries(ctx, before, after, events, path) -> None:
     fig, axes = subplots(n_det, 1, figsize=(9, 2.8 * n_det), squeeze=False, sharex=True)
     for k, ax in enumerate(axes[:, 0]):
         t, m = _block_mean(ctx.times_s, before[k], ctx.valid[k])
-        ax.plot(t / 3600, 1e6 * m, lw=0.6, label="before (block means)")
+        ax.plot(t / 3600, 1e6 * m, lw=0.6, label=f"before (means over {t[1] - t[0]:.3g} s)")
         t, m = _block_mean(ctx.times_s, after[k], ctx.valid[k])
         ax.plot(t / 3600, 1e6 * m, lw=0.6, label="after")
         for e in events:
@@ -126,7 +126,12 @@ def diagnosis_figures(
 
     files = {}
     plot_residual_spectrum(
-        ctx, residual, residual_after, noise_models, result["lines"], out_dir / "residual_spectrum.png"
+        ctx,
+        residual,
+        residual_after,
+        noise_models,
+        result["lines"],
+        out_dir / "residual_spectrum.png",
     )
     files["residual spectrum before/after"] = "residual_spectrum.png"
     after_profiles = {}
@@ -139,7 +144,7 @@ def diagnosis_figures(
     events = []
     for effect in result["effects"]:
         if effect["name"] == "glitches":
-            for key, p in effect["parameters"].items():
+            for p in effect["parameters"].values():
                 if p["parameter"] == "time":
                     events.append(
                         {"detector": ctx.detector_names.index(p["detector"]), "time_s": p["value"]}
@@ -147,13 +152,17 @@ def diagnosis_figures(
     plot_residual_timeseries(ctx, residual, residual_after, events, out_dir / "residual_time.png")
     files["residual time series"] = "residual_time.png"
     if mismatch.sky.get("available") and "residual_map" in mismatch.sky:
-        plot_residual_map(mismatch.sky["residual_map"], mismatch.sky["nside"], out_dir / "residual_map.png")
+        plot_residual_map(
+            mismatch.sky["residual_map"], mismatch.sky["nside"], out_dir / "residual_map.png"
+        )
         files["residual map (before the fit)"] = "residual_map.png"
         sigma = np.array([m.net_k_sqrt_s * np.sqrt(ctx.sampling_rate_hz) for m in noise_models])
         after_sky = sky_residual(residual_after, ctx, sigma)
         if "residual_map" in after_sky:
             plot_residual_map(
-                after_sky["residual_map"], after_sky["nside"], out_dir / "residual_map_after.png",
+                after_sky["residual_map"],
+                after_sky["nside"],
+                out_dir / "residual_map_after.png",
                 title="residual map after the fit",
             )
             files["residual map (after the fit)"] = "residual_map_after.png"
