@@ -16,6 +16,14 @@ check_config(config, source="Snakemake config")
 
 
 include: "workflow/rules/common.smk"
+
+
+wildcard_constraints:
+    channel="[LMH][1-4]-[0-9]{3}",
+    seed=r"\d+",
+    case=r"nosys|sigma[0-9.]+e[-+]?[0-9]+",
+
+
 include: "workflow/rules/hwp_power.smk"
 include: "workflow/rules/kw_conversion.smk"
 include: "workflow/rules/tes_response.smk"

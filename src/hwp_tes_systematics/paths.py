@@ -32,7 +32,6 @@ REQUIREMENT = f"{RESULTS}/requirement.json"
 # Stage: diagnosis of recordings (and the workflow's own example recording)
 EXAMPLE_RECORDING = f"{RESULTS}/diagnose/example_recording.h5"
 EXAMPLE_SKY = f"{RESULTS}/diagnose/example_sky.fits"
-DIAGNOSIS_DIR = f"{RESULTS}/diagnose/{{recording}}"
 DIAGNOSIS = f"{RESULTS}/diagnose/{{recording}}/diagnosis.json"
 DIAGNOSIS_REPORT = f"{RESULTS}/diagnose/{{recording}}/diagnosis.md"
 

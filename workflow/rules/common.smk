@@ -1,16 +1,10 @@
-# Helpers shared by the rule files: inputs that depend on the configuration.
+# Helpers shared by the stage files: inputs and settings that depend on the configuration.
 
 
 def hwp_curve_files():
     """The HWP curve tables named in the config (rerun the HWP stage when one changes)."""
     telescopes = config["optics"]["telescopes"].values()
     return [t["hwp_curves_csv"] for t in telescopes if t["hwp_curves_csv"] is not None]
-
-
-wildcard_constraints:
-    channel="[LMH][1-4]-[0-9]{3}",
-    seed=r"\d+",
-    case=r"nosys|sigma[0-9.]+e[-+]?[0-9]+",
 
 
 CHANNELS = selected_channels(config)

@@ -28,6 +28,6 @@ rule diagnose:
         paths.benchmark("diagnose", "{recording}")
     params:
         config=config,
-        out_dir=paths.DIAGNOSIS_DIR,
+        out_dir=lambda wildcards, output: os.path.dirname(output.diagnosis),
     script:
         "../scripts/diagnose.py"
