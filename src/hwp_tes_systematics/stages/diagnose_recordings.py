@@ -14,7 +14,7 @@ from .. import config as cfg
 from .. import sky
 from ..diagnose.recording import read_recording, simulate_recording, write_recording
 from ..diagnose.report import diagnose
-from .kw_conversion import channel_a2_k_cmb, conversion_row
+from .kw_conversion import channel_a2_k_cmb, channel_conversion
 from .tes_response import tes_for_channel
 
 log = logging.getLogger(__name__)
@@ -27,18 +27,7 @@ def make_example(config: dict, out_h5: str, out_sky: str) -> None:
     settings = config["diagnose"]
     name = settings["example_channel"]
     channel = cfg.channel(config, name)
-    curves, elements, hwp_temperature_k = cfg.telescope_optics(config, channel.telescope)
-    from ..hwp_power import hwp_power_for_channel
-
-    hwp = hwp_power_for_channel(
-        channel,
-        curves,
-        hwp_temperature_k,
-        elements,
-        config["optics"]["incoming_load_temperature_k"],
-        config["optics"]["hwpss_a2_over_delta_p"],
-    )
-    conversion = conversion_row(config, name, hwp)
+    conversion = channel_conversion(config, name)
     tes_parameters = tes_for_channel(config["tes"], conversion["p_nominal_w"])
     nside = config["maps"]["nside"]
     sky_map = sky.channel_sky_map(

@@ -64,11 +64,8 @@ def kw_conversion_table(config: dict, hwp_table: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def channel_a2_k_cmb(config: dict, name: str) -> float:
-    """The nominal HWPSS amplitude A_2 [K_CMB] of one channel (0 outside the systematics
-    channels, whose HWP the study takes as ideal), computed from the configured optics."""
-    if name not in config["instrument"]["systematics_channels"]:
-        return 0.0
+def channel_conversion(config: dict, name: str) -> dict:
+    """:func:`conversion_row` of one channel computed from the configured optics alone."""
     channel = cfg.channel(config, name)
     curves, elements, hwp_temperature_k = cfg.telescope_optics(config, channel.telescope)
     hwp = hwp_power_for_channel(
@@ -79,7 +76,15 @@ def channel_a2_k_cmb(config: dict, name: str) -> float:
         config["optics"]["incoming_load_temperature_k"],
         config["optics"]["hwpss_a2_over_delta_p"],
     )
-    return conversion_row(config, name, hwp)["a2_k_cmb"]
+    return conversion_row(config, name, hwp)
+
+
+def channel_a2_k_cmb(config: dict, name: str) -> float:
+    """The nominal HWPSS amplitude A_2 [K_CMB] of one channel (0 outside the systematics
+    channels, whose HWP the study takes as ideal), computed from the configured optics."""
+    if name not in config["instrument"]["systematics_channels"]:
+        return 0.0
+    return channel_conversion(config, name)["a2_k_cmb"]
 
 
 def run(config: dict, hwp_csv: str, table_csv: str) -> None:
