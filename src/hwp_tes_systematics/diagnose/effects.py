@@ -459,6 +459,19 @@ CATALOG: dict[str, Effect] = {
 }
 
 
+# Effects on the signal, which the detector nonlinearity then acts on (they come before it).
+SIGNAL_EFFECTS = frozenset(
+    {
+        "detector_time_constant",
+        "hwpss_harmonics",
+        "hwpss_intensity_coupling",
+        "gain_drift",
+        "hwp_temperature_drift",
+        "crosstalk",
+    }
+)
+
+
 def get_effect(name: str) -> Effect:
     try:
         return CATALOG[name]

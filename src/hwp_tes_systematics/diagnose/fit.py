@@ -75,6 +75,7 @@ import scipy.optimize
 
 from .effects import (
     CATALOG,
+    SIGNAL_EFFECTS,
     Effect,
     GlitchEvent,
     glitch_tod,
@@ -90,15 +91,6 @@ GLITCH_THRESHOLD_SIGMA = 5.0
 BACKFIT_PASSES = 4
 CONVERGED_CHI2 = 0.05  # backfitting stops when chi^2 changes by less than this
 NOISE = "noise_mismatch"
-# Effects on the signal that the detector nonlinearity acts on (they come before it).
-COMPOSED_WITH_NONLINEARITY = {
-    "detector_time_constant",
-    "hwpss_harmonics",
-    "hwpss_intensity_coupling",
-    "gain_drift",
-    "hwp_temperature_drift",
-    "crosstalk",
-}
 
 
 def realify(x: np.ndarray) -> np.ndarray:
@@ -382,9 +374,7 @@ class FitProblem:
 
     @staticmethod
     def _composed(selected) -> bool:
-        return "tes_nonlinearity" in selected and any(
-            n in COMPOSED_WITH_NONLINEARITY for n in selected
-        )
+        return "tes_nonlinearity" in selected and any(n in SIGNAL_EFFECTS for n in selected)
 
     def _linear_effect_fits(self, selected, values, covariances) -> dict[str, EffectFit]:
         fits = {}

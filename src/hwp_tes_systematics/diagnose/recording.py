@@ -51,7 +51,7 @@ import numpy as np
 
 from .. import seeding
 from ..io import atomic_path
-from .effects import CATALOG, GlitchEvent, get_effect
+from .effects import CATALOG, SIGNAL_EFFECTS, GlitchEvent, get_effect
 from .model import Context, per_detector
 
 DEFAULT_START_TDB = "2032-04-01T00:00:00"
@@ -447,14 +447,6 @@ def _noise(simulator, pointing, master_seed, noise_seed, params: dict | None) ->
     return out
 
 
-SIGNAL_EFFECTS = {
-    "detector_time_constant",
-    "hwpss_harmonics",
-    "hwpss_intensity_coupling",
-    "gain_drift",
-    "hwp_temperature_drift",
-    "crosstalk",
-}
 RESPONSE_EFFECTS = {"tes_nonlinearity", "tes_electrothermal"}
 
 

@@ -14,6 +14,7 @@ from .. import config as cfg
 from .. import sky
 from ..diagnose.recording import read_recording, simulate_recording, write_recording
 from ..diagnose.report import diagnose
+from .foreground_maps import channel_sky
 from .kw_conversion import channel_a2_k_cmb, channel_conversion
 from .tes_response import tes_for_channel
 
@@ -29,16 +30,7 @@ def make_example(config: dict, out_h5: str, out_sky: str) -> None:
     channel = cfg.channel(config, name)
     conversion = channel_conversion(config, name)
     tes_parameters = tes_for_channel(config["tes"], conversion["p_nominal_w"])
-    nside = config["maps"]["nside"]
-    sky_map = sky.channel_sky_map(
-        channel,
-        nside,
-        3 * nside - 1,
-        config["simulation"]["cmb_r"],
-        config["master_seed"],
-        0,
-        config["simulation"]["pysm_local_data"],
-    )
+    sky_map = channel_sky(config, channel, 0)
     sky.write_sky_map(
         out_sky,
         sky_map["total"],

@@ -11,14 +11,13 @@ from .. import config as cfg
 from ..figures import tod as tod_figures
 from ..nonlinearity import apply_nonlinearity
 from ..tod import MissionPlan, PairSimulator
+from .foreground_maps import channel_sky
 
 log = logging.getLogger(__name__)
 
 
 def sample_tod(config: dict, channel_name: str, a2_k_cmb: float, hours: float):
     """(times [s], d [K_CMB] of the pair) over the first ``hours`` of the mission, seed 0."""
-    from .. import sky
-
     channel = cfg.channel(config, channel_name)
     plan = MissionPlan(
         config["simulation"]["mission_start_tdb"],
@@ -34,15 +33,7 @@ def sample_tod(config: dict, channel_name: str, a2_k_cmb: float, hours: float):
         config["instrument"]["imo_location"],
         config["instrument"]["imo_release"],
     )
-    sky_maps = sky.channel_sky_map(
-        channel,
-        nside,
-        3 * nside - 1,
-        config["simulation"]["cmb_r"],
-        config["master_seed"],
-        0,
-        config["simulation"]["pysm_local_data"],
-    )
+    sky_maps = channel_sky(config, channel, 0)
     pointing = simulator.pointing(0, plan.n_samples)
     tod = (
         simulator.scan_sky(pointing, sky_maps["total"])
