@@ -56,7 +56,10 @@ def test_chunked_filtering_with_margins_equals_continuous_filtering():
     chunk = int(1800 * SAMPLING_RATE_HZ)
     start = 2 * chunk
     filtered = filter_chunk_with_margins(
-        tod[start - margin : start + chunk + margin], margin, SAMPLING_RATE_HZ, F_HWP_HZ
+        tod[start - margin : start + chunk + margin],
+        slice(margin, margin + chunk),
+        SAMPLING_RATE_HZ,
+        F_HWP_HZ,
     )
     assert filtered.shape == (chunk,)
     error = np.abs(filtered - continuous[start : start + chunk]).max() / continuous.std()

@@ -1,10 +1,15 @@
 """Removal of the HWP synchronous signal's pure harmonics by template fitting.
 
 Per detector and chunk, the least-squares fit of sum_n [a_n cos(n chi) + b_n sin(n chi)]
-(n in ``harmonics``, default the 2f of the paper's HWPSS) is subtracted from the TOD.
+(n in ``harmonics``, default the 2f of the paper's HWPSS) is subtracted from the TOD:
+
+    d -> d - D (D^T D)^-1 D^T d,      D = [cos(n chi), sin(n chi), ...]  (n_samples, 2 H).
+
 This is a linear projection P (it commutes with the linear-in-g1 decomposition), it
 removes a constant-amplitude HWPSS line but not the sky signal it modulates through
 the nonlinearity (the 2 f_HWP +- f_sky sidebands and the 4 f_HWP leakage stay).
+D^T D is close to (n/2) 1 for a uniformly rotating HWP, so the 2H x 2H normal
+equations are well conditioned.
 """
 
 from __future__ import annotations
@@ -12,18 +17,29 @@ from __future__ import annotations
 import numpy as np
 
 
-def harmonic_design(hwp_angle_rad: np.ndarray, harmonics) -> np.ndarray:
-    """(n, 2 len(harmonics)) columns cos(n chi), sin(n chi)."""
-    columns = []
-    for harmonic in harmonics:
-        columns += [np.cos(harmonic * hwp_angle_rad), np.sin(harmonic * hwp_angle_rad)]
-    return np.column_stack(columns)
+def harmonic_templates(hwp_angle_rad: np.ndarray, harmonics) -> np.ndarray:
+    """D^T: (2 len(harmonics), n) rows cos(n chi), sin(n chi)."""
+    templates = np.empty((2 * len(harmonics), np.size(hwp_angle_rad)))
+    for index, harmonic in enumerate(harmonics):
+        angle = harmonic * np.asarray(hwp_angle_rad, dtype=float)
+        np.cos(angle, out=templates[2 * index])
+        np.sin(angle, out=templates[2 * index + 1])
+    return templates
 
 
-def remove_hwp_harmonics(tod: np.ndarray, hwp_angle_rad: np.ndarray, harmonics=(2,)):
-    """d - P d: subtract the least-squares fit of the HWP harmonics from each row of ``tod``."""
+def remove_hwp_harmonics(
+    tod: np.ndarray, hwp_angle_rad: np.ndarray, harmonics=(2,), overwrite: bool = False
+):
+    """d - P d: subtract the least-squares fit of the HWP harmonics from each row of ``tod``
+    (any shape (..., n_samples); the fit is per row). ``overwrite`` reuses ``tod``'s
+    memory (a C-contiguous float64 array) for the result."""
     if len(harmonics) == 0:
         return tod
-    design = harmonic_design(hwp_angle_rad, harmonics)
-    coefficients, *_ = np.linalg.lstsq(design, np.atleast_2d(tod).T, rcond=None)
-    return tod - (design @ coefficients).T.reshape(tod.shape)
+    templates = harmonic_templates(hwp_angle_rad, harmonics)  # D^T
+    if not overwrite:
+        tod = np.array(tod, dtype=float)
+    rows = tod.reshape(-1, templates.shape[1])
+    coefficients = np.linalg.solve(templates @ templates.T, templates @ rows.T)  # (2H, rows)
+    for row, row_coefficients in zip(rows, coefficients.T):
+        row -= row_coefficients @ templates
+    return tod

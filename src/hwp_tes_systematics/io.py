@@ -52,3 +52,13 @@ def setup_logging(log_path: str | Path | None = None, level: int = logging.INFO)
     logging.basicConfig(level=level, format=LOG_FORMAT, handlers=handlers, force=True)
     for chatty in ("healpy", "numba", "matplotlib"):
         logging.getLogger(chatty).setLevel(logging.WARNING)
+
+
+def use_threads(threads: int) -> None:
+    """Make the compiled kernels use ``threads`` threads (a rule's Snakemake ``threads``):
+    numba's parallel loops (litebird_sim's dipole and coordinate kernels) are limited
+    here; ducc0 (FFT, pixelisation) takes the count as an argument."""
+    import numba
+
+    threads = max(1, int(threads))
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))

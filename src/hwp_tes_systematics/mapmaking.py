@@ -15,6 +15,7 @@ chunk of TOD plus (6 + 3 x n_tods) numbers per pixel.
 from __future__ import annotations
 
 import healpy as hp
+import numba
 import numpy as np
 
 # the six independent entries of the symmetric 3x3 matrix, as (row, column)
@@ -42,27 +43,14 @@ class NormalEquations:
             raise ValueError(f"expected {self.n_tods} TODs, got {len(tods)}")
         if tod_detectors is None:
             tod_detectors = [None] * self.n_tods
-        for det in range(pixels.shape[0]):
-            pix = pixels[det]
-            rows = (
-                np.ones(pix.size),
-                pol_efficiency[det] * cos_2alpha[det],
-                pol_efficiency[det] * sin_2alpha[det],
+        weights = np.ascontiguousarray(weights, dtype=np.float64)
+        pol_efficiency = np.ascontiguousarray(pol_efficiency, dtype=np.float64)
+        _add_matrix(pixels, cos_2alpha, sin_2alpha, weights, pol_efficiency, self.matrix, self.hits)
+        for index, tod in enumerate(tods):
+            owner = -1 if tod_detectors[index] is None else int(tod_detectors[index])
+            _add_rhs(
+                pixels, cos_2alpha, sin_2alpha, weights, pol_efficiency, tod, owner, self.rhs[index]
             )
-            weight = float(weights[det])
-            self.hits += np.bincount(pix, minlength=self.npix)
-            for entry, (i, j) in enumerate(MATRIX_ENTRIES):
-                self.matrix[entry] += weight * np.bincount(
-                    pix, weights=rows[i] * rows[j], minlength=self.npix
-                )
-            for index, tod in enumerate(tods):
-                if tod_detectors[index] not in (None, det):
-                    continue
-                weighted = weight * tod[det]
-                for i in range(3):
-                    self.rhs[index, i] += np.bincount(
-                        pix, weights=rows[i] * weighted, minlength=self.npix
-                    )
 
     def full_matrix(self) -> np.ndarray:
         """(npix, 3, 3) symmetric matrices."""
@@ -101,3 +89,37 @@ def solve_maps(equations: NormalEquations, max_condition_number: float):
         solution = np.linalg.solve(matrices[good], np.swapaxes(rhs, 1, 2))  # (n_good, 3, n_tods)
         maps[:, :, good] = np.moveaxis(solution, 0, 2).swapaxes(0, 1)
     return maps, cond, good
+
+
+@numba.njit(cache=True, nogil=True)
+def _add_matrix(pixels, cos_2alpha, sin_2alpha, weights, rho, matrix, hits):
+    """matrix[:, p] += w [1, a1, a2, a1 a1, a1 a2, a2 a2], a = rho (cos, sin) 2 alpha;
+    one pass over the samples in time order (MATRIX_ENTRIES order)."""
+    for det in range(pixels.shape[0]):
+        w = weights[det]
+        for t in range(pixels.shape[1]):
+            p = pixels[det, t]
+            a1 = rho[det] * cos_2alpha[det, t]
+            a2 = rho[det] * sin_2alpha[det, t]
+            hits[p] += 1
+            matrix[0, p] += w
+            matrix[1, p] += w * a1
+            matrix[2, p] += w * a2
+            matrix[3, p] += w * a1 * a1
+            matrix[4, p] += w * a1 * a2
+            matrix[5, p] += w * a2 * a2
+
+
+@numba.njit(cache=True, nogil=True)
+def _add_rhs(pixels, cos_2alpha, sin_2alpha, weights, rho, tod, owner, rhs):
+    """rhs[:, p] += w d [1, a1, a2] for every detector (or only ``owner`` if >= 0)."""
+    for det in range(pixels.shape[0]):
+        if owner >= 0 and det != owner:
+            continue
+        w = weights[det]
+        for t in range(pixels.shape[1]):
+            p = pixels[det, t]
+            x = w * tod[det, t]
+            rhs[0, p] += x
+            rhs[1, p] += x * rho[det] * cos_2alpha[det, t]
+            rhs[2, p] += x * rho[det] * sin_2alpha[det, t]

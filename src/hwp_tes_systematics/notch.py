@@ -15,8 +15,10 @@ margins are then dropped, so no chunk-boundary artefact reaches the maps.
 
 from __future__ import annotations
 
+import functools
+
+import ducc0
 import numpy as np
-import scipy.fft
 
 DEFAULT_WIDTH_DIVISOR = 100.0  # delta f = 4 f_HWP / 100 (paper)
 
@@ -56,13 +58,32 @@ def apply_notch(
     delta_f_hz: float | None = None,
     workers: int = 1,
 ) -> np.ndarray:
-    """Filter along the last axis: irfft(F(f) rfft(tod)), zero-padded to a fast FFT length."""
+    """Filter along the last axis: irfft(F(f) rfft(tod)), zero-padded to a fast FFT
+    length (ducc0's FFT, ``workers`` threads; all rows in one call)."""
+    tod = np.asarray(tod, dtype=np.float64)
     n_samples = tod.shape[-1]
-    n_fft = scipy.fft.next_fast_len(n_samples, real=True)
-    spectrum = scipy.fft.rfft(tod, n=n_fft, axis=-1, workers=workers)
-    freqs_hz = scipy.fft.rfftfreq(n_fft, d=1.0 / sampling_rate_hz)
-    spectrum *= notch_transfer(freqs_hz, f_hwp_hz, delta_f_hz)
-    return scipy.fft.irfft(spectrum, n=n_fft, axis=-1, workers=workers)[..., :n_samples]
+    n_fft = ducc0.fft.good_size(n_samples, True)
+    if n_fft != n_samples:
+        padded = np.zeros((*tod.shape[:-1], n_fft))
+        padded[..., :n_samples] = tod
+        tod = padded
+    axis = (tod.ndim - 1,)
+    spectrum = ducc0.fft.r2c(tod, axes=axis, nthreads=workers)
+    del tod
+    spectrum *= _transfer_on_rfft_grid(n_fft, sampling_rate_hz, f_hwp_hz, delta_f_hz)
+    filtered = ducc0.fft.c2r(
+        spectrum, axes=axis, lastsize=n_fft, forward=False, inorm=2, nthreads=workers
+    )
+    return filtered[..., :n_samples]
+
+
+@functools.lru_cache(maxsize=8)
+def _transfer_on_rfft_grid(n_fft, sampling_rate_hz, f_hwp_hz, delta_f_hz) -> np.ndarray:
+    """F(f) at the rfft frequencies k f_s / n_fft, k = 0 .. n_fft // 2 (read-only)."""
+    freqs_hz = np.arange(n_fft // 2 + 1) * (sampling_rate_hz / n_fft)
+    transfer = notch_transfer(freqs_hz, f_hwp_hz, delta_f_hz)
+    transfer.flags.writeable = False
+    return transfer
 
 
 def margin_samples(sampling_rate_hz: float, margin_s: float) -> int:
@@ -70,14 +91,28 @@ def margin_samples(sampling_rate_hz: float, margin_s: float) -> int:
     return int(np.ceil(margin_s * sampling_rate_hz))
 
 
+def chunk_span(
+    first_sample: int, n_samples: int, sampling_rate_hz: float, margin_s: float
+) -> tuple[int, int, slice]:
+    """The samples to simulate for a chunk: at least ``margin_s`` beyond each edge,
+    widened so the total is a fast FFT length (no zero padding in ``apply_notch``).
+
+    Returns (first simulated sample, number simulated, slice of the chunk within them).
+    """
+    margin = margin_samples(sampling_rate_hz, margin_s)
+    n_total = ducc0.fft.good_size(n_samples + 2 * margin, True)
+    before = margin + (n_total - n_samples - 2 * margin) // 2
+    return first_sample - before, n_total, slice(before, before + n_samples)
+
+
 def filter_chunk_with_margins(
     tod_with_margins: np.ndarray,
-    margin: int,
+    inner: slice,
     sampling_rate_hz: float,
     f_hwp_hz: float,
     delta_f_hz: float | None = None,
     workers: int = 1,
 ) -> np.ndarray:
-    """Filter a chunk simulated with ``margin`` extra samples on each side; drop the margins."""
+    """Filter a chunk simulated with margins on each side; keep the ``inner`` samples."""
     filtered = apply_notch(tod_with_margins, sampling_rate_hz, f_hwp_hz, delta_f_hz, workers)
-    return filtered[..., margin : tod_with_margins.shape[-1] - margin]
+    return filtered[..., inner]

@@ -17,12 +17,15 @@ binning; a test checks the scan against ``lbs.scan_map_in_observations``.
 
 from __future__ import annotations
 
+import copy
+import functools
 import logging
 from dataclasses import asdict, dataclass
 from functools import cached_property
 
 import astropy.time
 import ducc0
+import numba
 import numpy as np
 
 from . import seeding
@@ -32,6 +35,17 @@ log = logging.getLogger(__name__)
 
 QUATERNION_STEP_S = 2.0  # spin-axis quaternion sampling (litebird_sim interpolates), ~1 arcsec
 ORBIT_STEP_S = 3600.0  # spacecraft position/velocity sampling for the dipole
+
+
+@functools.cache
+def ecliptic_to_galactic():
+    """The ecliptic -> Galactic rotation of litebird_sim: (3x3 matrix, RotQuaternion)."""
+    import litebird_sim as lbs
+    from scipy.spatial.transform import Rotation
+
+    matrix = np.asarray(lbs.coordinates.ECL_TO_GAL_ROT_MATRIX, dtype=float)
+    # litebird_sim quaternions are (x, y, z, w), as scipy's
+    return matrix, lbs.RotQuaternion(quats=Rotation.from_matrix(matrix).as_quat())
 
 
 @dataclass(frozen=True)
@@ -107,16 +121,32 @@ class MissionScanningStrategy:
         )
 
 
+NOISE_MODELS = {  # litebird_sim's 1/f models and the engine that draws each
+    "toast": "fft",  # P(f) ~ (f^a + fk^a) / (f^a + fmin^a), drawn in Fourier space
+    "keshner": "ducc",  # P(f) ~ ((f^2 + fk^2) / (f^2 + fmin^2))^(a/2), ducc0 OofaNoise
+}
+
+
 @dataclass
 class ChunkPointing:
-    """Pointing of one chunk (with margins): pixels and polarisation angles per detector."""
+    """Pointing of one chunk (with margins): pixels and polarisation angles per detector.
+
+    When the detectors share one direction (the PTEP pairs: same quaternion, only the
+    polarisation angle differs) ``pixels`` and ``galactic_rad`` are read-only
+    broadcasts of one row.
+    """
 
     first_sample: int  # mission sample index of the first sample (negative in the margin)
     pixels: np.ndarray  # (n_det, n) RING pixel at the map nside
     cos_2alpha: np.ndarray  # (n_det, n)
     sin_2alpha: np.ndarray  # (n_det, n)
     hwp_angle_rad: np.ndarray  # (n,)
-    observation: object  # the litebird_sim Observation (ecliptic pointings precomputed)
+    galactic_rad: np.ndarray  # (n_det, n, 3) theta, phi, psi in Galactic coordinates
+    observation: object  # litebird_sim Observation, pointings prepared (ecliptic, lazy)
+
+    def ecliptic_rad(self) -> np.ndarray:
+        """(n_det, n, 3) theta, phi, psi in ecliptic coordinates (litebird_sim, on demand)."""
+        return self.observation.get_pointings("all")[0]
 
 
 class PairSimulator:
@@ -130,13 +160,17 @@ class PairSimulator:
         imo_location: str | None = None,
         release: str = "vPTEP",
         threads: int = 1,
+        noise_model: str = "toast",
     ):
         import litebird_sim as lbs
 
+        if noise_model not in NOISE_MODELS:
+            raise ValueError(f"noise model {noise_model!r}: expected one of {sorted(NOISE_MODELS)}")
         self.channel = channel
         self.plan = plan
         self.nside = nside
         self.threads = threads
+        self.noise_model = noise_model
         imo = open_imo(imo_location)
         base = f"/releases/{release}/satellite/{channel.telescope}"
         self.instrument = lbs.InstrumentInfo.from_imo(imo, f"{base}/instrument_info")
@@ -147,6 +181,8 @@ class PairSimulator:
         self.pol_angles_rad = np.array([d.pol_angle_rad for d in self.detectors])
         self.pol_efficiency = np.array([d.pol_efficiency for d in self.detectors])
         self.hwp_rad_per_s = self.instrument.hwp_rpm * 2 * np.pi / 60.0
+        quaternions = [np.asarray(d.quat.quats, dtype=float) for d in self.detectors]
+        self.shares_direction = all(np.array_equal(q, quaternions[0]) for q in quaternions)
         self.scanning = MissionScanningStrategy(imo, release, plan.start_time)
         self.healpix = ducc0.healpix.Healpix_Base(nside, "RING")
         margin_days = 2.0  # the orbit table must cover the filter margins before and after
@@ -159,6 +195,23 @@ class PairSimulator:
             time_span_s=plan.duration_s + 86400 * margin_days,
             delta_time_s=ORBIT_STEP_S,
         )
+        rotation, _ = ecliptic_to_galactic()
+        self.orbit_galactic = copy.copy(self.orbit)
+        self.orbit_galactic.positions_km = self.orbit.positions_km @ rotation.T
+        self.orbit_galactic.velocities_km_s = self.orbit.velocities_km_s @ rotation.T
+
+    @classmethod
+    def from_config(cls, config: dict, channel: Channel, plan: MissionPlan, nside: int, threads=1):
+        """The simulator of ``channel`` with the configuration's instrument model and noise."""
+        return cls(
+            channel,
+            plan,
+            nside,
+            config["instrument"]["imo_location"],
+            config["instrument"]["imo_release"],
+            threads,
+            config["simulation"]["noise_model"],
+        )
 
     @property
     def n_detectors(self) -> int:
@@ -168,21 +221,32 @@ class PairSimulator:
     def detector_names(self) -> list[str]:
         return [d.name for d in self.detectors]
 
+    def _observation(self, detectors, start, n_samples):
+        import litebird_sim as lbs
+
+        return lbs.Observation(
+            detectors=[asdict(d) for d in detectors],
+            n_samples_global=n_samples,
+            start_time_global=start,
+            sampling_rate_hz=self.plan.sampling_rate_hz,
+            tods=[lbs.TodDescription("tod", lbs.Units.K_CMB, np.float64, "total signal")],
+        )
+
     def pointing(self, first_sample: int, n_samples: int) -> ChunkPointing:
-        """Pointing for mission samples [first_sample, first_sample + n_samples)."""
+        """Pointing for mission samples [first_sample, first_sample + n_samples).
+
+        litebird_sim's PointingProvider computes theta, phi, psi directly in Galactic
+        coordinates (the ecliptic -> Galactic rotation composed with the spin -> ecliptic
+        quaternions), once per distinct detector direction; then for detector k
+        2 alpha_k = 2 (2 chi + psi) - 2 theta_k by angle addition.
+        """
         import litebird_sim as lbs
 
         sampling_rate_hz = self.plan.sampling_rate_hz
         offset_s = first_sample / sampling_rate_hz
         start = self.plan.start_time + astropy.time.TimeDelta(offset_s, format="sec")
-        observation = lbs.Observation(
-            detectors=[asdict(d) for d in self.detectors],
-            n_samples_global=n_samples,
-            start_time_global=start,
-            sampling_rate_hz=sampling_rate_hz,
-            tods=[lbs.TodDescription("tod", lbs.Units.K_CMB, np.float64, "total signal")],
-        )
-        quaternions = self.scanning.spin_to_ecliptic(
+        observation = self._observation(self.detectors, start, n_samples)
+        spin2ecliptic = self.scanning.spin_to_ecliptic(
             start, n_samples / sampling_rate_hz + 2 * QUATERNION_STEP_S
         )
         hwp = lbs.IdealHWP(
@@ -190,38 +254,88 @@ class PairSimulator:
             start_angle_rad=float(np.mod(self.hwp_rad_per_s * offset_s, 2 * np.pi)),
         )
         lbs.prepare_pointings(
-            observation, instrument=self.instrument, spin2ecliptic_quats=quaternions, hwp=hwp
+            observation, instrument=self.instrument, spin2ecliptic_quats=spin2ecliptic, hwp=hwp
         )
-        lbs.precompute_pointings(observation)
-        hwp_angle = np.asarray(observation.hwp_angle, dtype=float)
-        pixels = np.empty((self.n_detectors, n_samples), dtype=np.int64)
-        cos_2alpha = np.empty((self.n_detectors, n_samples))
-        sin_2alpha = np.empty((self.n_detectors, n_samples))
-        for index in range(self.n_detectors):
-            galactic = lbs.rotate_coordinates_e2g(observation.pointing_matrix[index])
-            pixels[index] = self.healpix.ang2pix(galactic[:, :2], nthreads=self.threads)
-            alpha = 2 * hwp_angle - self.pol_angles_rad[index] + galactic[:, 2]
-            cos_2alpha[index] = np.cos(2 * alpha)
-            sin_2alpha[index] = np.sin(2 * alpha)
-        return ChunkPointing(first_sample, pixels, cos_2alpha, sin_2alpha, hwp_angle, observation)
+        galactic_provider = lbs.PointingProvider(
+            ecliptic_to_galactic()[1] * spin2ecliptic * self.instrument.bore2spin_quat, hwp=hwp
+        )
+        shape = (self.n_detectors, n_samples)
+        directions = 1 if self.shares_direction else self.n_detectors
+        galactic = np.empty((directions, n_samples, 3))
+        hwp_angle = np.empty(n_samples)
+        for direction in range(directions):
+            galactic_provider.get_pointings(
+                detector_quat=observation.quat[direction],
+                start_time=start,
+                start_time_global=start,
+                sampling_rate_hz=sampling_rate_hz,
+                nsamples=n_samples,
+                pointing_buffer=galactic[direction],
+                hwp_buffer=hwp_angle,
+                compute_hwp_angle=direction == 0,
+            )
+        pixels = np.empty((directions, n_samples), dtype=np.int64)
+        cos_2alpha = np.empty(shape)
+        sin_2alpha = np.empty(shape)
+        for direction in range(directions):
+            pixels[direction] = self.healpix.ang2pix(
+                galactic[direction, :, :2], nthreads=self.threads
+            )
+            twice_alpha0 = 2 * (2 * hwp_angle + galactic[direction, :, 2])  # theta_det = 0
+            cos0, sin0 = np.cos(twice_alpha0), np.sin(twice_alpha0)
+            owners = range(self.n_detectors) if self.shares_direction else [direction]
+            for index in owners:
+                twice_theta = 2 * self.pol_angles_rad[index]
+                c, s = np.cos(twice_theta), np.sin(twice_theta)
+                np.multiply(cos0, c, out=cos_2alpha[index])
+                cos_2alpha[index] += s * sin0
+                np.multiply(sin0, c, out=sin_2alpha[index])
+                sin_2alpha[index] -= s * cos0
+        if self.shares_direction:
+            pixels = np.broadcast_to(pixels, shape)
+            galactic = np.broadcast_to(galactic, (*shape, 3))
+        return ChunkPointing(
+            first_sample, pixels, cos_2alpha, sin_2alpha, hwp_angle, galactic, observation
+        )
 
-    def scan_sky(self, pointing: ChunkPointing, sky_iqu_k: np.ndarray) -> np.ndarray:
-        """I + rho (Q cos 2 alpha + U sin 2 alpha) at the nearest pixel [K_CMB], (n_det, n)."""
-        i_map, q_map, u_map = sky_iqu_k
-        pix = pointing.pixels
-        rho = self.pol_efficiency[:, None]
-        return i_map[pix] + rho * (
-            q_map[pix] * pointing.cos_2alpha + u_map[pix] * pointing.sin_2alpha
+    def scan_sky(self, pointing: ChunkPointing, sky_iqu_k: np.ndarray, out=None) -> np.ndarray:
+        """I + rho (Q cos 2 alpha + U sin 2 alpha) at the nearest pixel [K_CMB], (n_det, n),
+        written to ``out`` if given."""
+        if out is None:
+            out = np.empty(pointing.cos_2alpha.shape)
+        i_map, q_map, u_map = (np.ascontiguousarray(m, dtype=float) for m in sky_iqu_k)
+        _scan_kernel(
+            pointing.pixels,
+            pointing.cos_2alpha,
+            pointing.sin_2alpha,
+            self.pol_efficiency.astype(float),
+            i_map,
+            q_map,
+            u_map,
+            out,
         )
+        return out
 
     def dipole(self, pointing: ChunkPointing) -> np.ndarray:
-        """Orbital + solar dipole [K_CMB] (litebird_sim, TOTAL_FROM_LIN_T), (n_det, n)."""
+        """Orbital + solar dipole [K_CMB] (litebird_sim, TOTAL_FROM_LIN_T), (n_det, n).
+
+        Evaluated in Galactic coordinates (pointing and spacecraft velocity rotated
+        alike). TOTAL_FROM_LIN_T depends on the direction only, so a pair sharing one
+        direction gets one computation."""
         import litebird_sim as lbs
 
-        observation = pointing.observation
-        observation.tod[:] = 0.0
-        lbs.add_dipole_to_observations(observation, pos_and_vel=self.orbit)
-        return observation.tod.copy()
+        directions = 1 if self.shares_direction else self.n_detectors
+        observation = self._observation(
+            self.detectors[:directions],
+            pointing.observation.start_time,
+            pointing.observation.n_samples,
+        )
+        lbs.add_dipole_to_observations(
+            observation,
+            pos_and_vel=self.orbit_galactic,
+            pointings=pointing.galactic_rad[:directions],
+        )
+        return np.broadcast_to(observation.tod, (self.n_detectors, observation.n_samples)).copy()
 
     def hwpss(self, pointing: ChunkPointing, amplitude_k: float) -> np.ndarray:
         """A_2 cos(2 (chi - theta_det)) [K_CMB] via litebird_sim's add_2f, (n_det, n)."""
@@ -240,17 +354,42 @@ class PairSimulator:
     def noise(
         self, pointing: ChunkPointing, master_seed: int, seed: int, chunk: int, scale: float = 1.0
     ):
-        """White + 1/f noise [K_CMB] from the detector NET, fknee, alpha (litebird_sim),
-        times ``scale`` (1 = the instrument model's noise)."""
-        import litebird_sim as lbs
+        """White + 1/f noise [K_CMB] from the detector NET, fknee, alpha (litebird_sim's
+        ``add_noise``, model ``self.noise_model``), times ``scale`` (1 = the instrument
+        model's noise). One stream per (master seed, channel, seed, chunk, detector)."""
+        from litebird_sim.noise import add_noise
 
-        observation = pointing.observation
-        observation.tod[:] = 0.0
+        tod = np.zeros((self.n_detectors, pointing.hwp_angle_rad.size))
         generators = [
             seeding.rng(master_seed, "noise", self.channel.name, seed, chunk, name)
             for name in self.detector_names
         ]
-        lbs.add_noise_to_observations(
-            observation, "one_over_f", dets_random=generators, scale=scale
+
+        def values(key):
+            return np.array([getattr(d, key) for d in self.detectors], dtype=float)
+
+        add_noise(
+            tod,
+            "one_over_f",
+            self.plan.sampling_rate_hz,
+            values("net_ukrts"),
+            values("fknee_mhz"),
+            values("fmin_hz"),
+            values("alpha"),
+            generators,
+            scale=scale,
+            engine=NOISE_MODELS[self.noise_model],
+            model=self.noise_model,
         )
-        return observation.tod.copy()
+        return tod
+
+
+@numba.njit(cache=True, nogil=True)
+def _scan_kernel(pixels, cos_2alpha, sin_2alpha, rho, i_map, q_map, u_map, out):
+    """out[k, t] = I[p] + rho_k (Q[p] cos 2 alpha + U[p] sin 2 alpha), p = pixels[k, t]."""
+    for det in range(out.shape[0]):
+        for t in range(out.shape[1]):
+            p = pixels[det, t]
+            out[det, t] = i_map[p] + rho[det] * (
+                q_map[p] * cos_2alpha[det, t] + u_map[p] * sin_2alpha[det, t]
+            )

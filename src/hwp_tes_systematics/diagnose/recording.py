@@ -526,7 +526,7 @@ def simulate_recording(
         times_s=ctx.times_s.copy(),
         sampling_rate_hz=float(simulator.plan.sampling_rate_hz),
         hwp_angle_rad=np.array(pointing.hwp_angle_rad, dtype=float),
-        pointings_ecl=np.array(pointing.observation.pointing_matrix, dtype=float),
+        pointings_ecl=np.array(pointing.ecliptic_rad(), dtype=float),
         detectors=_detector_dicts(simulator),
         start_time=simulator.plan.start_time,
         flags=np.zeros((n_det, n), dtype=bool),

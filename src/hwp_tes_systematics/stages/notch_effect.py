@@ -19,7 +19,7 @@ from .. import seeding, sky
 from ..figures.tod import plot_notch_effect
 from ..io import write_csv
 from ..mapmaking import NormalEquations, solve_maps
-from ..notch import margin_samples
+from ..notch import chunk_span
 from ..tod import PairSimulator
 from .pair_maps import PairMapSettings, detector_weights, filter_tod
 
@@ -45,23 +45,18 @@ def notch_transfer_on_sky(config: dict, channel_name: str) -> pd.DataFrame:
     channel = cfg.channel(config, channel_name)
     settings = PairMapSettings.from_config(config, channel, seed=0, a2_k_cmb=0.0)
     settings.removed_hwp_harmonics = ()  # the notch alone
-    simulator = PairSimulator(
-        channel,
-        settings.plan,
-        settings.nside,
-        config["instrument"]["imo_location"],
-        config["instrument"]["imo_release"],
-    )
+    simulator = PairSimulator.from_config(config, channel, settings.plan, settings.nside)
     lmax = 3 * settings.nside - 1
     skies = [
         pure_mode_sky(settings.nside, lmax, mode, channel.fwhm_arcmin, config["master_seed"])
         for mode in ("E", "B")
     ]
-    margin = margin_samples(settings.plan.sampling_rate_hz, settings.notch_margin_s)
     equations = NormalEquations(settings.nside, 4)
     for _, first, n_samples in settings.plan.chunks():
-        pointing = simulator.pointing(first - margin, n_samples + 2 * margin)
-        inner = slice(margin, margin + n_samples)
+        start, n_simulated, inner = chunk_span(
+            first, n_samples, settings.plan.sampling_rate_hz, settings.notch_margin_s
+        )
+        pointing = simulator.pointing(start, n_simulated)
         tods = []
         for sky_map in skies:
             tod = simulator.scan_sky(pointing, sky_map)

@@ -25,9 +25,10 @@ from tqdm import tqdm
 
 from .. import config as cfg
 from ..hwpss_removal import remove_hwp_harmonics
-from ..io import atomic_path
+from ..io import atomic_path, use_threads
 from ..mapmaking import NormalEquations, solve_maps
-from ..notch import filter_chunk_with_margins, margin_samples
+from ..notch import chunk_span, filter_chunk_with_margins
+from ..timing import StageClock
 from ..tod import MissionPlan, PairSimulator
 
 log = logging.getLogger(__name__)
@@ -73,34 +74,48 @@ class PairMapSettings:
 
 
 def chunk_tods(
-    simulator: PairSimulator, settings: PairMapSettings, sky_iqu_k: np.ndarray
+    simulator: PairSimulator,
+    settings: PairMapSettings,
+    sky_iqu_k: np.ndarray,
+    clock: StageClock | None = None,
 ) -> Iterator[tuple[object, slice, np.ndarray]]:
     """Yield (pointing, inner slice, total TOD d with margins [K_CMB]) chunk by chunk."""
-    margin = margin_samples(settings.plan.sampling_rate_hz, settings.notch_margin_s)
+    clock = clock or StageClock()
     chunks = settings.plan.chunks()
     for chunk, first, n_samples in tqdm(
         chunks, desc=simulator.channel.name, mininterval=10, disable=len(chunks) < 2
     ):
-        pointing = simulator.pointing(first - margin, n_samples + 2 * margin)
-        tod = (
-            simulator.scan_sky(pointing, sky_iqu_k)
-            + simulator.dipole(pointing)
-            + simulator.hwpss(pointing, settings.a2_k_cmb)
-            + simulator.noise(
+        start, n_simulated, inner = chunk_span(
+            first, n_samples, settings.plan.sampling_rate_hz, settings.notch_margin_s
+        )
+        with clock("pointing"):
+            pointing = simulator.pointing(start, n_simulated)
+        with clock("sky scan"):
+            tod = simulator.scan_sky(pointing, sky_iqu_k)
+        with clock("dipole"):
+            tod += simulator.dipole(pointing)
+        with clock("HWPSS"):
+            tod += simulator.hwpss(pointing, settings.a2_k_cmb)
+        with clock("noise"):
+            tod += simulator.noise(
                 pointing, settings.master_seed, settings.seed, chunk, settings.noise_scale
             )
-        )
-        yield pointing, slice(margin, margin + n_samples), tod
+        yield pointing, inner, tod
 
 
-def filter_tod(tod: np.ndarray, pointing, margin_slice: slice, simulator, settings) -> np.ndarray:
+def filter_tod(
+    tod: np.ndarray, pointing, inner: slice, simulator, settings, overwrite: bool = False
+) -> np.ndarray:
     """HWP-harmonic template removal, then the paper's 4 f_HWP notch, on a chunk with
-    margins; returns the inner samples. Linear in the TOD."""
+    margins (any leading shape, time last); returns the ``inner`` samples. Linear in the
+    TOD. ``overwrite`` lets the HWP-harmonic removal reuse ``tod``'s memory."""
     f_hwp_hz = simulator.channel.hwp_frequency_hz
-    cleaned = remove_hwp_harmonics(tod, pointing.hwp_angle_rad, settings.removed_hwp_harmonics)
+    cleaned = remove_hwp_harmonics(
+        tod, pointing.hwp_angle_rad, settings.removed_hwp_harmonics, overwrite=overwrite
+    )
     return filter_chunk_with_margins(
         cleaned,
-        margin_slice.start,
+        inner,
         settings.plan.sampling_rate_hz,
         f_hwp_hz,
         4 * f_hwp_hz / settings.notch_width_divisor,
@@ -115,7 +130,13 @@ def detector_weights(simulator: PairSimulator) -> np.ndarray:
 
 
 def accumulate(
-    simulator, settings, sky_iqu_k, g1_per_k=None, on_chunk=None, references_iqu_k=()
+    simulator,
+    settings,
+    sky_iqu_k,
+    g1_per_k=None,
+    on_chunk=None,
+    references_iqu_k=(),
+    clock: StageClock | None = None,
 ) -> NormalEquations:
     """Normal equations of the filtered TOD (F = notch after HWP-harmonic removal).
 
@@ -124,45 +145,60 @@ def accumulate(
     Each map in ``references_iqu_k`` adds the TOD F(scan of that map) at the end: a
     sky component alone (input CMB, foregrounds) through the same pointing, filter and
     binning, the references of the component-separation residuals.
-    ``on_chunk(samples_done, rss_mb)`` is called after each chunk (benchmarks).
+    ``on_chunk(samples_done, rss_mb)`` is called after each chunk (benchmarks);
+    ``clock`` collects the wall-clock time per stage (logged at the end).
     """
+    clock = clock or StageClock()
     n_det = simulator.n_detectors
     linear = g1_per_k is None
     n_tods = (1 + n_det if linear else 1) + len(references_iqu_k)
     equations = NormalEquations(settings.nside, n_tods)
     weights = detector_weights(simulator)
+    n_unfiltered = (2 if linear else 1) + len(references_iqu_k)
     peak_rss_mb = 0.0
-    for pointing, inner, tod in chunk_tods(simulator, settings, sky_iqu_k):
+    for pointing, inner, tod in chunk_tods(simulator, settings, sky_iqu_k, clock):
+        # all TODs of the chunk in one array, for one batched 2f removal + notch
+        with clock("nonlinearity terms"):
+            unfiltered = np.empty((n_unfiltered, *tod.shape))
+            if linear:
+                unfiltered[0] = tod
+                np.square(tod, out=unfiltered[1])
+            else:
+                unfiltered[0] = tod + np.asarray(g1_per_k)[:, None] * tod**2
+            del tod
+        with clock("reference scans"):
+            first_reference = n_unfiltered - len(references_iqu_k)
+            for index, reference_iqu_k in enumerate(references_iqu_k, start=first_reference):
+                simulator.scan_sky(pointing, reference_iqu_k, out=unfiltered[index])
+        with clock("2f removal + notch"):
+            filtered = filter_tod(unfiltered, pointing, inner, simulator, settings, overwrite=True)
+            del unfiltered
         if linear:
-            tods = [filter_tod(tod, pointing, inner, simulator, settings)]
-            squares = filter_tod(tod**2, pointing, inner, simulator, settings)
-            tods += [squares for _ in range(n_det)]
-            owners = [None, *range(n_det)]
+            tods = [filtered[0], *[filtered[1]] * n_det, *filtered[2:]]
+            owners = [None, *range(n_det), *[None] * len(references_iqu_k)]
         else:
-            nonlinear = tod + np.asarray(g1_per_k)[:, None] * tod**2
-            tods, owners = [filter_tod(nonlinear, pointing, inner, simulator, settings)], [None]
-        for reference_iqu_k in references_iqu_k:
-            reference = simulator.scan_sky(pointing, reference_iqu_k)
-            tods.append(filter_tod(reference, pointing, inner, simulator, settings))
-            owners.append(None)
-        equations.add(
-            pointing.pixels[:, inner],
-            pointing.cos_2alpha[:, inner],
-            pointing.sin_2alpha[:, inner],
-            weights,
-            simulator.pol_efficiency,
-            tods,
-            owners,
-        )
+            tods, owners = list(filtered), [None] * len(filtered)
+        with clock("binning"):
+            equations.add(
+                pointing.pixels[:, inner],
+                pointing.cos_2alpha[:, inner],
+                pointing.sin_2alpha[:, inner],
+                weights,
+                simulator.pol_efficiency,
+                tods,
+                owners,
+            )
+        del filtered, tods
         rss_mb = psutil.Process().memory_info().rss / 2**20
         peak_rss_mb = max(peak_rss_mb, rss_mb)
         if on_chunk is not None:
             on_chunk(inner.stop - inner.start, rss_mb)
     log.info(
-        "%s seed %d: peak RSS during chunks %.0f MB",
+        "%s seed %d: peak RSS during chunks %.0f MB; time per stage: %s",
         simulator.channel.name,
         settings.seed,
         peak_rss_mb,
+        clock.summary(settings.plan.n_samples * n_det),
     )
     return equations
 
@@ -215,19 +251,13 @@ def run(
     from .. import sky
 
     started = time.perf_counter()
+    use_threads(threads)
     channel = cfg.channel(config, channel_name)
     kw = pd.read_csv(kw_csv).set_index("channel")
     carries_systematics = channel_name in config["instrument"]["systematics_channels"]
     a2_k_cmb = float(kw.loc[channel_name, "a2_k_cmb"]) if carries_systematics else 0.0
     settings = PairMapSettings.from_config(config, channel, seed, a2_k_cmb, threads)
-    simulator = PairSimulator(
-        channel,
-        settings.plan,
-        settings.nside,
-        config["instrument"]["imo_location"],
-        config["instrument"]["imo_release"],
-        threads,
-    )
+    simulator = PairSimulator.from_config(config, channel, settings.plan, settings.nside, threads)
     foreground = sky.read_sky_map(foreground_fits, nside=settings.nside)
     foreground_source = sky.read_sky_header(foreground_fits).get("FGSOURCE", "unknown")
     cmb = sky.cmb_map(

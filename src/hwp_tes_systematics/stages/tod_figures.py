@@ -26,13 +26,7 @@ def sample_tod(config: dict, channel_name: str, a2_k_cmb: float, hours: float):
         channel.sampling_rate_hz,
     )
     nside = config["maps"]["nside"]
-    simulator = PairSimulator(
-        channel,
-        plan,
-        nside,
-        config["instrument"]["imo_location"],
-        config["instrument"]["imo_release"],
-    )
+    simulator = PairSimulator.from_config(config, channel, plan, nside)
     sky_maps = channel_sky(config, channel, 0)
     pointing = simulator.pointing(0, plan.n_samples)
     tod = (
