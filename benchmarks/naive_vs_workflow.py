@@ -21,47 +21,27 @@ from __future__ import annotations
 
 import argparse
 import multiprocessing
-import resource
 import time
 
 import astropy.time
 import numpy as np
+from common import MASTER_SEED, SEED, pair_setup, peak_rss_mb, timed_accumulate
 
-from hwp_tes_systematics import seeding, sky
+from hwp_tes_systematics import seeding
 from hwp_tes_systematics.instrument import load_channel
 from hwp_tes_systematics.mapmaking import solve_maps
 from hwp_tes_systematics.notch import chunk_span
-from hwp_tes_systematics.stages.pair_maps import PairMapSettings, accumulate, filter_tod
+from hwp_tes_systematics.stages.pair_maps import filter_tod
 from hwp_tes_systematics.systematics import maps_for_sigma, unit_g1_draws
 from hwp_tes_systematics.timing import StageClock
-from hwp_tes_systematics.tod import NOISE_MODELS, MissionPlan, PairSimulator
-
-MASTER_SEED, SEED = 1, 0
-START = "2032-04-01T00:00:00"
+from hwp_tes_systematics.tod import NOISE_MODELS
 
 
 def setup(arguments, duration_s):
-    channel = load_channel(arguments.channel)
-    plan = MissionPlan(START, duration_s, duration_s, channel.sampling_rate_hz)
-    settings = PairMapSettings(
-        master_seed=MASTER_SEED,
-        seed=SEED,
-        nside=arguments.nside,
-        plan=plan,
-        a2_k_cmb=0.264,  # M1-140, results/inputs/kw_conversion.csv (default config)
-        notch_width_divisor=100.0,
-        notch_margin_s=1200.0,
-        max_condition_number=100.0,
-        noise_scale=1.0,
-        threads=arguments.threads,
+    simulator, settings, sky_map = pair_setup(
+        arguments.channel, duration_s, arguments.nside, arguments.threads, arguments.noise
     )
-    simulator = PairSimulator(
-        channel, plan, arguments.nside, threads=arguments.threads, noise_model=arguments.noise
-    )
-    sky_map = sky.cmb_map(
-        arguments.nside, 3 * arguments.nside - 1, 0.0, MASTER_SEED, SEED, channel.fwhm_arcmin
-    )
-    draws = unit_g1_draws(MASTER_SEED, channel.name, SEED, simulator.detector_names)
+    draws = unit_g1_draws(MASTER_SEED, simulator.channel.name, SEED, simulator.detector_names)
     return simulator, settings, sky_map, draws
 
 
@@ -154,22 +134,21 @@ def run_naive(arguments, duration_s, cases, queue):
     started = time.perf_counter()
     maps = {sigma: naive_map(simulator, settings, sky_map, sigma * draws, clock) for sigma in cases}
     seconds = time.perf_counter() - started
-    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    peak_mb = peak_rss_mb()
     queue.put((maps, seconds, dict(clock.seconds), peak_mb))
 
 
 def run_workflow(arguments, duration_s, cases, queue):
     simulator, settings, sky_map, draws = setup(arguments, duration_s)
     warm_simulator, warm_settings, *_ = setup(arguments, 600.0)
-    accumulate(warm_simulator, warm_settings, sky_map)
-    clock = StageClock()
+    timed_accumulate(warm_simulator, warm_settings, sky_map, "linear")
     started = time.perf_counter()
-    equations = accumulate(simulator, settings, sky_map, clock=clock)
+    equations, _, clock = timed_accumulate(simulator, settings, sky_map, "linear")
     with clock("solve + sigma grid"):
         solved, _, good = solve_maps(equations, settings.max_condition_number)
         maps = {sigma: maps_for_sigma(solved[0], solved[1:], draws, sigma) for sigma in cases}
     seconds = time.perf_counter() - started
-    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    peak_mb = peak_rss_mb()
     queue.put(({**maps, "good": good}, seconds, dict(clock.seconds), peak_mb))
 
 

@@ -4,24 +4,19 @@
 
 (a) plain: one simulation (sky + dipole + HWPSS + noise -> 2f removal -> notch -> binning)
     of one TOD, i.e. the cost of any single sigma_g1 case simulated directly;
-(b) linear: the workflow's path, the same plus the per-detector templates F(d_k^2), which
-    give the maps of every sigma_g1 and every g1 draw.
-Prints detector-samples per second, ns per detector-sample, the resident memory after
-each chunk (it must stay flat as the duration grows) and the cost ratio (b)/(a).
+(b) linear: the same plus the per-detector templates F(d_k^2), which give the maps of
+    every sigma_g1 and every g1 draw;
+(c) job: (b) plus the CMB and foreground reference TODs, what a pair_maps job runs.
+Prints the time per stage, detector-samples per second, ns per detector-sample, the
+resident memory after each chunk (it must stay flat as the duration grows) and the
+cost ratio (b)/(a).
 """
 
 from __future__ import annotations
 
 import argparse
-import resource
-import time
 
-import numpy as np
-
-from hwp_tes_systematics import sky
-from hwp_tes_systematics.instrument import load_channel
-from hwp_tes_systematics.stages.pair_maps import PairMapSettings, accumulate
-from hwp_tes_systematics.tod import MissionPlan, PairSimulator
+from common import pair_setup, peak_rss_mb, timed_accumulate, warm_up
 
 
 def main() -> None:
@@ -32,44 +27,34 @@ def main() -> None:
     parser.add_argument("--days", type=float, default=1.0, help="mission duration [days]")
     parser.add_argument("--chunk-s", type=float, default=86400.0, help="chunk length [s]")
     parser.add_argument("--nside", type=int, default=64)
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--noise", default="keshner", help="noise model (keshner, toast)")
     parser.add_argument(
         "--only",
-        choices=["plain", "linear"],
+        choices=["plain", "linear", "job"],
         default=None,
         help="run one path only (e.g. for long memory runs)",
     )
     arguments = parser.parse_args()
 
-    channel = load_channel(arguments.channel)
-    plan = MissionPlan(
-        "2032-04-01T00:00:00", arguments.days * 86400.0, arguments.chunk_s, channel.sampling_rate_hz
-    )
-    settings = PairMapSettings(
-        master_seed=1,
-        seed=0,
-        nside=arguments.nside,
-        plan=plan,
-        a2_k_cmb=0.26,
-        notch_width_divisor=100.0,
-        notch_margin_s=1200.0,
-        max_condition_number=100.0,
-    )
-    simulator = PairSimulator(channel, plan, arguments.nside)
-    sky_map = sky.cmb_map(arguments.nside, 3 * arguments.nside - 1, 0.0, 1, 0, channel.fwhm_arcmin)
-    warm = PairSimulator(
-        channel,
-        MissionPlan(plan.start_time_tdb, 600.0, 600.0, channel.sampling_rate_hz),
+    warm_up(arguments.channel, arguments.nside, arguments.threads, arguments.noise)
+    simulator, settings, sky_map = pair_setup(
+        arguments.channel,
+        arguments.days * 86400.0,
         arguments.nside,
+        arguments.threads,
+        arguments.noise,
+        arguments.chunk_s,
     )
-    accumulate(warm, PairMapSettings(**{**settings.__dict__, "plan": warm.plan}), sky_map)
-
+    plan = settings.plan
     samples = plan.n_samples * simulator.n_detectors
     print(
         f"{arguments.channel}: {arguments.days:g} days, {samples:.3e} detector-samples, "
-        f"nside {arguments.nside}, chunks of {arguments.chunk_s:g} s"
+        f"nside {arguments.nside}, chunks of {arguments.chunk_s:g} s, "
+        f"threads {arguments.threads}, noise {arguments.noise}"
     )
     seconds = {}
-    for path in ("plain", "linear"):
+    for path in ("plain", "linear", "job"):
         if arguments.only not in (None, path):
             continue
         done = [0]
@@ -82,17 +67,14 @@ def main() -> None:
                 flush=True,
             )
 
-        started = time.perf_counter()
-        g1 = np.zeros(simulator.n_detectors) if path == "plain" else None
-        accumulate(simulator, settings, sky_map, g1_per_k=g1, on_chunk=report)
-        seconds[path] = time.perf_counter() - started
+        _, seconds[path], clock = timed_accumulate(simulator, settings, sky_map, path, report)
         print(
             f"{path:6s}: {seconds[path]:8.1f} s, {samples / seconds[path]:.3e} "
             f"detector-samples/s, {1e9 * seconds[path] / samples:6.0f} ns per detector-sample"
         )
-    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    print(f"peak RSS of the process: {peak_mb:.0f} MB")
-    if len(seconds) == 2:
+        print(f"        per stage: {clock.summary(samples)}")
+    print(f"peak RSS of the process: {peak_rss_mb():.0f} MB")
+    if "plain" in seconds and "linear" in seconds:
         print(
             f"cost ratio linear / plain = {seconds['linear'] / seconds['plain']:.2f} "
             "(target <= 1.3)"

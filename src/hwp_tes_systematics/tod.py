@@ -256,9 +256,8 @@ class PairSimulator:
         lbs.prepare_pointings(
             observation, instrument=self.instrument, spin2ecliptic_quats=spin2ecliptic, hwp=hwp
         )
-        galactic_provider = lbs.PointingProvider(
-            ecliptic_to_galactic()[1] * spin2ecliptic * self.instrument.bore2spin_quat, hwp=hwp
-        )
+        bore2ecliptic = observation.pointing_provider.bore2ecliptic_quats
+        galactic_provider = lbs.PointingProvider(ecliptic_to_galactic()[1] * bore2ecliptic, hwp=hwp)
         shape = (self.n_detectors, n_samples)
         directions = 1 if self.shares_direction else self.n_detectors
         galactic = np.empty((directions, n_samples, 3))

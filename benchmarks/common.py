@@ -1,0 +1,89 @@
+"""Set-up shared by the benchmarks: one PTEP detector pair simulated like a pair_maps job."""
+
+from __future__ import annotations
+
+import resource
+import time
+
+import numpy as np
+
+from hwp_tes_systematics import sky
+from hwp_tes_systematics.instrument import load_channel
+from hwp_tes_systematics.stages.pair_maps import PairMapSettings, accumulate
+from hwp_tes_systematics.timing import StageClock
+from hwp_tes_systematics.tod import MissionPlan, PairSimulator
+
+MASTER_SEED, SEED = 1, 0
+START_TDB = "2032-04-01T00:00:00"
+A2_K_CMB = 0.264  # M1-140 HWPSS amplitude of the default config (results/inputs/kw_conversion.csv)
+
+
+def pair_setup(
+    channel_name="M1-140",
+    duration_s=86400.0,
+    nside=64,
+    threads=1,
+    noise_model="keshner",
+    chunk_s=86400.0,
+    noise_scale=1.0,
+):
+    """(simulator, settings, sky map) of one (channel, seed) job; the sky is a CMB map."""
+    channel = load_channel(channel_name)
+    plan = MissionPlan(START_TDB, duration_s, min(chunk_s, duration_s), channel.sampling_rate_hz)
+    settings = PairMapSettings(
+        master_seed=MASTER_SEED,
+        seed=SEED,
+        nside=nside,
+        plan=plan,
+        a2_k_cmb=A2_K_CMB,
+        notch_width_divisor=100.0,
+        notch_margin_s=1200.0,
+        max_condition_number=100.0,
+        noise_scale=noise_scale,
+        threads=threads,
+    )
+    simulator = PairSimulator(channel, plan, nside, threads=threads, noise_model=noise_model)
+    sky_map = sky.cmb_map(nside, 3 * nside - 1, 0.0, MASTER_SEED, SEED, channel.fwhm_arcmin)
+    return simulator, settings, sky_map
+
+
+def warm_up(channel_name, nside, threads, noise_model):
+    """Compile the numba kernels and load litebird_sim's caches on a 10-minute run."""
+    simulator, settings, sky_map = pair_setup(channel_name, 600.0, nside, threads, noise_model)
+    accumulate(simulator, settings, sky_map, references_iqu_k=(sky_map, sky_map))
+    accumulate(simulator, settings, sky_map, g1_per_k=np.zeros(simulator.n_detectors))
+
+
+def timed_accumulate(simulator, settings, sky_map, path: str, on_chunk=None):
+    """Run one path; returns (equations, wall seconds, StageClock).
+
+    plain: one TOD d (the cost of one sigma_g1 case simulated directly);
+    linear: d and the per-detector templates d_k^2 (every sigma_g1 at once);
+    job: linear plus the CMB and foreground reference TODs, what a pair_maps job does
+    (the second reference is a CMB map here; its cost is the same).
+    """
+    clock = StageClock()
+    started = time.perf_counter()
+    if path == "plain":
+        g1, references = np.zeros(simulator.n_detectors), ()
+    elif path == "linear":
+        g1, references = None, ()
+    elif path == "job":
+        g1, references = None, (sky_map, sky_map)
+    else:
+        raise ValueError(f"path {path!r}: expected plain, linear or job")
+    equations = accumulate(
+        simulator,
+        settings,
+        sky_map,
+        g1_per_k=g1,
+        on_chunk=on_chunk,
+        references_iqu_k=references,
+        clock=clock,
+    )
+    return equations, time.perf_counter() - started, clock
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process [MB]."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024

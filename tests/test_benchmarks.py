@@ -1,0 +1,88 @@
+"""The benchmark tools measure what they claim: the naive litebird_sim path and the
+workflow's linear path give the same maps; the timeline reads Snakemake's log."""
+
+import sys
+from argparse import Namespace
+
+import numpy as np
+import pytest
+
+from hwp_tes_systematics.timing import StageClock
+
+LOG = """\
+[Sat Nov 21 17:00:00 2026]
+localrule pair_maps:
+    output: results/maps/M1-140/seed0.h5
+    jobid: 3
+    threads: 1
+
+[Sat Nov 21 17:00:00 2026]
+rule pair_maps:
+    output: results/maps/M1-140/seed1.h5
+    jobid: 4
+
+[Sat Nov 21 17:00:10 2026]
+Finished jobid: 3 (Rule: pair_maps)
+
+[Sat Nov 21 17:00:10 2026]
+localrule component_separation:
+    jobid: 5
+    threads: 2
+
+[Sat Nov 21 17:00:20 2026]
+Finished jobid: 4 (Rule: pair_maps)
+
+[Sat Nov 21 17:00:20 2026]
+Finished jobid: 5 (Rule: component_separation)
+"""
+
+
+@pytest.fixture
+def benchmarks(repo, monkeypatch):
+    monkeypatch.syspath_prepend(str(repo / "benchmarks"))
+    yield
+    for name in ("timeline", "naive_vs_workflow", "common"):
+        sys.modules.pop(name, None)
+
+
+def test_timeline_reads_jobs_and_core_use(benchmarks, tmp_path):
+    import timeline
+
+    log = tmp_path / "run.snakemake.log"
+    log.write_text(LOG)
+    jobs = timeline.parse_jobs(log)
+    assert [(j["rule"], j["start"], j["end"], j["threads"]) for j in jobs] == [
+        ("pair_maps", 0.0, 10.0, 1),
+        ("pair_maps", 0.0, 20.0, 1),
+        ("component_separation", 10.0, 20.0, 2),
+    ]
+    wall_s, used, all_busy = timeline.utilisation(jobs, cores=2)
+    assert wall_s == 20.0
+    assert used == pytest.approx((10 + 20 + 2 * 10) / (20 * 2))
+    assert all_busy == 1.0
+    timeline.plot(jobs, 2, tmp_path / "timeline.png", "test")
+    assert (tmp_path / "timeline.png").stat().st_size > 10_000
+    log.write_text("no jobs here\n")
+    with pytest.raises(ValueError, match="no finished jobs"):
+        timeline.parse_jobs(log)
+
+
+@pytest.mark.slow
+def test_naive_litebird_sim_path_equals_workflow_maps(benchmarks):
+    """Per case (nosys, sigma_g1 = 0.1): litebird_sim's calls with the nonlinearity in the
+    TOD give the same binned maps as m_nosys + sigma sum_k z_k T_k (float64 throughout)."""
+    import naive_vs_workflow as bench
+    from common import timed_accumulate
+
+    from hwp_tes_systematics.mapmaking import solve_maps
+    from hwp_tes_systematics.systematics import maps_for_sigma
+
+    arguments = Namespace(channel="M1-140", nside=16, threads=1, noise="keshner")
+    simulator, settings, sky_map, draws = bench.setup(arguments, 900.0)
+    equations, *_ = timed_accumulate(simulator, settings, sky_map, "linear")
+    solved, _, good = solve_maps(equations, 100.0)
+    for sigma in (0.0, 0.1):
+        naive = bench.naive_map(simulator, settings, sky_map, sigma * draws, StageClock())
+        ours = maps_for_sigma(solved[0], solved[1:], draws, sigma)
+        rms = np.sqrt(np.mean(ours[:, good] ** 2))
+        assert np.abs(naive[:, good] - ours[:, good]).max() < 1e-8 * rms
