@@ -55,9 +55,11 @@ def setup_logging(log_path: str | Path | None = None, level: int = logging.INFO)
 
 
 def use_threads(threads: int) -> None:
-    """Make the compiled kernels use ``threads`` threads (a rule's Snakemake ``threads``):
+    """Make the compiled kernels use ``threads`` threads (a rule's Snakemake ``threads``).
+
     numba's parallel loops (litebird_sim's dipole and coordinate kernels) are limited
-    here; ducc0 (FFT, pixelisation) takes the count as an argument."""
+    here; ducc0 (FFT, pixelisation) takes the count as an argument; Snakemake itself sets
+    OMP_NUM_THREADS and OPENBLAS_NUM_THREADS (healpy, BLAS) for each job."""
     import numba
 
     threads = max(1, int(threads))

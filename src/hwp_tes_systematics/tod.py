@@ -280,16 +280,14 @@ class PairSimulator:
             pixels[direction] = self.healpix.ang2pix(
                 galactic[direction, :, :2], nthreads=self.threads
             )
-            twice_alpha0 = 2 * (2 * hwp_angle + galactic[direction, :, 2])  # theta_det = 0
-            cos0, sin0 = np.cos(twice_alpha0), np.sin(twice_alpha0)
-            owners = range(self.n_detectors) if self.shares_direction else [direction]
-            for index in owners:
-                twice_theta = 2 * self.pol_angles_rad[index]
-                c, s = np.cos(twice_theta), np.sin(twice_theta)
-                np.multiply(cos0, c, out=cos_2alpha[index])
-                cos_2alpha[index] += s * sin0
-                np.multiply(sin0, c, out=sin_2alpha[index])
-                sin_2alpha[index] -= s * cos0
+            owners = np.arange(self.n_detectors) if self.shares_direction else [direction]
+            _polarisation_angle_kernel(
+                hwp_angle,
+                galactic[direction, :, 2],
+                self.pol_angles_rad[owners],
+                cos_2alpha[owners[0] : owners[-1] + 1],
+                sin_2alpha[owners[0] : owners[-1] + 1],
+            )
         if self.shares_direction:
             pixels = np.broadcast_to(pixels, shape)
             galactic = np.broadcast_to(galactic, (*shape, 3))
@@ -381,6 +379,21 @@ class PairSimulator:
             model=self.noise_model,
         )
         return tod
+
+
+@numba.njit(cache=True, nogil=True)
+def _polarisation_angle_kernel(hwp_angle, psi, pol_angles, cos_2alpha, sin_2alpha):
+    """cos, sin of 2 alpha_k = 2 (2 chi + psi) - 2 theta_k for each detector k, by angle
+    addition from the theta = 0 angle (one cos and one sin per sample)."""
+    cos_theta = np.cos(2 * pol_angles)
+    sin_theta = np.sin(2 * pol_angles)
+    for t in range(hwp_angle.size):
+        twice_alpha0 = 2 * (2 * hwp_angle[t] + psi[t])
+        cos0 = np.cos(twice_alpha0)
+        sin0 = np.sin(twice_alpha0)
+        for k in range(pol_angles.size):
+            cos_2alpha[k, t] = cos0 * cos_theta[k] + sin0 * sin_theta[k]
+            sin_2alpha[k, t] = sin0 * cos_theta[k] - cos0 * sin_theta[k]
 
 
 @numba.njit(cache=True, nogil=True)
