@@ -9,6 +9,7 @@ import numpy as np
 
 from hwp_tes_systematics import sky
 from hwp_tes_systematics.instrument import load_channel
+from hwp_tes_systematics.io import use_threads
 from hwp_tes_systematics.stages.pair_maps import PairMapSettings, accumulate
 from hwp_tes_systematics.timing import StageClock
 from hwp_tes_systematics.tod import MissionPlan, PairSimulator
@@ -27,7 +28,9 @@ def pair_setup(
     chunk_s=86400.0,
     noise_scale=1.0,
 ):
-    """(simulator, settings, sky map) of one (channel, seed) job; the sky is a CMB map."""
+    """(simulator, settings, sky map) of one (channel, seed) job; the sky is a CMB map.
+    All kernels use ``threads`` threads (as a pair_maps job with Snakemake's threads)."""
+    use_threads(threads)
     channel = load_channel(channel_name)
     plan = MissionPlan(START_TDB, duration_s, min(chunk_s, duration_s), channel.sampling_rate_hz)
     settings = PairMapSettings(
