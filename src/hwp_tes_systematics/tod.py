@@ -38,6 +38,32 @@ ORBIT_STEP_S = 3600.0  # spacecraft position/velocity sampling for the dipole
 
 
 @functools.cache
+def cache_litebird_sim_kernels() -> int:
+    """Turn on numba's on-disk cache for litebird_sim's compiled kernels.
+
+    litebird_sim compiles its numba kernels (pointing, HWP angle, dipole, add_2f, ...)
+    in every new process without caching them: ~10-25 s per process, more than a
+    one-day pair takes to simulate. With the cache, only the first process of an
+    installation compiles. Returns the number of kernels switched to caching.
+    """
+    import sys
+
+    import litebird_sim  # noqa: F401 (loads the modules whose kernels are cached)
+    from numba.core.registry import CPUDispatcher
+
+    kernels = {
+        id(obj): obj
+        for name, module in list(sys.modules.items())
+        if name.startswith("litebird_sim") and module is not None
+        for obj in vars(module).values()
+        if isinstance(obj, CPUDispatcher)
+    }
+    for kernel in kernels.values():
+        kernel.enable_caching()
+    return len(kernels)
+
+
+@functools.cache
 def ecliptic_to_galactic():
     """The ecliptic -> Galactic rotation of litebird_sim: (3x3 matrix, RotQuaternion)."""
     import litebird_sim as lbs
@@ -164,6 +190,7 @@ class PairSimulator:
     ):
         import litebird_sim as lbs
 
+        cache_litebird_sim_kernels()
         if noise_model not in NOISE_MODELS:
             raise ValueError(f"noise model {noise_model!r}: expected one of {sorted(NOISE_MODELS)}")
         self.channel = channel
