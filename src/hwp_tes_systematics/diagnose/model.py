@@ -29,6 +29,8 @@ from functools import cached_property
 import astropy.time
 import numpy as np
 
+from ..tod import cache_litebird_sim_kernels
+
 ORBIT_MARGIN_S = 86400.0  # orbit table starts one day before the recording (as PairSimulator)
 ORBIT_STEP_S = 3600.0  # spacecraft position/velocity every hour (as PairSimulator)
 F_SPIN_HZ = 0.05 / 60.0  # PTEP spin rate 0.05 rpm
@@ -193,6 +195,8 @@ def dipole_tod(recording) -> np.ndarray:
     """Orbital + solar dipole [K_CMB] at the recorded pointing, (n_det, n) (litebird_sim)."""
     import litebird_sim as lbs
 
+    cache_litebird_sim_kernels()
+
     observation = lbs.Observation(
         detectors=[dict(det) for det in recording.detectors],
         n_samples_global=recording.n_samples,
@@ -213,6 +217,8 @@ def scan_sky(recording, sky: np.ndarray, threads: int = 1):
     """(I(p), rho (Q cos 2a + U sin 2a), pixels) at the nearest pixel of the sky map."""
     import ducc0
     import litebird_sim as lbs
+
+    cache_litebird_sim_kernels()
 
     nside = round(np.sqrt(sky.shape[1] / 12))
     healpix = ducc0.healpix.Healpix_Base(nside, "RING")
