@@ -4,16 +4,12 @@ import json
 
 import numpy as np
 import pytest
-from helpers import make_workdir, snakemake
 
 pytestmark = pytest.mark.slow
 
 
-def test_whole_workflow_on_tiny_config(repo, tmp_path):
-    workdir = make_workdir(repo, tmp_path)
-    result = snakemake(
-        workdir, extra=("--configfile", str(repo / "tests/configs/tiny.yaml"), "--cores", "2")
-    )
+def test_whole_workflow_on_tiny_config(tiny_local_run):
+    workdir, result = tiny_local_run  # shared with tests/test_slurm.py
     assert result.returncode == 0, result.stderr[-4000:]
     requirement = json.loads((workdir / "results/requirement.json").read_text())
     assert np.isfinite(requirement["requirement_sigma_g1_per_k"])

@@ -1,8 +1,12 @@
-"""The Snakemake profiles parse and name only rules that exist."""
+"""The Snakemake profiles parse, name only rules that exist, and give a valid DAG."""
 
 import re
+import subprocess
+import sys
 
+import pytest
 import yaml
+from helpers import make_workdir
 
 
 def rule_names(repo):
@@ -26,3 +30,20 @@ def test_profiles_parse_and_name_existing_rules(repo):
     assert {"slurm_account", "slurm_partition", "mem_mb", "runtime"} <= set(
         slurm["default-resources"]
     )
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["default", "slurm"])
+def test_profile_dry_run_on_tiny_config(repo, tmp_path, name):
+    """Snakemake accepts the profile and the DAG it implies (the groups included) without
+    a scheduler; tests/test_slurm.py runs the SLURM profile on a real one."""
+    workdir = make_workdir(repo, tmp_path)
+    result = subprocess.run(
+        [sys.executable, "-m", "snakemake", "--profile", str(repo / "profiles" / name)]
+        + ["--configfile", str(repo / "tests/configs/tiny.yaml"), "--dry-run"],
+        cwd=workdir,
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert result.returncode == 0, result.stderr[-4000:]
