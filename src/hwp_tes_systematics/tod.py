@@ -35,6 +35,7 @@ log = logging.getLogger(__name__)
 
 QUATERNION_STEP_S = 2.0  # spin-axis quaternion sampling (litebird_sim interpolates), ~1 arcsec
 ORBIT_STEP_S = 3600.0  # spacecraft position/velocity sampling for the dipole
+ORBIT_MARGIN_S = 86400.0  # orbit table from one day before to one day after (filter margins)
 
 
 @functools.cache
@@ -61,6 +62,21 @@ def cache_litebird_sim_kernels() -> int:
     for kernel in kernels.values():
         kernel.enable_caching()
     return len(kernels)
+
+
+def orbit_table(start_time: astropy.time.Time, duration_s: float):
+    """Spacecraft position and velocity (litebird_sim, ecliptic) every ORBIT_STEP_S from
+    ORBIT_MARGIN_S before ``start_time`` to ORBIT_MARGIN_S after the end: the table the
+    dipole of the simulation and of the diagnosis's nominal model is computed from."""
+    import litebird_sim as lbs
+
+    orbit_start = start_time - astropy.time.TimeDelta(ORBIT_MARGIN_S, format="sec")
+    return lbs.spacecraft_pos_and_vel(
+        lbs.SpacecraftOrbit(orbit_start),
+        start_time=orbit_start,
+        time_span_s=duration_s + 2 * ORBIT_MARGIN_S,
+        delta_time_s=ORBIT_STEP_S,
+    )
 
 
 @functools.cache
@@ -212,16 +228,7 @@ class PairSimulator:
         self.shares_direction = all(np.array_equal(q, quaternions[0]) for q in quaternions)
         self.scanning = MissionScanningStrategy(imo, release, plan.start_time)
         self.healpix = ducc0.healpix.Healpix_Base(nside, "RING")
-        margin_days = 2.0  # the orbit table must cover the filter margins before and after
-        self.orbit = lbs.spacecraft_pos_and_vel(
-            lbs.SpacecraftOrbit(
-                plan.start_time - astropy.time.TimeDelta(86400 * margin_days / 2, format="sec")
-            ),
-            start_time=plan.start_time
-            - astropy.time.TimeDelta(86400 * margin_days / 2, format="sec"),
-            time_span_s=plan.duration_s + 86400 * margin_days,
-            delta_time_s=ORBIT_STEP_S,
-        )
+        self.orbit = orbit_table(plan.start_time, plan.duration_s)
         rotation, _ = ecliptic_to_galactic()
         self.orbit_galactic = copy.copy(self.orbit)
         self.orbit_galactic.positions_km = self.orbit.positions_km @ rotation.T

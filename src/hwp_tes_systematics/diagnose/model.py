@@ -26,13 +26,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from functools import cached_property
 
-import astropy.time
 import numpy as np
 
-from ..tod import cache_litebird_sim_kernels
+from ..tod import cache_litebird_sim_kernels, orbit_table
 
-ORBIT_MARGIN_S = 86400.0  # orbit table starts one day before the recording (as PairSimulator)
-ORBIT_STEP_S = 3600.0  # spacecraft position/velocity every hour (as PairSimulator)
 F_SPIN_HZ = 0.05 / 60.0  # PTEP spin rate 0.05 rpm
 F_PRECESSION_HZ = 1.0 / (192.348 * 60.0)  # PTEP precession period 192.348 min
 
@@ -178,19 +175,6 @@ def hwp_frequency_hz(hwp_angle_rad: np.ndarray, sampling_rate_hz: float) -> floa
     return float(abs(slope) / (2 * np.pi))
 
 
-def orbit_for(start_time: astropy.time.Time, duration_s: float):
-    """Spacecraft position and velocity tabulated as PairSimulator does (same dipole)."""
-    import litebird_sim as lbs
-
-    orbit_start = start_time - astropy.time.TimeDelta(ORBIT_MARGIN_S, format="sec")
-    return lbs.spacecraft_pos_and_vel(
-        lbs.SpacecraftOrbit(orbit_start),
-        start_time=orbit_start,
-        time_span_s=duration_s + 2 * ORBIT_MARGIN_S,
-        delta_time_s=ORBIT_STEP_S,
-    )
-
-
 def dipole_tod(recording) -> np.ndarray:
     """Orbital + solar dipole [K_CMB] at the recorded pointing, (n_det, n) (litebird_sim)."""
     import litebird_sim as lbs
@@ -207,7 +191,7 @@ def dipole_tod(recording) -> np.ndarray:
     observation.tod[:] = 0.0
     lbs.add_dipole_to_observations(
         observation,
-        pos_and_vel=orbit_for(recording.start_time, recording.duration_s),
+        pos_and_vel=orbit_table(recording.start_time, recording.duration_s),
         pointings=np.ascontiguousarray(recording.pointings_ecl),
     )
     return np.array(observation.tod, dtype=float)
