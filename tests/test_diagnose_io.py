@@ -68,14 +68,12 @@ def test_nominal_model_equals_the_simulation_without_noise(tmp_path):
 
 def test_nan_stretch_is_masked_not_propagated(clean_file, tmp_path):
     path, _recording = clean_file
-    copy = tmp_path / "gap.h5"
-    shutil.copy(path, copy)
-    with h5py.File(copy, "a") as handle:
-        tod = handle["tod"][()]
-        tod[0, 10_000:13_000] = np.nan
-        tod[1, 20_000:20_500] = np.nan
-        handle["tod"][...] = tod
-    read = read_recording(copy)
+
+    def gaps(handle):
+        handle["tod"][0, 10_000:13_000] = np.nan
+        handle["tod"][1, 20_000:20_500] = np.nan
+
+    read = read_recording(corrupt(path, tmp_path / "gap.h5", gaps))
     assert read.flags[0, 10_000:13_000].all() and read.flags[1, 20_000:20_500].all()
     assert read.flags.sum() == 3500
     assert np.all(np.isfinite(read.tod))
@@ -86,16 +84,12 @@ def test_nan_stretch_is_masked_not_propagated(clean_file, tmp_path):
 
 def test_nan_pointing_and_hwp_angle_are_masked(clean_file, tmp_path):
     path, recording = clean_file
-    copy = tmp_path / "nan_pointing.h5"
-    shutil.copy(path, copy)
-    with h5py.File(copy, "a") as handle:
-        pointings = handle["pointings"][()]
-        pointings[1, 500:510, 0] = np.nan
-        handle["pointings"][...] = pointings
-        hwp = handle["hwp_angle"][()]
-        hwp[700:705] = np.nan
-        handle["hwp_angle"][...] = hwp
-    read = read_recording(copy)
+
+    def gaps(handle):
+        handle["pointings"][1, 500:510, 0] = np.nan
+        handle["hwp_angle"][700:705] = np.nan
+
+    read = read_recording(corrupt(path, tmp_path / "nan_pointing.h5", gaps))
     assert read.flags[1, 500:510].all() and not read.flags[0, 500:510].any()
     assert read.flags[:, 700:705].all() and read.flags.sum() == 10 + 2 * 5
     # the HWP angle is bridged over the gap (it turns uniformly)
@@ -106,21 +100,20 @@ def test_nan_pointing_and_hwp_angle_are_masked(clean_file, tmp_path):
 
 def test_flags_dataset_is_read(clean_file, tmp_path):
     path, _ = clean_file
-    copy = tmp_path / "flags.h5"
-    shutil.copy(path, copy)
-    with h5py.File(copy, "a") as handle:
+
+    def flag(handle):
         flags = np.zeros(handle["tod"].shape, dtype=np.uint8)
         flags[1, 100:200] = 1
         handle.create_dataset("flags", data=flags)
-        tod = handle["tod"][()]
-        tod[1, 150] = np.inf  # Inf in a flagged sample is masked too
-        handle["tod"][...] = tod
-    read = read_recording(copy)
+        handle["tod"][1, 150] = np.inf  # Inf in a flagged sample is masked too
+
+    read = read_recording(corrupt(path, tmp_path / "flags.h5", flag))
     assert read.flags[1, 100:200].all() and read.flags.sum() == 100
     assert read.tod[1, 150] == 0.0
 
 
 def corrupt(source, target, action):
+    """A copy of the recording ``source`` at ``target``, edited in place by ``action(handle)``."""
     shutil.copy(source, target)
     with h5py.File(target, "a") as handle:
         action(handle)
