@@ -1,4 +1,7 @@
-"""The command line: python -m hwp_tes_systematics diagnose RECORDING --sky SKY --out DIR."""
+"""The command line: python -m hwp_tes_systematics diagnose RECORDING --sky SKY --out DIR.
+
+Run from a temporary folder, not the repository: the embedded default configuration and
+its HWP curve tables come with the package."""
 
 import json
 import subprocess
@@ -13,25 +16,25 @@ from hwp_tes_systematics.diagnose import simulate_recording, write_recording
 pytestmark = pytest.mark.slow
 
 
-def cli(repo, *arguments):
+def cli(cwd, *arguments):
+    """``python -m hwp_tes_systematics diagnose ARGUMENTS`` run in the folder ``cwd``."""
     return subprocess.run(
         [sys.executable, "-m", "hwp_tes_systematics", "diagnose", *map(str, arguments)],
-        cwd=repo,
+        cwd=cwd,
         check=False,
         capture_output=True,
         text=True,
     )
 
 
-def test_cli_finds_an_untold_nonlinearity(repo, tmp_path):
+def test_cli_finds_an_untold_nonlinearity(tmp_path):
     recording = simulate_recording(
         CHANNEL, 0.5, MASTER_SEED, 4242, sky_map(), A2_K, [("tes_nonlinearity", {"g1": -0.03})]
     )
     write_recording(tmp_path / "rec.h5", recording)
     sky.write_sky_map(tmp_path / "sky.fits", sky_map())
-    result = cli(
-        repo, tmp_path / "rec.h5", "--sky", tmp_path / "sky.fits", "--out", tmp_path / "out"
-    )
+    assert not (tmp_path / "config").exists()  # no repository configuration here
+    result = cli(tmp_path, "rec.h5", "--sky", "sky.fits", "--out", "out")
     assert result.returncode == 0, result.stderr[-3000:]
     assert "mismatch found: tes_nonlinearity" in result.stdout
     diagnosis = json.loads((tmp_path / "out/diagnosis.json").read_text())
@@ -41,11 +44,11 @@ def test_cli_finds_an_untold_nonlinearity(repo, tmp_path):
     assert (tmp_path / "out/residual_spectrum.png").stat().st_size > 10_000
 
 
-def test_cli_bad_input_names_the_file(repo, tmp_path):
+def test_cli_bad_input_names_the_file(tmp_path):
     not_hdf5 = tmp_path / "notes.h5"
     not_hdf5.write_text("this is not an HDF5 file")
     sky.write_sky_map(tmp_path / "sky.fits", sky_map())
-    result = cli(repo, not_hdf5, "--sky", tmp_path / "sky.fits", "--out", tmp_path / "out")
+    result = cli(tmp_path, not_hdf5, "--sky", tmp_path / "sky.fits", "--out", tmp_path / "out")
     assert result.returncode == 2
     assert "notes.h5" in result.stderr and "HDF5" in result.stderr
     assert not (tmp_path / "out/diagnosis.json").exists()

@@ -4,6 +4,10 @@ config-reference                      print the configuration reference (Markdow
 diagnose RECORDING.h5 --sky SKY.fits [--config FILE] --out DIR
                                       locate, name, fit and report what the
                                       simulation left out of a recording
+
+Works from any folder: the embedded default configuration (the repository's
+config/config.yaml) and its HWP curve tables ship with the package; each
+--config FILE is merged over it.
 """
 
 from __future__ import annotations
@@ -11,11 +15,9 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
-from pathlib import Path
 
-from .config import ConfigError, config_reference_markdown, load_config
+from .config import ConfigError, config_reference_markdown, default_config_path, load_config
 
-DEFAULT_CONFIG = Path("config/config.yaml")
 log = logging.getLogger("hwp_tes_systematics")
 
 
@@ -67,7 +69,8 @@ def main(argv: list[str] | None = None) -> int:
         "--config",
         action="append",
         default=[],
-        help="configuration file merged over config/config.yaml (repeatable)",
+        help="configuration file merged over the embedded default (config/config.yaml, "
+        "shipped with the package); repeatable, later files win",
     )
     diagnose.add_argument("--out", required=True, help="output folder")
     diagnose.add_argument(
@@ -85,18 +88,11 @@ def main(argv: list[str] | None = None) -> int:
     from .io import setup_logging
 
     setup_logging()
-    if not DEFAULT_CONFIG.is_file():
-        print(
-            f"error: {DEFAULT_CONFIG} not found: run from the repository's top folder "
-            "(the instrument and HWP configuration live there)",
-            file=sys.stderr,
-        )
-        return 2
     try:
         result = run_diagnose(
             arguments.recording,
             arguments.sky,
-            [str(DEFAULT_CONFIG), *arguments.config],
+            [str(default_config_path()), *arguments.config],
             arguments.out,
             arguments.delta_bic,
         )

@@ -3,6 +3,14 @@
 The schema (``data/config.schema.yaml``) describes every key with its unit and
 source and forbids unknown keys. Semantic checks that a schema cannot express
 (channel names exist in the instrument model, curve files exist) follow.
+
+The embedded default configuration ships with the package (``default_config_path``):
+``data/config/`` holds symlinks to the repository's ``config/config.yaml`` and
+``config/hwp/*.csv``, which an installed package (wheel) holds as copies. A relative
+path written in a configuration file is found by ``resolve_path``: in the current
+folder if it exists there (the workflow runs from the repository's top folder), else
+under ``data/`` (so ``config/hwp/mft_hwp_curves.csv`` resolves from any folder once
+the package is installed).
 """
 
 from __future__ import annotations
@@ -18,15 +26,46 @@ from . import instrument
 from .hwp_power import HwpCurves, OpticalElement, read_hwp_curves
 
 SCHEMA_RESOURCE = "config.schema.yaml"
+DEFAULT_CONFIG_RESOURCE = "config/config.yaml"  # under data/, as in the repository
 
 
 class ConfigError(ValueError):
     """The configuration is invalid; the message names the key and what was expected."""
 
 
+def data_path() -> Path:
+    """Folder of the data shipped with the package: schema, default config, HWP curve tables."""
+    return Path(str(resources.files("hwp_tes_systematics") / "data"))
+
+
 def schema_path() -> Path:
     """Path of the configuration JSON schema shipped with the package."""
-    return Path(str(resources.files("hwp_tes_systematics") / "data" / SCHEMA_RESOURCE))
+    return data_path() / SCHEMA_RESOURCE
+
+
+def default_config_path() -> Path:
+    """Path of the embedded default configuration shipped with the package.
+
+    In the repository it is a symlink to ``config/config.yaml`` (the file the Snakefile
+    reads and users edit); an installed package holds a copy of it.
+    """
+    return data_path() / DEFAULT_CONFIG_RESOURCE
+
+
+def resolve_path(path: str | Path) -> Path:
+    """The file that a path written in a configuration names.
+
+    An absolute path is used as it is. A relative path is looked up in the current
+    folder first and, if it is not there, under the package's data folder, which ships
+    ``config/config.yaml`` and ``config/hwp/*.csv`` under the same relative paths as the
+    repository. A path found in neither place is returned as written, so that the
+    reader's error names it as the user wrote it.
+    """
+    path = Path(path)
+    if path.is_absolute() or path.exists():
+        return path
+    shipped = data_path() / path
+    return shipped if shipped.exists() else path
 
 
 def load_schema() -> dict:
@@ -150,7 +189,9 @@ def telescope_optics(config: dict, telescope: str) -> tuple[HwpCurves, list[Opti
     """(HWP curves, elements after the HWP, HWP temperature [K]) of one telescope."""
     optics = config["optics"]["telescopes"][telescope]
     curves_path = optics["hwp_curves_csv"]
-    curves = HwpCurves.ideal() if curves_path is None else read_hwp_curves(curves_path)
+    curves = (
+        HwpCurves.ideal() if curves_path is None else read_hwp_curves(resolve_path(curves_path))
+    )
     elements = [OpticalElement(**element) for element in optics["elements_after_hwp"]]
     return curves, elements, float(optics["hwp_temperature_k"])
 
