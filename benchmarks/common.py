@@ -61,7 +61,8 @@ def timed_accumulate(simulator, settings, sky_map, path: str, on_chunk=None):
     """Run one path; returns (equations, wall seconds, StageClock).
 
     plain: one TOD d (the cost of one sigma_g1 case simulated directly);
-    linear: d and the per-detector templates d_k^2 (every sigma_g1 at once);
+    linear: d and the per-detector template terms s^2, s h, h^2 of d_k^2 (every sigma_g1
+    and every HWPSS amplitude at once);
     job: linear plus the CMB and foreground reference TODs, what a pair_maps job does
     (the second reference is a CMB map here; its cost is the same).
     """

@@ -31,7 +31,7 @@ from hwp_tes_systematics import seeding
 from hwp_tes_systematics.instrument import load_channel
 from hwp_tes_systematics.mapmaking import solve_maps
 from hwp_tes_systematics.notch import chunk_span
-from hwp_tes_systematics.stages.pair_maps import filter_tod
+from hwp_tes_systematics.stages.pair_maps import filter_tod, split_solved_maps
 from hwp_tes_systematics.systematics import maps_for_sigma, unit_g1_draws
 from hwp_tes_systematics.timing import StageClock
 from hwp_tes_systematics.tod import NOISE_MODELS
@@ -146,7 +146,11 @@ def run_workflow(arguments, duration_s, cases, queue):
     equations, _, clock = timed_accumulate(simulator, settings, sky_map, "linear")
     with clock("solve + sigma grid"):
         solved, _, good = solve_maps(equations, settings.max_condition_number)
-        maps = {sigma: maps_for_sigma(solved[0], solved[1:], draws, sigma) for sigma in cases}
+        templates = split_solved_maps(solved, simulator.n_detectors, settings.a2_k_cmb)
+        maps = {
+            sigma: maps_for_sigma(solved[0], templates["templates"], draws, sigma)
+            for sigma in cases
+        }
     seconds = time.perf_counter() - started
     peak_mb = peak_rss_mb()
     queue.put(({**maps, "good": good}, seconds, dict(clock.seconds), peak_mb))

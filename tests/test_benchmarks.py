@@ -75,6 +75,7 @@ def test_naive_litebird_sim_path_equals_workflow_maps(benchmarks):
     from common import timed_accumulate
 
     from hwp_tes_systematics.mapmaking import solve_maps
+    from hwp_tes_systematics.stages.pair_maps import split_solved_maps
     from hwp_tes_systematics.systematics import maps_for_sigma
 
     arguments = Namespace(channel="M1-140", nside=16, threads=1, noise="keshner")
@@ -83,6 +84,7 @@ def test_naive_litebird_sim_path_equals_workflow_maps(benchmarks):
     solved, _, good = solve_maps(equations, 100.0)
     for sigma in (0.0, 0.1):
         naive = bench.naive_map(simulator, settings, sky_map, sigma * draws, StageClock())
-        ours = maps_for_sigma(solved[0], solved[1:], draws, sigma)
+        templates = split_solved_maps(solved, simulator.n_detectors, settings.a2_k_cmb)
+        ours = maps_for_sigma(solved[0], templates["templates"], draws, sigma)
         rms = np.sqrt(np.mean(ours[:, good] ** 2))
         assert np.abs(naive[:, good] - ours[:, good]).max() < 1e-8 * rms

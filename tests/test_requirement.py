@@ -137,3 +137,38 @@ def test_plot_requirement(tmp_path):
     assert path.is_file() and path.stat().st_size > 1000
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert not list(path.parent.glob(".*tmp*"))  # written atomically, no leftovers
+
+
+def test_regime_accepts_sigma_squared_and_flags_other_exponents():
+    sigma_r = 1e-2
+    quadratic = rq.assess_quadratic_regime(SIGMAS, 1e-3 * (SIGMAS / 0.1) ** 2, sigma_r)
+    assert quadratic["valid"] and quadratic["sigma2_model_consistent"]
+    assert quadratic["free_exponent"] == pytest.approx(2.0)
+    assert quadratic["k_per_k2"] == pytest.approx(1e-3 / 0.1**2)
+    # delta r ~ sigma^0.5, all points well inside the quadratic regime: invalid
+    root = rq.assess_quadratic_regime(SIGMAS, 1e-4 * (SIGMAS / 0.1) ** 0.5, sigma_r)
+    assert not root["valid"] and not root["sigma2_model_consistent"]
+    assert root["free_exponent"] == pytest.approx(0.5)
+    assert "do not follow sigma^2" in root["reason"]
+    # every point beyond 0.1 sigma_r: invalid, k from all points, and it says why
+    saturated = rq.assess_quadratic_regime(SIGMAS, np.full(4, 0.5 * sigma_r), sigma_r)
+    assert not saturated["valid"] and saturated["sigma_g1_in_quadratic_regime_per_k"] == []
+    assert "not reached" in saturated["reason"]
+
+
+def test_plot_requirement_says_when_invalid(tmp_path):
+    mean = 1e-4 * (SIGMAS / 0.1) ** 0.5
+    k = rq.fit_quadratic(SIGMAS, mean)
+    path = plot_requirement(
+        SIGMAS,
+        mean,
+        0.3 * mean,
+        k,
+        0.5,
+        rq.DELTA_R_BUDGET,
+        None,
+        tmp_path / "fig8.png",
+        invalid_reason="the points do not follow sigma^2: exponent 0.50",
+        systematic_only=(SIGMAS, K_PAPER * SIGMAS**2, 0.1 * K_PAPER * SIGMAS**2, K_PAPER, 2e-3),
+    )
+    assert path.stat().st_size > 1000

@@ -1,6 +1,7 @@
 """Random streams depend only on (master seed, names)."""
 
 import numpy as np
+import pytest
 
 from hwp_tes_systematics.seeding import integer_seed, rng
 
@@ -25,3 +26,17 @@ def test_integer_seed_is_stable():
     assert integer_seed(1, "x") == integer_seed(1, "x")
     assert integer_seed(1, "x") != integer_seed(1, "y")
     assert 0 <= integer_seed(1, "x") < 2**32
+
+
+def test_g1_draws_per_detector_or_per_pair():
+    from hwp_tes_systematics.systematics import unit_g1_draws
+
+    detectors = ["det_a", "det_b"]
+    per_detector = unit_g1_draws(7, "M1-140", 0, detectors, "detector")
+    per_pair = unit_g1_draws(7, "M1-140", 0, detectors, "pair")
+    assert per_detector[0] != per_detector[1]
+    assert per_pair[0] == per_pair[1]
+    np.testing.assert_array_equal(per_pair, unit_g1_draws(7, "M1-140", 0, detectors, "pair"))
+    assert unit_g1_draws(7, "M1-140", 1, detectors, "pair")[0] != per_pair[0]
+    with pytest.raises(ValueError, match="per"):
+        unit_g1_draws(7, "M1-140", 0, detectors, "channel")

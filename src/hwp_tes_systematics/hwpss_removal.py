@@ -9,7 +9,10 @@ This is a linear projection P (it commutes with the linear-in-g1 decomposition),
 removes a constant-amplitude HWPSS line but not the sky signal it modulates through
 the nonlinearity (the 2 f_HWP +- f_sky sidebands and the 4 f_HWP leakage stay).
 D^T D is close to (n/2) 1 for a uniformly rotating HWP, so the 2H x 2H normal
-equations are well conditioned.
+equations are well conditioned. With ``offset`` a constant column joins D, so that a
+detector offset does not bias the harmonic fit (a constant is not orthogonal to
+cos n chi over a non-integer number of turns: it would leave a small n f_HWP line);
+the pipeline uses it when it removes baselines (:mod:`baselines`).
 """
 
 from __future__ import annotations
@@ -17,9 +20,9 @@ from __future__ import annotations
 import numpy as np
 
 
-def harmonic_templates(hwp_angle_rad: np.ndarray, harmonics) -> np.ndarray:
-    """D^T: (2 len(harmonics), n) rows cos(n chi), sin(n chi)."""
-    templates = np.empty((2 * len(harmonics), np.size(hwp_angle_rad)))
+def harmonic_templates(hwp_angle_rad: np.ndarray, harmonics, offset: bool = False) -> np.ndarray:
+    """D^T: (2 len(harmonics) [+ 1], n) rows cos(n chi), sin(n chi) [and a row of ones]."""
+    templates = np.ones((2 * len(harmonics) + int(offset), np.size(hwp_angle_rad)))
     for index, harmonic in enumerate(harmonics):
         angle = harmonic * np.asarray(hwp_angle_rad, dtype=float)
         np.cos(angle, out=templates[2 * index])
@@ -28,14 +31,18 @@ def harmonic_templates(hwp_angle_rad: np.ndarray, harmonics) -> np.ndarray:
 
 
 def remove_hwp_harmonics(
-    tod: np.ndarray, hwp_angle_rad: np.ndarray, harmonics=(2,), overwrite: bool = False
+    tod: np.ndarray,
+    hwp_angle_rad: np.ndarray,
+    harmonics=(2,),
+    overwrite: bool = False,
+    offset: bool = False,
 ):
-    """d - P d: subtract the least-squares fit of the HWP harmonics from each row of ``tod``
-    (any shape (..., n_samples); the fit is per row). ``overwrite`` reuses ``tod``'s
-    memory (a C-contiguous float64 array) for the result."""
-    if len(harmonics) == 0:
+    """d - P d: subtract the least-squares fit of the HWP harmonics (and with ``offset`` a
+    constant) from each row of ``tod`` (any shape (..., n_samples); the fit is per row).
+    ``overwrite`` reuses ``tod``'s memory (a C-contiguous float64 array) for the result."""
+    if len(harmonics) == 0 and not offset:
         return tod
-    templates = harmonic_templates(hwp_angle_rad, harmonics)  # D^T
+    templates = harmonic_templates(hwp_angle_rad, harmonics, offset)  # D^T
     if not overwrite:
         tod = np.array(tod, dtype=float)
     rows = tod.reshape(-1, templates.shape[1])

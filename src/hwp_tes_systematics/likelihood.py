@@ -36,6 +36,16 @@ Properties of (1), used below:
 
       sigma_r(r0) = [ sum (2 ell + 1) f_sky / 2 (C_GW^{r=1} / C_mod(r0))^2 ]^{-1/2}.      (2)
 
+Bias from an added spectrum (:func:`fisher_bias`): to first order in a systematic
+spectrum C_sys added to C_obs, the maximum of (1) moves by
+
+    delta r = sum w_ell C_GW C_sys / C_mod(r0)^2 / sum w_ell (C_GW / C_mod(r0))^2,
+    w_ell = (2 ell + 1) f_sky / 2,                                                   (3)
+
+linear in C_sys (the bias formula of LiteBIRD's systematics studies, PTEP 2023). It is
+signed, and exactly quadratic in sigma_g1 when C_sys is the spectrum of a systematic
+that scales as sigma_g1.
+
 The prior is r >= 0: grids start at 0. The paper's estimator is the "68 % point": the r
 where the cumulative integral of the normalised L(r) from 0 reaches 0.68 (an upper bound
 when L peaks at r = 0: for a half-Gaussian of width sigma it is 0.9945 sigma).
@@ -47,6 +57,7 @@ import logging
 from dataclasses import dataclass, field
 
 import numpy as np
+import pandas as pd
 from scipy.special import erfinv
 
 from . import sky
@@ -195,6 +206,21 @@ class BBModel:
         """C_obs = C_res + C_lens [K_CMB^2] (the paper's observed spectrum)."""
         return _as_spectrum("c_res", c_res, self.ell.size) + self.c_lens
 
+    def with_transfer(self, transfer) -> BBModel:
+        """The model of a CMB seen through a filter: C_lens and C_GW times ``transfer``
+        (on ``ell``; e.g. the notch's BB transfer function T_ell), the rest unchanged."""
+        transfer = _as_spectrum("transfer", transfer, self.ell.size)
+        return BBModel(
+            ell=self.ell,
+            c_lens=self.c_lens * transfer,
+            c_gw_r1=self.c_gw_r1 * transfer,
+            c_fg_res=self.c_fg_res,
+            n_ell=self.n_ell,
+            f_sky=self.f_sky,
+            lmin=self.lmin,
+            lmax=self.lmax,
+        )
+
     def fisher_sigma_r(self, r: float = 0.0) -> float:
         """Fisher width of eq. (2): [sum (2l+1) f_sky / 2 (C_GW / C_mod(r))^2]^(-1/2)."""
         ell = self.ell_used
@@ -203,6 +229,17 @@ class BBModel:
         if fisher <= 0:
             raise ValueError("no tensor signal in the multipole range: sigma_r is infinite")
         return float(fisher**-0.5)
+
+
+def fisher_bias(c_sys, model: BBModel, r: float = 0.0) -> float:
+    """delta r of eq. (3): the first-order shift of the maximum of L when ``c_sys``
+    [K_CMB^2] (on ``model.ell``) is added to C_obs = C_mod(r); signed, linear in c_sys."""
+    c_sys = _as_spectrum("c_sys", c_sys, model.ell.size)[model.mask]
+    ell = model.ell_used
+    c_gw = model.c_gw_r1[model.mask]
+    c_mod = model.c_mod(r)[model.mask]
+    weight = (2 * ell + 1) * model.f_sky / 2.0
+    return float(np.sum(weight * c_gw * c_sys / c_mod**2) / np.sum(weight * (c_gw / c_mod) ** 2))
 
 
 def _checked_c_obs(c_obs, model: BBModel) -> np.ndarray:
@@ -444,3 +481,35 @@ def fit_r_common_grid(
     c_obs = np.array([model.c_obs_from_residual(c) for c in c_res_list])
     grid = adaptive_r_grid(c_obs, model, n=n)
     return [fit_r(c, model, fraction=fraction, grid=grid) for c in c_res_list]
+
+
+def notch_transfer_bb(notch_csv: str, lmax: int) -> np.ndarray:
+    """T_ell^BB on ell = 0..lmax from the notch_effect table (ell < 2 set to 1)."""
+    table = pd.read_csv(notch_csv)
+    if lmax > table["ell"].iloc[-1]:
+        raise ValueError(
+            f"{notch_csv}: transfer function up to ell {table['ell'].iloc[-1]} < {lmax}"
+        )
+    transfer = table["transfer_bb"].to_numpy()[: lmax + 1].copy()
+    transfer[:2] = 1.0
+    return transfer
+
+
+def model_from_noise_csv(
+    noise_csv: str, lmin: int, lmax: int, notch_csv: str | None = None
+) -> BBModel:
+    """The likelihood's BB model; with ``notch_csv``, C_lens and C_GW through the notch."""
+    noise = pd.read_csv(noise_csv)
+    if lmax > noise["ell"].iloc[-1]:
+        raise ValueError(
+            f"likelihood.lmax = {lmax} exceeds the spectra's lmax "
+            f"{noise['ell'].iloc[-1]} ({noise_csv})"
+        )
+    model = BBModel.from_ptep(
+        f_sky=float(noise["fsky_eff"].iloc[0]),
+        lmin=lmin,
+        lmax=lmax,
+        n_ell=noise["n_ell_bb_k2"].to_numpy()[: lmax + 1],
+        c_fg_res=noise["c_fg_res_bb_k2"].to_numpy()[: lmax + 1],
+    )
+    return model if notch_csv is None else model.with_transfer(notch_transfer_bb(notch_csv, lmax))

@@ -24,6 +24,7 @@ TOD_SAMPLE = f"{RESULTS}/tod/{{channel}}_sample.h5"
 # Stages: component separation, spectra, likelihood, requirement (per seed and case)
 HILC = f"{RESULTS}/hilc/seed{{seed}}/{{case}}.h5"
 RESIDUAL_SPECTRA = f"{RESULTS}/spectra/seed{{seed}}/{{case}}.csv"
+SYSTEMATIC_SPECTRA = f"{RESULTS}/spectra/seed{{seed}}/systematic_only.csv"
 NOISE_MODEL = f"{RESULTS}/spectra/noise_model.csv"
 LIKELIHOOD = f"{RESULTS}/likelihood/seed{{seed}}.json"
 DELTA_R_TABLE = f"{RESULTS}/delta_r.csv"
@@ -47,6 +48,7 @@ FIG_NOTCH_BB = f"{RESULTS}/figures/notch_effect_on_cmb_{{channel}}.png"
 NOTCH_SPECTRA = f"{RESULTS}/maps/notch_effect_{{channel}}.csv"
 FIG7_LIKELIHOODS = f"{RESULTS}/figures/fig7_likelihoods.png"
 FIG8_REQUIREMENT = f"{RESULTS}/figures/fig8_requirement.png"
+FIG_A2_SCALING = f"{RESULTS}/figures/requirement_vs_a2_scale.png"
 
 
 def log(rule: str, wildcards: str = "") -> str:

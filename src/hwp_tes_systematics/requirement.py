@@ -180,3 +180,63 @@ def requirement_sigma(k: float, budget: float = DELTA_R_BUDGET) -> float:
     if not (np.isfinite(budget) and budget > 0):
         raise ValueError(f"budget = {budget}: expected a finite budget > 0")
     return float(np.sqrt(budget / k))
+
+
+QUADRATIC_REGIME = 0.1  # mean delta r below this x sigma_r: the 68 % point is quadratic (measured)
+EXPONENT_TOLERANCE = 0.2  # |alpha - 2| allowed beyond 3 sigma_alpha (and with 2 points)
+
+
+def assess_quadratic_regime(sigma, mean_delta_r, sigma_r: float) -> dict:
+    """Does mean delta r = k sigma^2 describe the points, and from which of them is k fitted?
+
+    A point is in the quadratic regime when 0 < mean delta r < QUADRATIC_REGIME sigma_r
+    (beyond, the 68 % point grows faster than the systematic's power). The free
+    power-law exponent alpha is fitted on all points and on those of the regime; the
+    sigma^2 model is consistent when the regime's alpha is within
+    max(3 sigma_alpha, EXPONENT_TOLERANCE) of 2. ``valid`` = at least two points in the
+    regime and a consistent exponent. k is fitted on the regime's points (all points
+    when fewer than two are in it, with ``valid`` false). ``reason`` says why in words.
+    """
+    sigma = np.asarray(sigma, dtype=float)
+    mean_delta_r = np.asarray(mean_delta_r, dtype=float)
+    positive = (sigma > 0) & np.isfinite(mean_delta_r) & (mean_delta_r > 0)
+    in_regime = positive & (mean_delta_r < QUADRATIC_REGIME * sigma_r)
+    used = in_regime if in_regime.sum() >= 2 else positive
+    k = fit_quadratic(sigma[used], mean_delta_r[used])
+    _, alpha_all, alpha_all_sigma = fit_power_law(sigma[positive], mean_delta_r[positive])
+    _, alpha, alpha_sigma = fit_power_law(sigma[used], mean_delta_r[used])
+    tolerance = EXPONENT_TOLERANCE
+    if np.isfinite(alpha_sigma):
+        tolerance = max(tolerance, 3.0 * alpha_sigma)
+    consistent = bool(abs(alpha - 2.0) <= tolerance)
+    n_regime = int(in_regime.sum())
+    valid = n_regime >= 2 and consistent
+    if valid:
+        reason = (
+            f"{n_regime} points below {QUADRATIC_REGIME:g} sigma_r follow sigma^2 "
+            f"(exponent {alpha:.2f})"
+        )
+    elif n_regime < 2:
+        reason = (
+            f"only {n_regime} point(s) below {QUADRATIC_REGIME:g} sigma_r = "
+            f"{QUADRATIC_REGIME * sigma_r:.2g}: the quadratic regime is not reached"
+        )
+    else:
+        reason = (
+            f"the points below {QUADRATIC_REGIME:g} sigma_r do not follow sigma^2: "
+            f"exponent {alpha:.2f} +- {alpha_sigma:.2f}"
+        )
+    return {
+        "k_per_k2": k,
+        "sigma_g1_used_per_k": sigma[used].tolist(),
+        "sigma_r_fisher": float(sigma_r),
+        "quadratic_threshold_delta_r": QUADRATIC_REGIME * float(sigma_r),
+        "sigma_g1_in_quadratic_regime_per_k": sigma[in_regime].tolist(),
+        "free_exponent": alpha_all,
+        "free_exponent_sigma": alpha_all_sigma,
+        "free_exponent_fitted_points": alpha,
+        "free_exponent_fitted_points_sigma": alpha_sigma,
+        "sigma2_model_consistent": consistent,
+        "valid": bool(valid),
+        "reason": reason,
+    }

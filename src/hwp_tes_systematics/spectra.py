@@ -43,8 +43,10 @@ Honest limitations of the simple estimator:
   for spectra that are smooth over the mask's coupling width (delta ell ~ 180 deg /
   apodisation scale); steep spectra (foregrounds ~ ell^-2.4 at low ell) are smoothed and
   the lowest multipoles biased;
-* no pixel-window or beam correction is applied here (both are the same for the
-  spectra being compared);
+* no pixel-window correction is applied (the same for every spectrum compared); the
+  common Gaussian beam of the HILC is deconvolved (:func:`deconvolve_beam`), so that
+  residual spectra and the model's C_lens and C_GW are at the same (unit) beam, as
+  FGBuster's ``harmonic_ilc`` does by deconvolving each channel's beam;
 * inhomogeneous noise is treated as homogeneous: the estimate is the W^2-weighted mean
   of the local noise power.
 
@@ -195,6 +197,21 @@ def pseudo_spectra(
         raise ValueError(f"w2 = {w2}: expected a mask normalisation > 0")
     cl = hp.alm2cl(alm, alm2, lmax=lmax, mmax=lmax)
     return np.asarray(cl) / w2
+
+
+def deconvolve_beam(cl: np.ndarray, fwhm_arcmin: float) -> np.ndarray:
+    """C_ell / (b_X b_Y) for TT, EE, BB, TE, EB, TB (6, lmax + 1) [K_CMB^2]: the spectra of
+    maps smoothed by a Gaussian beam of ``fwhm_arcmin``, brought to unit beam.
+
+    b = ``hp.gauss_beam(fwhm, lmax, pol=True)``: column 0 for T, columns 1 and 2 (spin 2)
+    for E and B. Applied to every residual spectrum with the HILC's common beam, so that
+    C_res, N_ell and C_FGres are on the same footing as the unbeamed C_lens and C_GW."""
+    cl = np.asarray(cl, dtype=float)
+    if cl.ndim != 2 or cl.shape[0] != len(SPECTRA_NAMES):
+        raise ValueError(f"cl of shape {cl.shape}: expected (6, lmax + 1) TT EE BB TE EB TB")
+    beam = hp.gauss_beam(np.radians(fwhm_arcmin / 60.0), lmax=cl.shape[1] - 1, pol=True)
+    t, e, b = beam[:, 0], beam[:, 1], beam[:, 2]
+    return cl / np.array([t * t, e * e, b * b, t * e, e * b, t * b])
 
 
 def bin_centres(bins) -> np.ndarray:

@@ -1,8 +1,10 @@
 """The sigma_g1 cases of the study and the g1 draws, applied to the linear map model.
 
 For realization ``seed``, detector k of a systematics channel gets g1_k = sigma z_k with
-z_k ~ N(0, 1) drawn from the stream ("g1", channel, seed, detector) of the master seed:
-the same z_k for every sigma, so each realization's bias scales exactly as sigma^2
+z_k ~ N(0, 1) drawn from the stream ("g1", channel, seed, detector) of the master seed
+(``per="detector"``: one g1 per TES), or both detectors of the pair share one z from the
+stream ("g1", channel, seed, "pair") (``per="pair"``: the paper's g1^i per realization):
+the same z_k for every sigma, so each realization's systematic scales exactly as sigma
 wherever the map response is linear. The map of a channel is then
 
     m(sigma) = m_nosys + sigma sum_k z_k T_k.
@@ -39,8 +41,19 @@ def sigma_of_case(case: str, sigma_grid_per_k) -> float:
     raise ValueError(f"case {case!r}: not 'nosys' nor one of {case_names(sigma_grid_per_k)}")
 
 
-def unit_g1_draws(master_seed: int, channel: str, seed: int, detectors) -> np.ndarray:
-    """z_k ~ N(0, 1), one per detector, from the stream ("g1", channel, seed, detector)."""
+G1_PER = ("detector", "pair")
+
+
+def unit_g1_draws(
+    master_seed: int, channel: str, seed: int, detectors, per: str = "detector"
+) -> np.ndarray:
+    """z_k ~ N(0, 1), one per detector from the stream ("g1", channel, seed, detector), or
+    (``per="pair"``) one shared by all detectors from the stream ("g1", channel, seed, "pair")."""
+    if per not in G1_PER:
+        raise ValueError(f"per = {per!r}: expected one of {G1_PER}")
+    if per == "pair":
+        z = seeding.rng(master_seed, "g1", channel, seed, "pair").standard_normal()
+        return np.full(len(detectors), z)
     return np.array(
         [
             seeding.rng(master_seed, "g1", channel, seed, name).standard_normal()

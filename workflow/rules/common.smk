@@ -32,9 +32,33 @@ CASES = case_names(config["requirement"]["sigma_g1_per_k"])
 
 
 def analysis_config():
-    """The config sections the map-level analysis depends on."""
-    keys = ("master_seed", "instrument", "maps", "component_separation", "requirement")
-    return {key: config[key] for key in keys}
+    """The config the map-level analysis (HILC, spectra) depends on: a change elsewhere
+    (figures, likelihood, budget) does not rerun it."""
+    keys = ("master_seed", "instrument", "maps", "component_separation")
+    requirement = {
+        key: config["requirement"][key] for key in ("sigma_g1_per_k", "g1_per")
+    }
+    return {**{key: config[key] for key in keys}, "requirement": requirement}
+
+
+def notch_transfer_input():
+    """The notch's BB transfer table when the likelihood model uses it (else nothing)."""
+    if not config["likelihood"]["notch_transfer_in_model"]:
+        return {}
+    return {
+        "notch": paths.NOTCH_SPECTRA.format(channel=config["figures"]["tod_channel"])
+    }
+
+
+def all_channel_maps():
+    """{seed: {channel: maps file}} for every realization (the requirement's grid extension)."""
+    return {
+        seed: {
+            channel: paths.PAIR_MAPS.format(channel=channel, seed=seed)
+            for channel in CHANNELS
+        }
+        for seed in SEEDS
+    }
 
 
 def channel_maps_of_seed(wildcards):

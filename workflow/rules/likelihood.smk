@@ -1,15 +1,24 @@
 rule likelihood:
     """r at the 68% point of the Hamimeche-Lewis likelihood for every case of realization
-    `seed`, on one r grid. Wildcards: seed."""
+    `seed`, on one r grid, and the systematic-only bias k (delta r = k sigma^2).
+    Wildcards: seed."""
     input:
         unpack(spectra_of_seed),
+        unpack(lambda wildcards: notch_transfer_input()),
         noise_model=paths.NOISE_MODEL,
+        systematic=paths.SYSTEMATIC_SPECTRA,
     output:
         result=paths.LIKELIHOOD,
     log:
         paths.log("likelihood", "seed{seed}"),
     params:
-        config={key: config[key] for key in ("likelihood", "requirement")},
+        config={
+            "likelihood": config["likelihood"],
+            "requirement": {
+                key: config["requirement"][key]
+                for key in ("sigma_g1_per_k", "a2_scale_factors")
+            },
+        },
         cases=CASES,
     script:
         "../scripts/likelihood.py"

@@ -22,3 +22,20 @@ rule noise_model:
         paths.log("noise_model"),
     script:
         "../scripts/noise_model.py"
+
+
+rule systematic_spectra:
+    """BB and EE cross spectra of the systematic's three terms (s^2, s h, h^2 of d^2) at
+    sigma_g1 = 1 through the no-systematics HILC weights: the systematic-only estimator.
+    Wildcards: seed."""
+    input:
+        unpack(channel_maps_of_seed),
+        nosys_hilc=paths.HILC.replace("{case}", "nosys"),
+    output:
+        spectra=paths.SYSTEMATIC_SPECTRA,
+    log:
+        paths.log("systematic_spectra", "seed{seed}"),
+    params:
+        config=analysis_config(),
+    script:
+        "../scripts/systematic_spectra.py"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import textwrap
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -74,6 +75,8 @@ def plot_requirement(
     path: str | os.PathLike,
     *,
     exponent_sigma: float | None = None,
+    invalid_reason: str | None = None,
+    systematic_only: tuple | None = None,
 ) -> Path:
     """Mean delta r over seeds versus sigma_g1 [1/K] (log-log), cf. Fig. 8 of the study.
 
@@ -83,7 +86,10 @@ def plot_requirement(
     ``requirement.DELTA_R_BUDGET``); the requirement sigma (None: sqrt(budget / k))
     marked by a vertical line and its value; the free power-law exponent (and
     ``exponent_sigma``, if given) in the legend. Points with sigma <= 0 or mean <= 0 are
-    not drawn. Writes the PNG atomically; returns its path.
+    not drawn. ``invalid_reason``: the sigma^2 model does not describe the points; the
+    reason is written on the figure. ``systematic_only``: (sigma, mean, std, k,
+    requirement) of the systematic-only estimator, drawn in a second colour.
+    Writes the PNG atomically; returns its path.
     """
     path = Path(path)
     sigma = np.asarray(sigma, dtype=float)
@@ -110,9 +116,37 @@ def plot_requirement(
         capsize=3,
         label=f"mean delta r over seeds (+- std); power-law exponent {exponent_text}",
     )
-    span = np.array([sigma.min(), sigma.max(), requirement]) if sigma.size else [requirement]
+    span = [requirement, *sigma]
+    if systematic_only is not None:
+        span += [systematic_only[4], *systematic_only[0]]
     x = np.logspace(np.log10(np.min(span)) - 0.3, np.log10(np.max(span)) + 0.3, 200)
-    axis.plot(x, k * x**2, "--", color="C0", label=f"quadratic fit k sigma^2, k = {k:.3g} K^2")
+    label = "paper's estimator: " if systematic_only is not None else ""
+    axis.plot(
+        x, k * x**2, "--", color="C0", label=f"{label}quadratic fit k sigma^2, k = {k:.3g} K^2"
+    )
+    if systematic_only is not None:
+        sys_sigma, sys_mean, sys_std, sys_k, sys_requirement = systematic_only
+        sys_std = np.nan_to_num(np.asarray(sys_std, dtype=float), nan=0.0)
+        axis.errorbar(
+            sys_sigma,
+            sys_mean,
+            yerr=[np.minimum(sys_std, 0.999 * np.asarray(sys_mean)), sys_std],
+            fmt="s",
+            mfc="none",
+            color="C2",
+            capsize=3,
+            label="systematic only (no-systematics weights, Fisher bias; +- std)",
+        )
+        axis.plot(x, sys_k * x**2, "-", color="C2", alpha=0.6, label=f"k = {sys_k:.3g} K^2")
+        axis.axvline(sys_requirement, color="C2", linestyle=":", linewidth=1.5)
+        axis.text(
+            sys_requirement,
+            budget,
+            f"  sigma_g1 < {sys_requirement:.2g} K^-1",
+            color="C2",
+            va="bottom",
+            ha="left",
+        )
     axis.axhline(budget, color="k", linestyle="-", label=f"budget delta r = {budget:.2g}")
     axis.axvline(requirement, color="C3", linestyle=":", linewidth=1.5)
     axis.text(
@@ -130,6 +164,61 @@ def plot_requirement(
     axis.set_ylabel("mean delta r = |r_sys - r_nosys|")
     axis.set_title("Bias on r versus the nonlinearity spread")
     axis.grid(alpha=0.3, which="both")
-    axis.legend(fontsize="small", loc="upper left")
+    axis.legend(fontsize="x-small", loc="upper left")
+    if invalid_reason is not None:
+        axis.text(
+            0.98,
+            0.03,
+            "paper's estimator: sigma^2 does NOT describe the points,\n"
+            + textwrap.fill(invalid_reason, 60)
+            + "\nits requirement (red) is not valid",
+            transform=axis.transAxes,
+            ha="right",
+            va="bottom",
+            fontsize="small",
+            color="C3",
+            bbox={"facecolor": "white", "edgecolor": "C3", "alpha": 0.9},
+        )
+    save_figure(figure, path)
+    return path
+
+
+def plot_a2_scaling(by_scale: list[dict], budget: float, path: str | os.PathLike) -> Path:
+    """Systematic-only requirement on sigma_g1 versus the HWPSS amplitude scale factor.
+
+    ``by_scale``: [{"a2_scale", "requirement_sigma_g1_per_k",
+    "requirement_std_over_seeds_per_k"}, ...]; log-log, with the slope -2 line through
+    a = 1 for reference (the requirement of a pure A_2^2 h^2 term scales as 1 / a^2).
+    """
+    path = Path(path)
+    scale = np.array([row["a2_scale"] for row in by_scale], dtype=float)
+    value = np.array([row["requirement_sigma_g1_per_k"] for row in by_scale], dtype=float)
+    std = np.nan_to_num(
+        np.array([row["requirement_std_over_seeds_per_k"] for row in by_scale], dtype=float)
+    )
+    order = np.argsort(scale)
+    scale, value, std = scale[order], value[order], std[order]
+    figure, axis = subplots(figsize=(6.5, 4.5))
+    axis.errorbar(
+        scale,
+        value,
+        yerr=[np.minimum(std, 0.999 * value), std],
+        fmt="o-",
+        color="C2",
+        capsize=3,
+        label="systematic-only requirement (+- std over seeds)",
+    )
+    if np.any(scale == 1.0):
+        reference = value[scale == 1.0][0]
+        axis.plot(
+            scale, reference / scale**2, ":", color="gray", label="~ 1 / a^2 (A_2^2 term alone)"
+        )
+    axis.set_xscale("log")
+    axis.set_yscale("log")
+    axis.set_xlabel("HWPSS amplitude scale a (A_2 -> a A_2 on every systematics channel)")
+    axis.set_ylabel(f"sigma_g1 requirement [K^-1] (delta r = {budget:.2g})")
+    axis.set_title("Requirement on sigma_g1 versus the 2f HWPSS amplitude")
+    axis.grid(alpha=0.3, which="both")
+    axis.legend(fontsize="small")
     save_figure(figure, path)
     return path

@@ -1,14 +1,17 @@
 """Stage: TOD -> 4f notch -> binned maps for one (channel, seed), linear in g1.
 
-The nonlinear TOD of detector k is d_k + g1_k d_k^2. Notch filter F and binning M
-are linear, so the map for any draw of g1 is
+The nonlinear TOD of detector k is d_k + g1_k d_k^2. The HWP-harmonic removal, notch
+filter, baseline removal F and binning M are linear, so the map for any draw of g1 is
 
     m(g1) = M F d + sum_k g1_k M F (d_k^2) = m_nosys + sum_k g1_k T_k.
 
-One simulation gives m_nosys and the per-detector templates T_k; the sigma_g1
-grid is a parameter of the later stages, not of the simulation. The mission is
-processed chunk by chunk (normal equations accumulated), so memory does not grow
-with its duration.
+Writing d_k = s_k + A_2 h_k (s: sky + dipole + noise, h = cos 2(chi - theta_k) the unit
+HWPSS), d_k^2 = s_k^2 + 2 A_2 s_k h_k + A_2^2 h_k^2, so the template is the sum of three
+binned terms, T_k = T_ss + 2 A_2 T_sh + A_2^2 T_hh, all three kept: the template for
+any other HWPSS amplitude follows without a new simulation. One simulation gives
+m_nosys and the per-detector templates; the sigma_g1 grid is a parameter of the later
+stages, not of the simulation. The mission is processed chunk by chunk (normal
+equations accumulated), so memory does not grow with its duration.
 """
 
 from __future__ import annotations
@@ -19,11 +22,13 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 
 import h5py
+import healpy as hp
 import numpy as np
 import psutil
 from tqdm import tqdm
 
 from .. import config as cfg
+from ..baselines import baseline_samples, remove_baselines
 from ..hwpss_removal import remove_hwp_harmonics
 from ..io import atomic_path, use_threads
 from ..mapmaking import NormalEquations, solve_maps
@@ -32,6 +37,9 @@ from ..timing import StageClock
 from ..tod import MissionPlan, PairSimulator
 
 log = logging.getLogger(__name__)
+
+# the terms of d^2 = s^2 + 2 A_2 s h + A_2^2 h^2 binned separately (see the module docstring)
+TEMPLATE_TERMS = ("s*s", "s*h", "h*h")
 
 
 @dataclass
@@ -48,6 +56,7 @@ class PairMapSettings:
     max_condition_number: float
     removed_hwp_harmonics: tuple[int, ...] = (2,)
     noise_scale: float = 1.0
+    baseline_length_s: float | None = None
     threads: int = 1
 
     @classmethod
@@ -69,6 +78,7 @@ class PairMapSettings:
             max_condition_number=config["maps"]["max_condition_number"],
             removed_hwp_harmonics=tuple(config["maps"]["removed_hwp_harmonics"]),
             noise_scale=simulation["noise_scale"],
+            baseline_length_s=config["maps"]["baseline_length_s"],
             threads=threads,
         )
 
@@ -79,7 +89,9 @@ def chunk_tods(
     sky_iqu_k: np.ndarray,
     clock: StageClock | None = None,
 ) -> Iterator[tuple[object, slice, np.ndarray]]:
-    """Yield (pointing, inner slice, total TOD d with margins [K_CMB]) chunk by chunk."""
+    """Yield (pointing, inner slice, s, h) chunk by chunk, with margins: s = sky + dipole +
+    noise [K_CMB] and h = cos 2(chi - theta_k) the unit HWPSS, so that the total TOD is
+    d = s + A_2 h."""
     clock = clock or StageClock()
     chunks = settings.plan.chunks()
     for chunk, first, n_samples in tqdm(
@@ -94,26 +106,32 @@ def chunk_tods(
             tod = simulator.scan_sky(pointing, sky_iqu_k)
         with clock("dipole"):
             tod += simulator.dipole(pointing)
-        with clock("HWPSS"):
-            tod += simulator.hwpss(pointing, settings.a2_k_cmb)
         with clock("noise"):
             tod += simulator.noise(
                 pointing, settings.master_seed, settings.seed, chunk, settings.noise_scale
             )
-        yield pointing, inner, tod
+        with clock("HWPSS"):
+            unit_hwpss = simulator.hwpss(pointing, 1.0)
+        yield pointing, inner, tod, unit_hwpss
 
 
 def filter_tod(
     tod: np.ndarray, pointing, inner: slice, simulator, settings, overwrite: bool = False
 ) -> np.ndarray:
     """HWP-harmonic template removal, then the paper's 4 f_HWP notch, on a chunk with
-    margins (any leading shape, time last); returns the ``inner`` samples. Linear in the
-    TOD. ``overwrite`` lets the HWP-harmonic removal reuse ``tod``'s memory."""
+    margins (any leading shape, time last); returns the ``inner`` samples, from which the
+    per-detector baselines are removed (:mod:`baselines`; none on the paper-literal path,
+    where the harmonic fit has no constant either).
+    Linear in the TOD. ``overwrite`` lets the HWP-harmonic removal reuse ``tod``'s memory."""
     f_hwp_hz = simulator.channel.hwp_frequency_hz
     cleaned = remove_hwp_harmonics(
-        tod, pointing.hwp_angle_rad, settings.removed_hwp_harmonics, overwrite=overwrite
+        tod,
+        pointing.hwp_angle_rad,
+        settings.removed_hwp_harmonics,
+        overwrite=overwrite,
+        offset=settings.baseline_length_s is not None,
     )
-    return filter_chunk_with_margins(
+    filtered = filter_chunk_with_margins(
         cleaned,
         inner,
         settings.plan.sampling_rate_hz,
@@ -121,6 +139,8 @@ def filter_tod(
         4 * f_hwp_hz / settings.notch_width_divisor,
         workers=settings.threads,
     )
+    samples = baseline_samples(settings.baseline_length_s, settings.plan.sampling_rate_hz)
+    return remove_baselines(filtered, samples)
 
 
 def detector_weights(simulator: PairSimulator) -> np.ndarray:
@@ -140,8 +160,9 @@ def accumulate(
 ) -> NormalEquations:
     """Normal equations of the filtered TOD (F = notch after HWP-harmonic removal).
 
-    g1_per_k None: the linear decomposition, TODs [F d, F d_0^2, F d_1^2, ...];
-    otherwise the direct nonlinear simulation, one TOD F (d + g1 d^2).
+    g1_per_k None: the linear decomposition, TODs [F d, then for each of the terms s^2,
+    s h, h^2 of d^2 (see the module docstring) one TOD per detector]; otherwise the
+    direct nonlinear simulation, one TOD F (d + g1 d^2).
     Each map in ``references_iqu_k`` adds the TOD F(scan of that map) at the end: a
     sky component alone (input CMB, foregrounds) through the same pointing, filter and
     binning, the references of the component-separation residuals.
@@ -151,21 +172,26 @@ def accumulate(
     clock = clock or StageClock()
     n_det = simulator.n_detectors
     linear = g1_per_k is None
-    n_tods = (1 + n_det if linear else 1) + len(references_iqu_k)
+    n_terms = len(TEMPLATE_TERMS) if linear else 0
+    n_tods = 1 + n_terms * n_det + len(references_iqu_k)
     equations = NormalEquations(settings.nside, n_tods)
     weights = detector_weights(simulator)
-    n_unfiltered = (2 if linear else 1) + len(references_iqu_k)
+    n_unfiltered = 1 + n_terms + len(references_iqu_k)
     peak_rss_mb = 0.0
-    for pointing, inner, tod in chunk_tods(simulator, settings, sky_iqu_k, clock):
+    for pointing, inner, signal, hwpss in chunk_tods(simulator, settings, sky_iqu_k, clock):
         # all TODs of the chunk in one array, for one batched 2f removal + notch
         with clock("nonlinearity terms"):
-            unfiltered = np.empty((n_unfiltered, *tod.shape))
+            unfiltered = np.empty((n_unfiltered, *signal.shape))
+            tod = unfiltered[0]
+            np.multiply(hwpss, settings.a2_k_cmb, out=tod)
+            tod += signal
             if linear:
-                unfiltered[0] = tod
-                np.square(tod, out=unfiltered[1])
+                np.square(signal, out=unfiltered[1])
+                np.multiply(signal, hwpss, out=unfiltered[2])
+                np.square(hwpss, out=unfiltered[3])
             else:
-                unfiltered[0] = tod + np.asarray(g1_per_k)[:, None] * tod**2
-            del tod
+                tod += np.asarray(g1_per_k)[:, None] * tod**2
+            del tod, signal, hwpss
         with clock("reference scans"):
             first_reference = n_unfiltered - len(references_iqu_k)
             for index, reference_iqu_k in enumerate(references_iqu_k, start=first_reference):
@@ -173,11 +199,14 @@ def accumulate(
         with clock("2f removal + notch"):
             filtered = filter_tod(unfiltered, pointing, inner, simulator, settings, overwrite=True)
             del unfiltered
-        if linear:
-            tods = [filtered[0], *[filtered[1]] * n_det, *filtered[2:]]
-            owners = [None, *range(n_det), *[None] * len(references_iqu_k)]
-        else:
-            tods, owners = list(filtered), [None] * len(filtered)
+        # a term's TOD is binned once per detector, with that detector's samples only
+        tods = [filtered[0]]
+        owners = [None]
+        for term in range(1, 1 + n_terms):
+            tods += [filtered[term]] * n_det
+            owners += list(range(n_det))
+        tods += list(filtered[1 + n_terms :])
+        owners += [None] * len(references_iqu_k)
         with clock("binning"):
             equations.add(
                 pointing.pixels[:, inner],
@@ -203,17 +232,41 @@ def accumulate(
     return equations
 
 
+def templates_from_terms(terms: np.ndarray, a2_k_cmb: float) -> np.ndarray:
+    """T_k = T_ss + 2 A_2 T_sh + A_2^2 T_hh [K_CMB^2], (n_det, 3, npix) from the terms
+    (3, n_det, 3, npix) in TEMPLATE_TERMS order; A_2 [K_CMB]."""
+    return terms[0] + 2.0 * a2_k_cmb * terms[1] + a2_k_cmb**2 * terms[2]
+
+
+def split_solved_maps(maps: np.ndarray, n_det: int, a2_k_cmb: float) -> dict[str, np.ndarray]:
+    """The solved maps of a linear accumulation by name: nosys (3, npix); template_terms
+    (3, n_det, 3, npix); templates (n_det, 3, npix) at A_2 = ``a2_k_cmb``; references
+    (n_refs, 3, npix), in the order given to :func:`accumulate`."""
+    n_terms = len(TEMPLATE_TERMS)
+    terms = maps[1 : 1 + n_terms * n_det].reshape(n_terms, n_det, *maps.shape[1:])
+    seen = maps[0] != hp.UNSEEN
+    templates = np.where(seen, templates_from_terms(terms, a2_k_cmb), hp.UNSEEN)
+    return {
+        "nosys": maps[0],
+        "template_terms": terms,
+        "templates": templates,
+        "references": maps[1 + n_terms * n_det :],
+    }
+
+
 def write_pair_maps(path, equations: NormalEquations, settings, simulator, metadata: dict) -> None:
-    """HDF5 [K_CMB]: nosys (3, npix), templates (n_det, 3, npix), cmb_reference and
-    foreground_reference (3, npix) (each sky component alone through the same pointing,
-    filter and binning), hits, condition."""
+    """HDF5 [K_CMB]: nosys (3, npix); template_terms (3, n_det, 3, npix) [K_CMB^2], the
+    binned s^2, s h, h^2 of each detector (h: unit HWPSS); templates (n_det, 3, npix)
+    [K_CMB^2] = their sum at the simulated A_2; cmb_reference and foreground_reference
+    (3, npix) (each sky component alone through the same pointing, filter and binning);
+    hits, condition."""
     maps, condition, good = solve_maps(equations, settings.max_condition_number)
-    n_det = simulator.n_detectors
+    solved = split_solved_maps(maps, simulator.n_detectors, settings.a2_k_cmb)
     with atomic_path(path) as temporary, h5py.File(temporary, "w") as out:
-        out.create_dataset("nosys", data=maps[0])
-        out.create_dataset("templates", data=maps[1 : 1 + n_det])
-        out.create_dataset("cmb_reference", data=maps[1 + n_det])
-        out.create_dataset("foreground_reference", data=maps[2 + n_det])
+        for name in ("nosys", "templates", "template_terms"):
+            out.create_dataset(name, data=solved[name])
+        out.create_dataset("cmb_reference", data=solved["references"][0])
+        out.create_dataset("foreground_reference", data=solved["references"][1])
         out.create_dataset("hits", data=equations.hits)
         out.create_dataset("condition", data=condition)
         out.attrs.update(
@@ -228,9 +281,14 @@ def write_pair_maps(path, equations: NormalEquations, settings, simulator, metad
                 "pol_angles_rad": simulator.pol_angles_rad,
                 "a2_k_cmb": settings.a2_k_cmb,
                 "noise_scale": settings.noise_scale,
+                "baseline_length_s": np.nan
+                if settings.baseline_length_s is None
+                else settings.baseline_length_s,
+                "template_terms": list(TEMPLATE_TERMS),
                 "duration_s": settings.plan.duration_s,
                 "observed_fraction": float(good.mean()),
-                "model": "m(g1) = nosys + sum_k g1_k templates[k]; g1 in 1/K",
+                "model": "m(g1) = nosys + sum_k g1_k templates[k]; g1 in 1/K; templates[k] = "
+                "template_terms[0, k] + 2 A_2 template_terms[1, k] + A_2^2 template_terms[2, k]",
                 **metadata,
             }
         )

@@ -1,11 +1,17 @@
-"""Stage: delta r versus sigma_g1 over all seeds, the quadratic fit and the requirement.
+"""Stage: delta r versus sigma_g1 over all seeds by two estimators, and the requirement.
 
-delta r = |r_sys - r_nosys| per realization; its mean over seeds versus sigma_g1 is
-fitted by delta r = k sigma^2 (and, as a check, by a free power law); the requirement
-is the sigma_g1 where k sigma^2 reaches the budget. delta r is quadratic in sigma_g1
-only while it is small next to the likelihood's width sigma_r (beyond, the 68% point
-grows faster than the added power): k is fitted on the points with mean delta r below
-QUADRATIC_REGIME x sigma_r when there are at least two, else on all points.
+The paper's estimator: delta r = |r_sys - r_nosys| per realization (68 % points, HILC
+weights recomputed per case). Its mean over seeds is fitted by k sigma^2 on the points
+of the quadratic regime (mean delta r < 0.1 sigma_r; :func:`requirement.assess_quadratic_regime`),
+with a free power law as the check; when fewer than two points are in the regime, the
+grid is extended downwards by decades (sigma_min / 10, ...; up to
+``requirement.max_extra_decades``), each new point computed from the maps (they are
+linear in g1: no new simulation). ``valid`` says whether sigma^2 describes the points.
+
+The systematic-only estimator: delta r = k_seed sigma^2, the Fisher bias of the
+systematic's BB through the no-systematics weights (rule likelihood), exactly
+quadratic; its requirement sqrt(budget / mean k), with the scatter over seeds, for the
+configured A_2 and for A_2 scaled by each of ``requirement.a2_scale_factors``.
 """
 
 from __future__ import annotations
@@ -18,14 +24,14 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..figures.results import plot_likelihoods, plot_requirement
+from ..figures.results import plot_a2_scaling, plot_likelihoods, plot_requirement
+from ..ilc_residuals import SeedMaps
 from ..io import atomic_path, write_csv
-from ..requirement import fit_power_law, fit_quadratic, requirement_sigma, summarise
+from ..likelihood import fit_r_common_grid, model_from_noise_csv
+from ..requirement import assess_quadratic_regime, fit_power_law, requirement_sigma, summarise
 from ..systematics import NOSYS
 
 log = logging.getLogger(__name__)
-
-QUADRATIC_REGIME = 0.1  # fraction of sigma_r below which delta r ~ sigma^2 holds (measured)
 
 
 def config_hash(config: dict) -> str:
@@ -33,26 +39,136 @@ def config_hash(config: dict) -> str:
     return hashlib.sha256(json.dumps(config, sort_keys=True, default=str).encode()).hexdigest()
 
 
-def delta_r_table(likelihood_jsons: list[str]) -> pd.DataFrame:
+def delta_r_table(likelihoods: list[dict]) -> pd.DataFrame:
+    """One row per (seed, sigma): r_sys, r_nosys, both estimators' delta r."""
     rows = []
-    for path in likelihood_jsons:
-        result = json.loads(Path(path).read_text())
+    for result in likelihoods:
         r_nosys = result["cases"][NOSYS]["r_fraction"]
+        k_systematic = result["systematic_only"]["k_per_k2"]
         for case, values in result["cases"].items():
             if case == NOSYS:
                 continue
+            sigma = values["sigma_g1_per_k"]
             rows.append(
                 {
                     "seed": result["seed"],
                     "case": case,
-                    "sigma_g1": values["sigma_g1_per_k"],
+                    "sigma_g1": sigma,
                     "r_sys": values["r_fraction"],
                     "r_nosys": r_nosys,
                     "delta_r": abs(values["r_fraction"] - r_nosys),
+                    "delta_r_systematic_only": k_systematic * sigma**2,
                     "sigma_r_fisher_0": result["sigma_r_fisher_0"],
+                    "extended": False,
                 }
             )
     return pd.DataFrame(rows).sort_values(["sigma_g1", "seed"], ignore_index=True)
+
+
+def extra_delta_r(config, seed, sigmas, map_paths, nosys_spectra_csv, model) -> list[dict]:
+    """The paper's delta r of one seed at sigmas outside the grid, from the maps: the HILC
+    at each sigma, its residual spectrum, and r with the no-systematics r on one grid."""
+    seed_maps = SeedMaps.load(config, seed, map_paths)
+    lmax = model.lmax
+    nosys = pd.read_csv(nosys_spectra_csv)["bb_residual_k2"].to_numpy()[: lmax + 1]
+    residuals = [
+        seed_maps.residual_spectra(sigma)["bb_residual_k2"].to_numpy()[: lmax + 1]
+        for sigma in sigmas
+    ]
+    fraction = config["likelihood"]["fraction"]
+    results = fit_r_common_grid([nosys, *residuals], model, fraction=fraction)
+    r_nosys = results[0].r_fraction
+    return [
+        {
+            "seed": seed,
+            "case": f"extended {sigma:.1e}",
+            "sigma_g1": sigma,
+            "r_sys": result.r_fraction,
+            "r_nosys": r_nosys,
+            "delta_r": abs(result.r_fraction - r_nosys),
+            "sigma_r_fisher_0": result.sigma_r_fisher_0,
+            "extended": True,
+        }
+        for sigma, result in zip(sigmas, results[1:], strict=True)
+    ]
+
+
+def paper_estimator(table, config, extension) -> tuple[pd.DataFrame, dict]:
+    """Extend the grid downwards until two points are quadratic (or the limit), then
+    assess the regime; returns (table with the extended rows, assessment)."""
+    sigma_r = float(table["sigma_r_fisher_0"].mean())
+    for decade in range(config["requirement"]["max_extra_decades"] + 1):
+        summary = summarise(table)
+        regime = assess_quadratic_regime(summary["sigma_g1"], summary["mean_delta_r"], sigma_r)
+        if len(regime["sigma_g1_in_quadratic_regime_per_k"]) >= 2 or extension is None:
+            break
+        if decade == config["requirement"]["max_extra_decades"]:
+            break
+        sigma_new = float(summary["sigma_g1"].min()) / 10.0
+        log.info(
+            "paper estimator: %s; adding sigma_g1 = %.1e (computed from the maps)",
+            regime["reason"],
+            sigma_new,
+        )
+        rows = []
+        for seed, paths in extension["map_paths"].items():
+            rows += extra_delta_r(
+                config,
+                seed,
+                [sigma_new],
+                paths,
+                extension["nosys_spectra"][seed],
+                extension["model"],
+            )
+        for row in rows:
+            row["delta_r_systematic_only"] = np.nan
+        table = pd.concat([table, pd.DataFrame(rows)], ignore_index=True)
+        table = table.sort_values(["sigma_g1", "seed"], ignore_index=True)
+    return table, regime
+
+
+def systematic_only_estimator(likelihoods: list[dict], budget: float, sigma_r: float) -> dict:
+    """Requirement from delta r = k sigma^2 with k the mean over seeds of the Fisher bias;
+    its scatter over seeds; and the same for each HWPSS scale factor."""
+    k_seeds = np.array([r["systematic_only"]["k_per_k2"] for r in likelihoods])
+    k_mean = float(k_seeds.mean())
+    per_seed = [requirement_sigma(k, budget) for k in k_seeds if k > 0]
+    by_scale = []
+    scales = [row["a2_scale"] for row in likelihoods[0]["systematic_only"]["k_per_k2_by_a2_scale"]]
+    for index, scale in enumerate(scales):
+        k_scale = np.array(
+            [r["systematic_only"]["k_per_k2_by_a2_scale"][index]["k_per_k2"] for r in likelihoods]
+        )
+        by_scale.append(
+            {
+                "a2_scale": scale,
+                "k_per_k2": float(k_scale.mean()),
+                "requirement_sigma_g1_per_k": requirement_sigma(float(k_scale.mean()), budget),
+                "requirement_std_over_seeds_per_k": float(
+                    np.std([requirement_sigma(k, budget) for k in k_scale], ddof=1)
+                )
+                if len(k_scale) > 1
+                else float("nan"),
+            }
+        )
+    valid = bool(k_mean > 0 and budget < 0.1 * sigma_r)
+    return {
+        "definition": "delta r = k sigma_g1^2, k = Fisher bias of the BB spectrum of the "
+        "systematic alone through the no-systematics HILC weights (signed, exactly quadratic)",
+        "k_per_k2": k_mean,
+        "k_per_seed": k_seeds.tolist(),
+        "requirement_sigma_g1_per_k": requirement_sigma(k_mean, budget),
+        "requirement_per_seed_per_k": per_seed,
+        "requirement_std_over_seeds_per_k": float(np.std(per_seed, ddof=1))
+        if len(per_seed) > 1
+        else float("nan"),
+        "valid": valid,
+        "reason": "exactly quadratic; the budget is in the linear (Fisher) regime, "
+        f"budget / sigma_r = {budget / sigma_r:.2g}"
+        if valid
+        else "the budget is not small next to sigma_r: the linear bias does not apply",
+        "by_a2_scale": by_scale,
+    }
 
 
 def run(
@@ -62,55 +178,104 @@ def run(
     requirement_json: str,
     fig_likelihoods: str,
     fig_requirement: str,
+    fig_a2_scaling: str,
+    extension: dict | None = None,
 ) -> None:
-    table = delta_r_table(likelihood_jsons)
+    """``extension``: {"map_paths": {seed: {channel: maps}}, "nosys_spectra": {seed: csv},
+    "noise_csv", "notch_csv"} to extend the paper estimator's grid (None: no extension)."""
+    likelihoods = sorted(
+        (json.loads(Path(path).read_text()) for path in likelihood_jsons), key=lambda r: r["seed"]
+    )
+    budget = config["requirement"]["delta_r_budget"]
+    if extension is not None:
+        settings = config["likelihood"]
+        extension = dict(extension)
+        extension["model"] = model_from_noise_csv(
+            extension["noise_csv"], settings["lmin"], settings["lmax"], extension.get("notch_csv")
+        )
+    table = delta_r_table(likelihoods)
+    grid_summary = summarise(table)
+    table, regime = paper_estimator(table, config, extension)
     write_csv(table, table_csv)
     summary = summarise(table)
     sigma = summary["sigma_g1"].to_numpy()
     mean = summary["mean_delta_r"].to_numpy()
-    sigma_r = float(table["sigma_r_fisher_0"].mean())
-    quadratic = mean < QUADRATIC_REGIME * sigma_r
-    used = quadratic if quadratic.sum() >= 2 else np.ones_like(quadratic)
-    k = fit_quadratic(sigma[used], mean[used])
+    sigma_r = regime["sigma_r_fisher"]
+    k = regime["k_per_k2"]
     amplitude, exponent, exponent_sigma = fit_power_law(sigma, mean)
-    budget = config["requirement"]["delta_r_budget"]
     requirement = requirement_sigma(k, budget)
-    output = {
-        "requirement_sigma_g1_per_k": requirement,
-        "delta_r_budget": budget,
-        "quadratic_fit": {
-            "k_per_k2": k,
-            "model": "mean delta r = k sigma_g1^2",
-            "sigma_g1_used_per_k": sigma[used].tolist(),
-        },
-        "power_law_fit": {
-            "amplitude": amplitude,
-            "exponent": exponent,
-            "exponent_sigma": exponent_sigma,
-        },
-        "per_sigma": [
+    systematic_only = systematic_only_estimator(likelihoods, budget, sigma_r)
+    systematic_summary = summarise(
+        table.dropna(subset=["delta_r_systematic_only"]).assign(
+            delta_r=lambda t: t["delta_r_systematic_only"]
+        )
+    )
+    _, systematic_only["free_exponent"], systematic_only["free_exponent_sigma"] = fit_power_law(
+        systematic_summary["sigma_g1"], systematic_summary["mean_delta_r"]
+    )
+
+    def per_sigma(rows):
+        return [
             {
                 "sigma_g1_per_k": float(row.sigma_g1),
                 "mean_delta_r": float(row.mean_delta_r),
                 "std_delta_r": float(row.std_delta_r),
                 "n_seeds": int(row.n_seeds),
             }
-            for row in summary.itertuples()
-        ],
-        "n_seeds": int(table["seed"].nunique()),
+            for row in rows.itertuples()
+        ]
+
+    output = {
+        "requirement_sigma_g1_per_k": requirement,
+        "valid": regime["valid"],
+        "delta_r_budget": budget,
+        "quadratic_fit": {
+            "k_per_k2": k,
+            "model": "mean delta r = k sigma_g1^2",
+            "sigma_g1_used_per_k": regime["sigma_g1_used_per_k"],
+        },
+        "power_law_fit": {
+            "amplitude": amplitude,
+            "exponent": exponent,
+            "exponent_sigma": exponent_sigma,
+        },
+        "regime": regime,
+        "per_sigma": per_sigma(grid_summary),
+        "extended_per_sigma": per_sigma(
+            summary[~summary["sigma_g1"].isin(grid_summary["sigma_g1"])]
+        ),
+        "systematic_only": systematic_only,
+        "settings": {
+            "baseline_length_s": config["maps"]["baseline_length_s"],
+            "g1_per": config["requirement"]["g1_per"],
+            "notch_transfer_in_model": config["likelihood"]["notch_transfer_in_model"],
+            "hwpss_a2_over_delta_p": config["optics"]["hwpss_a2_over_delta_p"],
+            "duration_days": config["simulation"]["duration_days"],
+            "nside": config["maps"]["nside"],
+        },
+        "n_seeds": len(likelihoods),
         "sigma_r_fisher": sigma_r,
         "config_sha256": config_hash(config),
     }
     with atomic_path(requirement_json) as temporary:
         temporary.write_text(json.dumps(output, indent=1))
     log.info(
-        "requirement: sigma_g1 < %.3e 1/K (k = %.3e, free exponent %.2f, %d seeds)",
+        "paper estimator: sigma_g1 < %.3e 1/K (k = %.3e, free exponent %.2f +- %.2f, %d seeds)",
         requirement,
         k,
         exponent,
+        exponent_sigma,
         output["n_seeds"],
     )
-    first = json.loads(Path(min(likelihood_jsons)).read_text())
+    if not regime["valid"]:
+        log.warning("paper estimator: the sigma^2 model does not hold (%s)", regime["reason"])
+    log.info(
+        "systematic-only estimator: sigma_g1 < %.3e 1/K (+- %.2e over seeds; k = %.3e)",
+        systematic_only["requirement_sigma_g1_per_k"],
+        systematic_only["requirement_std_over_seeds_per_k"],
+        systematic_only["k_per_k2"],
+    )
+    first = likelihoods[0]
     grid = np.array(first["r_grid"])
     curves = {case: np.array(v["likelihood"]) for case, v in first["cases"].items()}
     r68 = {case: v["r_fraction"] for case, v in first["cases"].items()}
@@ -125,4 +290,13 @@ def run(
         requirement,
         fig_requirement,
         exponent_sigma=exponent_sigma,
+        invalid_reason=None if regime["valid"] else regime["reason"],
+        systematic_only=(
+            systematic_summary["sigma_g1"].to_numpy(),
+            systematic_summary["mean_delta_r"].to_numpy(),
+            systematic_summary["std_delta_r"].to_numpy(),
+            systematic_only["k_per_k2"],
+            systematic_only["requirement_sigma_g1_per_k"],
+        ),
     )
+    plot_a2_scaling(systematic_only["by_a2_scale"], budget, fig_a2_scaling)

@@ -1,9 +1,13 @@
-"""Stage: spectra of the CMB residual of one (seed, case), and the model's noise terms.
+"""Stage: spectra of the CMB residual of one (seed, case), of the systematic alone, and
+the model's noise terms.
 
 From the HILC residual a_lm (masked, common beam): the pseudo-C_ell / w2 (the f_sky
-correction) of the total residual and of its foreground part; the noise part is their
-difference in a_lm. The likelihood's N_ell and C_FGres are the means over seeds of the
-no-systematics noise and foreground residuals (:func:`noise_model`).
+correction), with the common beam deconvolved, of the total residual and of its
+foreground part; the noise part is their difference in a_lm. All with the same
+normalisation (:func:`ilc_residuals.unit_beam_spectra`). The likelihood's N_ell and
+C_FGres are the means over seeds of the no-systematics noise and foreground residuals
+(:func:`noise_model`). The systematic alone: the cross spectra of the three terms X_j
+of :mod:`ilc_residuals` through the no-systematics weights, at sigma_g1 = 1.
 """
 
 from __future__ import annotations
@@ -14,12 +18,10 @@ import h5py
 import numpy as np
 import pandas as pd
 
-from .. import spectra
+from ..ilc_residuals import SeedMaps, residual_spectra_table
 from ..io import write_csv
 
 log = logging.getLogger(__name__)
-
-SPECTRA = ("tt", "ee", "bb", "te", "eb", "tb")
 
 
 def residual_spectra(hilc_h5) -> pd.DataFrame:
@@ -27,25 +29,26 @@ def residual_spectra(hilc_h5) -> pd.DataFrame:
     with h5py.File(hilc_h5) as hilc:
         residual = hilc["residual_alm"][()]
         foreground = hilc["foreground_residual_alm"][()]
-        lmax, w2, fsky_eff = (hilc.attrs[key] for key in ("lmax", "w2", "fsky_eff"))
-    table = {"ell": np.arange(lmax + 1)}
-    for label, alm in (
-        ("residual", residual),
-        ("foreground_residual", foreground),
-        ("noise_residual", residual - foreground),
-    ):
-        cl = spectra.pseudo_spectra(alm, lmax, w2)
-        for index in (1, 2):
-            table[f"{SPECTRA[index]}_{label}_k2"] = cl[index]
-    out = pd.DataFrame(table)
-    out["fsky_eff"] = fsky_eff
-    return out
+        attrs = dict(hilc.attrs)
+    fractions = {key: attrs[key] for key in ("w2", "fsky_eff")}
+    return residual_spectra_table(
+        residual, foreground, int(attrs["lmax"]), fractions, attrs["common_fwhm_arcmin"]
+    )
 
 
 def run(hilc_h5: str, out_csv: str) -> None:
     table = residual_spectra(hilc_h5)
     write_csv(table, out_csv)
     log.info("wrote %s", out_csv)
+
+
+def run_systematic(config: dict, seed: int, map_paths: dict, nosys_hilc_h5: str, out_csv: str):
+    """Systematic-only spectra of one seed (sigma_g1 = 1, no-systematics weights)."""
+    seed_maps = SeedMaps.load(config, seed, map_paths)
+    with h5py.File(nosys_hilc_h5) as hilc:
+        weights = hilc["weights"][()]
+    write_csv(seed_maps.systematic_spectra(weights), out_csv)
+    log.info("seed %d: wrote the systematic-only spectra %s", seed, out_csv)
 
 
 def noise_model(nosys_spectra_csvs: list[str]) -> pd.DataFrame:
