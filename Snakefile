@@ -8,6 +8,9 @@ min_version("9.0")
 configfile: "config/config.yaml"
 
 
+report: "workflow/report/workflow.rst"
+
+
 from hwp_tes_systematics import paths
 from hwp_tes_systematics.config import check_config, selected_channels
 from hwp_tes_systematics.systematics import case_names

@@ -33,3 +33,58 @@ def test_whole_workflow_on_tiny_config(tiny_local_run):
         "requirement",
     ):
         assert (workdir / f"logs/{rule}.log").exists(), rule
+    # the new outputs of the analysis: both estimators and the regime
+    assert isinstance(requirement["valid"], bool) and requirement["regime"]["reason"]
+    assert np.isfinite(requirement["systematic_only"]["requirement_sigma_g1_per_k"])
+    assert (workdir / "results/figures/requirement_vs_a2_scale.png").is_file()
+
+
+def scheduled_rules(workdir, repo, *more_configfiles):
+    """{rule: count} of the jobs a dry run of the tiny configuration (with more config files
+    merged over it) would run."""
+    from helpers import snakemake
+
+    config = str(repo / "tests/configs/tiny.yaml")
+    result = snakemake(workdir, extra=("-n", "--configfile", config, *more_configfiles))
+    assert result.returncode == 0, result.stderr[-3000:]
+    lines = (result.stdout + result.stderr).splitlines()
+    rules = {}
+    if "Nothing to be done" in result.stdout + result.stderr:
+        return rules
+    start = next(i for i, line in enumerate(lines) if line.startswith("job ") and "count" in line)
+    for line in lines[start + 2 :]:
+        parts = line.split()
+        if len(parts) != 2 or not parts[1].isdigit() or parts[0] == "total":
+            break
+        rules[parts[0]] = int(parts[1])
+    return rules
+
+
+def test_figure_only_edit_reruns_no_science_job(tiny_local_run, repo):
+    """Rules get only the config sections they use: after the tiny run, changing a
+    figure setting schedules the figure's rule, and no simulation or analysis job."""
+    workdir, result = tiny_local_run
+    assert result.returncode == 0, result.stderr[-4000:]
+    assert scheduled_rules(workdir, repo) == {}
+    (workdir / "figures_edit.yaml").write_text("figures:\n  tod_sample_hours: 0.1\n")
+    rules = scheduled_rules(workdir, repo, "figures_edit.yaml")
+    assert set(rules) <= {"tod_figures", "all"}, rules
+    assert rules.get("tod_figures") == 1
+
+
+def test_report_builds_with_every_figure(tiny_local_run, repo):
+    """`snakemake --report` on the tiny run: one HTML page with the workflow description,
+    every figure and the delta r table."""
+    from helpers import snakemake
+
+    workdir, result = tiny_local_run
+    assert result.returncode == 0, result.stderr[-4000:]
+    config = str(repo / "tests/configs/tiny.yaml")
+    built = snakemake(workdir, extra=("--configfile", config, "--report", "report.zip"))
+    assert built.returncode == 0, built.stderr[-3000:]
+    import zipfile
+
+    names = zipfile.ZipFile(workdir / "report.zip").namelist()
+    for figure in (workdir / "results/figures").glob("*.png"):
+        assert any(name.endswith(figure.name) for name in names), figure.name
+    assert any(name.endswith("delta_r.csv") for name in names)

@@ -48,6 +48,7 @@ def test_pair_maps_are_reproducible_and_independent_of_job_order(repo, tmp_path)
     assert 20e-6 < reference[0, seen].std() < 300e-6
     assert np.isfinite(reference[:, seen]).all()
     assert attrs["a2_k_cmb"] > 0 and attrs["units"] == "K_CMB"
+    assert attrs["POLCCONV"] == "COSMO" and attrs["FWHM"] > 0 and attrs["FREQ"] == 140.0
     _, lft_attrs = read_maps(runs["seed-first"] / targets[2])
     assert lft_attrs["a2_k_cmb"] == 0.0  # LFT carries no HWPSS (paper: ideal)
     assert np.isfinite(seed0["condition"][seen]).all()

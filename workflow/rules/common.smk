@@ -11,6 +11,12 @@ CHANNELS = selected_channels(config)
 SEEDS = list(range(config["simulation"]["seeds"]))
 
 
+def config_sections(*keys):
+    """Only these sections of the config: a rule's params hold what it uses, so an edit
+    elsewhere (e.g. a figure setting) does not rerun it."""
+    return {key: config[key] for key in keys}
+
+
 def simulation_config():
     """The config sections a simulation job depends on (a change reruns the job)."""
     keys = ("master_seed", "instrument", "simulation", "notch", "maps")

@@ -9,7 +9,16 @@ rule example_recording:
     log:
         paths.log("example_recording"),
     params:
-        config=config,
+        config=config_sections(
+            "master_seed",
+            "instrument",
+            "optics",
+            "kw_conversion",
+            "tes",
+            "simulation",
+            "maps",
+            "diagnose",
+        ),
     script:
         "../scripts/example_recording.py"
 
@@ -21,13 +30,17 @@ rule diagnose:
         unpack(recording_inputs),
     output:
         diagnosis=paths.DIAGNOSIS,
-        report=report(paths.DIAGNOSIS_REPORT, category="4. Diagnosis"),
+        report=report(
+            paths.DIAGNOSIS_REPORT,
+            caption="../report/diagnosis.rst",
+            category="4. Diagnosis",
+        ),
     log:
         paths.log("diagnose", "{recording}"),
     benchmark:
         paths.benchmark("diagnose", "{recording}")
     params:
-        config=config,
+        config=config_sections("instrument", "optics", "kw_conversion", "diagnose"),
         out_dir=lambda wildcards, output: os.path.dirname(output.diagnosis),
     script:
         "../scripts/diagnose.py"

@@ -5,11 +5,21 @@ rule hwp_power:
         curves=hwp_curve_files(),
     output:
         table=paths.HWP_POWER_TABLE,
-        fig_curves=report(paths.FIG1_HWP_CURVES, category="1. Physical inputs"),
-        fig_differential=report(
-            paths.FIG2_HWP_DIFFERENTIAL, category="1. Physical inputs"
+        fig_curves=report(
+            paths.FIG1_HWP_CURVES,
+            caption="../report/fig1.rst",
+            category="1. Physical inputs",
         ),
-        fig_emission=report(paths.FIG3_HWP_EMISSION, category="1. Physical inputs"),
+        fig_differential=report(
+            paths.FIG2_HWP_DIFFERENTIAL,
+            caption="../report/fig2.rst",
+            category="1. Physical inputs",
+        ),
+        fig_emission=report(
+            paths.FIG3_HWP_EMISSION,
+            caption="../report/fig3.rst",
+            category="1. Physical inputs",
+        ),
     log:
         paths.log("hwp_power"),
     params:

@@ -5,6 +5,7 @@ rule notch_effect:
         spectra=expand(paths.NOTCH_SPECTRA, channel=config["figures"]["tod_channel"]),
         figure=report(
             expand(paths.FIG_NOTCH_BB, channel=config["figures"]["tod_channel"]),
+            caption="../report/notch_effect.rst",
             category="2. TOD and maps",
         ),
     log:

@@ -11,11 +11,27 @@ rule requirement:
         noise_model=paths.NOISE_MODEL,
         maps=[path for seed in SEEDS for path in all_channel_maps()[seed].values()],
     output:
-        table=report(paths.DELTA_R_TABLE, category="3. Requirement"),
+        table=report(
+            paths.DELTA_R_TABLE,
+            caption="../report/delta_r.rst",
+            category="3. Requirement",
+        ),
         requirement=paths.REQUIREMENT,
-        fig_likelihoods=report(paths.FIG7_LIKELIHOODS, category="3. Requirement"),
-        fig_requirement=report(paths.FIG8_REQUIREMENT, category="3. Requirement"),
-        fig_a2_scaling=report(paths.FIG_A2_SCALING, category="3. Requirement"),
+        fig_likelihoods=report(
+            paths.FIG7_LIKELIHOODS,
+            caption="../report/fig7.rst",
+            category="3. Requirement",
+        ),
+        fig_requirement=report(
+            paths.FIG8_REQUIREMENT,
+            caption="../report/fig8.rst",
+            category="3. Requirement",
+        ),
+        fig_a2_scaling=report(
+            paths.FIG_A2_SCALING,
+            caption="../report/a2_scaling.rst",
+            category="3. Requirement",
+        ),
     log:
         paths.log("requirement"),
     params:

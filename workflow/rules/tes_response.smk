@@ -5,7 +5,11 @@ rule tes_response:
         kw_conversion=paths.KW_CONVERSION_TABLE,
     output:
         table=paths.TES_RESPONSE_TABLE,
-        figure=report(paths.FIG4_TES_RESPONSE, category="1. Physical inputs"),
+        figure=report(
+            paths.FIG4_TES_RESPONSE,
+            caption="../report/fig4.rst",
+            category="1. Physical inputs",
+        ),
     log:
         paths.log("tes_response"),
     params:

@@ -4,11 +4,21 @@ rule tod_figures:
     input:
         kw_conversion=paths.KW_CONVERSION_TABLE,
     output:
-        fig_chunk=expand(paths.FIG5_TOD_CHUNK, channel=config["figures"]["tod_channel"]),
-        fig_spectra=expand(
-            paths.FIG6_TOD_SPECTRA, channel=config["figures"]["tod_channel"]
+        fig_chunk=report(
+            paths.FIG5_TOD_CHUNK.format(channel=config["figures"]["tod_channel"]),
+            caption="../report/fig5.rst",
+            category="2. TOD and maps",
         ),
-        fig_notch=paths.FIG_NOTCH_TRANSFER,
+        fig_spectra=report(
+            paths.FIG6_TOD_SPECTRA.format(channel=config["figures"]["tod_channel"]),
+            caption="../report/fig6.rst",
+            category="2. TOD and maps",
+        ),
+        fig_notch=report(
+            paths.FIG_NOTCH_TRANSFER,
+            caption="../report/notch_transfer.rst",
+            category="2. TOD and maps",
+        ),
     log:
         paths.log("tod_figures"),
     params:

@@ -8,7 +8,7 @@ use_threads(snakemake.threads)  # litebird_sim's numba kernels
 tod_figures.run(
     snakemake.params.config,
     kw_csv=snakemake.input.kw_conversion,
-    fig_chunk=snakemake.output.fig_chunk[0],
-    fig_spectra=snakemake.output.fig_spectra[0],
+    fig_chunk=snakemake.output.fig_chunk,
+    fig_spectra=snakemake.output.fig_spectra,
     fig_notch=snakemake.output.fig_notch,
 )

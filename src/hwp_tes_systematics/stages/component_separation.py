@@ -14,6 +14,7 @@ import numpy as np
 
 from ..ilc_residuals import SeedMaps
 from ..io import atomic_path
+from ..sky import map_metadata
 from ..systematics import sigma_of_case
 
 log = logging.getLogger(__name__)
@@ -38,6 +39,7 @@ def run(config: dict, seed: int, case: str, map_paths: dict[str, str], out_h5: s
                 "channels": seed_maps.names,
                 "common_fwhm_arcmin": seed_maps.common_fwhm_arcmin,
                 "units": "K_CMB",
+                **map_metadata(seed_maps.common_fwhm_arcmin),
                 **seed_maps.fractions,
             }
         )

@@ -36,6 +36,8 @@ def make_example(config: dict, out_h5: str, out_sky: str) -> None:
         sky_map["total"],
         extra_header={"CHANNEL": name},
         foreground_source=sky_map["foreground_source"],
+        fwhm_arcmin=channel.fwhm_arcmin,
+        freq_ghz=channel.bandcenter_ghz,
     )
     effect = (
         "tes_electrothermal",

@@ -30,7 +30,12 @@ def run(config: dict, channel_names: list[str], out_paths: list[str]) -> None:
             lmax=3 * nside - 1,
         )
         sky.write_sky_map(
-            path, foreground, extra_header={"CHANNEL": name}, foreground_source=source
+            path,
+            foreground,
+            extra_header={"CHANNEL": name},
+            foreground_source=source,
+            fwhm_arcmin=channel.fwhm_arcmin,
+            freq_ghz=channel.bandcenter_ghz,
         )
         log.info("%s: foreground map (%s) -> %s", name, source, path)
 

@@ -28,6 +28,7 @@ import psutil
 from tqdm import tqdm
 
 from .. import config as cfg
+from .. import sky
 from ..baselines import baseline_samples, remove_baselines
 from ..hwpss_removal import remove_hwp_harmonics
 from ..io import atomic_path, use_threads
@@ -272,6 +273,8 @@ def write_pair_maps(path, equations: NormalEquations, settings, simulator, metad
         out.attrs.update(
             {
                 "units": "K_CMB",
+                "template_units": "K_CMB^2 (templates, template_terms; times g1 [1/K]: K_CMB)",
+                **sky.map_metadata(simulator.channel.fwhm_arcmin, simulator.channel.bandcenter_ghz),
                 "coordinates": "Galactic",
                 "ordering": "RING",
                 "nside": settings.nside,
@@ -305,8 +308,6 @@ def run(
 ):
     """Simulate one (channel, seed) and write its maps and templates."""
     import pandas as pd
-
-    from .. import sky
 
     started = time.perf_counter()
     use_threads(threads)
