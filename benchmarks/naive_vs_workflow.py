@@ -31,10 +31,10 @@ from hwp_tes_systematics import seeding
 from hwp_tes_systematics.instrument import load_channel
 from hwp_tes_systematics.mapmaking import solve_maps
 from hwp_tes_systematics.notch import chunk_span
-from hwp_tes_systematics.stages.pair_maps import filter_tod, split_solved_maps
 from hwp_tes_systematics.systematics import maps_for_sigma, unit_g1_draws
 from hwp_tes_systematics.timing import StageClock
 from hwp_tes_systematics.tod import NOISE_MODELS
+from hwp_tes_systematics.tod_maps import filter_tod, split_solved_maps
 
 
 def setup(arguments, duration_s):

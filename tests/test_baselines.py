@@ -8,8 +8,8 @@ from hwp_tes_systematics.baselines import baseline_samples, remove_baselines
 from hwp_tes_systematics.instrument import load_channel
 from hwp_tes_systematics.mapmaking import NormalEquations, solve_maps
 from hwp_tes_systematics.notch import chunk_span
-from hwp_tes_systematics.stages.pair_maps import PairMapSettings, detector_weights, filter_tod
 from hwp_tes_systematics.tod import MissionPlan, PairSimulator
+from hwp_tes_systematics.tod_maps import PairMapSettings, detector_weights, filter_tod
 
 NSIDE = 16
 OFFSETS_K = np.array([1.0, -0.5])  # a different offset in each detector of the pair

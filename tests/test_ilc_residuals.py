@@ -9,8 +9,8 @@ from hwp_tes_systematics import hilc, requirement, sky
 from hwp_tes_systematics.config import deep_merge, load_config
 from hwp_tes_systematics.ilc_residuals import SeedMaps, systematic_bb, unit_beam_spectra
 from hwp_tes_systematics.likelihood import BBModel, fisher_bias, fit_r
-from hwp_tes_systematics.stages.pair_maps import templates_from_terms
 from hwp_tes_systematics.systematics import maps_for_sigma
+from hwp_tes_systematics.tod_maps import templates_from_terms
 
 NSIDE = 16
 CHANNELS = {"L1-040": 0.0, "M1-140": 0.26}  # channel: A_2 [K_CMB]

@@ -6,13 +6,13 @@ import pytest
 
 from hwp_tes_systematics.instrument import load_channel
 from hwp_tes_systematics.mapmaking import NormalEquations, solve_maps
-from hwp_tes_systematics.stages.pair_maps import (
+from hwp_tes_systematics.tod import MissionPlan, PairSimulator
+from hwp_tes_systematics.tod_maps import (
     PairMapSettings,
     accumulate,
     detector_weights,
     split_solved_maps,
 )
-from hwp_tes_systematics.tod import MissionPlan, PairSimulator
 
 NSIDE = 16
 

@@ -30,9 +30,9 @@ def run_diagnose(
     workers: int = 1,
 ) -> dict:
     """Diagnose one recording with the nominal HWPSS and noise of the configured instrument."""
+    from .channel_inputs import channel_a2_k_cmb
     from .diagnose.recording import read_recording
     from .diagnose.report import diagnose
-    from .stages.kw_conversion import channel_a2_k_cmb
 
     config = load_config(*config_paths)
     recording = read_recording(recording_path)

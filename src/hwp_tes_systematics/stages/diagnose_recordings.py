@@ -12,11 +12,9 @@ import logging
 
 from .. import config as cfg
 from .. import sky
+from ..channel_inputs import channel_a2_k_cmb, channel_conversion, channel_sky, tes_for_channel
 from ..diagnose.recording import read_recording, simulate_recording, write_recording
 from ..diagnose.report import diagnose
-from .foreground_maps import channel_sky
-from .kw_conversion import channel_a2_k_cmb, channel_conversion
-from .tes_response import tes_for_channel
 
 log = logging.getLogger(__name__)
 

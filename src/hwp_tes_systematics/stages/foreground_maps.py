@@ -38,18 +38,3 @@ def run(config: dict, channel_names: list[str], out_paths: list[str]) -> None:
             freq_ghz=channel.bandcenter_ghz,
         )
         log.info("%s: foreground map (%s) -> %s", name, source, path)
-
-
-def channel_sky(config: dict, channel, seed: int) -> dict:
-    """sky.channel_sky_map of ``channel`` for realization ``seed`` with the configured nside,
-    r, master seed and pysm3 data (CMB, foreground, total and the foreground source)."""
-    nside = config["maps"]["nside"]
-    return sky.channel_sky_map(
-        channel,
-        nside,
-        3 * nside - 1,
-        config["simulation"]["cmb_r"],
-        config["master_seed"],
-        seed,
-        config["simulation"]["pysm_local_data"],
-    )

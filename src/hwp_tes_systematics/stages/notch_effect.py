@@ -21,7 +21,7 @@ from ..io import write_csv
 from ..mapmaking import NormalEquations, solve_maps
 from ..notch import chunk_span
 from ..tod import PairSimulator
-from .pair_maps import PairMapSettings, detector_weights, filter_tod
+from ..tod_maps import PairMapSettings, detector_weights, filter_tod
 
 log = logging.getLogger(__name__)
 

@@ -3,49 +3,22 @@
 from __future__ import annotations
 
 import logging
-from dataclasses import replace
 
 import pandas as pd
 
+from ..channel_inputs import tes_for_channel
 from ..figures.tes import plot_response_curve
 from ..io import write_csv
 from ..tes import (
-    TesParameters,
     nonlinearity_coefficients,
     optical_power_for_resistance,
     solve_operating_point,
-    tes_parameters_for_channel,
 )
 
 log = logging.getLogger(__name__)
 
 # Expansion range when a channel has no HWPSS (ideal HWP): +-2 % of the nominal load.
 MIN_HALF_RANGE_OVER_NOMINAL = 0.02
-
-
-def tes_for_channel(tes_config: dict, p_nominal_w: float) -> TesParameters:
-    """TES parameters from the config; the bias voltage is tuned per channel unless given."""
-    physical = {
-        key: tes_config[key]
-        for key in (
-            "tc_k",
-            "tbath_k",
-            "thermal_exponent_n",
-            "rn_ohm",
-            "transition_width_k",
-            "critical_current_a",
-            "thevenin_resistance_ohm",
-        )
-    }
-    params = tes_parameters_for_channel(
-        p_nominal_w,
-        psat_factor=tes_config["psat_over_nominal_power"],
-        resistance_fraction=tes_config["operating_resistance_fraction"],
-        **physical,
-    )
-    if tes_config["bias_voltage_v"] is not None:
-        params = replace(params, bias_voltage_v=tes_config["bias_voltage_v"])
-    return params
 
 
 def expansion_half_range_w(p_nominal_w: float, a2_w: float) -> float:

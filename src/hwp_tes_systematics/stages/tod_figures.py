@@ -8,10 +8,10 @@ import numpy as np
 import pandas as pd
 
 from .. import config as cfg
+from ..channel_inputs import channel_sky
 from ..figures import tod as tod_figures
 from ..nonlinearity import apply_nonlinearity
 from ..tod import MissionPlan, PairSimulator
-from .foreground_maps import channel_sky
 
 log = logging.getLogger(__name__)
 

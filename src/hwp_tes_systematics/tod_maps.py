@@ -1,0 +1,250 @@
+"""TOD -> HWP-harmonic removal -> 4f notch -> baselines -> binned normal equations, for one
+detector pair, linear in g1.
+
+The nonlinear TOD of detector k is d_k + g1_k d_k^2. The HWP-harmonic removal, notch
+filter, baseline removal F and binning M are linear, so the map for any draw of g1 is
+
+    m(g1) = M F d + sum_k g1_k M F (d_k^2) = m_nosys + sum_k g1_k T_k.
+
+Writing d_k = s_k + A_2 h_k (s: sky + dipole + noise, h = cos 2(chi - theta_k) the unit
+HWPSS), d_k^2 = s_k^2 + 2 A_2 s_k h_k + A_2^2 h_k^2, so the template is the sum of three
+binned terms, T_k = T_ss + 2 A_2 T_sh + A_2^2 T_hh, all three kept: the template for
+any other HWPSS amplitude follows without a new simulation. The mission is processed
+chunk by chunk (normal equations accumulated), so memory does not grow with its
+duration. Used by the pair_maps and notch_effect stages, the benchmarks and the tests.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import healpy as hp
+import numpy as np
+import psutil
+from tqdm import tqdm
+
+from .baselines import baseline_samples, remove_baselines
+from .hwpss_removal import remove_hwp_harmonics
+from .mapmaking import NormalEquations
+from .notch import chunk_span, filter_chunk_with_margins
+from .timing import StageClock
+from .tod import MissionPlan, PairSimulator
+
+log = logging.getLogger(__name__)
+
+# the terms of d^2 = s^2 + 2 A_2 s h + A_2^2 h^2 binned separately (see the module docstring)
+TEMPLATE_TERMS = ("s*s", "s*h", "h*h")
+
+
+@dataclass
+class PairMapSettings:
+    """Everything one (channel, seed) job needs besides the sky."""
+
+    master_seed: int
+    seed: int
+    nside: int
+    plan: MissionPlan
+    a2_k_cmb: float
+    notch_width_divisor: float
+    notch_margin_s: float
+    max_condition_number: float
+    removed_hwp_harmonics: tuple[int, ...] = (2,)
+    noise_scale: float = 1.0
+    baseline_length_s: float | None = None
+    threads: int = 1
+
+    @classmethod
+    def from_config(cls, config: dict, channel, seed: int, a2_k_cmb: float, threads: int = 1):
+        simulation = config["simulation"]
+        return cls(
+            master_seed=config["master_seed"],
+            seed=seed,
+            nside=config["maps"]["nside"],
+            plan=MissionPlan(
+                start_time_tdb=simulation["mission_start_tdb"],
+                duration_s=simulation["duration_days"] * 86400.0,
+                chunk_duration_s=simulation["chunk_duration_s"],
+                sampling_rate_hz=channel.sampling_rate_hz,
+            ),
+            a2_k_cmb=a2_k_cmb,
+            notch_width_divisor=config["notch"]["width_divisor"],
+            notch_margin_s=config["notch"]["margin_s"],
+            max_condition_number=config["maps"]["max_condition_number"],
+            removed_hwp_harmonics=tuple(config["maps"]["removed_hwp_harmonics"]),
+            noise_scale=simulation["noise_scale"],
+            baseline_length_s=config["maps"]["baseline_length_s"],
+            threads=threads,
+        )
+
+
+def chunk_tods(
+    simulator: PairSimulator,
+    settings: PairMapSettings,
+    sky_iqu_k: np.ndarray,
+    clock: StageClock | None = None,
+) -> Iterator[tuple[object, slice, np.ndarray]]:
+    """Yield (pointing, inner slice, s, h) chunk by chunk, with margins: s = sky + dipole +
+    noise [K_CMB] and h = cos 2(chi - theta_k) the unit HWPSS, so that the total TOD is
+    d = s + A_2 h."""
+    clock = clock or StageClock()
+    chunks = settings.plan.chunks()
+    for chunk, first, n_samples in tqdm(
+        chunks, desc=simulator.channel.name, mininterval=10, disable=len(chunks) < 2
+    ):
+        start, n_simulated, inner = chunk_span(
+            first, n_samples, settings.plan.sampling_rate_hz, settings.notch_margin_s
+        )
+        with clock("pointing"):
+            pointing = simulator.pointing(start, n_simulated)
+        with clock("sky scan"):
+            tod = simulator.scan_sky(pointing, sky_iqu_k)
+        with clock("dipole"):
+            tod += simulator.dipole(pointing)
+        with clock("noise"):
+            tod += simulator.noise(
+                pointing, settings.master_seed, settings.seed, chunk, settings.noise_scale
+            )
+        with clock("HWPSS"):
+            unit_hwpss = simulator.hwpss(pointing, 1.0)
+        yield pointing, inner, tod, unit_hwpss
+
+
+def filter_tod(
+    tod: np.ndarray, pointing, inner: slice, simulator, settings, overwrite: bool = False
+) -> np.ndarray:
+    """HWP-harmonic template removal, then the paper's 4 f_HWP notch, on a chunk with
+    margins (any leading shape, time last); returns the ``inner`` samples, from which the
+    per-detector baselines are removed (:mod:`baselines`; none on the paper-literal path,
+    where the harmonic fit has no constant either).
+    Linear in the TOD. ``overwrite`` lets the HWP-harmonic removal reuse ``tod``'s memory."""
+    f_hwp_hz = simulator.channel.hwp_frequency_hz
+    cleaned = remove_hwp_harmonics(
+        tod,
+        pointing.hwp_angle_rad,
+        settings.removed_hwp_harmonics,
+        overwrite=overwrite,
+        offset=settings.baseline_length_s is not None,
+    )
+    filtered = filter_chunk_with_margins(
+        cleaned,
+        inner,
+        settings.plan.sampling_rate_hz,
+        f_hwp_hz,
+        4 * f_hwp_hz / settings.notch_width_divisor,
+        workers=settings.threads,
+    )
+    samples = baseline_samples(settings.baseline_length_s, settings.plan.sampling_rate_hz)
+    return remove_baselines(filtered, samples)
+
+
+def detector_weights(simulator: PairSimulator) -> np.ndarray:
+    """w_k = 1 / sigma_k^2 with sigma_k = NET_k sqrt(f_s) [K^-2] (as litebird_sim's binner)."""
+    sigma_k = np.array([d.net_ukrts for d in simulator.detectors]) * 1e-6
+    return 1.0 / (sigma_k**2 * simulator.plan.sampling_rate_hz)
+
+
+def accumulate(
+    simulator,
+    settings,
+    sky_iqu_k,
+    g1_per_k=None,
+    on_chunk=None,
+    references_iqu_k=(),
+    clock: StageClock | None = None,
+) -> NormalEquations:
+    """Normal equations of the filtered TOD (F = notch after HWP-harmonic removal).
+
+    g1_per_k None: the linear decomposition, TODs [F d, then for each of the terms s^2,
+    s h, h^2 of d^2 (see the module docstring) one TOD per detector]; otherwise the
+    direct nonlinear simulation, one TOD F (d + g1 d^2).
+    Each map in ``references_iqu_k`` adds the TOD F(scan of that map) at the end: a
+    sky component alone (input CMB, foregrounds) through the same pointing, filter and
+    binning, the references of the component-separation residuals.
+    ``on_chunk(samples_done, rss_mb)`` is called after each chunk (benchmarks);
+    ``clock`` collects the wall-clock time per stage (logged at the end).
+    """
+    clock = clock or StageClock()
+    n_det = simulator.n_detectors
+    linear = g1_per_k is None
+    n_terms = len(TEMPLATE_TERMS) if linear else 0
+    n_tods = 1 + n_terms * n_det + len(references_iqu_k)
+    equations = NormalEquations(settings.nside, n_tods)
+    weights = detector_weights(simulator)
+    n_unfiltered = 1 + n_terms + len(references_iqu_k)
+    peak_rss_mb = 0.0
+    for pointing, inner, signal, hwpss in chunk_tods(simulator, settings, sky_iqu_k, clock):
+        # all TODs of the chunk in one array, for one batched 2f removal + notch
+        with clock("nonlinearity terms"):
+            unfiltered = np.empty((n_unfiltered, *signal.shape))
+            tod = unfiltered[0]
+            np.multiply(hwpss, settings.a2_k_cmb, out=tod)
+            tod += signal
+            if linear:
+                np.square(signal, out=unfiltered[1])
+                np.multiply(signal, hwpss, out=unfiltered[2])
+                np.square(hwpss, out=unfiltered[3])
+            else:
+                tod += np.asarray(g1_per_k)[:, None] * tod**2
+            del tod, signal, hwpss
+        with clock("reference scans"):
+            first_reference = n_unfiltered - len(references_iqu_k)
+            for index, reference_iqu_k in enumerate(references_iqu_k, start=first_reference):
+                simulator.scan_sky(pointing, reference_iqu_k, out=unfiltered[index])
+        with clock("2f removal + notch"):
+            filtered = filter_tod(unfiltered, pointing, inner, simulator, settings, overwrite=True)
+            del unfiltered
+        # a term's TOD is binned once per detector, with that detector's samples only
+        tods = [filtered[0]]
+        owners = [None]
+        for term in range(1, 1 + n_terms):
+            tods += [filtered[term]] * n_det
+            owners += list(range(n_det))
+        tods += list(filtered[1 + n_terms :])
+        owners += [None] * len(references_iqu_k)
+        with clock("binning"):
+            equations.add(
+                pointing.pixels[:, inner],
+                pointing.cos_2alpha[:, inner],
+                pointing.sin_2alpha[:, inner],
+                weights,
+                simulator.pol_efficiency,
+                tods,
+                owners,
+            )
+        del filtered, tods
+        rss_mb = psutil.Process().memory_info().rss / 2**20
+        peak_rss_mb = max(peak_rss_mb, rss_mb)
+        if on_chunk is not None:
+            on_chunk(inner.stop - inner.start, rss_mb)
+    log.info(
+        "%s seed %d: peak RSS during chunks %.0f MB; time per stage: %s",
+        simulator.channel.name,
+        settings.seed,
+        peak_rss_mb,
+        clock.summary(settings.plan.n_samples * n_det),
+    )
+    return equations
+
+
+def templates_from_terms(terms: np.ndarray, a2_k_cmb: float) -> np.ndarray:
+    """T_k = T_ss + 2 A_2 T_sh + A_2^2 T_hh [K_CMB^2], (n_det, 3, npix) from the terms
+    (3, n_det, 3, npix) in TEMPLATE_TERMS order; A_2 [K_CMB]."""
+    return terms[0] + 2.0 * a2_k_cmb * terms[1] + a2_k_cmb**2 * terms[2]
+
+
+def split_solved_maps(maps: np.ndarray, n_det: int, a2_k_cmb: float) -> dict[str, np.ndarray]:
+    """The solved maps of a linear accumulation by name: nosys (3, npix); template_terms
+    (3, n_det, 3, npix); templates (n_det, 3, npix) at A_2 = ``a2_k_cmb``; references
+    (n_refs, 3, npix), in the order given to :func:`accumulate`."""
+    n_terms = len(TEMPLATE_TERMS)
+    terms = maps[1 : 1 + n_terms * n_det].reshape(n_terms, n_det, *maps.shape[1:])
+    seen = maps[0] != hp.UNSEEN
+    templates = np.where(seen, templates_from_terms(terms, a2_k_cmb), hp.UNSEEN)
+    return {
+        "nosys": maps[0],
+        "template_terms": terms,
+        "templates": templates,
+        "references": maps[1 + n_terms * n_det :],
+    }
