@@ -376,3 +376,25 @@ def test_wrong_shapes_raise_naming_the_file(tmp_path):
     with pytest.raises(ValueError, match=r"bad\.fits.*\(3, npix\)"):
         sky.write_sky_map(tmp_path / "bad.fits", np.zeros((2, 192)), {})
     assert not (tmp_path / "bad.fits").exists()
+
+
+def test_maps_carry_their_convention_and_iau_input_is_converted(tmp_path):
+    """POLCCONV, FWHM, FREQ on every map written; an IAU map is read with U negated."""
+    from astropy.io import fits
+
+    nside = 8
+    maps = np.random.default_rng(1).normal(size=(3, hp.nside2npix(nside)))
+    path = tmp_path / "cosmo.fits"
+    sky.write_sky_map(path, maps, fwhm_arcmin=30.8, freq_ghz=140.0)
+    header = fits.getheader(path, 1)
+    assert header["POLCCONV"] == "COSMO"
+    assert header["FWHM"] == 30.8 and header["FREQ"] == 140.0
+    iau = tmp_path / "iau.fits"
+    sky.write_sky_map(iau, maps, {"POLCCONV": "IAU"})
+    converted = sky.read_sky_map(iau)
+    np.testing.assert_array_equal(converted[:2], maps[:2])
+    np.testing.assert_array_equal(converted[2], -maps[2])
+    odd = tmp_path / "odd.fits"
+    sky.write_sky_map(odd, maps, {"POLCCONV": "HEALPIX"})
+    with pytest.raises(ValueError, match=r"odd\.fits.*POLCCONV"):
+        sky.read_sky_map(odd)
