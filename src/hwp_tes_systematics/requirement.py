@@ -222,9 +222,10 @@ def assess_quadratic_regime(sigma, mean_delta_r, sigma_r: float) -> dict:
             f"{QUADRATIC_REGIME * sigma_r:.2g}: the quadratic regime is not reached"
         )
     else:
+        error = f" +- {alpha_sigma:.2f}" if np.isfinite(alpha_sigma) else " (two points)"
         reason = (
             f"the points below {QUADRATIC_REGIME:g} sigma_r do not follow sigma^2: "
-            f"exponent {alpha:.2f} +- {alpha_sigma:.2f}"
+            f"exponent {alpha:.2f}{error}"
         )
     return {
         "k_per_k2": k,

@@ -1,18 +1,10 @@
-"""Stage: TOD -> 4f notch -> binned maps for one (channel, seed), linear in g1
-(the simulation and filtering live in :mod:`tod_maps`).
+"""Stage: TOD -> 4f notch -> baselines -> binned maps for one (channel, seed), linear in g1.
 
-The nonlinear TOD of detector k is d_k + g1_k d_k^2. The HWP-harmonic removal, notch
-filter, baseline removal F and binning M are linear, so the map for any draw of g1 is
-
-    m(g1) = M F d + sum_k g1_k M F (d_k^2) = m_nosys + sum_k g1_k T_k.
-
-Writing d_k = s_k + A_2 h_k (s: sky + dipole + noise, h = cos 2(chi - theta_k) the unit
-HWPSS), d_k^2 = s_k^2 + 2 A_2 s_k h_k + A_2^2 h_k^2, so the template is the sum of three
-binned terms, T_k = T_ss + 2 A_2 T_sh + A_2^2 T_hh, all three kept: the template for
-any other HWPSS amplitude follows without a new simulation. One simulation gives
-m_nosys and the per-detector templates; the sigma_g1 grid is a parameter of the later
-stages, not of the simulation. The mission is processed chunk by chunk (normal
-equations accumulated), so memory does not grow with its duration.
+The simulation, filtering and accumulation are :func:`tod_maps.accumulate` (see that
+module for the linear decomposition m(g1) = m_nosys + sum_k g1_k T_k and the three
+template terms); this stage reads the sky, runs it and writes the maps file. One
+simulation gives m_nosys and the per-detector templates: the sigma_g1 grid is a
+parameter of the later stages, not of the simulation.
 """
 
 from __future__ import annotations

@@ -291,6 +291,7 @@ def run(
         fig_requirement,
         exponent_sigma=exponent_sigma,
         invalid_reason=None if regime["valid"] else regime["reason"],
+        quadratic_threshold=regime["quadratic_threshold_delta_r"],
         systematic_only=(
             systematic_summary["sigma_g1"].to_numpy(),
             systematic_summary["mean_delta_r"].to_numpy(),
