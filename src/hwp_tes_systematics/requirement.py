@@ -18,6 +18,13 @@ sigma <= 0 (the no-systematics reference) are dropped; points with a non-positiv
 non-finite mean delta r are dropped with a warning; fewer than 2 usable points raise
 ValueError.
 
+Two estimators (:func:`delta_r_table`): the paper's delta r = |r_sys - r_nosys| and the
+systematic-only k_seed sigma^2 (the Fisher bias of the systematic through the
+no-systematics HILC weights, :mod:`ilc_residuals`). The paper's is assessed by
+:func:`assess_quadratic_regime` and its grid extended downwards from the maps when fewer
+than two points are quadratic (:func:`paper_estimator`); the systematic-only one gives
+its requirement and scatter over seeds per HWPSS scale (:func:`systematic_only_estimator`).
+
 Caveat (see the tests): delta r is exactly quadratic in sigma_g1 only while the
 systematic power is a small perturbation, delta r << sigma_r (Fisher width of r). For
 larger biases the 68 % point grows faster than the excess power (the cosmic variance of
@@ -26,11 +33,18 @@ the tensor modes widens the likelihood), and the fitted exponent exceeds 2.
 
 from __future__ import annotations
 
+import logging
 import warnings
 from collections.abc import Mapping
 
 import numpy as np
 import pandas as pd
+
+from .ilc_residuals import SeedMaps
+from .likelihood import fit_r_common_grid
+from .systematics import NOSYS
+
+log = logging.getLogger(__name__)
 
 DELTA_R_BUDGET = 6.5e-6  # allocated systematic error budget on r per effect (paper, PTEP)
 SUMMARY_COLUMNS = ("sigma_g1", "mean_delta_r", "std_delta_r", "sem_delta_r", "n_seeds")
@@ -240,4 +254,136 @@ def assess_quadratic_regime(sigma, mean_delta_r, sigma_r: float) -> dict:
         "sigma2_model_consistent": consistent,
         "valid": bool(valid),
         "reason": reason,
+    }
+
+
+def delta_r_table(likelihoods: list[dict]) -> pd.DataFrame:
+    """One row per (seed, sigma): r_sys, r_nosys, both estimators' delta r."""
+    rows = []
+    for result in likelihoods:
+        r_nosys = result["cases"][NOSYS]["r_fraction"]
+        k_systematic = result["systematic_only"]["k_per_k2"]
+        for case, values in result["cases"].items():
+            if case == NOSYS:
+                continue
+            sigma = values["sigma_g1_per_k"]
+            rows.append(
+                {
+                    "seed": result["seed"],
+                    "case": case,
+                    "sigma_g1": sigma,
+                    "r_sys": values["r_fraction"],
+                    "r_nosys": r_nosys,
+                    "delta_r": abs(values["r_fraction"] - r_nosys),
+                    "delta_r_systematic_only": k_systematic * sigma**2,
+                    "sigma_r_fisher_0": result["sigma_r_fisher_0"],
+                    "extended": False,
+                }
+            )
+    return pd.DataFrame(rows).sort_values(["sigma_g1", "seed"], ignore_index=True)
+
+
+def extra_delta_r(config, seed, sigmas, map_paths, nosys_spectra_csv, model) -> list[dict]:
+    """The paper's delta r of one seed at sigmas outside the grid, from the maps: the HILC
+    at each sigma, its residual spectrum, and r with the no-systematics r on one grid."""
+    seed_maps = SeedMaps.load(config, seed, map_paths)
+    lmax = model.lmax
+    nosys = pd.read_csv(nosys_spectra_csv)["bb_residual_k2"].to_numpy()[: lmax + 1]
+    residuals = [
+        seed_maps.residual_spectra(sigma)["bb_residual_k2"].to_numpy()[: lmax + 1]
+        for sigma in sigmas
+    ]
+    fraction = config["likelihood"]["fraction"]
+    results = fit_r_common_grid([nosys, *residuals], model, fraction=fraction)
+    r_nosys = results[0].r_fraction
+    return [
+        {
+            "seed": seed,
+            "case": f"extended {sigma:.1e}",
+            "sigma_g1": sigma,
+            "r_sys": result.r_fraction,
+            "r_nosys": r_nosys,
+            "delta_r": abs(result.r_fraction - r_nosys),
+            "sigma_r_fisher_0": result.sigma_r_fisher_0,
+            "extended": True,
+        }
+        for sigma, result in zip(sigmas, results[1:], strict=True)
+    ]
+
+
+def paper_estimator(table, config, extension) -> tuple[pd.DataFrame, dict]:
+    """Extend the grid downwards until two points are quadratic (or the limit), then
+    assess the regime; returns (table with the extended rows, assessment)."""
+    sigma_r = float(table["sigma_r_fisher_0"].mean())
+    for decade in range(config["requirement"]["max_extra_decades"] + 1):
+        summary = summarise(table)
+        regime = assess_quadratic_regime(summary["sigma_g1"], summary["mean_delta_r"], sigma_r)
+        if len(regime["sigma_g1_in_quadratic_regime_per_k"]) >= 2 or extension is None:
+            break
+        if decade == config["requirement"]["max_extra_decades"]:
+            break
+        sigma_new = float(summary["sigma_g1"].min()) / 10.0
+        log.info(
+            "paper estimator: %s; adding sigma_g1 = %.1e (computed from the maps)",
+            regime["reason"],
+            sigma_new,
+        )
+        rows = []
+        for seed, paths in extension["map_paths"].items():
+            rows += extra_delta_r(
+                config,
+                seed,
+                [sigma_new],
+                paths,
+                extension["nosys_spectra"][seed],
+                extension["model"],
+            )
+        for row in rows:
+            row["delta_r_systematic_only"] = np.nan
+        table = pd.concat([table, pd.DataFrame(rows)], ignore_index=True)
+        table = table.sort_values(["sigma_g1", "seed"], ignore_index=True)
+    return table, regime
+
+
+def systematic_only_estimator(likelihoods: list[dict], budget: float, sigma_r: float) -> dict:
+    """Requirement from delta r = k sigma^2 with k the mean over seeds of the Fisher bias;
+    its scatter over seeds; and the same for each HWPSS scale factor."""
+    k_seeds = np.array([r["systematic_only"]["k_per_k2"] for r in likelihoods])
+    k_mean = float(k_seeds.mean())
+    per_seed = [requirement_sigma(k, budget) for k in k_seeds if k > 0]
+    by_scale = []
+    scales = [row["a2_scale"] for row in likelihoods[0]["systematic_only"]["k_per_k2_by_a2_scale"]]
+    for index, scale in enumerate(scales):
+        k_scale = np.array(
+            [r["systematic_only"]["k_per_k2_by_a2_scale"][index]["k_per_k2"] for r in likelihoods]
+        )
+        by_scale.append(
+            {
+                "a2_scale": scale,
+                "k_per_k2": float(k_scale.mean()),
+                "requirement_sigma_g1_per_k": requirement_sigma(float(k_scale.mean()), budget),
+                "requirement_std_over_seeds_per_k": float(
+                    np.std([requirement_sigma(k, budget) for k in k_scale], ddof=1)
+                )
+                if len(k_scale) > 1
+                else float("nan"),
+            }
+        )
+    valid = bool(k_mean > 0 and budget < 0.1 * sigma_r)
+    return {
+        "definition": "delta r = k sigma_g1^2, k = Fisher bias of the BB spectrum of the "
+        "systematic alone through the no-systematics HILC weights (signed, exactly quadratic)",
+        "k_per_k2": k_mean,
+        "k_per_seed": k_seeds.tolist(),
+        "requirement_sigma_g1_per_k": requirement_sigma(k_mean, budget),
+        "requirement_per_seed_per_k": per_seed,
+        "requirement_std_over_seeds_per_k": float(np.std(per_seed, ddof=1))
+        if len(per_seed) > 1
+        else float("nan"),
+        "valid": valid,
+        "reason": "exactly quadratic; the budget is in the linear (Fisher) regime, "
+        f"budget / sigma_r = {budget / sigma_r:.2g}"
+        if valid
+        else "the budget is not small next to sigma_r: the linear bias does not apply",
+        "by_a2_scale": by_scale,
     }

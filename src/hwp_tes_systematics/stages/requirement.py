@@ -22,14 +22,18 @@ import logging
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 
 from ..figures.results import plot_a2_scaling, plot_likelihoods, plot_requirement
-from ..ilc_residuals import SeedMaps
 from ..io import atomic_path, write_csv
-from ..likelihood import fit_r_common_grid, model_from_noise_csv
-from ..requirement import assess_quadratic_regime, fit_power_law, requirement_sigma, summarise
-from ..systematics import NOSYS
+from ..likelihood import model_from_noise_csv
+from ..requirement import (
+    delta_r_table,
+    fit_power_law,
+    paper_estimator,
+    requirement_sigma,
+    summarise,
+    systematic_only_estimator,
+)
 
 log = logging.getLogger(__name__)
 
@@ -37,138 +41,6 @@ log = logging.getLogger(__name__)
 def config_hash(config: dict) -> str:
     """sha256 of the configuration (sorted JSON): which settings produced a result."""
     return hashlib.sha256(json.dumps(config, sort_keys=True, default=str).encode()).hexdigest()
-
-
-def delta_r_table(likelihoods: list[dict]) -> pd.DataFrame:
-    """One row per (seed, sigma): r_sys, r_nosys, both estimators' delta r."""
-    rows = []
-    for result in likelihoods:
-        r_nosys = result["cases"][NOSYS]["r_fraction"]
-        k_systematic = result["systematic_only"]["k_per_k2"]
-        for case, values in result["cases"].items():
-            if case == NOSYS:
-                continue
-            sigma = values["sigma_g1_per_k"]
-            rows.append(
-                {
-                    "seed": result["seed"],
-                    "case": case,
-                    "sigma_g1": sigma,
-                    "r_sys": values["r_fraction"],
-                    "r_nosys": r_nosys,
-                    "delta_r": abs(values["r_fraction"] - r_nosys),
-                    "delta_r_systematic_only": k_systematic * sigma**2,
-                    "sigma_r_fisher_0": result["sigma_r_fisher_0"],
-                    "extended": False,
-                }
-            )
-    return pd.DataFrame(rows).sort_values(["sigma_g1", "seed"], ignore_index=True)
-
-
-def extra_delta_r(config, seed, sigmas, map_paths, nosys_spectra_csv, model) -> list[dict]:
-    """The paper's delta r of one seed at sigmas outside the grid, from the maps: the HILC
-    at each sigma, its residual spectrum, and r with the no-systematics r on one grid."""
-    seed_maps = SeedMaps.load(config, seed, map_paths)
-    lmax = model.lmax
-    nosys = pd.read_csv(nosys_spectra_csv)["bb_residual_k2"].to_numpy()[: lmax + 1]
-    residuals = [
-        seed_maps.residual_spectra(sigma)["bb_residual_k2"].to_numpy()[: lmax + 1]
-        for sigma in sigmas
-    ]
-    fraction = config["likelihood"]["fraction"]
-    results = fit_r_common_grid([nosys, *residuals], model, fraction=fraction)
-    r_nosys = results[0].r_fraction
-    return [
-        {
-            "seed": seed,
-            "case": f"extended {sigma:.1e}",
-            "sigma_g1": sigma,
-            "r_sys": result.r_fraction,
-            "r_nosys": r_nosys,
-            "delta_r": abs(result.r_fraction - r_nosys),
-            "sigma_r_fisher_0": result.sigma_r_fisher_0,
-            "extended": True,
-        }
-        for sigma, result in zip(sigmas, results[1:], strict=True)
-    ]
-
-
-def paper_estimator(table, config, extension) -> tuple[pd.DataFrame, dict]:
-    """Extend the grid downwards until two points are quadratic (or the limit), then
-    assess the regime; returns (table with the extended rows, assessment)."""
-    sigma_r = float(table["sigma_r_fisher_0"].mean())
-    for decade in range(config["requirement"]["max_extra_decades"] + 1):
-        summary = summarise(table)
-        regime = assess_quadratic_regime(summary["sigma_g1"], summary["mean_delta_r"], sigma_r)
-        if len(regime["sigma_g1_in_quadratic_regime_per_k"]) >= 2 or extension is None:
-            break
-        if decade == config["requirement"]["max_extra_decades"]:
-            break
-        sigma_new = float(summary["sigma_g1"].min()) / 10.0
-        log.info(
-            "paper estimator: %s; adding sigma_g1 = %.1e (computed from the maps)",
-            regime["reason"],
-            sigma_new,
-        )
-        rows = []
-        for seed, paths in extension["map_paths"].items():
-            rows += extra_delta_r(
-                config,
-                seed,
-                [sigma_new],
-                paths,
-                extension["nosys_spectra"][seed],
-                extension["model"],
-            )
-        for row in rows:
-            row["delta_r_systematic_only"] = np.nan
-        table = pd.concat([table, pd.DataFrame(rows)], ignore_index=True)
-        table = table.sort_values(["sigma_g1", "seed"], ignore_index=True)
-    return table, regime
-
-
-def systematic_only_estimator(likelihoods: list[dict], budget: float, sigma_r: float) -> dict:
-    """Requirement from delta r = k sigma^2 with k the mean over seeds of the Fisher bias;
-    its scatter over seeds; and the same for each HWPSS scale factor."""
-    k_seeds = np.array([r["systematic_only"]["k_per_k2"] for r in likelihoods])
-    k_mean = float(k_seeds.mean())
-    per_seed = [requirement_sigma(k, budget) for k in k_seeds if k > 0]
-    by_scale = []
-    scales = [row["a2_scale"] for row in likelihoods[0]["systematic_only"]["k_per_k2_by_a2_scale"]]
-    for index, scale in enumerate(scales):
-        k_scale = np.array(
-            [r["systematic_only"]["k_per_k2_by_a2_scale"][index]["k_per_k2"] for r in likelihoods]
-        )
-        by_scale.append(
-            {
-                "a2_scale": scale,
-                "k_per_k2": float(k_scale.mean()),
-                "requirement_sigma_g1_per_k": requirement_sigma(float(k_scale.mean()), budget),
-                "requirement_std_over_seeds_per_k": float(
-                    np.std([requirement_sigma(k, budget) for k in k_scale], ddof=1)
-                )
-                if len(k_scale) > 1
-                else float("nan"),
-            }
-        )
-    valid = bool(k_mean > 0 and budget < 0.1 * sigma_r)
-    return {
-        "definition": "delta r = k sigma_g1^2, k = Fisher bias of the BB spectrum of the "
-        "systematic alone through the no-systematics HILC weights (signed, exactly quadratic)",
-        "k_per_k2": k_mean,
-        "k_per_seed": k_seeds.tolist(),
-        "requirement_sigma_g1_per_k": requirement_sigma(k_mean, budget),
-        "requirement_per_seed_per_k": per_seed,
-        "requirement_std_over_seeds_per_k": float(np.std(per_seed, ddof=1))
-        if len(per_seed) > 1
-        else float("nan"),
-        "valid": valid,
-        "reason": "exactly quadratic; the budget is in the linear (Fisher) regime, "
-        f"budget / sigma_r = {budget / sigma_r:.2g}"
-        if valid
-        else "the budget is not small next to sigma_r: the linear bias does not apply",
-        "by_a2_scale": by_scale,
-    }
 
 
 def run(
