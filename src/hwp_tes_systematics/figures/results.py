@@ -200,8 +200,9 @@ def plot_a2_scaling(by_scale: list[dict], budget: float, path: str | os.PathLike
     """Systematic-only requirement on sigma_g1 versus the HWPSS amplitude scale factor.
 
     ``by_scale``: [{"a2_scale", "requirement_sigma_g1_per_k",
-    "requirement_std_over_seeds_per_k"}, ...]; log-log, with the slope -2 line through
-    a = 1 for reference (the requirement of a pure A_2^2 h^2 term scales as 1 / a^2).
+    "requirement_std_over_seeds_per_k"}, ...]; log-log, with the slopes -1 and -2 through
+    a = 1 for reference (the requirement of a pure 2 A_2 s h term scales as 1 / a, of a
+    pure A_2^2 h^2 term as 1 / a^2).
     """
     path = Path(path)
     scale = np.array([row["a2_scale"] for row in by_scale], dtype=float)
@@ -225,6 +226,9 @@ def plot_a2_scaling(by_scale: list[dict], budget: float, path: str | os.PathLike
         reference = value[scale == 1.0][0]
         axis.plot(
             scale, reference / scale**2, ":", color="gray", label="~ 1 / a^2 (A_2^2 term alone)"
+        )
+        axis.plot(
+            scale, reference / scale, "--", color="gray", label="~ 1 / a (2 A_2 s h term alone)"
         )
     axis.set_xscale("log")
     axis.set_yscale("log")
