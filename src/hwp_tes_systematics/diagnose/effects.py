@@ -1,8 +1,15 @@
 """Catalog of candidate effects: forward models of physics the nominal simulation leaves out.
 
-Every effect acts on the nominal TOD of each detector k (see :mod:`.model`),
+Every effect acts on the ADJUSTED nominal TOD of each detector k (see :mod:`.model` and
+:mod:`.nominal`: gain, 2f HWPSS amplitude and phase, polarisation angle, sky scales,
+offsets and noise are fitted on every recording as nuisance parameters, not offered as
+effects),
 
-    d_nom = I(p) + rho (Q cos 2a + U sin 2a) + D + A_2 cos(2 (chi - theta_k)),
+    d_nom = (1 + g)(I(p) + D) + rho (Q cos 2a + U sin 2a) + A_2 cos(2 (chi - theta_k) - phi)
+            + ...,
+
+so an effect is only what these adjustments cannot produce: new frequencies, time
+dependence, dependence on the incoming intensity, transients.
 
 and has named per-detector parameters with units. ``templates(ctx)`` returns T of shape
 (n_det, n_param, n) such that, to first order, recording - d_nom = sum_j p_j T_j
@@ -21,13 +28,15 @@ tes_nonlinearity
             sidebands but no 4f line and no DC; the sidebands scale as A_2 I (not as I)
 detector_time_constant
     model   IFFT[D(f) / (1 + 2 pi i f tau)] (single pole); tau [s]; template -d d_nom/dt
-    sign.   2f HWPSS residual in quadrature: phase lag atan(2 pi f tau) growing with the
-            harmonic number, amplitude factor 1/sqrt(1 + (2 pi f tau)^2)
-    apart   one parameter ties lag and amplitude loss; a 2f amplitude/phase error
-            (hwpss_harmonics) needs two per detector: same chi^2, the BIC prefers tau
+    sign.   phase lag atan(2 pi f tau) growing with frequency: 2f HWPSS, the 4f line of a
+            nonlinearity and the sky band together; amplitude factor 1/sqrt(1 + (2 pi f tau)^2)
+    apart   a 2f phase error (a nominal adjustment) lags the 2f line only; with only a 2f
+            HWPSS and a faint sky the two are the SAME signal (the adjustment reports the
+            equivalent tau = tan(phi) / (2 pi 2 f_HWP)); tau is selected only when the lag
+            of the other frequencies is seen (fitted jointly with the 2f phase)
 hwpss_harmonics
-    model   sum_{n=1..6} c_n cos n(chi - theta) + s_n sin n(chi - theta); c_n, s_n [K]
-            (n = 2: error on the 2f amplitude (c_2) and phase (s_2 / A_2))
+    model   sum_{n=1,3..6} c_n cos n(chi - theta) + s_n sin n(chi - theta); c_n, s_n [K]
+            (n = 2 is the nominal 2f amplitude and phase adjustment, not an effect)
     sign.   lines at n f_HWP, stationary
     apart   NO DC shift and NO 2f +- f_spin sidebands (unlike the nonlinearity), constant in
             time (unlike the HWP temperature drift), free phase per harmonic (unlike tau)
@@ -37,34 +46,42 @@ hwpss_intensity_coupling
     apart   proportional to I, not to A_2 I; no 4f line, no DC (a nonlinearity making the
             same sidebands, g1 = a / (2 A_2), would add a 4f line g1 A_2^2/2)
 gain_drift
-    model   [sum_{j=0..3} g_j P_j(x)] d_nom (gain error g0 and drift); g_j [1]
+    model   [sum_{j=1..3} g_j P_j(x)] d_nom (gain drift; a constant gain error is a nominal
+            adjustment); g_j [1]
     sign.   residual proportional to the whole signal, changing in time; the dipole amplitude
             drifts together with the 2f HWPSS
     apart   multiplies the dipole and the sky too; the HWP temperature drift moves only the 2f
             HWPSS (the difference is g(t) x dipole, at f_spin in the 1/f noise: it needs a
             drift of a few %/h in a 2-hour recording)
 hwp_temperature_drift
-    model   [sum_{j=1..3} c_j P_j(x)] cos 2(chi - theta); c_j [K]
+    model   [sum_{j=1..3} c_j P_j(x)] cos(2(chi - theta) - phi); c_j [K]
     sign.   2f line broadened (sidebands at ~1/T), 2f demodulated amplitude drifting in time
-    apart   dipole and sky untouched (unlike the gain drift)
+    apart   dipole and sky untouched (unlike the gain drift); a constant 2f amplitude error
+            is the nominal adjustment
+hwpss_slow_modulation
+    model   [sum_{j=1..D} c_j P_j(x)] cos(2(chi - theta) - phi), D = T / 8 min (4..36): a
+            slow modulation of the 2f amplitude of ANY shape (drift, periodic, smoothed
+            steps), not one functional form; c_j [K]
+    sign.   2f sidebands within ~D / 2T of 2 f_HWP, demodulated 2f amplitude changing in time
+    apart   as hwp_temperature_drift, of which it is the many-parameter generalisation (the
+            BIC picks one; they are nested)
 glitches
     model   A exp(-(t - t0)/tau_g) for t >= t0 (t0: first hit sample); A [K], t0 [s],
             tau_g [s] per event
     sign.   isolated transients, broadband, uncorrelated with chi and the sky
     apart   found by robust (MAD) thresholding of the whitened residual and fitted per event;
             not periodic in chi, no lines
-noise_mismatch
+noise_mismatch (injection only: the white level, knee and slope are nominal adjustments)
     model   P(f) = 2 w^2 (f^a + fk^a)/(f^a + fmin^a): w [K sqrt(s)], fk [Hz], a [1];
             fmin fixed
-    sign.   excess (or deficit of) broadband power, no lines
-    apart   judged on the Fourier modes away from the lines, where no template acts: a
-            template explains structure, the noise model only smooth power
-crosstalk
+crosstalk (injection only: not identifiable in a co-pointed orthogonal pair)
     model   d_k + x_k d_nom(other detector); x [1]
     sign.   the other detector's signal: its 2f HWPSS (in antiphase for an orthogonal pair),
             its dipole and sky, its polarisation angle (the 4 chi phase of the other angle)
-    apart   the 2f HWPSS changes by -x A_2 while the dipole changes by +x D: opposite signs,
-            unlike a gain error (same sign) or a 2f amplitude error (no dipole)
+    apart   in a pair sharing the pointing with orthogonal angles, x d_other = x (I + D) -
+            x pol - x A_2 cos 2(chi - theta): exactly a gain, 2f amplitude and polarisation
+            efficiency change, i.e. nominal adjustments (A_2 lowered by x A_2, gain raised by
+            x); it is therefore not offered as an effect
 
 How each parameter is fitted: jointly with the others, by (weighted) linear least
 squares in the whitened Fourier domain for the linear effects; tau by
@@ -75,6 +92,7 @@ by maximising the Whittle likelihood (see :mod:`.fit` and :mod:`.noise`).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -85,9 +103,18 @@ import scipy.optimize
 from ..nonlinearity import apply_nonlinearity
 from .model import Context, per_detector
 
-HWPSS_HARMONICS = (1, 2, 3, 4, 5, 6)
-GAIN_DEGREES = (0, 1, 2, 3)
-HWP_TEMPERATURE_DEGREES = (1, 2, 3)
+HWPSS_HARMONICS = (1, 3, 4, 5, 6)  # n = 2 is the nominal 2f adjustment
+INJECTION_HARMONICS = (1, 2, 3, 4, 5, 6)  # a simulated recording may carry any of them
+GAIN_DEGREES = (1, 2, 3)  # g0 (a constant gain error) is the nominal gain adjustment
+DRIFT_DEGREE = 3  # hwp_temperature_drift: P1..P3
+MODULATION_STEP_S = 480.0  # hwpss_slow_modulation: one Legendre degree per 8 minutes
+MODULATION_MIN, MODULATION_MAX = 4, 36
+
+
+def modulation_degree(duration_s: float) -> int:
+    """D = T / 8 min, clipped to 4..36: Legendre degrees of the slow 2f modulation."""
+    size = math.ceil(duration_s / MODULATION_STEP_S)
+    return int(min(max(size, MODULATION_MIN), MODULATION_MAX))
 
 
 def _value(params: dict, name: str, n_detectors: int) -> np.ndarray:
@@ -102,8 +129,13 @@ class Effect:
     parameters: ClassVar[dict[str, str]] = {}  # parameter -> unit, one value per detector
     main_parameters: tuple[str, ...] = ()
     kind: str = "linear"  # "linear", "nonlinear", "events" or "noise"
+    selectable: bool = True  # False: injection only (a nominal adjustment covers it)
     signature: str = ""
     discrimination: str = ""
+
+    def param_units(self, ctx: Context | None = None) -> dict[str, str]:
+        """Parameter -> unit for this recording (most effects: the fixed ``parameters``)."""
+        return dict(self.parameters)
 
     def templates(self, ctx: Context) -> np.ndarray | None:
         """T (n_det, n_param, n): recording - d_nom = sum_j p_j T_j to first order."""
@@ -115,7 +147,8 @@ class Effect:
 
     def _linear_apply(self, ctx, params, tod):
         tod = ctx.d_nom if tod is None else tod
-        values = np.stack([_value(params, p, ctx.n_detectors) for p in self.parameters], axis=1)
+        names = self.param_units(ctx)
+        values = np.stack([_value(params, p, ctx.n_detectors) for p in names], axis=1)
         return tod + np.einsum("kj,kjn->kn", values, self.templates(ctx))
 
     def __repr__(self) -> str:
@@ -199,8 +232,8 @@ class DetectorTimeConstant(Effect):
 class HwpssHarmonics(Effect):
     """HWP synchronous signal left out of the nominal model (which has only A_2 cos 2(chi-theta)).
 
-    sum_n c_n cos n(chi - theta) + s_n sin n(chi - theta), n = 1..6; n = 2 is the error on
-    the 2f amplitude (c_2) and phase (s_2 = A_2 x phase error).
+    sum_n c_n cos n(chi - theta) + s_n sin n(chi - theta), n = 1, 3, 4, 5, 6; the 2f
+    amplitude and phase (n = 2) are nominal adjustments (:mod:`.nominal`).
     """
 
     name = "hwpss_harmonics"
@@ -213,14 +246,22 @@ class HwpssHarmonics(Effect):
     discrimination = "no DC, no sidebands, constant in time"
 
     def templates(self, ctx):
+        return self._templates(ctx, HWPSS_HARMONICS)
+
+    @staticmethod
+    def _templates(ctx, harmonics):
         angle = ctx.detector_angle
         rows = []
-        for n in HWPSS_HARMONICS:
+        for n in harmonics:
             rows += [np.cos(n * angle), np.sin(n * angle)]
         return np.stack(rows, axis=1)
 
     def apply(self, ctx, params, tod=None):
-        return self._linear_apply(ctx, params, tod)
+        """Injection: any harmonic n = 1..6 (c2, s2 too: a 2f error of the simulated HWP)."""
+        tod = ctx.d_nom if tod is None else tod
+        names = [f"{cs}{n}" for n in INJECTION_HARMONICS for cs in ("c", "s")]
+        values = np.stack([_value(params, p, ctx.n_detectors) for p in names], axis=1)
+        return tod + np.einsum("kj,kjn->kn", values, self._templates(ctx, INJECTION_HARMONICS))
 
 
 class HwpssIntensityCoupling(Effect):
@@ -246,7 +287,7 @@ class HwpssIntensityCoupling(Effect):
 
 
 class GainDrift(Effect):
-    """Relative gain error and drift: d_obs = [1 + sum_j g_j P_j(x)] d, j = 0..3."""
+    """Relative gain drift: d_obs = [1 + sum_j g_j P_j(x)] d, j = 1..3 (g0: a nominal adjustment)."""
 
     name = "gain_drift"
     title = "gain error and drift"
@@ -260,30 +301,73 @@ class GainDrift(Effect):
         return np.stack([ctx.legendre(j)[None, :] * d for j in GAIN_DEGREES], axis=1)
 
     def apply(self, ctx, params, tod=None):
+        """Injection: g0 (a constant gain error) is accepted as well as g1..g3."""
         tod = ctx.d_nom if tod is None else tod
         gain = sum(
             _value(params, f"g{j}", tod.shape[0])[:, None] * ctx.legendre(j)[None, :]
-            for j in GAIN_DEGREES
+            for j in (0, *GAIN_DEGREES)
         )
         return (1.0 + gain) * tod
 
 
 class HwpTemperatureDrift(Effect):
-    """Slow modulation of the HWPSS amplitude: [sum_{j=1..3} c_j P_j(x)] cos 2(chi - theta)."""
+    """Slow drift of the 2f HWPSS amplitude: [sum_{j=1..3} c_j P_j(x)] cos(2 (chi - theta) - phi)."""
 
     name = "hwp_temperature_drift"
     title = "HWP temperature drift (2f amplitude drift)"
-    parameters: ClassVar[dict[str, str]] = {f"c{j}": "K" for j in HWP_TEMPERATURE_DEGREES}
+    parameters: ClassVar[dict[str, str]] = {f"c{j}": "K" for j in range(1, DRIFT_DEGREE + 1)}
     main_parameters = ("c1",)
     signature = "2 f_HWP demodulated amplitude drifting in time; dipole and sky untouched"
     discrimination = "only the 2f HWPSS moves, the dipole does not"
 
+    def degree(self, ctx: Context | None) -> int:
+        return DRIFT_DEGREE
+
+    def param_units(self, ctx=None):
+        return {f"c{j}": "K" for j in range(1, self.degree(ctx) + 1)}
+
     def templates(self, ctx):
-        carrier = np.cos(2 * ctx.detector_angle)
-        return np.stack([ctx.legendre(j)[None, :] * carrier for j in HWP_TEMPERATURE_DEGREES], 1)
+        carrier = ctx.carrier
+        degrees = range(1, self.degree(ctx) + 1)
+        return np.stack([ctx.legendre(j)[None, :] * carrier for j in degrees], axis=1)
+
+    def modulation(self, ctx, values: dict) -> np.ndarray:
+        """delta A_2(t) per detector [K] for fitted values {c_j: (n_det,)}, (n_det, n)."""
+        return sum(
+            np.asarray(values[f"c{j}"])[:, None] * ctx.legendre(j)[None, :]
+            for j in range(1, self.degree(ctx) + 1)
+        )
 
     def apply(self, ctx, params, tod=None):
         return self._linear_apply(ctx, params, tod)
+
+
+class HwpssSlowModulation(HwpTemperatureDrift):
+    """Slow modulation of the 2f HWPSS amplitude of ANY shape (drift, periodic, smoothed steps).
+
+    delta A_2(t) cos(2 (chi - theta) - phi), delta A_2 = sum_{j=1..D} c_j P_j(x): Legendre
+    polynomials up to D = T / 8 min (4..36). A smooth (analytic) modulation converges
+    exponentially in this basis once D exceeds ~ e omega / 2 (omega = its phase change over
+    half the recording): one period of 1.5 h in 2 h needs D ~ 15, four in 6 h ~ 40; a
+    cosine or spline basis of the same size leaves 1e-3 of the amplitude, which a 3 %
+    modulation of A_2 turns into lines of several uK. The simple drift (D = 3,
+    ``hwp_temperature_drift``) is the nested special case: the selection keeps whichever the
+    BIC prefers, the backward step drops the drift when this one is taken.
+    """
+
+    name = "hwpss_slow_modulation"
+    title = "slow modulation of the 2f HWPSS amplitude (any shape)"
+    parameters: ClassVar[dict[str, str]] = {
+        f"c{j}": "K" for j in range(1, MODULATION_MIN + 1)
+    }  # D grows with the recording's length: see param_units
+    signature = (
+        "2 f_HWP amplitude changing in time in any smooth way (sidebands within ~D/2T of "
+        "2 f_HWP); dipole and sky untouched"
+    )
+    discrimination = "only the 2f HWPSS moves, the dipole does not; any shape, not a drift"
+
+    def degree(self, ctx: Context | None) -> int:
+        return MODULATION_MIN if ctx is None else modulation_degree(ctx.duration_s)
 
 
 @dataclass(frozen=True)
@@ -420,6 +504,7 @@ class NoiseMismatch(Effect):
     parameters: ClassVar[dict[str, str]] = {"net": "K sqrt(s)", "fknee": "Hz", "alpha": "1"}
     main_parameters = ("net",)
     kind = "noise"
+    selectable = False  # the white level, knee and slope are nominal adjustments
     signature = "excess broadband power, no lines"
     discrimination = "smooth power spectrum change, explained by no template"
 
@@ -431,6 +516,7 @@ class Crosstalk(Effect):
     title = "crosstalk from the other detector of the pair"
     parameters: ClassVar[dict[str, str]] = {"x": "1"}
     main_parameters = ("x",)
+    selectable = False  # gain + A_2 + polarisation-efficiency adjustments in a pair
     signature = "the other detector's signal: its (antiphase) 2f HWPSS, dipole and polarisation"
     discrimination = "2f HWPSS changes by -x A_2 while the dipole changes by +x D"
 
@@ -452,6 +538,7 @@ CATALOG: dict[str, Effect] = {
         HwpssIntensityCoupling(),
         GainDrift(),
         HwpTemperatureDrift(),
+        HwpssSlowModulation(),
         Glitches(),
         NoiseMismatch(),
         Crosstalk(),
@@ -467,6 +554,7 @@ SIGNAL_EFFECTS = frozenset(
         "hwpss_intensity_coupling",
         "gain_drift",
         "hwp_temperature_drift",
+        "hwpss_slow_modulation",
         "crosstalk",
     }
 )

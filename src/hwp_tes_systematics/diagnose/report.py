@@ -31,14 +31,23 @@ import numpy as np
 import scipy.fft
 
 from ..io import atomic_path
-from .effects import CATALOG
+from .effects import CATALOG, HWPSS_HARMONICS
 from .fit import NOISE, FitProblem, stepwise
 from .locate import dc_offset, drifts, hwp_profile, line_at, locate
 from .model import build_context, load_sky, nominal_tod, per_detector
 from .noise import NoiseModel, estimate_noise, periodogram_scale
+from .nominal import (
+    NOMINAL,
+    SKY_RESIDUAL_NSIDE,
+    adjustments_report,
+    fit_nominal,
+    refit_noise,
+)
 from .recording import Recording
+from .unexplained import find_unexplained
 
 log = logging.getLogger(__name__)
+NOISE_REFIT_CHANGE = 0.02  # select again when the noise PSD at the effects moved by > 2 %
 
 __all__ = ["diagnose", "nominal_tod"]
 
@@ -81,10 +90,15 @@ def _nominal_noise_models(recording: Recording, nominal_noise) -> list[NoiseMode
             values = dict(meta)
             values.update(zip(("net_ukrts", "fknee_mhz", "alpha", "fmin_hz"), item, strict=False))
         if not (math.isfinite(values["net_ukrts"]) and values["net_ukrts"] > 0):
-            raise ValueError(
-                f"{recording.source}: no configured NET for detector "
-                f"{recording.detector_names[k]!r}; pass nominal_noise=(net_ukrts, fknee_mhz, alpha)"
+            # no NET in the file (a lab detector): the noise is a nominal adjustment
+            # anyway; it starts from a robust estimate on the residual (see diagnose)
+            log.warning(
+                "%s: no NET for detector %r in the file: the noise starts from the residual",
+                recording.source,
+                recording.detector_names[k],
             )
+            models.append(None)
+            continue
         models.append(NoiseModel.from_detector(values))
     return models
 
@@ -215,7 +229,7 @@ class Evidence:
         parts = []
         for k, name in enumerate(self.ctx.detector_names):
             found = []
-            for n in (1, 2, 3, 4, 5, 6):
+            for n in HWPSS_HARMONICS:
                 c, s = fit.values[f"c{n}"][k], fit.values[f"s{n}"][k]
                 sigma = max(fit.sigmas[f"c{n}"][k], fit.sigmas[f"s{n}"][k])
                 amplitude = math.hypot(c, s)
@@ -246,6 +260,9 @@ class Evidence:
                 f"would give {_fmt(abs(g1_equiv) * a2**2 / 2)}"
             )
         return "; ".join(parts)
+
+    def hwpss_slow_modulation(self, fit) -> str:
+        return self.hwp_temperature_drift(fit)
 
     def gain_drift(self, fit) -> str:
         parts = []
@@ -335,8 +352,7 @@ class Evidence:
         return "; ".join(parts)
 
 
-def _parameters(name, fit, detector_names, sampling_rate_hz) -> dict:
-    effect = CATALOG[name]
+def _parameters(name, fit, detector_names, sampling_rate_hz, units) -> dict:
     out = {}
     if name == "glitches":
         for i, e in enumerate(sorted(fit.events, key=lambda e: (e.detector, e.time_s))):
@@ -363,7 +379,7 @@ def _parameters(name, fit, detector_names, sampling_rate_hz) -> dict:
                 "parameter": "tau",
             }
         return out
-    for param, unit in effect.parameters.items():
+    for param, unit in units.items():
         for k, det in enumerate(detector_names):
             entry = {
                 "value": float(fit.values[param][k]),
@@ -427,6 +443,7 @@ def diagnose(
     max_effects: int = 6,
     workers: int = 1,
     figures: bool = True,
+    sky_residual_nside: int | None = SKY_RESIDUAL_NSIDE,
 ) -> dict:
     """Diagnose ``recording`` against its simulation (module docstring); never told the effect.
 
@@ -441,36 +458,70 @@ def diagnose(
     sky, sky_source = load_sky(sky_iqu)
     a2 = per_detector(a2_k, recording.n_detectors, "a2_k")
     nominal = _nominal_noise_models(recording, nominal_noise)
-    ctx = build_context(recording, sky, a2)
-    residual = np.where(ctx.valid, recording.tod - ctx.d_nom, 0.0)
+    base = build_context(recording, sky, a2)
+    residual0 = np.where(base.valid, recording.tod - base.d_nom, 0.0)
 
     estimates = []
-    for k in range(ctx.n_detectors):
+    for k in range(base.n_detectors):
         estimates.append(
             estimate_noise(
-                residual[k],
-                ctx.sampling_rate_hz,
-                ctx.valid[k],
-                ctx.f_hwp_hz,
-                ctx.f_spin_hz,
-                nominal[k].fmin_hz,
+                residual0[k],
+                base.sampling_rate_hz,
+                base.valid[k],
+                base.f_hwp_hz,
+                base.f_spin_hz,
+                nominal[k].fmin_hz if nominal[k] is not None else 1e-5,
                 start=nominal[k],
             )
         )
-    noise_models = [e.model for e in estimates]
+    nominal = [m if m is not None else e.model for m, e in zip(nominal, estimates, strict=True)]
+    # Nominal adjustments (gain, 2f amplitude and phase, polarisation angle, sky scales,
+    # offsets, sky residual, noise): fitted on every recording, never an effect.
+    adjusted = fit_nominal(
+        base,
+        recording.tod,
+        nominal,
+        sky_residual_nside=sky_residual_nside,
+        workers=workers,
+    )
+    ctx = adjusted.context
+    noise_models = adjusted.noise
+    residual = np.where(ctx.valid, recording.tod - ctx.d_nom, 0.0)
     mismatch = locate(ctx, residual, noise_models, nominal, workers=workers)
 
-    problem = FitProblem(ctx, recording.tod, nominal, workers=workers)
-    selection = stepwise(problem, delta_bic_threshold=delta_bic_threshold, max_effects=max_effects)
-    final = selection.final
-    final = problem.fit(final.selected, keep_model=True)
+    # The noise was fitted before any effect was removed: a strong effect leaks power
+    # beyond the line bins and inflates it. Refit it on the residual of the best fit and,
+    # if it moved by more than 2 % where the effects are, select again with the new weights,
+    # starting from the effects found (each checked again, then the others tried).
+    previous = ()
+    history = []
+    for attempt in range(2):
+        problem = FitProblem(ctx, recording.tod, noise_models, workers=workers, nominal=NOMINAL)
+        selection = stepwise(
+            problem,
+            delta_bic_threshold=delta_bic_threshold,
+            max_effects=max_effects,
+            initial=previous,
+        )
+        final = problem.fit(selection.final.selected, keep_model=True)
+        history += selection.steps
+        if attempt == 1 or not final.selected:
+            break
+        refit, covariances, change = refit_noise(
+            ctx, problem.residual_f - np.array(final.model_f), noise_models
+        )
+        if change < NOISE_REFIT_CHANGE:
+            break
+        noise_models = refit
+        adjusted.noise, adjusted.noise_covariance = refit, covariances
+        previous = final.selected  # checked first with the new weights, then extended
     residual_after = problem.residual_after(final)
     partial = problem.partial_residuals(final)
 
     effects_out = []
     for name in selection.ranked:
         fit = final.effects[name]
-        evidence = Evidence(ctx, partial[name], noise_models, a2, workers)
+        evidence = Evidence(ctx, partial[name], noise_models, ctx.a2_k, workers)
         if name == NOISE:
             text = evidence.noise_mismatch(fit, nominal, mismatch.excess_bands)
         else:
@@ -480,7 +531,9 @@ def diagnose(
             {
                 "name": name,
                 "title": effect.title,
-                "parameters": _parameters(name, fit, ctx.detector_names, ctx.sampling_rate_hz),
+                "parameters": _parameters(
+                    name, fit, ctx.detector_names, ctx.sampling_rate_hz, problem.units[name]
+                ),
                 "main_parameters": list(effect.main_parameters),
                 "delta_chi2": selection.delta_chi2[name],
                 "delta_bic": selection.delta_bic[name],
@@ -489,19 +542,29 @@ def diagnose(
             }
         )
     lines = _line_table(mismatch, ctx, residual, residual_after, noise_models)
+    corrections = final.effects[NOMINAL.name]
+    adjustments = adjustments_report(
+        adjusted, corrections.values, corrections.sigmas, nominal, recording.pol_angles_rad
+    )
+    n_nuisance = problem.n_nominal * ctx.n_detectors + 3 * ctx.n_detectors + ctx.n_detectors
+    n_nuisance += adjusted.sky_residual_pixels
+    unexplained = find_unexplained(ctx, residual_after, noise_models, selection, workers)
     result = {
-        "mismatch_found": bool(final.selected),
+        "mismatch_found": bool(final.selected) or bool(unexplained),
         "effects": effects_out,
+        "unexplained": unexplained,
+        "nominal_adjustments": adjustments,
         "chi2_before": selection.baseline.chi2,
         "chi2_after": final.chi2,
-        "dof": selection.n_eff - final.n_params,
+        "dof": selection.n_eff - final.n_params - n_nuisance,
+        "n_nuisance_parameters": n_nuisance,
         "n_eff": selection.n_eff,
         "n_params": final.n_params,
         "bic_before": selection.baseline.bic(selection.ln_n_eff),
         "bic_after": final.bic(selection.ln_n_eff),
         "delta_bic_threshold": delta_bic_threshold,
         "information_criterion": "BIC = chi2 + k ln N_eff (N_eff = real Fourier dof used)",
-        "steps": [step.as_dict() for step in selection.steps],
+        "steps": [dict(step.as_dict(), step=i + 1) for i, step in enumerate(history)],
         "lines": lines,
         "noise": {
             "nominal": [
@@ -580,12 +643,23 @@ def markdown_report(result: dict, figure_files: dict | None = None) -> str:
         "",
     ]
     effects = result["effects"]
+    unexplained = result.get("unexplained", [])
     if not result["mismatch_found"]:
         out += [
             (
-                "**No mismatch found**: no effect of the catalog lowers the BIC by more than "
-                f"{-result['delta_bic_threshold']:g}; the residual is consistent with the configured "
-                f"noise (chi2 = {result['chi2_before']:.1f} for N_eff = {result['n_eff']})."
+                "**No mismatch found**: once the nominal model's adjustments are fitted (below), "
+                "no effect of the catalog lowers the BIC by more than "
+                f"{-result['delta_bic_threshold']:g} and no significant structure is left; the "
+                f"residual is consistent with the fitted noise (chi2 = {result['chi2_before']:.1f} "
+                f"for {result['dof']} degrees of freedom)."
+            ),
+            "",
+        ]
+    elif not effects:
+        out += [
+            (
+                "**Mismatch found, but no catalog effect explains it**: see *What the fit "
+                "cannot explain* below."
             ),
             "",
         ]
@@ -619,7 +693,33 @@ def markdown_report(result: dict, figure_files: dict | None = None) -> str:
         for pname, p in list(effect["parameters"].items())[:60]:
             out.append(f"| {pname} | {p['value']:.6g} | {p['sigma']:.3g} | {p['unit']} |")
         out.append("")
+    out += ["## What the fit cannot explain", ""]
+    if unexplained:
+        out += [
+            (
+                "Significant structure left in the residual after the nominal adjustments "
+                "and the selected effects; these are NOT forced onto a catalog effect:"
+            ),
+            "",
+        ]
+        out += [f"- {entry['text']}." for entry in unexplained]
+    else:
+        out.append("Nothing: no line, band, time segment or sky region above 5 sigma is left.")
+    out += ["", "## Nominal-model adjustments (fitted on every recording, not effects)", ""]
     out += [
+        "| detector | quantity | value | sigma | unit | nominal |",
+        "|---|---|---|---|---|---|",
+    ]
+    for det, items in result.get("nominal_adjustments", {}).items():
+        for quantity, item in items.items():
+            sigma = item["sigma"]
+            sigma_text = f"{sigma:.3g}" if sigma is not None else "-"
+            out.append(
+                f"| {det} | {quantity} | {item['value']:.6g} | {sigma_text} | {item['unit']} | "
+                f"{item['nominal']:.6g} |"
+            )
+    out += [
+        "",
         "## Selection steps",
         "",
         "| step | added | removed | chi2 before | chi2 after | BIC before | BIC after | note |",
