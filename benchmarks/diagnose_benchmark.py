@@ -36,8 +36,12 @@ from pathlib import Path
 import numpy as np
 
 from hwp_tes_systematics import sky
-from hwp_tes_systematics.diagnose import read_recording, simulate_recording, write_recording
-from hwp_tes_systematics.diagnose.report import diagnose
+from hwp_tes_systematics.diagnose import (
+    diagnose,
+    read_recording,
+    simulate_recording,
+    write_recording,
+)
 
 EFFECTS = {
     "none": [],

@@ -198,7 +198,7 @@ def test_wrong_sky_map_shape(clean_file, tmp_path):
 
 
 def run_with_sky(recording, sky):
-    from hwp_tes_systematics.diagnose.report import diagnose
+    from hwp_tes_systematics.diagnose import diagnose
 
     return diagnose(recording, sky, A2_K)
 
@@ -228,8 +228,8 @@ def test_lab_detector_needs_a2_and_uses_its_own_metadata(clean_file, tmp_path):
     """
     import json
 
+    from hwp_tes_systematics.diagnose import diagnose
     from hwp_tes_systematics.diagnose.recording import nominal_a2
-    from hwp_tes_systematics.diagnose.report import diagnose
 
     def lab(handle):
         detectors = json.loads(handle["tod"].attrs["detectors"])

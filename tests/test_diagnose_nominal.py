@@ -24,7 +24,7 @@ from test_diagnose_support import (
     supplied_sky,
 )
 
-from hwp_tes_systematics.diagnose.report import diagnose
+from hwp_tes_systematics.diagnose import diagnose
 
 pytestmark = pytest.mark.slow
 

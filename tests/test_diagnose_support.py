@@ -14,8 +14,12 @@ import functools
 import numpy as np
 
 from hwp_tes_systematics import sky
-from hwp_tes_systematics.diagnose import read_recording, simulate_recording, write_recording
-from hwp_tes_systematics.diagnose.report import diagnose
+from hwp_tes_systematics.diagnose import (
+    diagnose,
+    read_recording,
+    simulate_recording,
+    write_recording,
+)
 
 CHANNEL = "M1-140"
 NSIDE = 32

@@ -117,12 +117,28 @@ def modulation_degree(duration_s: float) -> int:
     return int(min(max(size, MODULATION_MIN), MODULATION_MAX))
 
 
+def _fmt(value_k: float) -> str:
+    """A temperature in the most readable unit."""
+    magnitude = abs(value_k)
+    if magnitude >= 1e-1:
+        return f"{value_k:.4g} K"
+    if magnitude >= 1e-4:
+        return f"{value_k * 1e3:.4g} mK"
+    return f"{value_k * 1e6:.3g} uK"
+
+
 def _value(params: dict, name: str, n_detectors: int) -> np.ndarray:
     return per_detector(params.get(name, 0.0), n_detectors, name)
 
 
 class Effect:
-    """A candidate effect: named per-detector parameters and a forward model."""
+    """A candidate effect: named per-detector parameters, forward model, signature, evidence.
+
+    One place per effect: its forward model (``apply``), linear templates (``templates``),
+    signature and discrimination (texts) and the evidence it states in words on the
+    measured residual (``evidence``) live in its class; the fit, the report and the
+    simulator only use these.
+    """
 
     name: str = ""
     title: str = ""
@@ -130,6 +146,10 @@ class Effect:
     main_parameters: tuple[str, ...] = ()
     kind: str = "linear"  # "linear", "nonlinear", "events" or "noise"
     selectable: bool = True  # False: injection only (a nominal adjustment covers it)
+    # where it acts: "signal" (on the optical signal, before the detector's response),
+    # "response" (the detector's response to the total: the nonlinearity acts on the
+    # signal effects too), "noise" or "events" (added after the response)
+    stage: str = "signal"
     signature: str = ""
     discrimination: str = ""
 
@@ -151,6 +171,10 @@ class Effect:
         values = np.stack([_value(params, p, ctx.n_detectors) for p in names], axis=1)
         return tod + np.einsum("kj,kjn->kn", values, self.templates(ctx))
 
+    def evidence(self, ev, fit) -> str:
+        """The signature measured on the residual ``ev`` (:class:`.evidence.Evidence`), in words."""
+        return self.signature
+
     def __repr__(self) -> str:
         return f"<effect {self.name}>"
 
@@ -168,6 +192,7 @@ class TesNonlinearity(Effect):
     title = "TES gain nonlinearity"
     parameters: ClassVar[dict[str, str]] = {"g1": "1/K", "g2": "1/K^2"}
     main_parameters = ("g1",)
+    stage = "response"
     signature = (
         "4 f_HWP line g1 A_2^2/2 with a DC shift of the same size, 2 f_HWP +- f_spin "
         "sidebands g1 A_2 D each, 6 f_HWP line g2 A_2^3/4"
@@ -192,6 +217,36 @@ def single_pole(freqs_hz: np.ndarray, tau_s: float) -> np.ndarray:
 def single_pole_derivative(freqs_hz: np.ndarray, tau_s: float) -> np.ndarray:
     """dH/dtau = -2 pi i f / (1 + 2 pi i f tau)^2."""
     return -2j * np.pi * freqs_hz / (1.0 + 2j * np.pi * freqs_hz * tau_s) ** 2
+
+    def evidence(self, ev, fit) -> str:
+        """The signature measured on the residual ``ev`` (:class:`.evidence.Evidence`), in words."""
+        parts = []
+        for k, name in enumerate(ev.ctx.detector_names):
+            g1 = fit.values["g1"][k]
+            g2 = fit.values["g2"][k]
+            a2 = ev.a2[k]
+            h4 = ev.harmonic(k, 4)
+            h6 = ev.harmonic(k, 6)
+            dc, dc_sigma = ev.dc(k)
+            valid = ev.ctx.valid[k]
+            d = ev.ctx.d_nom[k][valid]
+            dc_pred = g1 * float(np.mean(d**2)) + g2 * float(np.mean(d**3))
+            (lo, _lo_s, _, lo_sig, *_), (hi, _hi_s, _, hi_sig, *_) = ev.sidebands(k)
+            side_pred = abs(g1) * a2 * ev.dipole_amplitude(k)
+            text = (
+                f"{name}: 4 f_HWP line {_fmt(h4.amplitude_k)} at {h4.significance_sigma:.1f} sigma "
+                f"(predicted g1 A_2^2/2 = {_fmt(abs(g1) * a2**2 / 2)}); DC shift "
+                f"{_fmt(dc)} +- {_fmt(dc_sigma)} (predicted {_fmt(dc_pred)}); 2 f_HWP - f_spin and "
+                f"2 f_HWP + f_spin lines {_fmt(lo)} and {_fmt(hi)} at {lo_sig:.1f} and "
+                f"{hi_sig:.1f} sigma (predicted g1 A_2 D = {_fmt(side_pred)} each)"
+            )
+            if h6 is not None and abs(fit.sigmas["g2"][k]) > 0:
+                text += (
+                    f"; 6 f_HWP line {_fmt(h6.amplitude_k)} at {h6.significance_sigma:.1f} sigma "
+                    f"(g2 A_2^3/4 = {_fmt(abs(g2) * a2**3 / 4)})"
+                )
+            parts.append(text)
+        return "; ".join(parts)
 
 
 class DetectorTimeConstant(Effect):
@@ -228,6 +283,29 @@ class DetectorTimeConstant(Effect):
             out[k] = scipy.fft.irfft(spectrum[k] * single_pole(freqs, tau[k]), n=tod.shape[-1])
         return out
 
+    def evidence(self, ev, fit) -> str:
+        """The signature measured on the residual ``ev`` (:class:`.evidence.Evidence`), in words."""
+        parts = []
+        omega = 2 * np.pi * 2 * ev.f_hwp
+        for k, name in enumerate(ev.ctx.detector_names):
+            tau = fit.values["tau"][k]
+            static = ev.drift(k, "static")
+            a2 = ev.a2[k]
+            c, s = static["hwpss_2f_cos_k"], static["hwpss_2f_sin_k"]
+            s_sigma = static["hwpss_2f_sin_sigma_k"]
+            lag = math.atan2(s, a2 + c)
+            factor = math.hypot(a2 + c, s) / a2 if a2 else math.nan
+            lag_pred = math.atan(omega * tau)
+            factor_pred = 1 / math.sqrt(1 + (omega * tau) ** 2)
+            parts.append(
+                f"{name}: the 2 f_HWP HWPSS has a quadrature residual {_fmt(s)} at "
+                f"{abs(s) / s_sigma if s_sigma else 0:.0f} sigma, i.e. it lags by "
+                f"{lag * 1e3:.3f} mrad with amplitude factor {factor:.6f}; one tau = "
+                f"{tau * 1e3:.4g} ms predicts a lag atan(2 pi 2f_HWP tau) = {lag_pred * 1e3:.3f} "
+                f"mrad and a factor 1/sqrt(1+(2 pi 2f_HWP tau)^2) = {factor_pred:.6f}"
+            )
+        return "; ".join(parts)
+
 
 class HwpssHarmonics(Effect):
     """HWP synchronous signal left out of the nominal model (which has only A_2 cos 2(chi-theta)).
@@ -263,6 +341,26 @@ class HwpssHarmonics(Effect):
         values = np.stack([_value(params, p, ctx.n_detectors) for p in names], axis=1)
         return tod + np.einsum("kj,kjn->kn", values, self._templates(ctx, INJECTION_HARMONICS))
 
+    def evidence(self, ev, fit) -> str:
+        """The signature measured on the residual ``ev`` (:class:`.evidence.Evidence`), in words."""
+        parts = []
+        for k, name in enumerate(ev.ctx.detector_names):
+            found = []
+            for n in HWPSS_HARMONICS:
+                c, s = fit.values[f"c{n}"][k], fit.values[f"s{n}"][k]
+                sigma = max(fit.sigmas[f"c{n}"][k], fit.sigmas[f"s{n}"][k])
+                amplitude = math.hypot(c, s)
+                if sigma > 0 and amplitude / sigma > 3:
+                    found.append(f"{n} f_HWP {_fmt(amplitude)} ({amplitude / sigma:.0f} sigma)")
+            dc, dc_sigma = ev.dc(k)
+            (_lo, _, _, lo_sig, *_), (_hi, _, _, hi_sig, *_) = ev.sidebands(k)
+            parts.append(
+                f"{name}: lines at {', '.join(found) or 'no single harmonic above 3 sigma'}; "
+                f"no DC shift ({_fmt(dc)} +- {_fmt(dc_sigma)}) and no 2 f_HWP +- f_spin "
+                f"sidebands ({lo_sig:.1f} and {hi_sig:.1f} sigma), unlike a nonlinearity"
+            )
+        return "; ".join(parts)
+
 
 class HwpssIntensityCoupling(Effect):
     """Intensity modulated by the HWP (paper's a_n^opt I term): I(t) [a_c cos 2(chi-theta) + a_s sin].
@@ -284,6 +382,24 @@ class HwpssIntensityCoupling(Effect):
 
     def apply(self, ctx, params, tod=None):
         return self._linear_apply(ctx, params, tod)
+
+    def evidence(self, ev, fit) -> str:
+        """The signature measured on the residual ``ev`` (:class:`.evidence.Evidence`), in words."""
+        parts = []
+        for k, name in enumerate(ev.ctx.detector_names):
+            a = math.hypot(fit.values["a2c"][k], fit.values["a2s"][k])
+            (lo, _, _, lo_sig, *_), (hi, _, _, hi_sig, *_) = ev.sidebands(k)
+            h4 = ev.harmonic(k, 4)
+            a2 = ev.a2[k]
+            g1_equiv = fit.values["a2c"][k] / (2 * a2) if a2 else math.nan
+            parts.append(
+                f"{name}: 2 f_HWP - f_spin and 2 f_HWP + f_spin sidebands {_fmt(lo)} and "
+                f"{_fmt(hi)} ({lo_sig:.1f} and {hi_sig:.1f} sigma), a = {a:.3g} of I; no 4 f_HWP "
+                f"line ({_fmt(h4.amplitude_k)}, {h4.significance_sigma:.1f} sigma) where a "
+                f"nonlinearity making the same sidebands (g1 = a/(2 A_2) = {g1_equiv:.3g}/K) "
+                f"would give {_fmt(abs(g1_equiv) * a2**2 / 2)}"
+            )
+        return "; ".join(parts)
 
 
 class GainDrift(Effect):
@@ -308,6 +424,26 @@ class GainDrift(Effect):
             for j in (0, *GAIN_DEGREES)
         )
         return (1.0 + gain) * tod
+
+    def evidence(self, ev, fit) -> str:
+        """The signature measured on the residual ``ev`` (:class:`.evidence.Evidence`), in words."""
+        parts = []
+        hours = ev.ctx.duration_s / 3600
+        for k, name in enumerate(ev.ctx.detector_names):
+            dipole = ev.drift(k, "dipole_gain")
+            hwpss = ev.drift(k, "hwpss_2f_cos")
+            a2 = ev.a2[k]
+            rel = hwpss["slope_per_hour"] / a2 if a2 else math.nan
+            rel_sigma = hwpss["sigma_per_hour"] / a2 if a2 else math.nan
+            g1 = fit.values["g1"][k]
+            parts.append(
+                f"{name}: the dipole amplitude drifts by {dipole['slope_per_hour'] * 100:.3g} +- "
+                f"{dipole['sigma_per_hour'] * 100:.2g} %/h ({dipole['significance_sigma']:.1f} "
+                f"sigma) together with the 2f HWPSS ({rel * 100:.3g} +- {rel_sigma * 100:.2g} %/h): "
+                f"the whole signal scales, as a gain drift g1 P1 (= {2 * g1 / hours * 100:.3g} %/h) "
+                "predicts and an HWP temperature drift (2f only) does not"
+            )
+        return "; ".join(parts)
 
 
 class HwpTemperatureDrift(Effect):
@@ -340,6 +476,20 @@ class HwpTemperatureDrift(Effect):
 
     def apply(self, ctx, params, tod=None):
         return self._linear_apply(ctx, params, tod)
+
+    def evidence(self, ev, fit) -> str:
+        """The signature measured on the residual ``ev`` (:class:`.evidence.Evidence`), in words."""
+        parts = []
+        for k, name in enumerate(ev.ctx.detector_names):
+            dipole = ev.drift(k, "dipole_gain")
+            hwpss = ev.drift(k, "hwpss_2f_cos")
+            parts.append(
+                f"{name}: the 2f HWPSS amplitude drifts by {_fmt(hwpss['slope_per_hour'])}/h "
+                f"({hwpss['significance_sigma']:.0f} sigma) while the dipole amplitude does not "
+                f"({dipole['slope_per_hour'] * 100:.2g} +- {dipole['sigma_per_hour'] * 100:.2g} %/h, "
+                f"{dipole['significance_sigma']:.1f} sigma): only the HWP emission changes"
+            )
+        return "; ".join(parts)
 
 
 class HwpssSlowModulation(HwpTemperatureDrift):
@@ -482,6 +632,7 @@ class Glitches(Effect):
     parameters: ClassVar[dict[str, str]] = {"amplitude": "K", "time": "s", "tau": "s"}
     main_parameters = ("amplitude",)
     kind = "events"
+    stage = "events"
     signature = "isolated transients in time, uncorrelated with chi and the sky"
     discrimination = "not periodic in chi, no lines, localised in time"
 
@@ -490,6 +641,23 @@ class Glitches(Effect):
         events = params.get("events", [])
         events = [e if isinstance(e, GlitchEvent) else GlitchEvent(*e) for e in events]
         return tod + glitch_tod(ctx.times_s, tod.shape[0], events)
+
+    def evidence(self, ev, fit) -> str:
+        """The signature measured on the residual ``ev`` (:class:`.evidence.Evidence`), in words."""
+        events = fit.events
+        if not events:
+            return "no transient left after the fit"
+        strongest = max(events, key=lambda e: e.significance)
+        taus = np.array([e.tau_s for e in events])
+        names = ev.ctx.detector_names
+        per_det = {name: sum(e.detector == k for e in events) for k, name in enumerate(names)}
+        counts = ", ".join(f"{n} in {name}" for name, n in per_det.items())
+        return (
+            f"{len(events)} isolated transients ({counts}); the strongest "
+            f"{_fmt(strongest.amplitude_k)} at t = {strongest.time_s:.2f} s ({strongest.significance:.0f} "
+            f"sigma) in {names[strongest.detector]}; exponential tails tau = "
+            f"{np.median(taus) * 1e3:.0f} ms (median); localised in time, not periodic in chi"
+        )
 
 
 class NoiseMismatch(Effect):
@@ -504,6 +672,7 @@ class NoiseMismatch(Effect):
     parameters: ClassVar[dict[str, str]] = {"net": "K sqrt(s)", "fknee": "Hz", "alpha": "1"}
     main_parameters = ("net",)
     kind = "noise"
+    stage = "noise"
     selectable = False  # the white level, knee and slope are nominal adjustments
     signature = "excess broadband power, no lines"
     discrimination = "smooth power spectrum change, explained by no template"
@@ -528,6 +697,23 @@ class Crosstalk(Effect):
         x = _value(params, "x", tod.shape[0])
         return tod + x[:, None] * tod[ctx.partner]
 
+    def evidence(self, ev, fit) -> str:
+        """The signature measured on the residual ``ev`` (:class:`.evidence.Evidence`), in words."""
+        parts = []
+        for k, name in enumerate(ev.ctx.detector_names):
+            static = ev.drift(k, "static")
+            x = fit.values["x"][k]
+            a2 = ev.a2[k]
+            c = static["hwpss_2f_cos_k"]
+            g = static["dipole_gain"]
+            parts.append(
+                f"{name}: the 2f HWPSS changes by {c / a2 if a2 else math.nan:+.3g} of A_2 while "
+                f"the dipole changes by {g:+.3g} +- {static['dipole_gain_sigma']:.2g} of itself: "
+                f"opposite signs, as the other (orthogonal) detector's signal with x = {x:.4g} "
+                "gives (its HWPSS is in antiphase, its dipole in phase)"
+            )
+        return "; ".join(parts)
+
 
 CATALOG: dict[str, Effect] = {
     effect.name: effect
@@ -547,17 +733,8 @@ CATALOG: dict[str, Effect] = {
 
 
 # Effects on the signal, which the detector nonlinearity then acts on (they come before it).
-SIGNAL_EFFECTS = frozenset(
-    {
-        "detector_time_constant",
-        "hwpss_harmonics",
-        "hwpss_intensity_coupling",
-        "gain_drift",
-        "hwp_temperature_drift",
-        "hwpss_slow_modulation",
-        "crosstalk",
-    }
-)
+SIGNAL_EFFECTS = frozenset(name for name, e in CATALOG.items() if e.stage == "signal")
+RESPONSE_STAGE = frozenset(name for name, e in CATALOG.items() if e.stage == "response")
 
 
 def get_effect(name: str) -> Effect:

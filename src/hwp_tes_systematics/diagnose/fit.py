@@ -75,6 +75,7 @@ import scipy.optimize
 
 from .effects import (
     CATALOG,
+    RESPONSE_STAGE,
     SIGNAL_EFFECTS,
     Effect,
     GlitchEvent,
@@ -357,7 +358,9 @@ class FitProblem:
 
     @staticmethod
     def _composed(selected) -> bool:
-        return "tes_nonlinearity" in selected and any(n in SIGNAL_EFFECTS for n in selected)
+        return any(n in RESPONSE_STAGE for n in selected) and any(
+            n in SIGNAL_EFFECTS for n in selected
+        )
 
     def _linear_effect_fits(self, selected, values, covariances) -> dict[str, EffectFit]:
         """Per-effect values and sigmas; the nominal adjustments under ``self.nominal.name``."""
@@ -486,7 +489,7 @@ class FitProblem:
             position = self.n_nominal
             for name in linear:
                 width = self.slices[name].stop - self.slices[name].start
-                if name == "tes_nonlinearity":
+                if name in RESPONSE_STAGE:
                     nl_rows = np.arange(position, position + width)
                 position += width
         others = np.setdiff1d(np.arange(rows.size), nl_rows)
