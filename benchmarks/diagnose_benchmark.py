@@ -128,7 +128,7 @@ def rates(arguments) -> None:
 
     hours, n_seeds = arguments.hours, arguments.seeds
     started = time.perf_counter()
-    lines, top_ok, top_n, par_ok, par_n = [], 0, 0, 0, 0
+    lines, top_ok, top_n, top_tied, par_ok, par_n = [], 0, 0, 0, 0, 0
     thresholds = {}
     with tempfile.TemporaryDirectory() as folder:
         seed = 1
@@ -142,24 +142,34 @@ def rates(arguments) -> None:
             accepted = accepted or {effect}
             found_at = []
             for amplitude in amplitudes:
-                found = correct = within = 0
+                found = correct = within = reported = tied = 0
                 for _ in range(n_seeds):
                     result, errors = _one(support, [(effect, make(amplitude))], seed, hours, folder)
                     seed += 1
                     names = [e["name"] for e in result["effects"]]
                     found += bool(accepted & set(names))  # among the effects
                     correct += bool(names) and names[0] in accepted  # ranked first
+                    if names:
+                        reported += 1
+                        ties = set(result["effects"][0].get("look_alikes", []))
+                        tied += names[0] not in accepted and bool(accepted & ties)
                     if param is not None and names and names[0] in accepted:
                         within += _within(result, effect, param, amplitude, errors["gain"])
                 top_ok += correct
-                top_n += n_seeds
+                top_n += reported
+                top_tied += tied
                 if param is not None:
                     par_ok += within
                     par_n += found
                 found_at.append((amplitude, found / n_seeds))
                 lines.append(
                     f"{effect} {param or 'amplitude'} = {amplitude:g}: found {found}/{n_seeds}, "
-                    f"top-ranked correct {correct}/{n_seeds}"
+                    f"top-ranked correct {correct}/{reported} reported"
+                    + (
+                        f" ({tied} more with the truth named as an equal look-alike)"
+                        if tied
+                        else ""
+                    )
                     + (f", parameter within 3 sigma {within}/{found}" if param else "")
                 )
             detected = [a for a, rate in found_at if rate >= 0.9]
@@ -188,7 +198,9 @@ def rates(arguments) -> None:
     for line in lines:
         print("  " + line)
     print(
-        f"top-ranked effect correct: {top_ok}/{top_n} = {top_ok / max(top_n, 1):.0%} (all amplitudes)"
+        f"top-ranked effect correct: {top_ok}/{top_n} = {top_ok / max(top_n, 1):.0%} of the "
+        f"recordings where an effect was reported; {top_tied} more had the truth named as an "
+        "equal look-alike of the top one"
     )
     print(f"main parameter within 3 sigma: {par_ok}/{par_n} = {par_ok / max(par_n, 1):.0%}")
     print(f"every out-of-catalog effect in unexplained: {outside_ok}")

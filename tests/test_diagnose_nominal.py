@@ -148,3 +148,17 @@ def test_spin_modulated_harmonic_leaves_its_sidebands_unexplained(tmp_path):
     assert "hwpss_harmonics" in names(result), names(result)
     labels = {u["identification"] for u in result["unexplained"] if u["kind"] == "line"}
     assert {"3 f_HWP - f_spin", "3 f_HWP + f_spin"} <= labels, result["unexplained"]
+
+
+def test_gain_drift_and_2f_drift_not_told_apart_in_one_hour_are_named_together(tmp_path):
+    """A 3 %/h gain drift in one hour: its only difference from a 2f amplitude drift is the
+    dipole's drift at f_spin, deep in the 1/f noise; the two fit equally well and the
+    report names both (``look_alikes``) instead of picking one silently."""
+    errors = nominal_errors(np.random.default_rng(56))
+    recording, _ = recorded_with_errors(
+        tmp_path, [("gain_drift", {"g1": 0.03})], 10_056, errors, hours=1.0
+    )
+    result = run_with(recording, errors)
+    top = result["effects"][0]
+    assert {top["name"], *top["look_alikes"]} >= {"gain_drift", "hwp_temperature_drift"}, top
+    assert "NOT told apart" in top["evidence"]

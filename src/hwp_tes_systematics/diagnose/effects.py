@@ -59,7 +59,7 @@ hwp_temperature_drift
     apart   dipole and sky untouched (unlike the gain drift); a constant 2f amplitude error
             is the nominal adjustment
 hwpss_slow_modulation
-    model   [sum_{j=1..D} c_j P_j(x)] cos(2(chi - theta) - phi), D = T / 8 min (4..36): a
+    model   [sum_{j=1..D} c_j P_j(x)] cos(2(chi - theta) - phi), D = T / 8 min (4..24): a
             slow modulation of the 2f amplitude of ANY shape (drift, periodic, smoothed
             steps), not one functional form; c_j [K]
     sign.   2f sidebands within ~D / 2T of 2 f_HWP, demodulated 2f amplitude changing in time
@@ -108,11 +108,11 @@ INJECTION_HARMONICS = (1, 2, 3, 4, 5, 6)  # a simulated recording may carry any 
 GAIN_DEGREES = (1, 2, 3)  # g0 (a constant gain error) is the nominal gain adjustment
 DRIFT_DEGREE = 3  # hwp_temperature_drift: P1..P3
 MODULATION_STEP_S = 480.0  # hwpss_slow_modulation: one Legendre degree per 8 minutes
-MODULATION_MIN, MODULATION_MAX = 4, 36
+MODULATION_MIN, MODULATION_MAX = 4, 24  # 24: a one-day pair stays within memory and time
 
 
 def modulation_degree(duration_s: float) -> int:
-    """D = T / 8 min, clipped to 4..36: Legendre degrees of the slow 2f modulation."""
+    """D = T / 8 min, clipped to 4..24: Legendre degrees of the slow 2f modulation."""
     size = math.ceil(duration_s / MODULATION_STEP_S)
     return int(min(max(size, MODULATION_MIN), MODULATION_MAX))
 
@@ -496,7 +496,7 @@ class HwpssSlowModulation(HwpTemperatureDrift):
     """Slow modulation of the 2f HWPSS amplitude of ANY shape (drift, periodic, smoothed steps).
 
     delta A_2(t) cos(2 (chi - theta) - phi), delta A_2 = sum_{j=1..D} c_j P_j(x): Legendre
-    polynomials up to D = T / 8 min (4..36). A smooth (analytic) modulation converges
+    polynomials up to D = T / 8 min (4..24). A smooth (analytic) modulation converges
     exponentially in this basis once D exceeds ~ e omega / 2 (omega = its phase change over
     half the recording): one period of 1.5 h in 2 h needs D ~ 15, four in 6 h ~ 40; a
     cosine or spline basis of the same size leaves 1e-3 of the amplitude, which a 3 %

@@ -66,6 +66,7 @@ parameters from the Whittle Fisher matrix.
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass, field
 
@@ -167,10 +168,6 @@ class FitProblem:
         self.valid = np.asarray(ctx.valid, dtype=bool)
         self.valid_fraction = self.valid.mean(axis=1)
         self.scale = [periodogram_scale(n, fs, v) for v in self.valid_fraction]
-        self.nominal_noise = list(nominal_noise)
-        self.s_nom = [self.scale[k] * nominal_noise[k].psd(self.freqs) for k in range(self.n_det)]
-        self.w_nom = [self.weights(s) for s in self.s_nom]
-        self.w_nom_off = [w * self.off_lines for w in self.w_nom]
         residual = np.where(self.valid, tod - ctx.d_nom, 0.0)
         self.residual_f = scipy.fft.rfft(residual, axis=-1, workers=workers)
 
@@ -205,7 +202,15 @@ class FitProblem:
             self._masked_one(k, -2j * np.pi * self.freqs * self.d_nom_f[k])
             for k in range(self.n_det)
         ]
-        # Nominal-noise normal equations of the whole bank: linear fits take sub-blocks.
+        self._set_noise(nominal_noise)
+
+    def _set_noise(self, nominal_noise) -> None:
+        """Noise weights and the normal equations of the whole bank (linear fits take sub-blocks)."""
+        self.nominal_noise = list(nominal_noise)
+        self.s_nom = [self.scale[k] * nominal_noise[k].psd(self.freqs) for k in range(self.n_det)]
+        self.w_nom = [self.weights(s) for s in self.s_nom]
+        self.w_nom_off = [w * self.off_lines for w in self.w_nom]
+        size = self.bank.shape[1]
         self.gram_nom, self.rhs_nom, self.yy_nom = [], [], []
         for k in range(self.n_det):
             gram = np.empty((size, size))
@@ -217,6 +222,13 @@ class FitProblem:
                 float(cross(self.residual_f[k][None], self.residual_f[k], self.w_nom[k])[0])
             )
         self._cache: dict[tuple, FitResult] = {}
+
+    def with_noise(self, nominal_noise) -> FitProblem:
+        """The same problem (template bank, residual) with other noise weights, sharing the bank."""
+        other = copy.copy(self)
+        other._set_noise(nominal_noise)
+        other._cache = {}  # the fits depend on the weights
+        return other
 
     # ------------------------------------------------------------------ helpers
     def _masked_rfft(self, tod: np.ndarray) -> np.ndarray:

@@ -108,6 +108,27 @@ def _nominal_noise_models(recording: Recording, nominal_noise) -> list[NoiseMode
     return models
 
 
+def look_alikes(steps, threshold: float) -> dict[str, list[str]]:
+    """For each effect added: the candidates whose Delta BIC came within |threshold| of it.
+
+    Those explained the residual (nearly) equally well at that step, so the data do not
+    tell them apart (e.g. a gain drift and a 2f amplitude drift in a recording too short
+    for the dipole's change to show): the report says so instead of picking silently.
+    """
+    out: dict[str, list[str]] = {}
+    for step in steps:
+        if not step.added or step.added not in step.candidates:
+            continue
+        best = step.candidates[step.added]["delta_bic"]
+        ties = [
+            name
+            for name, c in step.candidates.items()
+            if name != step.added and c["delta_bic"] - best < -threshold
+        ]
+        out[step.added] = sorted(set(out.get(step.added, [])) | set(ties))
+    return out
+
+
 def _parameters(name, fit, detector_names, sampling_rate_hz, units) -> dict:
     out = {}
     if name == "glitches":
@@ -251,8 +272,10 @@ def diagnose(
     # starting from the effects found (each checked again, then the others tried).
     previous = ()
     history = []
+    problem = FitProblem(ctx, recording.tod, noise_models, workers=workers, nominal=NOMINAL)
     for attempt in range(2):
-        problem = FitProblem(ctx, recording.tod, noise_models, workers=workers, nominal=NOMINAL)
+        if attempt:  # same templates and residual, new noise weights
+            problem = problem.with_noise(noise_models)
         selection = stepwise(
             problem,
             delta_bic_threshold=delta_bic_threshold,
@@ -274,11 +297,18 @@ def diagnose(
     residual_after = problem.residual_after(final)
     partial = problem.partial_residuals(final)
 
+    ties = look_alikes(history, delta_bic_threshold)
     effects_out = []
     for name in selection.ranked:
         fit = final.effects[name]
         evidence = Evidence(ctx, partial[name], noise_models, ctx.a2_k, workers)
         text = CATALOG[name].evidence(evidence, fit)
+        if ties.get(name):
+            text += (
+                f"; NOT told apart in this recording from {', '.join(ties[name])} (Delta BIC "
+                f"within {-delta_bic_threshold:g} of it when it was selected): the data fit "
+                "either equally well, so read it as one of these"
+            )
         effect = CATALOG[name]
         effects_out.append(
             {
@@ -292,6 +322,7 @@ def diagnose(
                 "delta_bic": selection.delta_bic[name],
                 "evidence": text,
                 "signature": effect.signature,
+                "look_alikes": ties.get(name, []),
             }
         )
     lines = _line_table(mismatch, ctx, residual, residual_after, noise_models)
