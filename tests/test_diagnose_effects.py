@@ -84,6 +84,9 @@ def test_single_effect_found(tmp_path, effect, injected, truths, seed):
     assert names(result) == [effect], f"spurious effects: {names(result)}"
     check_parameters(result, effect, truths)
     assert result["unexplained"] == [], result["unexplained"]
+    # the evidence is measured on the recording (the effect's own text), not its signature
+    top = result["effects"][0]
+    assert top["evidence"] != top["signature"] and "sigma" in top["evidence"], top["evidence"]
     if effect == "hwpss_harmonics":  # its c2 is a 2f amplitude error: an adjustment
         for k in range(2):
             a2 = adjustment(result, k, "hwpss_2f_amplitude")

@@ -22,9 +22,11 @@ Catalog (model and parameters | signature | how it is told apart from look-alike
 
 tes_nonlinearity
     model   d + g1 d^2 + g2 d^3 on the total signal; g1 [1/K], g2 [1/K^2]
-    sign.   4 f_HWP line g1 A_2^2/2 WITH a DC shift g1 A_2^2/2; lines at 2 f_HWP +- f_dipole
+    sign.   4 f_HWP line g1 A_2^2/2 WITH a DC shift g1 A_2^2/2 (absorbed by the offset
+            adjustment in real data); lines at 2 f_HWP +- f_dipole
             (f_spin) of g1 A_2 D each (HWPSS x dipole); 6 f_HWP line g2 A_2^3/4
-    apart   a 4f HWPSS harmonic has no DC shift and no sidebands; intensity coupling has the
+    apart   a 4f HWPSS harmonic has no sidebands (and is fitted jointly with it: the shared 4f
+            line does not decide, the sidebands and d^2 do); intensity coupling has the
             sidebands but no 4f line and no DC; the sidebands scale as A_2 I (not as I)
 detector_time_constant
     model   IFFT[D(f) / (1 + 2 pi i f tau)] (single pole); tau [s]; template -d d_nom/dt
@@ -38,7 +40,7 @@ hwpss_harmonics
     model   sum_{n=1,3..6} c_n cos n(chi - theta) + s_n sin n(chi - theta); c_n, s_n [K]
             (n = 2 is the nominal 2f amplitude and phase adjustment, not an effect)
     sign.   lines at n f_HWP, stationary
-    apart   NO DC shift and NO 2f +- f_spin sidebands (unlike the nonlinearity), constant in
+    apart   NO 2f +- f_spin sidebands (unlike the nonlinearity), constant in
             time (unlike the HWP temperature drift), free phase per harmonic (unlike tau)
 hwpss_intensity_coupling
     model   I(t) [a_c cos 2(chi - theta) + a_s sin 2(chi - theta)], I = I(p) + D; a_c, a_s [1]
@@ -194,10 +196,10 @@ class TesNonlinearity(Effect):
     main_parameters = ("g1",)
     stage = "response"
     signature = (
-        "4 f_HWP line g1 A_2^2/2 with a DC shift of the same size, 2 f_HWP +- f_spin "
+        "4 f_HWP line g1 A_2^2/2 (and a DC shift, inside the offset), 2 f_HWP +- f_spin "
         "sidebands g1 A_2 D each, 6 f_HWP line g2 A_2^3/4"
     )
-    discrimination = "DC shift and 2f +- f_dipole sidebands accompany the 4f line"
+    discrimination = "2f +- f_dipole sidebands (g1 A_2 D) accompany the 4f line"
 
     def templates(self, ctx):
         d = ctx.d_nom
@@ -208,16 +210,6 @@ class TesNonlinearity(Effect):
         n = tod.shape[0]
         return apply_nonlinearity(tod, _value(params, "g1", n), _value(params, "g2", n))
 
-
-def single_pole(freqs_hz: np.ndarray, tau_s: float) -> np.ndarray:
-    """H(f) = 1 / (1 + 2 pi i f tau) (numpy's e^{-2 pi i f t} convention: a phase lag)."""
-    return 1.0 / (1.0 + 2j * np.pi * freqs_hz * tau_s)
-
-
-def single_pole_derivative(freqs_hz: np.ndarray, tau_s: float) -> np.ndarray:
-    """dH/dtau = -2 pi i f / (1 + 2 pi i f tau)^2."""
-    return -2j * np.pi * freqs_hz / (1.0 + 2j * np.pi * freqs_hz * tau_s) ** 2
-
     def evidence(self, ev, fit) -> str:
         """The signature measured on the residual ``ev`` (:class:`.evidence.Evidence`), in words."""
         parts = []
@@ -227,7 +219,6 @@ def single_pole_derivative(freqs_hz: np.ndarray, tau_s: float) -> np.ndarray:
             a2 = ev.a2[k]
             h4 = ev.harmonic(k, 4)
             h6 = ev.harmonic(k, 6)
-            dc, dc_sigma = ev.dc(k)
             valid = ev.ctx.valid[k]
             d = ev.ctx.d_nom[k][valid]
             dc_pred = g1 * float(np.mean(d**2)) + g2 * float(np.mean(d**3))
@@ -235,8 +226,9 @@ def single_pole_derivative(freqs_hz: np.ndarray, tau_s: float) -> np.ndarray:
             side_pred = abs(g1) * a2 * ev.dipole_amplitude(k)
             text = (
                 f"{name}: 4 f_HWP line {_fmt(h4.amplitude_k)} at {h4.significance_sigma:.1f} sigma "
-                f"(predicted g1 A_2^2/2 = {_fmt(abs(g1) * a2**2 / 2)}); DC shift "
-                f"{_fmt(dc)} +- {_fmt(dc_sigma)} (predicted {_fmt(dc_pred)}); 2 f_HWP - f_spin and "
+                f"(predicted g1 A_2^2/2 = {_fmt(abs(g1) * a2**2 / 2)}); its DC shift "
+                f"{_fmt(dc_pred)} is inside the fitted offset (a nominal adjustment: a detector's "
+                "absolute offset is never known); 2 f_HWP - f_spin and "
                 f"2 f_HWP + f_spin lines {_fmt(lo)} and {_fmt(hi)} at {lo_sig:.1f} and "
                 f"{hi_sig:.1f} sigma (predicted g1 A_2 D = {_fmt(side_pred)} each)"
             )
@@ -247,6 +239,16 @@ def single_pole_derivative(freqs_hz: np.ndarray, tau_s: float) -> np.ndarray:
                 )
             parts.append(text)
         return "; ".join(parts)
+
+
+def single_pole(freqs_hz: np.ndarray, tau_s: float) -> np.ndarray:
+    """H(f) = 1 / (1 + 2 pi i f tau) (numpy's e^{-2 pi i f t} convention: a phase lag)."""
+    return 1.0 / (1.0 + 2j * np.pi * freqs_hz * tau_s)
+
+
+def single_pole_derivative(freqs_hz: np.ndarray, tau_s: float) -> np.ndarray:
+    """dH/dtau = -2 pi i f / (1 + 2 pi i f tau)^2."""
+    return -2j * np.pi * freqs_hz / (1.0 + 2j * np.pi * freqs_hz * tau_s) ** 2
 
 
 class DetectorTimeConstant(Effect):
@@ -320,8 +322,8 @@ class HwpssHarmonics(Effect):
         f"{cs}{n}": "K" for n in HWPSS_HARMONICS for cs in ("c", "s")
     }
     main_parameters = tuple(parameters)
-    signature = "lines at n f_HWP, stationary, with no DC shift and no 2f +- f_spin sidebands"
-    discrimination = "no DC, no sidebands, constant in time"
+    signature = "lines at n f_HWP, stationary, with no 2f +- f_spin sidebands"
+    discrimination = "no 2f +- f_spin sidebands, constant in time"
 
     def templates(self, ctx):
         return self._templates(ctx, HWPSS_HARMONICS)
@@ -352,12 +354,11 @@ class HwpssHarmonics(Effect):
                 amplitude = math.hypot(c, s)
                 if sigma > 0 and amplitude / sigma > 3:
                     found.append(f"{n} f_HWP {_fmt(amplitude)} ({amplitude / sigma:.0f} sigma)")
-            dc, dc_sigma = ev.dc(k)
             (_lo, _, _, lo_sig, *_), (_hi, _, _, hi_sig, *_) = ev.sidebands(k)
             parts.append(
                 f"{name}: lines at {', '.join(found) or 'no single harmonic above 3 sigma'}; "
-                f"no DC shift ({_fmt(dc)} +- {_fmt(dc_sigma)}) and no 2 f_HWP +- f_spin "
-                f"sidebands ({lo_sig:.1f} and {hi_sig:.1f} sigma), unlike a nonlinearity"
+                f"no 2 f_HWP +- f_spin sidebands ({lo_sig:.1f} and {hi_sig:.1f} sigma), unlike "
+                "a nonlinearity"
             )
         return "; ".join(parts)
 
