@@ -198,7 +198,7 @@ def test_wrong_sky_map_shape(clean_file, tmp_path):
 
 
 def run_with_sky(recording, sky):
-    from hwp_tes_systematics.diagnose.report import diagnose
+    from hwp_tes_systematics.diagnose import diagnose
 
     return diagnose(recording, sky, A2_K)
 
@@ -208,3 +208,46 @@ def test_recorded_helper_uses_the_file(tmp_path):
     recording, injected = recorded(tmp_path, [("crosstalk", {"x": 0.0})], noise_seed=5, hours=0.25)
     assert recording.source.endswith("rec.h5")
     assert injected == [("crosstalk", {"x": 0.0})]
+
+
+def test_truncated_file_names_the_file_and_what_to_do(clean_file, tmp_path):
+    """A copy cut short (interrupted transfer): a RecordingError, not h5py's bare OSError."""
+    path = tmp_path / "cut.h5"
+    data = clean_file[0].read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    with pytest.raises(RecordingError, match=r"cut\.h5: cannot be read as HDF5.*truncated") as info:
+        read_recording(path)
+    assert "copy or write it again" in str(info.value)
+
+
+def test_lab_detector_needs_a2_and_uses_its_own_metadata(clean_file, tmp_path):
+    """A channel the instrument model does not know: diagnosed from the file with --a2.
+
+    The file's detectors carry only a name, a polarisation angle and no NET: the noise
+    starts from the residual (it is a nominal adjustment anyway), A_2 comes from the caller.
+    """
+    import json
+
+    from hwp_tes_systematics.diagnose import diagnose
+    from hwp_tes_systematics.diagnose.recording import nominal_a2
+
+    def lab(handle):
+        detectors = json.loads(handle["tod"].attrs["detectors"])
+        handle["tod"].attrs["detectors"] = json.dumps(
+            [
+                {"name": f"lab{i}", "pol_angle_rad": d["pol_angle_rad"]}
+                for i, d in enumerate(detectors)
+            ]
+        )
+
+    recording = read_recording(corrupt(clean_file[0], tmp_path / "lab.h5", lab))
+    assert recording.channel == ""
+    with pytest.raises(
+        RecordingError, match=r"lab\.h5: channel '' .* not in the instrument model.*--a2"
+    ):
+        nominal_a2(recording, None, lambda channel: 1.0)
+    assert nominal_a2(recording, A2_K, lambda channel: 1.0) == A2_K
+    result = diagnose(recording, sky_map(), A2_K, figures=False)
+    assert not result["mismatch_found"], (names(result), result["unexplained"])
+    net = result["nominal_adjustments"]["lab0"]["noise_net"]
+    assert net["value"] == pytest.approx(54.0, rel=0.05)  # the simulated M1-140 NET

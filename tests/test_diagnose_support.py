@@ -14,8 +14,12 @@ import functools
 import numpy as np
 
 from hwp_tes_systematics import sky
-from hwp_tes_systematics.diagnose import read_recording, simulate_recording, write_recording
-from hwp_tes_systematics.diagnose.report import diagnose
+from hwp_tes_systematics.diagnose import (
+    diagnose,
+    read_recording,
+    simulate_recording,
+    write_recording,
+)
 
 CHANNEL = "M1-140"
 NSIDE = 32
@@ -60,3 +64,81 @@ def parameter(result: dict, effect: str, name: str, detector: int) -> dict:
 
 def names(result: dict) -> list[str]:
     return [effect["name"] for effect in result["effects"]]
+
+
+def nominal_errors(rng: np.random.Generator, n_det: int = 2) -> dict:
+    """Random nominal-model errors of realistic size (what a real recording differs by).
+
+    A_2 off by a few %, 2f phase ~1 deg, gain ~1 %, polarisation angle ~0.5 deg, detector
+    offsets ~mK, noise level ~10 % (and knee ~30 %), the supplied sky map rescaled by a
+    few % with a small unknown residual. Drawn per recording; the diagnosis is told none.
+    """
+    return {
+        "a2_relative": rng.normal(0.0, 0.03, n_det),
+        "phase_deg": rng.normal(0.0, 1.0, n_det),
+        "gain": rng.normal(0.0, 0.01, n_det),
+        "pol_angle_deg": rng.normal(0.0, 0.5, n_det),
+        "offset_k": rng.normal(0.0, 2e-3, n_det),
+        "net_factor": 1.0 + rng.normal(0.0, 0.10, n_det),
+        "fknee_factor": np.exp(rng.normal(0.0, 0.3, n_det)),
+        "sky_scale": 1.0 + rng.normal(0.0, 0.05),
+        "sky_residual": abs(rng.normal(0.0, 0.05)),
+        "sky_seed": int(rng.integers(1, 2**31)),
+    }
+
+
+def error_effects(errors: dict, detectors: list[dict]) -> list:
+    """The nominal errors as injected effects: 2f amplitude/phase, gain, noise level."""
+    a2_true = A2_K * (1.0 + errors["a2_relative"])
+    phase = np.radians(errors["phase_deg"])
+    # A_2 cos x + c2 cos x + s2 sin x = A_2 (1 + e) cos(x - phase)
+    c2 = a2_true * np.cos(phase) - A2_K
+    s2 = a2_true * np.sin(phase)
+    net = [d["net_ukrts"] * f for d, f in zip(detectors, errors["net_factor"], strict=True)]
+    fknee = [d["fknee_mhz"] * f for d, f in zip(detectors, errors["fknee_factor"], strict=True)]
+    return [
+        ("hwpss_harmonics", {"c2": c2, "s2": s2}),
+        ("gain_drift", {"g0": errors["gain"]}),
+        ("noise_mismatch", {"net_ukrts": net, "fknee_mhz": fknee}),
+    ]
+
+
+def supplied_sky(errors: dict) -> np.ndarray:
+    """The sky map the diagnosis is given: the true one rescaled, plus a small residual."""
+    other = sky.cmb_map(NSIDE, 3 * NSIDE - 1, 0.0, errors["sky_seed"], 0, 30.8)
+    return errors["sky_scale"] * sky_map() + errors["sky_residual"] * other
+
+
+def recorded_with_errors(
+    tmp_path, effects, noise_seed: int, errors: dict, hours: float = 2.0, name: str = "rec.h5"
+):
+    """Like :func:`recorded`, with the nominal ``errors`` in the recording (not in the model).
+
+    The recording is simulated with the true A_2, phase, gain, noise and polarisation
+    angles; the file carries the nominal polarisation angles and the detector offsets.
+    """
+    from hwp_tes_systematics.diagnose.recording import _simulated_base
+
+    simulator = _simulated_base(CHANNEL, float(hours), "2032-04-01T00:00:00", NSIDE)[0]
+    detectors = [{"net_ukrts": d.net_ukrts, "fknee_mhz": d.fknee_mhz} for d in simulator.detectors]
+    a2_true = A2_K * (1.0 + errors["a2_relative"])
+    effects = [  # a modulation of the HWPSS modulates the recording's true HWPSS
+        (name, dict(params, a2_k=a2_true, hwpss_phase_rad=np.radians(errors["phase_deg"])))
+        if name == "hwpss_sine_modulation"
+        else (name, params)
+        for name, params in effects
+    ]
+    recording = simulate_recording(
+        CHANNEL,
+        hours,
+        MASTER_SEED,
+        noise_seed,
+        sky_map(),
+        A2_K,
+        error_effects(errors, detectors) + list(effects),
+        pol_angle_offsets_rad=np.radians(errors["pol_angle_deg"]),
+    )
+    recording.tod += np.asarray(errors["offset_k"])[:, None]
+    path = tmp_path / name
+    write_recording(path, recording)
+    return read_recording(path), recording.injected

@@ -28,15 +28,20 @@ def run_diagnose(
     out_dir: str,
     threshold: float,
     workers: int = 1,
+    a2_k: float | None = None,
 ) -> dict:
-    """Diagnose one recording with the nominal HWPSS and noise of the configured instrument."""
+    """Diagnose one recording with the nominal HWPSS and noise of the configured instrument.
+
+    ``a2_k`` (``--a2``) overrides the instrument model's A_2; a channel the model does not
+    know (a lab detector) needs it (see :func:`.diagnose.recording.nominal_a2`).
+    """
     from .channel_inputs import channel_a2_k_cmb
-    from .diagnose.recording import read_recording
+    from .diagnose.recording import nominal_a2, read_recording
     from .diagnose.report import diagnose
 
     config = load_config(*config_paths)
     recording = read_recording(recording_path)
-    a2_k = channel_a2_k_cmb(config, recording.channel)
+    a2_k = nominal_a2(recording, a2_k, lambda channel: channel_a2_k_cmb(config, channel))
     log.info(
         "%s: channel %s, %d detectors, %.2f h; nominal A_2 = %.4g K_CMB",
         recording_path,
@@ -79,6 +84,13 @@ def main(argv: list[str] | None = None) -> int:
         default=-10.0,
         help="an effect is kept if it lowers the BIC by more (default -10)",
     )
+    diagnose.add_argument(
+        "--a2",
+        type=float,
+        default=None,
+        help="nominal HWPSS amplitude A_2 [K_CMB]: overrides the instrument model's; needed "
+        "for a channel not in it (a lab detector)",
+    )
     arguments = parser.parse_args(argv)
 
     if arguments.command == "config-reference":
@@ -95,6 +107,7 @@ def main(argv: list[str] | None = None) -> int:
             [str(default_config_path()), *arguments.config],
             arguments.out,
             arguments.delta_bic,
+            a2_k=arguments.a2,
         )
     except (ConfigError, ValueError, OSError) as error:
         print(f"error: {error}", file=sys.stderr)

@@ -2,16 +2,23 @@
 
     recording = read_recording("recording.h5")        # litebird_sim HDF5 observation
     result = diagnose(recording, sky_iqu, a2_k, out_dir="diagnosis/")
-    result["mismatch_found"], [e["name"] for e in result["effects"]]
+    result["mismatch_found"], [e["name"] for e in result["effects"]], result["unexplained"]
 
 Modules: :mod:`.recording` (files, simulated recordings), :mod:`.model` (nominal model),
-:mod:`.effects` (catalog of candidate effects), :mod:`.noise` (noise estimate, Whittle),
-:mod:`.locate` (lines, HWP-angle harmonics, transients, drifts, sky), :mod:`.fit`
-(stepwise selection with the BIC) and :mod:`.report` (``diagnose``).
+:mod:`.nominal` (nominal-model adjustments fitted on every recording), :mod:`.effects`
+(catalog: one class per effect with its forward model, templates, signature and
+evidence), :mod:`.noise` (noise estimate, Whittle), :mod:`.linalg` (whitened least
+squares), :mod:`.locate` (lines, HWP-angle harmonics, transients, drifts, sky),
+:mod:`.fit` (stepwise selection with the BIC), :mod:`.unexplained` (what no effect
+explains), :mod:`.evidence` (measurements for the evidence texts), :mod:`.pipeline`
+(``diagnose``) and :mod:`.report` (diagnosis.json, diagnosis.md, figures).
+Imports go one way: recording/model -> effects -> locate -> nominal/fit/unexplained ->
+pipeline -> report (no cycle).
 """
 
 from .effects import CATALOG, catalog_table
 from .model import nominal_tod
+from .pipeline import diagnose
 from .recording import (
     Recording,
     RecordingError,
@@ -19,7 +26,6 @@ from .recording import (
     simulate_recording,
     write_recording,
 )
-from .report import diagnose
 
 __all__ = [
     "CATALOG",

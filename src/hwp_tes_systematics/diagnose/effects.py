@@ -1,8 +1,15 @@
 """Catalog of candidate effects: forward models of physics the nominal simulation leaves out.
 
-Every effect acts on the nominal TOD of each detector k (see :mod:`.model`),
+Every effect acts on the ADJUSTED nominal TOD of each detector k (see :mod:`.model` and
+:mod:`.nominal`: gain, 2f HWPSS amplitude and phase, polarisation angle, sky scales,
+offsets and noise are fitted on every recording as nuisance parameters, not offered as
+effects),
 
-    d_nom = I(p) + rho (Q cos 2a + U sin 2a) + D + A_2 cos(2 (chi - theta_k)),
+    d_nom = (1 + g)(I(p) + D) + rho (Q cos 2a + U sin 2a) + A_2 cos(2 (chi - theta_k) - phi)
+            + ...,
+
+so an effect is only what these adjustments cannot produce: new frequencies, time
+dependence, dependence on the incoming intensity, transients.
 
 and has named per-detector parameters with units. ``templates(ctx)`` returns T of shape
 (n_det, n_param, n) such that, to first order, recording - d_nom = sum_j p_j T_j
@@ -15,21 +22,25 @@ Catalog (model and parameters | signature | how it is told apart from look-alike
 
 tes_nonlinearity
     model   d + g1 d^2 + g2 d^3 on the total signal; g1 [1/K], g2 [1/K^2]
-    sign.   4 f_HWP line g1 A_2^2/2 WITH a DC shift g1 A_2^2/2; lines at 2 f_HWP +- f_dipole
+    sign.   4 f_HWP line g1 A_2^2/2 WITH a DC shift g1 A_2^2/2 (absorbed by the offset
+            adjustment in real data); lines at 2 f_HWP +- f_dipole
             (f_spin) of g1 A_2 D each (HWPSS x dipole); 6 f_HWP line g2 A_2^3/4
-    apart   a 4f HWPSS harmonic has no DC shift and no sidebands; intensity coupling has the
+    apart   a 4f HWPSS harmonic has no sidebands (and is fitted jointly with it: the shared 4f
+            line does not decide, the sidebands and d^2 do); intensity coupling has the
             sidebands but no 4f line and no DC; the sidebands scale as A_2 I (not as I)
 detector_time_constant
     model   IFFT[D(f) / (1 + 2 pi i f tau)] (single pole); tau [s]; template -d d_nom/dt
-    sign.   2f HWPSS residual in quadrature: phase lag atan(2 pi f tau) growing with the
-            harmonic number, amplitude factor 1/sqrt(1 + (2 pi f tau)^2)
-    apart   one parameter ties lag and amplitude loss; a 2f amplitude/phase error
-            (hwpss_harmonics) needs two per detector: same chi^2, the BIC prefers tau
+    sign.   phase lag atan(2 pi f tau) growing with frequency: 2f HWPSS, the 4f line of a
+            nonlinearity and the sky band together; amplitude factor 1/sqrt(1 + (2 pi f tau)^2)
+    apart   a 2f phase error (a nominal adjustment) lags the 2f line only; with only a 2f
+            HWPSS and a faint sky the two are the SAME signal (the adjustment reports the
+            equivalent tau = tan(phi) / (2 pi 2 f_HWP)); tau is selected only when the lag
+            of the other frequencies is seen (fitted jointly with the 2f phase)
 hwpss_harmonics
-    model   sum_{n=1..6} c_n cos n(chi - theta) + s_n sin n(chi - theta); c_n, s_n [K]
-            (n = 2: error on the 2f amplitude (c_2) and phase (s_2 / A_2))
+    model   sum_{n=1,3..6} c_n cos n(chi - theta) + s_n sin n(chi - theta); c_n, s_n [K]
+            (n = 2 is the nominal 2f amplitude and phase adjustment, not an effect)
     sign.   lines at n f_HWP, stationary
-    apart   NO DC shift and NO 2f +- f_spin sidebands (unlike the nonlinearity), constant in
+    apart   NO 2f +- f_spin sidebands (unlike the nonlinearity), constant in
             time (unlike the HWP temperature drift), free phase per harmonic (unlike tau)
 hwpss_intensity_coupling
     model   I(t) [a_c cos 2(chi - theta) + a_s sin 2(chi - theta)], I = I(p) + D; a_c, a_s [1]
@@ -37,34 +48,42 @@ hwpss_intensity_coupling
     apart   proportional to I, not to A_2 I; no 4f line, no DC (a nonlinearity making the
             same sidebands, g1 = a / (2 A_2), would add a 4f line g1 A_2^2/2)
 gain_drift
-    model   [sum_{j=0..3} g_j P_j(x)] d_nom (gain error g0 and drift); g_j [1]
+    model   [sum_{j=1..3} g_j P_j(x)] d_nom (gain drift; a constant gain error is a nominal
+            adjustment); g_j [1]
     sign.   residual proportional to the whole signal, changing in time; the dipole amplitude
             drifts together with the 2f HWPSS
     apart   multiplies the dipole and the sky too; the HWP temperature drift moves only the 2f
             HWPSS (the difference is g(t) x dipole, at f_spin in the 1/f noise: it needs a
             drift of a few %/h in a 2-hour recording)
 hwp_temperature_drift
-    model   [sum_{j=1..3} c_j P_j(x)] cos 2(chi - theta); c_j [K]
+    model   [sum_{j=1..3} c_j P_j(x)] cos(2(chi - theta) - phi); c_j [K]
     sign.   2f line broadened (sidebands at ~1/T), 2f demodulated amplitude drifting in time
-    apart   dipole and sky untouched (unlike the gain drift)
+    apart   dipole and sky untouched (unlike the gain drift); a constant 2f amplitude error
+            is the nominal adjustment
+hwpss_slow_modulation
+    model   [sum_{j=1..D} c_j P_j(x)] cos(2(chi - theta) - phi), D = T / 8 min (4..24): a
+            slow modulation of the 2f amplitude of ANY shape (drift, periodic, smoothed
+            steps), not one functional form; c_j [K]
+    sign.   2f sidebands within ~D / 2T of 2 f_HWP, demodulated 2f amplitude changing in time
+    apart   as hwp_temperature_drift, of which it is the many-parameter generalisation (the
+            BIC picks one; they are nested)
 glitches
     model   A exp(-(t - t0)/tau_g) for t >= t0 (t0: first hit sample); A [K], t0 [s],
             tau_g [s] per event
     sign.   isolated transients, broadband, uncorrelated with chi and the sky
     apart   found by robust (MAD) thresholding of the whitened residual and fitted per event;
             not periodic in chi, no lines
-noise_mismatch
+noise_mismatch (injection only: the white level, knee and slope are nominal adjustments)
     model   P(f) = 2 w^2 (f^a + fk^a)/(f^a + fmin^a): w [K sqrt(s)], fk [Hz], a [1];
             fmin fixed
-    sign.   excess (or deficit of) broadband power, no lines
-    apart   judged on the Fourier modes away from the lines, where no template acts: a
-            template explains structure, the noise model only smooth power
-crosstalk
+crosstalk (injection only: not identifiable in a co-pointed orthogonal pair)
     model   d_k + x_k d_nom(other detector); x [1]
     sign.   the other detector's signal: its 2f HWPSS (in antiphase for an orthogonal pair),
             its dipole and sky, its polarisation angle (the 4 chi phase of the other angle)
-    apart   the 2f HWPSS changes by -x A_2 while the dipole changes by +x D: opposite signs,
-            unlike a gain error (same sign) or a 2f amplitude error (no dipole)
+    apart   in a pair sharing the pointing with orthogonal angles, x d_other = x (I + D) -
+            x pol - x A_2 cos 2(chi - theta): exactly a gain, 2f amplitude and polarisation
+            efficiency change, i.e. nominal adjustments (A_2 lowered by x A_2, gain raised by
+            x); it is therefore not offered as an effect
 
 How each parameter is fitted: jointly with the others, by (weighted) linear least
 squares in the whitened Fourier domain for the linear effects; tau by
@@ -75,6 +94,7 @@ by maximising the Whittle likelihood (see :mod:`.fit` and :mod:`.noise`).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -85,9 +105,28 @@ import scipy.optimize
 from ..nonlinearity import apply_nonlinearity
 from .model import Context, per_detector
 
-HWPSS_HARMONICS = (1, 2, 3, 4, 5, 6)
-GAIN_DEGREES = (0, 1, 2, 3)
-HWP_TEMPERATURE_DEGREES = (1, 2, 3)
+HWPSS_HARMONICS = (1, 3, 4, 5, 6)  # n = 2 is the nominal 2f adjustment
+INJECTION_HARMONICS = (1, 2, 3, 4, 5, 6)  # a simulated recording may carry any of them
+GAIN_DEGREES = (1, 2, 3)  # g0 (a constant gain error) is the nominal gain adjustment
+DRIFT_DEGREE = 3  # hwp_temperature_drift: P1..P3
+MODULATION_STEP_S = 480.0  # hwpss_slow_modulation: one Legendre degree per 8 minutes
+MODULATION_MIN, MODULATION_MAX = 4, 24  # 24: a one-day pair stays within memory and time
+
+
+def modulation_degree(duration_s: float) -> int:
+    """D = T / 8 min, clipped to 4..24: Legendre degrees of the slow 2f modulation."""
+    size = math.ceil(duration_s / MODULATION_STEP_S)
+    return int(min(max(size, MODULATION_MIN), MODULATION_MAX))
+
+
+def _fmt(value_k: float) -> str:
+    """A temperature in the most readable unit."""
+    magnitude = abs(value_k)
+    if magnitude >= 1e-1:
+        return f"{value_k:.4g} K"
+    if magnitude >= 1e-4:
+        return f"{value_k * 1e3:.4g} mK"
+    return f"{value_k * 1e6:.3g} uK"
 
 
 def _value(params: dict, name: str, n_detectors: int) -> np.ndarray:
@@ -95,15 +134,30 @@ def _value(params: dict, name: str, n_detectors: int) -> np.ndarray:
 
 
 class Effect:
-    """A candidate effect: named per-detector parameters and a forward model."""
+    """A candidate effect: named per-detector parameters, forward model, signature, evidence.
+
+    One place per effect: its forward model (``apply``), linear templates (``templates``),
+    signature and discrimination (texts) and the evidence it states in words on the
+    measured residual (``evidence``) live in its class; the fit, the report and the
+    simulator only use these.
+    """
 
     name: str = ""
     title: str = ""
     parameters: ClassVar[dict[str, str]] = {}  # parameter -> unit, one value per detector
     main_parameters: tuple[str, ...] = ()
     kind: str = "linear"  # "linear", "nonlinear", "events" or "noise"
+    selectable: bool = True  # False: injection only (a nominal adjustment covers it)
+    # where it acts: "signal" (on the optical signal, before the detector's response),
+    # "response" (the detector's response to the total: the nonlinearity acts on the
+    # signal effects too), "noise" or "events" (added after the response)
+    stage: str = "signal"
     signature: str = ""
     discrimination: str = ""
+
+    def param_units(self, ctx: Context | None = None) -> dict[str, str]:
+        """Parameter -> unit for this recording (most effects: the fixed ``parameters``)."""
+        return dict(self.parameters)
 
     def templates(self, ctx: Context) -> np.ndarray | None:
         """T (n_det, n_param, n): recording - d_nom = sum_j p_j T_j to first order."""
@@ -115,8 +169,13 @@ class Effect:
 
     def _linear_apply(self, ctx, params, tod):
         tod = ctx.d_nom if tod is None else tod
-        values = np.stack([_value(params, p, ctx.n_detectors) for p in self.parameters], axis=1)
+        names = self.param_units(ctx)
+        values = np.stack([_value(params, p, ctx.n_detectors) for p in names], axis=1)
         return tod + np.einsum("kj,kjn->kn", values, self.templates(ctx))
+
+    def evidence(self, ev, fit) -> str:
+        """The signature measured on the residual ``ev`` (:class:`.evidence.Evidence`), in words."""
+        return self.signature
 
     def __repr__(self) -> str:
         return f"<effect {self.name}>"
@@ -135,11 +194,12 @@ class TesNonlinearity(Effect):
     title = "TES gain nonlinearity"
     parameters: ClassVar[dict[str, str]] = {"g1": "1/K", "g2": "1/K^2"}
     main_parameters = ("g1",)
+    stage = "response"
     signature = (
-        "4 f_HWP line g1 A_2^2/2 with a DC shift of the same size, 2 f_HWP +- f_spin "
+        "4 f_HWP line g1 A_2^2/2 (and a DC shift, inside the offset), 2 f_HWP +- f_spin "
         "sidebands g1 A_2 D each, 6 f_HWP line g2 A_2^3/4"
     )
-    discrimination = "DC shift and 2f +- f_dipole sidebands accompany the 4f line"
+    discrimination = "2f +- f_dipole sidebands (g1 A_2 D) accompany the 4f line"
 
     def templates(self, ctx):
         d = ctx.d_nom
@@ -149,6 +209,36 @@ class TesNonlinearity(Effect):
         tod = ctx.d_nom if tod is None else tod
         n = tod.shape[0]
         return apply_nonlinearity(tod, _value(params, "g1", n), _value(params, "g2", n))
+
+    def evidence(self, ev, fit) -> str:
+        """The signature measured on the residual ``ev`` (:class:`.evidence.Evidence`), in words."""
+        parts = []
+        for k, name in enumerate(ev.ctx.detector_names):
+            g1 = fit.values["g1"][k]
+            g2 = fit.values["g2"][k]
+            a2 = ev.a2[k]
+            h4 = ev.harmonic(k, 4)
+            h6 = ev.harmonic(k, 6)
+            valid = ev.ctx.valid[k]
+            d = ev.ctx.d_nom[k][valid]
+            dc_pred = g1 * float(np.mean(d**2)) + g2 * float(np.mean(d**3))
+            (lo, _lo_s, _, lo_sig, *_), (hi, _hi_s, _, hi_sig, *_) = ev.sidebands(k)
+            side_pred = abs(g1) * a2 * ev.dipole_amplitude(k)
+            text = (
+                f"{name}: 4 f_HWP line {_fmt(h4.amplitude_k)} at {h4.significance_sigma:.1f} sigma "
+                f"(predicted g1 A_2^2/2 = {_fmt(abs(g1) * a2**2 / 2)}); its DC shift "
+                f"{_fmt(dc_pred)} is inside the fitted offset (a nominal adjustment: a detector's "
+                "absolute offset is never known); 2 f_HWP - f_spin and "
+                f"2 f_HWP + f_spin lines {_fmt(lo)} and {_fmt(hi)} at {lo_sig:.1f} and "
+                f"{hi_sig:.1f} sigma (predicted g1 A_2 D = {_fmt(side_pred)} each)"
+            )
+            if h6 is not None and abs(fit.sigmas["g2"][k]) > 0:
+                text += (
+                    f"; 6 f_HWP line {_fmt(h6.amplitude_k)} at {h6.significance_sigma:.1f} sigma "
+                    f"(g2 A_2^3/4 = {_fmt(abs(g2) * a2**3 / 4)})"
+                )
+            parts.append(text)
+        return "; ".join(parts)
 
 
 def single_pole(freqs_hz: np.ndarray, tau_s: float) -> np.ndarray:
@@ -195,12 +285,35 @@ class DetectorTimeConstant(Effect):
             out[k] = scipy.fft.irfft(spectrum[k] * single_pole(freqs, tau[k]), n=tod.shape[-1])
         return out
 
+    def evidence(self, ev, fit) -> str:
+        """The signature measured on the residual ``ev`` (:class:`.evidence.Evidence`), in words."""
+        parts = []
+        omega = 2 * np.pi * 2 * ev.f_hwp
+        for k, name in enumerate(ev.ctx.detector_names):
+            tau = fit.values["tau"][k]
+            static = ev.drift(k, "static")
+            a2 = ev.a2[k]
+            c, s = static["hwpss_2f_cos_k"], static["hwpss_2f_sin_k"]
+            s_sigma = static["hwpss_2f_sin_sigma_k"]
+            lag = math.atan2(s, a2 + c)
+            factor = math.hypot(a2 + c, s) / a2 if a2 else math.nan
+            lag_pred = math.atan(omega * tau)
+            factor_pred = 1 / math.sqrt(1 + (omega * tau) ** 2)
+            parts.append(
+                f"{name}: the 2 f_HWP HWPSS has a quadrature residual {_fmt(s)} at "
+                f"{abs(s) / s_sigma if s_sigma else 0:.0f} sigma, i.e. it lags by "
+                f"{lag * 1e3:.3f} mrad with amplitude factor {factor:.6f}; one tau = "
+                f"{tau * 1e3:.4g} ms predicts a lag atan(2 pi 2f_HWP tau) = {lag_pred * 1e3:.3f} "
+                f"mrad and a factor 1/sqrt(1+(2 pi 2f_HWP tau)^2) = {factor_pred:.6f}"
+            )
+        return "; ".join(parts)
+
 
 class HwpssHarmonics(Effect):
     """HWP synchronous signal left out of the nominal model (which has only A_2 cos 2(chi-theta)).
 
-    sum_n c_n cos n(chi - theta) + s_n sin n(chi - theta), n = 1..6; n = 2 is the error on
-    the 2f amplitude (c_2) and phase (s_2 = A_2 x phase error).
+    sum_n c_n cos n(chi - theta) + s_n sin n(chi - theta), n = 1, 3, 4, 5, 6; the 2f
+    amplitude and phase (n = 2) are nominal adjustments (:mod:`.nominal`).
     """
 
     name = "hwpss_harmonics"
@@ -209,18 +322,45 @@ class HwpssHarmonics(Effect):
         f"{cs}{n}": "K" for n in HWPSS_HARMONICS for cs in ("c", "s")
     }
     main_parameters = tuple(parameters)
-    signature = "lines at n f_HWP, stationary, with no DC shift and no 2f +- f_spin sidebands"
-    discrimination = "no DC, no sidebands, constant in time"
+    signature = "lines at n f_HWP, stationary, with no 2f +- f_spin sidebands"
+    discrimination = "no 2f +- f_spin sidebands, constant in time"
 
     def templates(self, ctx):
+        return self._templates(ctx, HWPSS_HARMONICS)
+
+    @staticmethod
+    def _templates(ctx, harmonics):
         angle = ctx.detector_angle
         rows = []
-        for n in HWPSS_HARMONICS:
+        for n in harmonics:
             rows += [np.cos(n * angle), np.sin(n * angle)]
         return np.stack(rows, axis=1)
 
     def apply(self, ctx, params, tod=None):
-        return self._linear_apply(ctx, params, tod)
+        """Injection: any harmonic n = 1..6 (c2, s2 too: a 2f error of the simulated HWP)."""
+        tod = ctx.d_nom if tod is None else tod
+        names = [f"{cs}{n}" for n in INJECTION_HARMONICS for cs in ("c", "s")]
+        values = np.stack([_value(params, p, ctx.n_detectors) for p in names], axis=1)
+        return tod + np.einsum("kj,kjn->kn", values, self._templates(ctx, INJECTION_HARMONICS))
+
+    def evidence(self, ev, fit) -> str:
+        """The signature measured on the residual ``ev`` (:class:`.evidence.Evidence`), in words."""
+        parts = []
+        for k, name in enumerate(ev.ctx.detector_names):
+            found = []
+            for n in HWPSS_HARMONICS:
+                c, s = fit.values[f"c{n}"][k], fit.values[f"s{n}"][k]
+                sigma = max(fit.sigmas[f"c{n}"][k], fit.sigmas[f"s{n}"][k])
+                amplitude = math.hypot(c, s)
+                if sigma > 0 and amplitude / sigma > 3:
+                    found.append(f"{n} f_HWP {_fmt(amplitude)} ({amplitude / sigma:.0f} sigma)")
+            (_lo, _, _, lo_sig, *_), (_hi, _, _, hi_sig, *_) = ev.sidebands(k)
+            parts.append(
+                f"{name}: lines at {', '.join(found) or 'no single harmonic above 3 sigma'}; "
+                f"no 2 f_HWP +- f_spin sidebands ({lo_sig:.1f} and {hi_sig:.1f} sigma), unlike "
+                "a nonlinearity"
+            )
+        return "; ".join(parts)
 
 
 class HwpssIntensityCoupling(Effect):
@@ -244,9 +384,27 @@ class HwpssIntensityCoupling(Effect):
     def apply(self, ctx, params, tod=None):
         return self._linear_apply(ctx, params, tod)
 
+    def evidence(self, ev, fit) -> str:
+        """The signature measured on the residual ``ev`` (:class:`.evidence.Evidence`), in words."""
+        parts = []
+        for k, name in enumerate(ev.ctx.detector_names):
+            a = math.hypot(fit.values["a2c"][k], fit.values["a2s"][k])
+            (lo, _, _, lo_sig, *_), (hi, _, _, hi_sig, *_) = ev.sidebands(k)
+            h4 = ev.harmonic(k, 4)
+            a2 = ev.a2[k]
+            g1_equiv = fit.values["a2c"][k] / (2 * a2) if a2 else math.nan
+            parts.append(
+                f"{name}: 2 f_HWP - f_spin and 2 f_HWP + f_spin sidebands {_fmt(lo)} and "
+                f"{_fmt(hi)} ({lo_sig:.1f} and {hi_sig:.1f} sigma), a = {a:.3g} of I; no 4 f_HWP "
+                f"line ({_fmt(h4.amplitude_k)}, {h4.significance_sigma:.1f} sigma) where a "
+                f"nonlinearity making the same sidebands (g1 = a/(2 A_2) = {g1_equiv:.3g}/K) "
+                f"would give {_fmt(abs(g1_equiv) * a2**2 / 2)}"
+            )
+        return "; ".join(parts)
+
 
 class GainDrift(Effect):
-    """Relative gain error and drift: d_obs = [1 + sum_j g_j P_j(x)] d, j = 0..3."""
+    """Relative gain drift: d_obs = [1 + sum_j g_j P_j(x)] d, j = 1..3 (g0: a nominal adjustment)."""
 
     name = "gain_drift"
     title = "gain error and drift"
@@ -260,30 +418,107 @@ class GainDrift(Effect):
         return np.stack([ctx.legendre(j)[None, :] * d for j in GAIN_DEGREES], axis=1)
 
     def apply(self, ctx, params, tod=None):
+        """Injection: g0 (a constant gain error) is accepted as well as g1..g3."""
         tod = ctx.d_nom if tod is None else tod
         gain = sum(
             _value(params, f"g{j}", tod.shape[0])[:, None] * ctx.legendre(j)[None, :]
-            for j in GAIN_DEGREES
+            for j in (0, *GAIN_DEGREES)
         )
         return (1.0 + gain) * tod
 
+    def evidence(self, ev, fit) -> str:
+        """The signature measured on the residual ``ev`` (:class:`.evidence.Evidence`), in words."""
+        parts = []
+        hours = ev.ctx.duration_s / 3600
+        for k, name in enumerate(ev.ctx.detector_names):
+            dipole = ev.drift(k, "dipole_gain")
+            hwpss = ev.drift(k, "hwpss_2f_cos")
+            a2 = ev.a2[k]
+            rel = hwpss["slope_per_hour"] / a2 if a2 else math.nan
+            rel_sigma = hwpss["sigma_per_hour"] / a2 if a2 else math.nan
+            g1 = fit.values["g1"][k]
+            parts.append(
+                f"{name}: the dipole amplitude drifts by {dipole['slope_per_hour'] * 100:.3g} +- "
+                f"{dipole['sigma_per_hour'] * 100:.2g} %/h ({dipole['significance_sigma']:.1f} "
+                f"sigma) together with the 2f HWPSS ({rel * 100:.3g} +- {rel_sigma * 100:.2g} %/h): "
+                f"the whole signal scales, as a gain drift g1 P1 (= {2 * g1 / hours * 100:.3g} %/h) "
+                "predicts and an HWP temperature drift (2f only) does not"
+            )
+        return "; ".join(parts)
+
 
 class HwpTemperatureDrift(Effect):
-    """Slow modulation of the HWPSS amplitude: [sum_{j=1..3} c_j P_j(x)] cos 2(chi - theta)."""
+    """Slow drift of the 2f HWPSS amplitude: [sum_{j=1..3} c_j P_j(x)] cos(2 (chi - theta) - phi)."""
 
     name = "hwp_temperature_drift"
     title = "HWP temperature drift (2f amplitude drift)"
-    parameters: ClassVar[dict[str, str]] = {f"c{j}": "K" for j in HWP_TEMPERATURE_DEGREES}
+    parameters: ClassVar[dict[str, str]] = {f"c{j}": "K" for j in range(1, DRIFT_DEGREE + 1)}
     main_parameters = ("c1",)
     signature = "2 f_HWP demodulated amplitude drifting in time; dipole and sky untouched"
     discrimination = "only the 2f HWPSS moves, the dipole does not"
 
+    def degree(self, ctx: Context | None) -> int:
+        return DRIFT_DEGREE
+
+    def param_units(self, ctx=None):
+        return {f"c{j}": "K" for j in range(1, self.degree(ctx) + 1)}
+
     def templates(self, ctx):
-        carrier = np.cos(2 * ctx.detector_angle)
-        return np.stack([ctx.legendre(j)[None, :] * carrier for j in HWP_TEMPERATURE_DEGREES], 1)
+        carrier = ctx.carrier
+        degrees = range(1, self.degree(ctx) + 1)
+        return np.stack([ctx.legendre(j)[None, :] * carrier for j in degrees], axis=1)
+
+    def modulation(self, ctx, values: dict) -> np.ndarray:
+        """delta A_2(t) per detector [K] for fitted values {c_j: (n_det,)}, (n_det, n)."""
+        return sum(
+            np.asarray(values[f"c{j}"])[:, None] * ctx.legendre(j)[None, :]
+            for j in range(1, self.degree(ctx) + 1)
+        )
 
     def apply(self, ctx, params, tod=None):
         return self._linear_apply(ctx, params, tod)
+
+    def evidence(self, ev, fit) -> str:
+        """The signature measured on the residual ``ev`` (:class:`.evidence.Evidence`), in words."""
+        parts = []
+        for k, name in enumerate(ev.ctx.detector_names):
+            dipole = ev.drift(k, "dipole_gain")
+            hwpss = ev.drift(k, "hwpss_2f_cos")
+            parts.append(
+                f"{name}: the 2f HWPSS amplitude drifts by {_fmt(hwpss['slope_per_hour'])}/h "
+                f"({hwpss['significance_sigma']:.0f} sigma) while the dipole amplitude does not "
+                f"({dipole['slope_per_hour'] * 100:.2g} +- {dipole['sigma_per_hour'] * 100:.2g} %/h, "
+                f"{dipole['significance_sigma']:.1f} sigma): only the HWP emission changes"
+            )
+        return "; ".join(parts)
+
+
+class HwpssSlowModulation(HwpTemperatureDrift):
+    """Slow modulation of the 2f HWPSS amplitude of ANY shape (drift, periodic, smoothed steps).
+
+    delta A_2(t) cos(2 (chi - theta) - phi), delta A_2 = sum_{j=1..D} c_j P_j(x): Legendre
+    polynomials up to D = T / 8 min (4..24). A smooth (analytic) modulation converges
+    exponentially in this basis once D exceeds ~ e omega / 2 (omega = its phase change over
+    half the recording): one period of 1.5 h in 2 h needs D ~ 15, four in 6 h ~ 40; a
+    cosine or spline basis of the same size leaves 1e-3 of the amplitude, which a 3 %
+    modulation of A_2 turns into lines of several uK. The simple drift (D = 3,
+    ``hwp_temperature_drift``) is the nested special case: the selection keeps whichever the
+    BIC prefers, the backward step drops the drift when this one is taken.
+    """
+
+    name = "hwpss_slow_modulation"
+    title = "slow modulation of the 2f HWPSS amplitude (any shape)"
+    parameters: ClassVar[dict[str, str]] = {
+        f"c{j}": "K" for j in range(1, MODULATION_MIN + 1)
+    }  # D grows with the recording's length: see param_units
+    signature = (
+        "2 f_HWP amplitude changing in time in any smooth way (sidebands within ~D/2T of "
+        "2 f_HWP); dipole and sky untouched"
+    )
+    discrimination = "only the 2f HWPSS moves, the dipole does not; any shape, not a drift"
+
+    def degree(self, ctx: Context | None) -> int:
+        return MODULATION_MIN if ctx is None else modulation_degree(ctx.duration_s)
 
 
 @dataclass(frozen=True)
@@ -398,6 +633,7 @@ class Glitches(Effect):
     parameters: ClassVar[dict[str, str]] = {"amplitude": "K", "time": "s", "tau": "s"}
     main_parameters = ("amplitude",)
     kind = "events"
+    stage = "events"
     signature = "isolated transients in time, uncorrelated with chi and the sky"
     discrimination = "not periodic in chi, no lines, localised in time"
 
@@ -406,6 +642,23 @@ class Glitches(Effect):
         events = params.get("events", [])
         events = [e if isinstance(e, GlitchEvent) else GlitchEvent(*e) for e in events]
         return tod + glitch_tod(ctx.times_s, tod.shape[0], events)
+
+    def evidence(self, ev, fit) -> str:
+        """The signature measured on the residual ``ev`` (:class:`.evidence.Evidence`), in words."""
+        events = fit.events
+        if not events:
+            return "no transient left after the fit"
+        strongest = max(events, key=lambda e: e.significance)
+        taus = np.array([e.tau_s for e in events])
+        names = ev.ctx.detector_names
+        per_det = {name: sum(e.detector == k for e in events) for k, name in enumerate(names)}
+        counts = ", ".join(f"{n} in {name}" for name, n in per_det.items())
+        return (
+            f"{len(events)} isolated transients ({counts}); the strongest "
+            f"{_fmt(strongest.amplitude_k)} at t = {strongest.time_s:.2f} s ({strongest.significance:.0f} "
+            f"sigma) in {names[strongest.detector]}; exponential tails tau = "
+            f"{np.median(taus) * 1e3:.0f} ms (median); localised in time, not periodic in chi"
+        )
 
 
 class NoiseMismatch(Effect):
@@ -420,6 +673,8 @@ class NoiseMismatch(Effect):
     parameters: ClassVar[dict[str, str]] = {"net": "K sqrt(s)", "fknee": "Hz", "alpha": "1"}
     main_parameters = ("net",)
     kind = "noise"
+    stage = "noise"
+    selectable = False  # the white level, knee and slope are nominal adjustments
     signature = "excess broadband power, no lines"
     discrimination = "smooth power spectrum change, explained by no template"
 
@@ -431,6 +686,7 @@ class Crosstalk(Effect):
     title = "crosstalk from the other detector of the pair"
     parameters: ClassVar[dict[str, str]] = {"x": "1"}
     main_parameters = ("x",)
+    selectable = False  # gain + A_2 + polarisation-efficiency adjustments in a pair
     signature = "the other detector's signal: its (antiphase) 2f HWPSS, dipole and polarisation"
     discrimination = "2f HWPSS changes by -x A_2 while the dipole changes by +x D"
 
@@ -442,6 +698,23 @@ class Crosstalk(Effect):
         x = _value(params, "x", tod.shape[0])
         return tod + x[:, None] * tod[ctx.partner]
 
+    def evidence(self, ev, fit) -> str:
+        """The signature measured on the residual ``ev`` (:class:`.evidence.Evidence`), in words."""
+        parts = []
+        for k, name in enumerate(ev.ctx.detector_names):
+            static = ev.drift(k, "static")
+            x = fit.values["x"][k]
+            a2 = ev.a2[k]
+            c = static["hwpss_2f_cos_k"]
+            g = static["dipole_gain"]
+            parts.append(
+                f"{name}: the 2f HWPSS changes by {c / a2 if a2 else math.nan:+.3g} of A_2 while "
+                f"the dipole changes by {g:+.3g} +- {static['dipole_gain_sigma']:.2g} of itself: "
+                f"opposite signs, as the other (orthogonal) detector's signal with x = {x:.4g} "
+                "gives (its HWPSS is in antiphase, its dipole in phase)"
+            )
+        return "; ".join(parts)
+
 
 CATALOG: dict[str, Effect] = {
     effect.name: effect
@@ -452,6 +725,7 @@ CATALOG: dict[str, Effect] = {
         HwpssIntensityCoupling(),
         GainDrift(),
         HwpTemperatureDrift(),
+        HwpssSlowModulation(),
         Glitches(),
         NoiseMismatch(),
         Crosstalk(),
@@ -460,16 +734,8 @@ CATALOG: dict[str, Effect] = {
 
 
 # Effects on the signal, which the detector nonlinearity then acts on (they come before it).
-SIGNAL_EFFECTS = frozenset(
-    {
-        "detector_time_constant",
-        "hwpss_harmonics",
-        "hwpss_intensity_coupling",
-        "gain_drift",
-        "hwp_temperature_drift",
-        "crosstalk",
-    }
-)
+SIGNAL_EFFECTS = frozenset(name for name, e in CATALOG.items() if e.stage == "signal")
+RESPONSE_STAGE = frozenset(name for name, e in CATALOG.items() if e.stage == "response")
 
 
 def get_effect(name: str) -> Effect:

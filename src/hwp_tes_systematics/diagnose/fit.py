@@ -66,6 +66,7 @@ parameters from the Whittle Fisher matrix.
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass, field
 
@@ -75,6 +76,7 @@ import scipy.optimize
 
 from .effects import (
     CATALOG,
+    RESPONSE_STAGE,
     SIGNAL_EFFECTS,
     Effect,
     GlitchEvent,
@@ -82,6 +84,7 @@ from .effects import (
     single_pole,
     single_pole_derivative,
 )
+from .linalg import cross, realify, solve_normal
 from .locate import find_transients
 from .model import Context
 from .noise import NoiseModel, line_exclusion_mask, periodogram_scale, whittle_fit
@@ -91,40 +94,6 @@ GLITCH_THRESHOLD_SIGMA = 5.0
 BACKFIT_PASSES = 4
 CONVERGED_CHI2 = 0.05  # backfitting stops when chi^2 changes by less than this
 NOISE = "noise_mismatch"
-
-
-def realify(x: np.ndarray) -> np.ndarray:
-    """Complex (..., Nf) -> real (..., 2 Nf): [Re, Im]."""
-    return np.concatenate([x.real, x.imag], axis=-1)
-
-
-def cross(a: np.ndarray, b: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """sum_f 2 Re(a_i* b_j) w_f for a (Ka, Nf), b (Kb, Nf) or (Nf,) complex."""
-    if b.ndim == 1:
-        return 2.0 * (a.real @ (b.real * weights) + a.imag @ (b.imag * weights))
-    return 2.0 * ((a.real * weights) @ b.real.T + (a.imag * weights) @ b.imag.T)
-
-
-def solve_normal(gram: np.ndarray, rhs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """a = G^+ b with unit-diagonal scaling; returns (a, covariance G^+)."""
-    k = gram.shape[0]
-    a = np.zeros(k)
-    cov = np.zeros((k, k))
-    if k == 0:
-        return a, cov
-    diag = np.sqrt(np.clip(np.diag(gram), 0, None))
-    good = diag > 0
-    cov[~good, ~good] = np.inf
-    if not good.any():
-        return a, cov
-    d = diag[good]
-    normalised = gram[np.ix_(good, good)] / np.outer(d, d)
-    evals, evecs = np.linalg.eigh(normalised)
-    keep = evals > 1e-12 * evals.max()
-    inverse = (evecs[:, keep] / evals[keep]) @ evecs[:, keep].T
-    a[good] = inverse @ (rhs[good] / d) / d
-    cov[np.ix_(good, good)] = inverse / np.outer(d, d)
-    return a, cov
 
 
 @dataclass
@@ -167,13 +136,18 @@ class FitProblem:
         effects: dict[str, Effect] | None = None,
         glitch_threshold_sigma: float = GLITCH_THRESHOLD_SIGMA,
         workers: int = 1,
+        nominal: Effect | None = None,
     ):
         self.ctx = ctx
         self.workers = workers
-        effects = dict(CATALOG if effects is None else effects)
+        if effects is None:
+            effects = {name: e for name, e in CATALOG.items() if e.selectable}
+        effects = dict(effects)
         if ctx.n_detectors < 2:
             effects.pop("crosstalk", None)
         self.effects = effects
+        self.nominal = nominal
+        self.units = {name: e.param_units(ctx) for name, e in effects.items()}
         self.glitch_threshold_sigma = glitch_threshold_sigma
         n, fs = ctx.n_samples, ctx.sampling_rate_hz
         self.n = n
@@ -194,24 +168,28 @@ class FitProblem:
         self.valid = np.asarray(ctx.valid, dtype=bool)
         self.valid_fraction = self.valid.mean(axis=1)
         self.scale = [periodogram_scale(n, fs, v) for v in self.valid_fraction]
-        self.nominal_noise = list(nominal_noise)
-        self.s_nom = [self.scale[k] * nominal_noise[k].psd(self.freqs) for k in range(self.n_det)]
-        self.w_nom = [self.weights(s) for s in self.s_nom]
-        self.w_nom_off = [w * self.off_lines for w in self.w_nom]
         residual = np.where(self.valid, tod - ctx.d_nom, 0.0)
         self.residual_f = scipy.fft.rfft(residual, axis=-1, workers=workers)
 
-        # Linear template bank per detector, rows grouped by effect.
+        # Linear template bank per detector, rows grouped by effect; the nominal
+        # adjustments (always fitted, never selected) come first.
         self.linear_names = [name for name, e in effects.items() if e.kind == "linear"]
         self.slices: dict[str, slice] = {}
         size = 0
+        self.n_nominal = 0 if nominal is None else len(nominal.parameters)
+        self.nominal_rows = np.arange(self.n_nominal)
+        size = self.n_nominal
         for name in self.linear_names:
-            k = len(effects[name].parameters)
+            k = len(self.units[name])
             self.slices[name] = slice(size, size + k)
             size += k
         self.bank = np.zeros((self.n_det, size, self.freqs.size), dtype=complex)
-        for name in self.linear_names:
-            templates = effects[name].templates(ctx)
+        sources = [(name, effects[name]) for name in self.linear_names]
+        if nominal is not None:
+            self.slices[nominal.name] = slice(0, self.n_nominal)
+            sources.insert(0, (nominal.name, nominal))
+        for name, effect in sources:
+            templates = effect.templates(ctx)
             start = self.slices[name].start
             for k in range(self.n_det):
                 for j in range(templates.shape[1]):
@@ -224,7 +202,15 @@ class FitProblem:
             self._masked_one(k, -2j * np.pi * self.freqs * self.d_nom_f[k])
             for k in range(self.n_det)
         ]
-        # Nominal-noise normal equations of the whole bank: linear fits take sub-blocks.
+        self._set_noise(nominal_noise)
+
+    def _set_noise(self, nominal_noise) -> None:
+        """Noise weights and the normal equations of the whole bank (linear fits take sub-blocks)."""
+        self.nominal_noise = list(nominal_noise)
+        self.s_nom = [self.scale[k] * nominal_noise[k].psd(self.freqs) for k in range(self.n_det)]
+        self.w_nom = [self.weights(s) for s in self.s_nom]
+        self.w_nom_off = [w * self.off_lines for w in self.w_nom]
+        size = self.bank.shape[1]
         self.gram_nom, self.rhs_nom, self.yy_nom = [], [], []
         for k in range(self.n_det):
             gram = np.empty((size, size))
@@ -236,6 +222,13 @@ class FitProblem:
                 float(cross(self.residual_f[k][None], self.residual_f[k], self.w_nom[k])[0])
             )
         self._cache: dict[tuple, FitResult] = {}
+
+    def with_noise(self, nominal_noise) -> FitProblem:
+        """The same problem (template bank, residual) with other noise weights, sharing the bank."""
+        other = copy.copy(self)
+        other._set_noise(nominal_noise)
+        other._cache = {}  # the fits depend on the weights
+        return other
 
     # ------------------------------------------------------------------ helpers
     def _masked_rfft(self, tod: np.ndarray) -> np.ndarray:
@@ -257,8 +250,11 @@ class FitProblem:
         return w
 
     def rows(self, names) -> np.ndarray:
-        idx = [np.arange(self.slices[n].start, self.slices[n].stop) for n in names]
-        return np.concatenate(idx) if idx else np.zeros(0, dtype=int)
+        """Bank rows of the nominal adjustments (always) and of the linear effects ``names``."""
+        idx = [self.nominal_rows] + [
+            np.arange(self.slices[n].start, self.slices[n].stop) for n in names
+        ]
+        return np.concatenate(idx).astype(int)
 
     def tau_model(self, k: int, tau: float, derivative: bool = False) -> np.ndarray:
         """rfft of valid x IFFT[D (H(tau) - 1)] (or of its derivative in tau)."""
@@ -290,7 +286,7 @@ class FitProblem:
             if effect.kind == "events":
                 total += 3 * n_events
             else:
-                total += len(effect.parameters) * self.n_det
+                total += len(self.units[name]) * self.n_det
         return total
 
     def _ordered(self, selected) -> tuple[str, ...]:
@@ -374,15 +370,23 @@ class FitProblem:
 
     @staticmethod
     def _composed(selected) -> bool:
-        return "tes_nonlinearity" in selected and any(n in SIGNAL_EFFECTS for n in selected)
+        return any(n in RESPONSE_STAGE for n in selected) and any(
+            n in SIGNAL_EFFECTS for n in selected
+        )
 
     def _linear_effect_fits(self, selected, values, covariances) -> dict[str, EffectFit]:
+        """Per-effect values and sigmas; the nominal adjustments under ``self.nominal.name``."""
         fits = {}
         offset = 0
-        for name in selected:
+        names = ([self.nominal.name] if self.nominal is not None else []) + list(selected)
+        for name in names:
             if name not in self.slices:
                 continue
-            params = list(self.effects[name].parameters)
+            params = list(
+                self.nominal.parameters
+                if name == getattr(self.nominal, "name", None)
+                else self.units[name]
+            )
             fit = EffectFit(name)
             for j, param in enumerate(params):
                 i = offset + j
@@ -425,7 +429,7 @@ class FitProblem:
     def _linear_parts(self, selected, banks, values) -> dict:
         """Per-effect Fourier models of the linear effects (rows in ``selected`` order)."""
         parts = {}
-        offset = 0
+        offset = self.n_nominal
         for name in selected:
             if name not in self.slices:
                 continue
@@ -494,10 +498,10 @@ class FitProblem:
         composed = self._composed(selected)
         nl_rows = np.zeros(0, dtype=int)
         if composed:
-            position = 0
+            position = self.n_nominal
             for name in linear:
                 width = self.slices[name].stop - self.slices[name].start
-                if name == "tes_nonlinearity":
+                if name in RESPONSE_STAGE:
                     nl_rows = np.arange(position, position + width)
                 position += width
         others = np.setdiff1d(np.arange(rows.size), nl_rows)
@@ -513,6 +517,7 @@ class FitProblem:
         covariances = [np.zeros((rows.size, rows.size)) for _ in range(n_det)]
         models = [np.zeros(self.freqs.size, complex) for _ in range(n_det)]
         banks = [self.bank[k][rows] for k in range(n_det)]
+        recomposed = [False] * n_det  # the nonlinearity rows of banks[k] were recomputed
         used_banks = list(banks)
         tau_parts = [0.0] * n_det
         passes = BACKFIT_PASSES if (has_glitch or has_noise or composed) else 1
@@ -524,8 +529,7 @@ class FitProblem:
                 bank = banks[k]
                 if not noise_fitted[k]:
                     gram = self.gram_nom[k][np.ix_(rows, rows)]
-                    if composed:
-                        gram = gram.copy()
+                    if recomposed[k]:  # else the precomputed block is exact
                         gram[nl_rows] = cross(bank[nl_rows], bank, w)
                         gram[:, nl_rows] = gram[nl_rows].T
                 else:
@@ -561,6 +565,7 @@ class FitProblem:
                         continue
                     signal = ctx.d_nom[k] + extra
                     updated = True
+                    recomposed[k] = True
                     banks[k] = bank.copy()
                     banks[k][nl_rows] = scipy.fft.rfft(
                         np.stack([signal**2, signal**3]) * self.valid[k],
@@ -743,13 +748,60 @@ def _step(steps, current, after, ln_n, candidates, added=None, removed=None, not
     )
 
 
-def select_templates(problem, names, threshold, max_effects, noise: bool, steps: list):
-    """Forward selection with backward elimination of the template effects ``names``."""
+def _backward(problem, templates, current, extra, threshold, removed_sets, steps, keep=1):
+    """Remove the effects that the others made redundant (BIC rises by < |threshold|).
+
+    Stops at ``keep`` effects (1 after a forward step; 0 when checking a start set).
+    """
+    ln_n = problem.ln_n_eff
+    while len(templates) > keep:
+        removals = {
+            n: problem.fit(tuple(m for m in templates if m != n) + extra) for n in templates
+        }
+        costs = {n: r.bic(ln_n) - current.bic(ln_n) for n, r in removals.items()}
+        weakest = min(costs, key=costs.get)
+        reduced = frozenset(m for m in templates if m != weakest)
+        if costs[weakest] >= -threshold or reduced in removed_sets:
+            break
+        removed_sets.add(reduced)
+        after = removals[weakest]
+        _step(
+            steps,
+            current,
+            after,
+            ln_n,
+            {weakest: {"delta_chi2": after.chi2 - current.chi2, "delta_bic": -costs[weakest]}},
+            removed=weakest,
+            note=f"{weakest} made redundant by the other effects",
+        )
+        templates = tuple(m for m in templates if m != weakest)
+        current = after
+    return templates, current
+
+
+def select_templates(problem, names, threshold, max_effects, noise: bool, steps: list, initial=()):
+    """Forward selection with backward elimination of the template effects ``names``.
+
+    ``initial``: effects to start from (a previous selection, checked first by the
+    backward step), instead of the nominal model alone.
+    """
     ln_n = problem.ln_n_eff
     extra = (NOISE,) if noise else ()
-    templates: tuple = ()
-    current = problem.fit(extra)
+    templates: tuple = tuple(initial)
+    current = problem.fit(templates + extra)
     removed_sets: set = set()
+    if templates:
+        _step(
+            steps,
+            problem.fit(extra),
+            current,
+            ln_n,
+            {},
+            note=f"noise refitted: start again from {list(templates)}",
+        )
+        templates, current = _backward(
+            problem, templates, current, extra, threshold, removed_sets, steps, keep=0
+        )
     while len(templates) < max_effects:
         remaining = [
             n
@@ -770,28 +822,9 @@ def select_templates(problem, names, threshold, max_effects, noise: bool, steps:
         _step(steps, current, trials[best], ln_n, table, added=best)
         templates += (best,)
         current = trials[best]
-        while len(templates) > 1:  # backward elimination
-            removals = {
-                n: problem.fit(tuple(m for m in templates if m != n) + extra) for n in templates
-            }
-            costs = {n: r.bic(ln_n) - current.bic(ln_n) for n, r in removals.items()}
-            weakest = min(costs, key=costs.get)
-            reduced = frozenset(m for m in templates if m != weakest)
-            if costs[weakest] >= -threshold or reduced in removed_sets:
-                break
-            removed_sets.add(reduced)
-            after = removals[weakest]
-            _step(
-                steps,
-                current,
-                after,
-                ln_n,
-                {weakest: {"delta_chi2": after.chi2 - current.chi2, "delta_bic": -costs[weakest]}},
-                removed=weakest,
-                note=f"{weakest} made redundant by the effects selected after it",
-            )
-            templates = tuple(m for m in templates if m != weakest)
-            current = after
+        templates, current = _backward(
+            problem, templates, current, extra, threshold, removed_sets, steps
+        )
     return templates
 
 
@@ -800,8 +833,12 @@ def stepwise(
     delta_bic_threshold: float = DELTA_BIC_THRESHOLD,
     max_effects: int = 6,
     candidates=None,
+    initial=(),
 ) -> Selection:
-    """Forward stepwise selection over the catalog with the BIC (module docstring)."""
+    """Forward stepwise selection over the catalog with the BIC (module docstring).
+
+    ``initial``: start from these effects (checked by a backward step first).
+    """
     ln_n = problem.ln_n_eff
     names = list(problem.effects) if candidates is None else list(candidates)
     names = [n for n in names if n in problem.effects]
@@ -809,7 +846,7 @@ def stepwise(
     steps: list[Step] = []
     baseline = problem.fit(())
     templates = select_templates(
-        problem, template_names, delta_bic_threshold, max_effects, False, steps
+        problem, template_names, delta_bic_threshold, max_effects, False, steps, initial
     )
     noise_on = False
     noise_test: dict = {}

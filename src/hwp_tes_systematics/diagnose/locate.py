@@ -51,6 +51,7 @@ import scipy.signal
 import scipy.stats
 
 from .effects import GlitchEvent, fit_glitch
+from .linalg import whitened_lstsq
 from .model import Context
 from .noise import NoiseModel, line_exclusion_mask, periodogram_scale
 
@@ -413,21 +414,12 @@ def find_transients(
     return events
 
 
-def whitened_lstsq(residual_f: np.ndarray, templates_f: np.ndarray, weights: np.ndarray):
-    """Weighted least squares in the Fourier domain: (values, sigmas)."""
-    from .fit import cross, solve_normal
-
-    gram = cross(templates_f, templates_f, weights)
-    values, cov = solve_normal(gram, cross(templates_f, residual_f, weights))
-    return values, np.sqrt(np.clip(np.diag(cov), 0, None))
-
-
 def drifts(
     residual_f: np.ndarray, ctx: Context, k: int, weights: np.ndarray, workers: int = 1
 ) -> list[dict]:
     """Offset slope, 2f amplitude drift and dipole gain drift of detector k (whitened LS)."""
     p1 = ctx.legendre(1)
-    angle = 2 * ctx.detector_angle[k]
+    angle = ctx.hwpss_angle[k]  # the (adjusted) 2f carrier phase
     dipole = ctx.dipole[k]
     rows = [
         p1,

@@ -96,6 +96,10 @@ class Context:
     detector_names: list[str]
     pixels: np.ndarray | None = None  # (n_det, n) Galactic RING pixels at the sky map's nside
     nside: int | None = None
+    # rho (Q sin 2a - U cos 2a): d(sky_polarization)/d(theta) / 2 (pol-angle template)
+    sky_polarization_quadrature: np.ndarray | None = None
+    hwpss_phase_rad: np.ndarray | None = None  # (n_det,) phi: HWPSS A_2 cos(2 (chi - theta) - phi)
+    adjustment: np.ndarray | None = None  # (n_det, n) fitted nominal adjustments (:mod:`.nominal`)
     f_spin_hz: float = F_SPIN_HZ
     f_precession_hz: float = F_PRECESSION_HZ
     extra: dict = field(default_factory=dict)
@@ -122,9 +126,22 @@ class Context:
         return self.hwp_angle_rad[None, :] - self.pol_angle_rad[:, None]
 
     @cached_property
+    def hwpss_angle(self) -> np.ndarray:
+        """x = 2 (chi - theta_k) - phi_k, the phase of the 2f HWPSS carrier, (n_det, n)."""
+        angle = 2 * self.detector_angle
+        if self.hwpss_phase_rad is not None:
+            angle = angle - np.asarray(self.hwpss_phase_rad)[:, None]
+        return angle
+
+    @cached_property
+    def carrier(self) -> np.ndarray:
+        """cos x: the 2f HWPSS carrier of unit amplitude."""
+        return np.cos(self.hwpss_angle)
+
+    @cached_property
     def hwpss(self) -> np.ndarray:
-        """A_2 cos(2 (chi - theta_k))."""
-        return self.a2_k[:, None] * np.cos(2 * self.detector_angle)
+        """A_2 cos(2 (chi - theta_k) - phi_k) (phi = 0 in the nominal model)."""
+        return self.a2_k[:, None] * self.carrier
 
     @cached_property
     def sky(self) -> np.ndarray:
@@ -137,8 +154,11 @@ class Context:
 
     @cached_property
     def d_nom(self) -> np.ndarray:
-        """Total nominal TOD I + pol + D + A_2 cos(2 (chi - theta))."""
-        return self.sky + self.dipole + self.hwpss
+        """Total nominal TOD I + pol + D + A_2 cos(2 (chi - theta) - phi) (+ the adjustments)."""
+        total = self.sky + self.dipole + self.hwpss
+        if self.adjustment is not None:
+            total = total + self.adjustment
+        return total
 
     @cached_property
     def other(self) -> np.ndarray:
@@ -181,8 +201,11 @@ def dipole_tod(recording) -> np.ndarray:
 
     cache_litebird_sim_kernels()
 
+    # litebird_sim's Observation wants a band centre; the total dipole (TOTAL_FROM_LIN_T)
+    # does not depend on it, so a lab detector without one gets a placeholder
+    detectors = [{"bandcenter_ghz": 100.0, **dict(det)} for det in recording.detectors]
     observation = lbs.Observation(
-        detectors=[dict(det) for det in recording.detectors],
+        detectors=detectors,
         n_samples_global=recording.n_samples,
         start_time_global=recording.start_time,
         sampling_rate_hz=recording.sampling_rate_hz,
@@ -198,7 +221,11 @@ def dipole_tod(recording) -> np.ndarray:
 
 
 def scan_sky(recording, sky: np.ndarray, threads: int = 1):
-    """(I(p), rho (Q cos 2a + U sin 2a), pixels) at the nearest pixel of the sky map."""
+    """(I(p), rho (Q cos 2a + U sin 2a), pixels, nside, rho (Q sin 2a - U cos 2a)).
+
+    Values at the nearest pixel of the sky map; the last is the quadrature polarisation,
+    d/d theta of the polarisation term = 2 rho (Q sin 2a - U cos 2a) (a = 2 chi - theta + psi).
+    """
     import ducc0
     import litebird_sim as lbs
 
@@ -210,6 +237,7 @@ def scan_sky(recording, sky: np.ndarray, threads: int = 1):
     pixels = np.empty((n_det, n), dtype=np.int64)
     intensity = np.empty((n_det, n))
     polarization = np.empty((n_det, n))
+    quadrature = np.empty((n_det, n))
     chi = recording.hwp_angle_rad
     for k in range(n_det):
         galactic = lbs.rotate_coordinates_e2g(np.ascontiguousarray(recording.pointings_ecl[k]))
@@ -217,10 +245,11 @@ def scan_sky(recording, sky: np.ndarray, threads: int = 1):
         alpha = 2 * chi - recording.pol_angles_rad[k] + galactic[:, 2]
         pix = pixels[k]
         intensity[k] = sky[0][pix]
-        polarization[k] = recording.pol_efficiency[k] * (
-            sky[1][pix] * np.cos(2 * alpha) + sky[2][pix] * np.sin(2 * alpha)
-        )
-    return intensity, polarization, pixels, nside
+        cos2, sin2 = np.cos(2 * alpha), np.sin(2 * alpha)
+        rho = recording.pol_efficiency[k]
+        polarization[k] = rho * (sky[1][pix] * cos2 + sky[2][pix] * sin2)
+        quadrature[k] = rho * (sky[1][pix] * sin2 - sky[2][pix] * cos2)
+    return intensity, polarization, pixels, nside, quadrature
 
 
 def per_detector(value, n_detectors: int, name: str) -> np.ndarray:
@@ -236,7 +265,7 @@ def per_detector(value, n_detectors: int, name: str) -> np.ndarray:
 def build_context(recording, sky_iqu, a2_k, threads: int = 1) -> Context:
     """Nominal model pieces of ``recording`` for the sky map ``sky_iqu`` and HWPSS A_2 [K]."""
     sky, _ = load_sky(sky_iqu)
-    intensity, polarization, pixels, nside = scan_sky(recording, sky, threads)
+    intensity, polarization, pixels, nside, quadrature = scan_sky(recording, sky, threads)
     a2 = per_detector(a2_k, recording.n_detectors, "a2_k")
     return Context(
         times_s=np.asarray(recording.times_s, dtype=float),
@@ -252,6 +281,7 @@ def build_context(recording, sky_iqu, a2_k, threads: int = 1) -> Context:
         detector_names=recording.detector_names,
         pixels=pixels,
         nside=nside,
+        sky_polarization_quadrature=quadrature,
     )
 
 

@@ -55,7 +55,7 @@ from .effects import CATALOG, SIGNAL_EFFECTS, GlitchEvent, get_effect
 from .model import Context, per_detector
 
 DEFAULT_START_TDB = "2032-04-01T00:00:00"
-REQUIRED_DETECTOR_KEYS = ("name", "pol_angle_rad", "bandcenter_ghz")
+REQUIRED_DETECTOR_KEYS = ("name", "pol_angle_rad")
 MIN_SAMPLES = 64
 
 
@@ -186,10 +186,27 @@ def _read_flags(path, handle, n_det: int, n: int) -> np.ndarray:
 
 
 def read_recording(path) -> Recording:
-    """Read a recording written by :func:`write_recording` (litebird_sim's HDF5 format)."""
+    """Read a recording written by :func:`write_recording` (litebird_sim's HDF5 format).
+
+    A file that h5py cannot open or read (truncated by an interrupted copy or write, or
+    corrupt) is a :class:`RecordingError` naming the file, what h5py said and what to do.
+    """
+    path = Path(path)
+    try:
+        return _read_recording(path)
+    except OSError as error:  # h5py: "Unable to synchronously open file (truncated file...)"
+        size = path.stat().st_size if path.exists() else 0
+        _fail(
+            path,
+            f"cannot be read as HDF5 ({error}; {size} bytes on disk): the file is truncated "
+            "or corrupt, e.g. by an interrupted copy or write; copy or write it again "
+            "(compare its size or checksum with the original)",
+        )
+
+
+def _read_recording(path: Path) -> Recording:
     import h5py
 
-    path = Path(path)
     if not path.exists():
         _fail(path, "no such file")
     if not path.is_file() or not h5py.is_hdf5(path):
@@ -290,6 +307,36 @@ def read_recording(path) -> Recording:
         channel=channel,
         source=str(path),
     )
+
+
+def known_channels() -> set[str]:
+    """Channel names of the instrument model (litebird_sim's PTEP IMO)."""
+    from ..instrument import channel_names_by_telescope
+
+    return {name for names in channel_names_by_telescope().values() for name in names}
+
+
+def nominal_a2(recording: Recording, a2_k: float | None, lookup) -> float:
+    """The nominal A_2 [K]: ``a2_k`` if given (``--a2``), else ``lookup(channel)``.
+
+    A recording whose channel the instrument model does not know (a lab detector: no or
+    an unknown ``channel`` in its detector metadata) is diagnosed from its own metadata
+    (NET, sampling rate, polarisation angles) and needs A_2 from the caller; without it
+    the error says what to supply.
+    """
+    if a2_k is not None:
+        if not (math.isfinite(a2_k) and a2_k >= 0):
+            raise RecordingError(f"--a2 = {a2_k!r}: expected an amplitude >= 0 in K_CMB")
+        return float(a2_k)
+    channel = recording.channel
+    if not channel or channel not in known_channels():
+        _fail(
+            recording.source,
+            f"channel {channel!r} of detectors {recording.detector_names} is not in the "
+            "instrument model, so its nominal HWPSS amplitude is unknown: give it with "
+            "--a2 A2_K (K_CMB; e.g. --a2 0.264)",
+        )
+    return float(lookup(channel))
 
 
 # --------------------------------------------------------------------------- writing
@@ -450,6 +497,49 @@ def _noise(simulator, pointing, master_seed, noise_seed, params: dict | None) ->
 RESPONSE_EFFECTS = {"tes_nonlinearity", "tes_electrothermal"}
 
 
+def _hwpss_sine_modulation(ctx: Context, params: dict, tod: np.ndarray) -> np.ndarray:
+    """A_2 [1 + m sin(2 pi t / P + phi)] cos(2 (chi - theta) - phi_2): a periodic 2f modulation.
+
+    Modulates the recording's actual HWPSS: ``a2_k`` and ``hwpss_phase_rad`` (phi_2), when
+    given, are its true amplitude and phase (default: the nominal ones).
+    """
+    relative = per_detector(params["relative"], ctx.n_detectors, "relative")
+    a2 = per_detector(params.get("a2_k", ctx.a2_k), ctx.n_detectors, "a2_k")
+    phase2 = per_detector(params.get("hwpss_phase_rad", 0.0), ctx.n_detectors, "hwpss_phase_rad")
+    wave = np.sin(2 * np.pi * ctx.times_s / float(params["period_s"]) + params.get("phase_rad", 0))
+    carrier = np.cos(2 * ctx.detector_angle - phase2[:, None])
+    return tod + (relative * a2)[:, None] * wave[None, :] * carrier
+
+
+def _pickup_line(ctx: Context, params: dict, tod: np.ndarray) -> np.ndarray:
+    """A cos(2 pi f t + phi): an electrical pickup line at a frequency of no HWP/scan combination."""
+    amplitude = per_detector(params["amplitude_k"], ctx.n_detectors, "amplitude_k")
+    phase = 2 * np.pi * float(params["freq_hz"]) * ctx.times_s + params.get("phase_rad", 0.0)
+    return tod + amplitude[:, None] * np.cos(phase)[None, :]
+
+
+def _hwpss_spin_modulation(ctx: Context, params: dict, tod: np.ndarray) -> np.ndarray:
+    """c_n [1 + m cos(2 pi f_spin t)] cos n(chi - theta): an HWP harmonic modulated by the spin.
+
+    (An HWP wobble whose emission depends on the spin phase.) Lines at n f_HWP and
+    n f_HWP +- f_spin; not a catalog effect: only its constant part is hwpss_harmonics.
+    """
+    n = int(params.get("harmonic", 3))
+    amplitude = per_detector(params["amplitude_k"], ctx.n_detectors, "amplitude_k")
+    depth = float(params.get("depth", 1.0))
+    envelope = 1.0 + depth * np.cos(2 * np.pi * ctx.f_spin_hz * ctx.times_s)
+    return tod + amplitude[:, None] * envelope[None, :] * np.cos(n * ctx.detector_angle)
+
+
+# Effects OUTSIDE the catalog (no forward model in the diagnosis), for tests and benchmarks:
+# signal effects, applied with the catalog's signal effects before the noise.
+OUT_OF_CATALOG = {
+    "hwpss_sine_modulation": _hwpss_sine_modulation,
+    "pickup_line": _pickup_line,
+    "hwpss_spin_modulation": _hwpss_spin_modulation,
+}
+
+
 def simulate_recording(
     channel_name: str,
     hours: float,
@@ -459,6 +549,7 @@ def simulate_recording(
     a2_k,
     effects=(),
     start_time_tdb: str = DEFAULT_START_TDB,
+    pol_angle_offsets_rad=0.0,
 ) -> Recording:
     """A recording of ``channel_name``'s pair: sky + dipole + HWPSS + noise + injected effects.
 
@@ -468,6 +559,10 @@ def simulate_recording(
     "alpha"}``), or ``("tes_electrothermal", {"p0_w", "kelvin_per_watt", ...})``. The
     noise comes from its own stream ``(master_seed, "noise", channel, noise_seed, 0,
     detector)``. The truth is kept in ``recording.injected`` (never written to a file).
+    ``pol_angle_offsets_rad``: the true polarisation angles are theta + delta while the
+    recording's metadata keeps the nominal theta (a polarisation-angle error): the sky
+    polarisation is rho [Q cos 2(a - delta) + U sin 2(a - delta)] and the HWPSS
+    A_2 cos 2(chi - theta - delta).
     """
     from .model import check_sky_map
 
@@ -479,12 +574,21 @@ def simulate_recording(
     unpolarized = np.stack([sky[0], np.zeros_like(sky[0]), np.zeros_like(sky[0])])
     sky_intensity = simulator.scan_sky(pointing, unpolarized)
     sky_polarization = simulator.scan_sky(pointing, sky) - sky_intensity
+    delta = per_detector(pol_angle_offsets_rad, n_det, "pol_angle_offsets_rad")
+    if np.any(delta != 0):
+        # rho (Q sin 2a - U cos 2a): the map (0, -U, Q) scanned
+        rotated = np.stack([np.zeros_like(sky[0]), -sky[2], sky[1]])
+        quadrature = simulator.scan_sky(pointing, rotated)
+        sky_polarization = (
+            np.cos(2 * delta)[:, None] * sky_polarization + np.sin(2 * delta)[:, None] * quadrature
+        )
+    pol_angles = simulator.pol_angles_rad + delta
     n = pointing.hwp_angle_rad.size
     ctx = Context(
         times_s=np.arange(n) / simulator.plan.sampling_rate_hz,
         sampling_rate_hz=simulator.plan.sampling_rate_hz,
         hwp_angle_rad=pointing.hwp_angle_rad,
-        pol_angle_rad=simulator.pol_angles_rad,
+        pol_angle_rad=pol_angles,
         pol_efficiency=simulator.pol_efficiency,
         sky_intensity=sky_intensity,
         sky_polarization=sky_polarization,
@@ -497,16 +601,21 @@ def simulate_recording(
     from litebird_sim.hwp_diff_emiss import add_2f
 
     hwpss = np.zeros((n_det, n))
-    add_2f(hwpss, pointing.hwp_angle_rad, simulator.pol_angles_rad, a2)
+    add_2f(hwpss, pointing.hwp_angle_rad, pol_angles, a2)
     signal = sky_intensity + sky_polarization + dipole + hwpss
 
     effects = [(str(name), dict(params)) for name, params in effects]
     for name, _ in effects:
-        if name not in CATALOG and name not in RESPONSE_EFFECTS:
-            raise KeyError(f"unknown effect {name!r}; expected one of {sorted(CATALOG)}")
+        if name not in CATALOG and name not in RESPONSE_EFFECTS and name not in OUT_OF_CATALOG:
+            raise KeyError(
+                f"unknown effect {name!r}; expected one of {sorted(CATALOG)}, "
+                f"{sorted(RESPONSE_EFFECTS)} or {sorted(OUT_OF_CATALOG)}"
+            )
     for name, params in effects:
         if name in SIGNAL_EFFECTS:
             signal = get_effect(name).apply(ctx, params, signal)
+        elif name in OUT_OF_CATALOG:
+            signal = OUT_OF_CATALOG[name](ctx, params, signal)
     noise_params = next((p for name, p in effects if name == "noise_mismatch"), None)
     tod = signal + _noise(simulator, pointing, master_seed, noise_seed, noise_params)
     for name, params in effects:

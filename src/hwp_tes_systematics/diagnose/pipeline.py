@@ -1,0 +1,394 @@
+"""``diagnose``: the pipeline (nominal model and adjustments, residual, noise, locate, fit, unexplained).
+
+    d_nom                           sky + dipole + A_2 cos 2(chi - theta) (:mod:`.model`)
+    nominal adjustments             gain, offset, 2f amplitude/phase, polarisation angle,
+                                    sky scales, noise (fitted, never effects; :mod:`.nominal`)
+    r = recording - adjusted d_nom
+    where r differs from noise      (lines, HWP-angle harmonics, transients, drifts, sky; :mod:`.locate`)
+    which effects explain r         (stepwise selection with the BIC over the catalog, jointly
+                                    with the adjustments; noise refitted, selection checked
+                                    again; :mod:`.fit`)
+    what is left                    (significant structure no effect explains; :mod:`.unexplained`)
+
+Returns the ``diagnosis.json``-shaped dict::
+
+    {"mismatch_found": bool,            # an effect, or unexplained structure
+     "effects": [{"name", "title", "parameters": {"g1[det]": {"value", "sigma", "unit", ...}},
+                  "delta_chi2", "delta_bic", "evidence", ...}, ...],   # ranked
+     "unexplained": [{"kind", "freq_hz" | "time_range_s" | ..., "significance_sigma",
+                      "tried_and_rejected", "text"}, ...],
+     "nominal_adjustments": {detector: {name: {"value", "sigma", "unit", "nominal"}}},
+     "chi2_before", "chi2_after", "dof", "n_eff", "delta_bic_threshold",
+     "steps": [...], "lines": [...], "noise": {...}, "locate": {...}, "recording": {...}}
+
+"effects" is ranked by the drop-one Delta chi^2 (how much worse the final model gets
+without the effect); "delta_bic" is BIC(final) - BIC(final without it) (< 0 for a
+selected effect). With ``out_dir``, writes diagnosis.json, diagnosis.md and the figures
+(:mod:`.report`).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+
+from .effects import CATALOG
+from .evidence import Evidence
+from .fit import FitProblem, stepwise
+from .locate import line_at, locate
+from .model import build_context, load_sky, nominal_tod, per_detector
+from .noise import NoiseModel, estimate_noise
+from .nominal import (
+    NOMINAL,
+    SKY_RESIDUAL_NSIDE,
+    adjustments_report,
+    fit_nominal,
+    refit_noise,
+)
+from .recording import Recording
+from .report import write_outputs
+from .unexplained import find_unexplained
+
+log = logging.getLogger(__name__)
+NOISE_REFIT_CHANGE = 0.02  # select again when the noise PSD at the effects moved by > 2 %
+
+__all__ = ["diagnose", "nominal_tod"]
+
+
+def _nominal_noise_models(recording: Recording, nominal_noise) -> list[NoiseModel]:
+    """Noise per detector: from ``nominal_noise`` or the recording's detector metadata.
+
+    ``nominal_noise``: None, (net_ukrts, fknee_mhz, alpha[, fmin_hz]), a dict with those
+    keys, a NoiseModel, or a list of one of these per detector.
+    """
+    n_det = recording.n_detectors
+    metadata = recording.nominal_noise()
+    if nominal_noise is None:
+        items = [None] * n_det
+    elif (
+        isinstance(nominal_noise, list)
+        and len(nominal_noise) == n_det
+        and not all(isinstance(x, (int, float)) for x in nominal_noise)
+    ):
+        items = list(nominal_noise)
+    else:
+        items = [nominal_noise] * n_det
+    models = []
+    for k, item in enumerate(items):
+        meta = metadata[k]
+        if item is None:
+            values = meta
+        elif isinstance(item, NoiseModel):
+            models.append(item)
+            continue
+        elif isinstance(item, dict):
+            values = {**meta, **item}
+        else:
+            item = tuple(item)
+            if len(item) not in (3, 4):
+                raise ValueError(
+                    f"nominal_noise = {nominal_noise!r}: expected (net_ukrts, fknee_mhz, alpha"
+                    "[, fmin_hz])"
+                )
+            values = dict(meta)
+            values.update(zip(("net_ukrts", "fknee_mhz", "alpha", "fmin_hz"), item, strict=False))
+        if not (math.isfinite(values["net_ukrts"]) and values["net_ukrts"] > 0):
+            # no NET in the file (a lab detector): the noise is a nominal adjustment
+            # anyway; it starts from a robust estimate on the residual (see diagnose)
+            log.warning(
+                "%s: no NET for detector %r in the file: the noise starts from the residual",
+                recording.source,
+                recording.detector_names[k],
+            )
+            models.append(None)
+            continue
+        models.append(NoiseModel.from_detector(values))
+    return models
+
+
+def look_alikes(steps, threshold: float) -> dict[str, list[str]]:
+    """For each effect added: the candidates whose Delta BIC came within |threshold| of it.
+
+    Those explained the residual (nearly) equally well at that step, so the data do not
+    tell them apart (e.g. a gain drift and a 2f amplitude drift in a recording too short
+    for the dipole's change to show): the report says so instead of picking silently.
+    """
+    out: dict[str, list[str]] = {}
+    for step in steps:
+        if not step.added or step.added not in step.candidates:
+            continue
+        best = step.candidates[step.added]["delta_bic"]
+        ties = [
+            name
+            for name, c in step.candidates.items()
+            if name != step.added and c["delta_bic"] - best < -threshold
+        ]
+        out[step.added] = sorted(set(out.get(step.added, [])) | set(ties))
+    return out
+
+
+def _parameters(name, fit, detector_names, sampling_rate_hz, units) -> dict:
+    out = {}
+    if name == "glitches":
+        for i, e in enumerate(sorted(fit.events, key=lambda e: (e.detector, e.time_s))):
+            det = detector_names[e.detector]
+            out[f"glitch{i}.amplitude[{det}]"] = {
+                "value": e.amplitude_k,
+                "sigma": e.sigma_amplitude_k,
+                "unit": "K",
+                "detector": det,
+                "parameter": "amplitude",
+            }
+            out[f"glitch{i}.time[{det}]"] = {
+                "value": e.time_s,
+                "sigma": 0.5 / sampling_rate_hz,  # on the sampling grid
+                "unit": "s",
+                "detector": det,
+                "parameter": "time",
+            }
+            out[f"glitch{i}.tau[{det}]"] = {
+                "value": e.tau_s,
+                "sigma": e.sigma_tau_s,
+                "unit": "s",
+                "detector": det,
+                "parameter": "tau",
+            }
+        return out
+    for param, unit in units.items():
+        for k, det in enumerate(detector_names):
+            entry = {
+                "value": float(fit.values[param][k]),
+                "sigma": float(fit.sigmas[param][k]),
+                "unit": unit,
+                "detector": det,
+                "parameter": param,
+            }
+            out[f"{param}[{det}]"] = entry
+    return out
+
+
+def _line_table(mismatch, ctx, residual_before, residual_after, noise_models):
+    rows = []
+    for line in mismatch.lines:
+        k = ctx.detector_names.index(line.detector)
+        psd = float(noise_models[k].psd(line.freq_hz))
+        after = line_at(residual_after[k], ctx.times_s, ctx.valid[k], line.freq_hz, psd)
+        rows.append(
+            {
+                "detector": line.detector,
+                "freq_hz": line.freq_hz,
+                "identification": line.identification,
+                "amplitude_before_k": line.amplitude_k,
+                "sigma_k": line.sigma_amplitude_k,
+                "significance_before_sigma": line.significance_sigma,
+                "global_significance_sigma": line.global_sigma,
+                "modulation_before_k": line.modulation_k,
+                "modulation_significance_sigma": line.modulation_sigma,
+                "amplitude_after_k": after[0],
+                "significance_after_sigma": after[3],
+            }
+        )
+    return rows
+
+
+def _jsonable(value):
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _jsonable(value.tolist())
+    if isinstance(value, (np.floating, float)):
+        value = float(value)
+        return value if math.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, np.bool_):
+        return bool(value)
+    return value
+
+
+def diagnose(
+    recording: Recording,
+    sky_iqu,
+    a2_k,
+    nominal_noise=None,
+    out_dir=None,
+    delta_bic_threshold: float = -10.0,
+    max_effects: int = 6,
+    workers: int = 1,
+    figures: bool = True,
+    sky_residual_nside: int | None = SKY_RESIDUAL_NSIDE,
+) -> dict:
+    """Diagnose ``recording`` against its simulation (module docstring); never told the effect.
+
+    ``sky_iqu``: (3, npix) I, Q, U map [K_CMB, Galactic, RING] or the path of a FITS map;
+    ``a2_k``: the nominal HWPSS amplitude A_2 [K] (scalar or one per detector);
+    ``nominal_noise``: the configured noise (see :func:`_nominal_noise_models`; default:
+    the recording's detector metadata); ``delta_bic_threshold``: an effect is kept if it
+    lowers the BIC by more than this (default -10).
+    """
+    if not isinstance(recording, Recording):
+        raise TypeError(f"recording: expected a Recording, got {type(recording).__name__}")
+    sky, sky_source = load_sky(sky_iqu)
+    a2 = per_detector(a2_k, recording.n_detectors, "a2_k")
+    nominal = _nominal_noise_models(recording, nominal_noise)
+    base = build_context(recording, sky, a2)
+    residual0 = np.where(base.valid, recording.tod - base.d_nom, 0.0)
+
+    estimates = []
+    for k in range(base.n_detectors):
+        estimates.append(
+            estimate_noise(
+                residual0[k],
+                base.sampling_rate_hz,
+                base.valid[k],
+                base.f_hwp_hz,
+                base.f_spin_hz,
+                nominal[k].fmin_hz if nominal[k] is not None else 1e-5,
+                start=nominal[k],
+            )
+        )
+    nominal = [m if m is not None else e.model for m, e in zip(nominal, estimates, strict=True)]
+    # Nominal adjustments (gain, 2f amplitude and phase, polarisation angle, sky scales,
+    # offsets, sky residual, noise): fitted on every recording, never an effect.
+    adjusted = fit_nominal(
+        base,
+        recording.tod,
+        nominal,
+        sky_residual_nside=sky_residual_nside,
+        workers=workers,
+    )
+    ctx = adjusted.context
+    noise_models = adjusted.noise
+    residual = np.where(ctx.valid, recording.tod - ctx.d_nom, 0.0)
+    mismatch = locate(ctx, residual, noise_models, nominal, workers=workers)
+
+    # The noise was fitted before any effect was removed: a strong effect leaks power
+    # beyond the line bins and inflates it. Refit it on the residual of the best fit and,
+    # if it moved by more than 2 % where the effects are, select again with the new weights,
+    # starting from the effects found (each checked again, then the others tried).
+    previous = ()
+    history = []
+    problem = FitProblem(ctx, recording.tod, noise_models, workers=workers, nominal=NOMINAL)
+    for attempt in range(2):
+        if attempt:  # same templates and residual, new noise weights
+            problem = problem.with_noise(noise_models)
+        selection = stepwise(
+            problem,
+            delta_bic_threshold=delta_bic_threshold,
+            max_effects=max_effects,
+            initial=previous,
+        )
+        final = problem.fit(selection.final.selected, keep_model=True)
+        history += selection.steps
+        if attempt == 1 or not final.selected:
+            break
+        refit, covariances, change = refit_noise(
+            ctx, problem.residual_f - np.array(final.model_f), noise_models
+        )
+        if change < NOISE_REFIT_CHANGE:
+            break
+        noise_models = refit
+        adjusted.noise, adjusted.noise_covariance = refit, covariances
+        previous = final.selected  # checked first with the new weights, then extended
+    residual_after = problem.residual_after(final)
+    partial = problem.partial_residuals(final)
+
+    ties = look_alikes(history, delta_bic_threshold)
+    effects_out = []
+    for name in selection.ranked:
+        fit = final.effects[name]
+        evidence = Evidence(ctx, partial[name], noise_models, ctx.a2_k, workers)
+        text = CATALOG[name].evidence(evidence, fit)
+        if ties.get(name):
+            text += (
+                f"; NOT told apart in this recording from {', '.join(ties[name])} (Delta BIC "
+                f"within {-delta_bic_threshold:g} of it when it was selected): the data fit "
+                "either equally well, so read it as one of these"
+            )
+        effect = CATALOG[name]
+        effects_out.append(
+            {
+                "name": name,
+                "title": effect.title,
+                "parameters": _parameters(
+                    name, fit, ctx.detector_names, ctx.sampling_rate_hz, problem.units[name]
+                ),
+                "main_parameters": list(effect.main_parameters),
+                "delta_chi2": selection.delta_chi2[name],
+                "delta_bic": selection.delta_bic[name],
+                "evidence": text,
+                "signature": effect.signature,
+                "look_alikes": ties.get(name, []),
+            }
+        )
+    lines = _line_table(mismatch, ctx, residual, residual_after, noise_models)
+    corrections = final.effects[NOMINAL.name]
+    adjustments = adjustments_report(
+        adjusted, corrections.values, corrections.sigmas, nominal, recording.pol_angles_rad
+    )
+    n_nuisance = problem.n_nominal * ctx.n_detectors + 3 * ctx.n_detectors + ctx.n_detectors
+    n_nuisance += adjusted.sky_residual_pixels
+    unexplained = find_unexplained(ctx, residual_after, noise_models, selection, workers)
+    result = {
+        "mismatch_found": bool(final.selected) or bool(unexplained),
+        "effects": effects_out,
+        "unexplained": unexplained,
+        "nominal_adjustments": adjustments,
+        "chi2_before": selection.baseline.chi2,
+        "chi2_after": final.chi2,
+        "dof": selection.n_eff - final.n_params - n_nuisance,
+        "n_nuisance_parameters": n_nuisance,
+        "n_eff": selection.n_eff,
+        "n_params": final.n_params,
+        "bic_before": selection.baseline.bic(selection.ln_n_eff),
+        "bic_after": final.bic(selection.ln_n_eff),
+        "delta_bic_threshold": delta_bic_threshold,
+        "information_criterion": "BIC = chi2 + k ln N_eff (N_eff = real Fourier dof used)",
+        "steps": [dict(step.as_dict(), step=i + 1) for i, step in enumerate(history)],
+        "lines": lines,
+        "noise": {
+            "nominal": [
+                {
+                    "net_k_sqrt_s": m.net_k_sqrt_s,
+                    "fknee_hz": m.fknee_hz,
+                    "alpha": m.alpha,
+                    "fmin_hz": m.fmin_hz,
+                }
+                for m in nominal
+            ],
+            "estimated": [e.as_dict() for e in estimates],
+            "test_off_lines": selection.noise_test,
+        },
+        "locate": mismatch.as_dict(),
+        "recording": {
+            "source": recording.source,
+            "channel": recording.channel,
+            "detectors": ctx.detector_names,
+            "duration_s": recording.duration_s,
+            "sampling_rate_hz": recording.sampling_rate_hz,
+            "start_time_mjd": float(recording.start_time.mjd),
+            "start_time_scale": recording.start_time.scale,
+            "flagged_fraction": float(np.mean(recording.flags)),
+            "sky": sky_source,
+            "a2_k": a2.tolist(),
+            "f_hwp_hz": ctx.f_hwp_hz,
+        },
+    }
+    result = _jsonable(result)
+    if out_dir is not None:
+        write_outputs(
+            result,
+            out_dir,
+            ctx,
+            problem,
+            residual,
+            residual_after,
+            mismatch,
+            noise_models,
+            figures=figures,
+        )
+    return result

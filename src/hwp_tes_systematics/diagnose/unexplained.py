@@ -1,0 +1,303 @@
+"""What the best fit cannot explain: significant structure left in the residual.
+
+After the nominal adjustments and the selected effects, the residual r' = recording -
+(adjusted nominal model + fitted effects) is searched again, against the fitted noise:
+
+* lines (:func:`.locate.find_lines`: CLEAN with a look-elsewhere corrected 5 sigma
+  threshold), named n f_HWP + m f_spin + k f_prec where a combination fits; lines found in
+  several detectors at the same frequency are one entry. Where in time: the line's
+  amplitude in 8 equal segments (the segments where it exceeds 3 sigma give the time
+  range). A line at a pure sky frequency (n = 0: spin and precession combinations) is
+  TOLERATED as the small unknown sky residual (a nominal adjustment) when its amplitude is
+  below ``SKY_TOLERANCE`` (10 %) of the nominal sky + dipole signal at that frequency;
+* bands of excess broadband power (mean |R_f|^2 / S_f over logarithmic bands, line bins
+  excluded) above 5 sigma;
+* time segments (24 equal ones) whose whitened residual variance exceeds the noise by
+  more than 5 sigma (chi^2 per segment against 2 m real dof): a stretch where something
+  happened that no effect models;
+* the sky: structure fixed on the sky shows as lines at spin/precession combinations
+  (n = 0) above the sky tolerance; their sky region is where the binned residual is
+  largest (``sky_region``). (A correlation of the residual MAP with the intensity or the
+  dipole is not used: with 1/f noise the pixels are not independent and any smooth map
+  correlates with the dipole; the gain and sky-scale adjustments already fit those
+  templates with the 1/f noise weights.)
+
+Each entry says where it is, how significant, and which catalog effects were tried and
+rejected (their Delta BIC at the last selection step, above the threshold). An effect
+outside the catalog lands here instead of being forced onto the nearest catalog effect:
+the selection takes an effect only for the part of the residual its forward model
+explains, and whatever its templates cannot reach stays in r'.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import scipy.fft
+
+from .locate import find_lines, line_at, sinusoid_fit, sky_residual
+from .model import Context
+from .noise import NoiseModel, line_exclusion_mask, periodogram_scale
+
+SKY_TOLERANCE = 0.10
+MIN_SIGMA = 5.0
+LINE_SEGMENTS = 8
+TIME_SEGMENTS = 24
+
+
+def _fmt(value_k: float) -> str:
+    magnitude = abs(value_k)
+    if magnitude >= 1e-1:
+        return f"{value_k:.4g} K"
+    if magnitude >= 1e-4:
+        return f"{value_k * 1e3:.4g} mK"
+    return f"{value_k * 1e6:.3g} uK"
+
+
+def _line_time_range(residual, ctx: Context, k: int, freq_hz: float, noise: NoiseModel):
+    """Segments (of LINE_SEGMENTS) where the line's amplitude exceeds 3 sigma: (t0, t1, amps)."""
+    n = ctx.n_samples
+    edges = np.linspace(0, n, LINE_SEGMENTS + 1).astype(int)
+    psd = float(noise.psd(freq_hz))
+    amplitudes, strong = [], []
+    for i, (lo, hi) in enumerate(itertools.pairwise(edges)):
+        valid = ctx.valid[k][lo:hi]
+        if valid.sum() < 16:
+            amplitudes.append(0.0)
+            continue
+        a, b = sinusoid_fit(residual[lo:hi], ctx.times_s[lo:hi], valid, freq_hz)
+        amplitude = math.hypot(a, b)
+        sigma = math.sqrt(psd / (valid.sum() / ctx.sampling_rate_hz))
+        amplitudes.append(amplitude)
+        if amplitude > 3 * sigma:
+            strong.append(i)
+    if not strong:
+        return 0.0, ctx.duration_s, amplitudes
+    t0 = edges[min(strong)] / ctx.sampling_rate_hz
+    t1 = edges[max(strong) + 1] / ctx.sampling_rate_hz
+    return float(t0), float(t1), amplitudes
+
+
+def _rejected(selection) -> dict:
+    """Catalog effects tried at the last selection step and not selected: {name: Delta BIC}."""
+    for step in reversed(selection.steps):
+        if step.added is None and step.removed is None and step.candidates:
+            return {n: float(c["delta_bic"]) for n, c in step.candidates.items()}
+    return {}
+
+
+def find_unexplained(
+    ctx: Context,
+    residual_after: np.ndarray,
+    noise_models: list[NoiseModel],
+    selection,
+    workers: int = 1,
+) -> list[dict]:
+    """Significant structure left after the best fit (module docstring), strongest first."""
+    n, fs = ctx.n_samples, ctx.sampling_rate_hz
+    tried = _rejected(selection)
+    tried_text = (
+        ", ".join(f"{name} (Delta BIC {value:+.0f})" for name, value in sorted(tried.items()))
+        or "none left to try"
+    )
+    nominal_signal = ctx.sky + ctx.dipole
+    entries: dict[tuple, dict] = {}
+    resolution = fs / n
+    for k, det in enumerate(ctx.detector_names):
+        for line in find_lines(residual_after[k], ctx, k, noise_models[k]):
+            if line.n_hwp == 0:
+                reference = line_at(nominal_signal[k], ctx.times_s, ctx.valid[k], line.freq_hz, 1.0)
+                if line.amplitude_k < SKY_TOLERANCE * reference[0]:
+                    continue  # within the tolerance for a small unknown sky residual
+            key = (line.identification, round(line.freq_hz / (3 * resolution)))
+            t0, t1, amplitudes = _line_time_range(
+                residual_after[k], ctx, k, line.freq_hz, noise_models[k]
+            )
+            entry = entries.setdefault(
+                key,
+                {
+                    "kind": "line",
+                    "freq_hz": line.freq_hz,
+                    "identification": line.identification,
+                    "n_hwp": line.n_hwp,
+                    "m_spin": line.m_spin,
+                    "k_precession": line.k_precession,
+                    "detectors": [],
+                    "amplitude_k": {},
+                    "significance_sigma": 0.0,
+                    "global_significance_sigma": 0.0,
+                    "time_range_s": [t0, t1],
+                    "segment_amplitudes_k": {},
+                    "tried_and_rejected": tried,
+                },
+            )
+            entry["detectors"].append(det)
+            # a line may be static (its amplitude) or only modulated (its rms change)
+            modulated = line.modulation_sigma > line.significance_sigma
+            entry["modulated"] = entry.get("modulated", False) or modulated
+            entry["amplitude_k"][det] = line.amplitude_k
+            entry.setdefault("modulation_k", {})[det] = line.modulation_k
+            entry["segment_amplitudes_k"][det] = amplitudes
+            entry["significance_sigma"] = max(
+                entry["significance_sigma"], line.significance_sigma, line.modulation_sigma
+            )
+            entry["global_significance_sigma"] = max(
+                entry["global_significance_sigma"], line.global_sigma
+            )
+            entry["time_range_s"] = [
+                min(entry["time_range_s"][0], t0),
+                max(entry["time_range_s"][1], t1),
+            ]
+
+    out = list(entries.values())
+    if any(e["n_hwp"] == 0 for e in out):
+        region = _sky_region(residual_after, ctx, noise_models)
+        for entry in out:
+            if entry["n_hwp"] == 0:
+                entry["sky_region"] = region
+    freqs = scipy.fft.rfftfreq(n, 1.0 / fs)
+    modes = np.ones(freqs.size, dtype=bool)
+    modes[0] = False
+    modes[-1] = n % 2 == 1
+    lines = line_exclusion_mask(freqs, ctx.f_hwp_hz, ctx.f_spin_hz, max(3 * resolution, 2e-4))
+    residual_f = scipy.fft.rfft(residual_after, axis=-1, workers=workers)
+    for k, det in enumerate(ctx.detector_names):
+        scale = periodogram_scale(n, fs, float(ctx.valid[k].mean()))
+        s = scale * noise_models[k].psd(freqs)
+        out += _bands(residual_f[k], freqs, s, modes & ~lines, det, tried)
+        out += _segments(residual_f[k], s, ctx, k, tried, workers)
+    for entry in out:
+        entry["text"] = describe(entry, tried_text)
+    return sorted(out, key=lambda e: -e["significance_sigma"])
+
+
+def _sky_region(residual_after, ctx: Context, noise_models) -> dict:
+    """Galactic (lon, lat) [deg] of the 5 % of seen pixels where the binned residual is largest."""
+    import healpy as hp
+
+    sigma = np.array([m.net_k_sqrt_s * math.sqrt(ctx.sampling_rate_hz) for m in noise_models])
+    sky = sky_residual(residual_after, ctx, sigma)
+    if not sky.get("available") or "residual_map" not in sky:
+        return {}
+    values = sky["residual_map"]
+    seen = np.flatnonzero(np.isfinite(values))
+    if seen.size == 0:
+        return {}
+    top = seen[np.argsort(-np.abs(values[seen]))[: max(1, seen.size // 20)]]
+    lon, lat = hp.pix2ang(sky["nside"], top, lonlat=True)
+    return {
+        "nside": int(sky["nside"]),
+        "lon_deg": [float(np.min(lon)), float(np.max(lon))],
+        "lat_deg": [float(np.min(lat)), float(np.max(lat))],
+        "peak_lon_lat_deg": [float(lon[0]), float(lat[0])],
+        "peak_residual_k": float(values[top[0]]),
+    }
+
+
+def _bands(residual_f, freqs, s, use, det, tried) -> list[dict]:
+    ratio = (residual_f.real**2 + residual_f.imag**2) / np.maximum(s, 1e-300)
+    positive = freqs[use]
+    if positive.size < 10:
+        return []
+    edges = np.logspace(
+        np.log10(positive.min()),
+        np.log10(positive.max()) + 1e-9,
+        max(2, int(3 * np.log10(positive.max() / positive.min())) + 2),
+    )
+    out = []
+    for lo, hi in itertools.pairwise(edges):
+        band = use & (freqs >= lo) & (freqs < hi)
+        m = int(band.sum())
+        if m < 10:
+            continue
+        mean = float(ratio[band].mean())
+        significance = (mean - 1.0) * math.sqrt(m)
+        if significance > MIN_SIGMA:
+            out.append(
+                {
+                    "kind": "band",
+                    "f_lo_hz": float(lo),
+                    "f_hi_hz": float(hi),
+                    "detectors": [det],
+                    "power_ratio": mean,
+                    "significance_sigma": significance,
+                    "tried_and_rejected": tried,
+                }
+            )
+    return out
+
+
+def _segments(residual_f, s, ctx: Context, k: int, tried, workers) -> list[dict]:
+    """Time segments whose whitened residual variance exceeds the noise (> 5 sigma)."""
+    n = ctx.n_samples
+    high = np.arange(s.size) > 0.25 * s.size
+    s_white = float(np.median(s[high]))
+    whitening = np.sqrt(s_white / np.maximum(s, 1e-300))
+    whitening[0] = 0.0
+    z = scipy.fft.irfft(residual_f * whitening, n=n, workers=workers)
+    valid = ctx.valid[k]
+    sigma2 = float(np.median(z[valid] ** 2)) / 0.4549  # median of chi^2_1 = 0.4549
+    edges = np.linspace(0, n, TIME_SEGMENTS + 1).astype(int)
+    out = []
+    for lo, hi in itertools.pairwise(edges):
+        v = valid[lo:hi]
+        m = int(v.sum())
+        if m < 32:
+            continue
+        chi2 = float(np.sum(z[lo:hi][v] ** 2) / sigma2)
+        significance = (chi2 - m) / math.sqrt(2 * m)
+        if significance > MIN_SIGMA:
+            out.append(
+                {
+                    "kind": "time_segment",
+                    "time_range_s": [lo / ctx.sampling_rate_hz, hi / ctx.sampling_rate_hz],
+                    "detectors": [ctx.detector_names[k]],
+                    "variance_ratio": chi2 / m,
+                    "significance_sigma": significance,
+                    "tried_and_rejected": tried,
+                }
+            )
+    return out
+
+
+def describe(entry: dict, tried_text: str) -> str:
+    """One sentence: what is left, where, how significant, what was tried."""
+    dets = " and ".join(entry["detectors"])
+    if entry["kind"] == "line":
+        amplitudes = ", ".join(_fmt(v) for v in entry["amplitude_k"].values())
+        if entry.get("modulated"):
+            amplitudes += " static, changing in time by " + ", ".join(
+                f"{_fmt(v)} rms" for v in entry["modulation_k"].values()
+            )
+        where = entry["identification"]
+        if where == "unidentified":
+            where = "no combination n f_HWP + m f_spin + k f_prec"
+        t0, t1 = entry["time_range_s"]
+        region = entry.get("sky_region")
+        if region:
+            where += (
+                f"; fixed on the sky, largest near Galactic (l, b) = "
+                f"({region['peak_lon_lat_deg'][0]:.0f}, {region['peak_lon_lat_deg'][1]:.0f}) deg"
+            )
+        return (
+            f"a line at {entry['freq_hz']:.6g} Hz ({where}) in {dets}, amplitude {amplitudes}, "
+            f"{entry['significance_sigma']:.0f} sigma, present from t = {t0:.0f} s to {t1:.0f} s; "
+            f"no catalog effect explains it (tried: {tried_text})"
+        )
+    if entry["kind"] == "band":
+        return (
+            f"excess broadband power x{entry['power_ratio']:.3g} over the fitted noise in "
+            f"{entry['f_lo_hz']:.3g}-{entry['f_hi_hz']:.3g} Hz in {dets} "
+            f"({entry['significance_sigma']:.0f} sigma), beyond a white + 1/f spectrum "
+            f"(tried: {tried_text})"
+        )
+    if entry["kind"] == "time_segment":
+        t0, t1 = entry["time_range_s"]
+        return (
+            f"the residual of {dets} is {entry['variance_ratio']:.3g} times the noise variance "
+            f"from t = {t0:.0f} s to {t1:.0f} s ({entry['significance_sigma']:.0f} sigma): "
+            f"something happened in that stretch that no effect models (tried: {tried_text})"
+        )
+    raise ValueError(f"unknown kind {entry['kind']!r}")
