@@ -174,10 +174,16 @@ class Context:
         return 2.0 * (self.times_s - self.times_s[0]) / span - 1.0
 
     def legendre(self, degree: int) -> np.ndarray:
-        """P_degree(x) over the recording, (n,)."""
-        coefficients = np.zeros(degree + 1)
-        coefficients[degree] = 1.0
-        return np.polynomial.legendre.legval(self.legendre_x, coefficients)
+        """P_degree(x) over the recording, (n,), by Bonnet's recursion (cached, read-only).
+
+        (j + 1) P_{j+1} = (2 j + 1) x P_j - j P_{j-1}.
+        """
+        cache = self.extra.setdefault("legendre", [np.ones_like(self.legendre_x), self.legendre_x])
+        x = self.legendre_x
+        while len(cache) <= degree:
+            j = len(cache) - 1
+            cache.append(((2 * j + 1) * x * cache[j] - j * cache[j - 1]) / (j + 1))
+        return cache[degree]
 
     @cached_property
     def f_hwp_hz(self) -> float:
