@@ -119,7 +119,7 @@ def modulation_degree(duration_s: float) -> int:
     return int(min(max(size, MODULATION_MIN), MODULATION_MAX))
 
 
-def _fmt(value_k: float) -> str:
+def format_temperature(value_k: float) -> str:
     """A temperature in the most readable unit."""
     magnitude = abs(value_k)
     if magnitude >= 1e-1:
@@ -225,17 +225,17 @@ class TesNonlinearity(Effect):
             (lo, _lo_s, _, lo_sig, *_), (hi, _hi_s, _, hi_sig, *_) = ev.sidebands(k)
             side_pred = abs(g1) * a2 * ev.dipole_amplitude(k)
             text = (
-                f"{name}: 4 f_HWP line {_fmt(h4.amplitude_k)} at {h4.significance_sigma:.1f} sigma "
-                f"(predicted g1 A_2^2/2 = {_fmt(abs(g1) * a2**2 / 2)}); its DC shift "
-                f"{_fmt(dc_pred)} is inside the fitted offset (a nominal adjustment: a detector's "
+                f"{name}: 4 f_HWP line {format_temperature(h4.amplitude_k)} at {h4.significance_sigma:.1f} sigma "
+                f"(predicted g1 A_2^2/2 = {format_temperature(abs(g1) * a2**2 / 2)}); its DC shift "
+                f"{format_temperature(dc_pred)} is inside the fitted offset (a nominal adjustment: a detector's "
                 "absolute offset is never known); 2 f_HWP - f_spin and "
-                f"2 f_HWP + f_spin lines {_fmt(lo)} and {_fmt(hi)} at {lo_sig:.1f} and "
-                f"{hi_sig:.1f} sigma (predicted g1 A_2 D = {_fmt(side_pred)} each)"
+                f"2 f_HWP + f_spin lines {format_temperature(lo)} and {format_temperature(hi)} at {lo_sig:.1f} and "
+                f"{hi_sig:.1f} sigma (predicted g1 A_2 D = {format_temperature(side_pred)} each)"
             )
             if h6 is not None and abs(fit.sigmas["g2"][k]) > 0:
                 text += (
-                    f"; 6 f_HWP line {_fmt(h6.amplitude_k)} at {h6.significance_sigma:.1f} sigma "
-                    f"(g2 A_2^3/4 = {_fmt(abs(g2) * a2**3 / 4)})"
+                    f"; 6 f_HWP line {format_temperature(h6.amplitude_k)} at {h6.significance_sigma:.1f} sigma "
+                    f"(g2 A_2^3/4 = {format_temperature(abs(g2) * a2**3 / 4)})"
                 )
             parts.append(text)
         return "; ".join(parts)
@@ -300,7 +300,7 @@ class DetectorTimeConstant(Effect):
             lag_pred = math.atan(omega * tau)
             factor_pred = 1 / math.sqrt(1 + (omega * tau) ** 2)
             parts.append(
-                f"{name}: the 2 f_HWP HWPSS has a quadrature residual {_fmt(s)} at "
+                f"{name}: the 2 f_HWP HWPSS has a quadrature residual {format_temperature(s)} at "
                 f"{abs(s) / s_sigma if s_sigma else 0:.0f} sigma, i.e. it lags by "
                 f"{lag * 1e3:.3f} mrad with amplitude factor {factor:.6f}; one tau = "
                 f"{tau * 1e3:.4g} ms predicts a lag atan(2 pi 2f_HWP tau) = {lag_pred * 1e3:.3f} "
@@ -353,7 +353,9 @@ class HwpssHarmonics(Effect):
                 sigma = max(fit.sigmas[f"c{n}"][k], fit.sigmas[f"s{n}"][k])
                 amplitude = math.hypot(c, s)
                 if sigma > 0 and amplitude / sigma > 3:
-                    found.append(f"{n} f_HWP {_fmt(amplitude)} ({amplitude / sigma:.0f} sigma)")
+                    found.append(
+                        f"{n} f_HWP {format_temperature(amplitude)} ({amplitude / sigma:.0f} sigma)"
+                    )
             (_lo, _, _, lo_sig, *_), (_hi, _, _, hi_sig, *_) = ev.sidebands(k)
             parts.append(
                 f"{name}: lines at {', '.join(found) or 'no single harmonic above 3 sigma'}; "
@@ -394,11 +396,11 @@ class HwpssIntensityCoupling(Effect):
             a2 = ev.a2[k]
             g1_equiv = fit.values["a2c"][k] / (2 * a2) if a2 else math.nan
             parts.append(
-                f"{name}: 2 f_HWP - f_spin and 2 f_HWP + f_spin sidebands {_fmt(lo)} and "
-                f"{_fmt(hi)} ({lo_sig:.1f} and {hi_sig:.1f} sigma), a = {a:.3g} of I; no 4 f_HWP "
-                f"line ({_fmt(h4.amplitude_k)}, {h4.significance_sigma:.1f} sigma) where a "
+                f"{name}: 2 f_HWP - f_spin and 2 f_HWP + f_spin sidebands {format_temperature(lo)} and "
+                f"{format_temperature(hi)} ({lo_sig:.1f} and {hi_sig:.1f} sigma), a = {a:.3g} of I; no 4 f_HWP "
+                f"line ({format_temperature(h4.amplitude_k)}, {h4.significance_sigma:.1f} sigma) where a "
                 f"nonlinearity making the same sidebands (g1 = a/(2 A_2) = {g1_equiv:.3g}/K) "
-                f"would give {_fmt(abs(g1_equiv) * a2**2 / 2)}"
+                f"would give {format_temperature(abs(g1_equiv) * a2**2 / 2)}"
             )
         return "; ".join(parts)
 
@@ -485,7 +487,7 @@ class HwpTemperatureDrift(Effect):
             dipole = ev.drift(k, "dipole_gain")
             hwpss = ev.drift(k, "hwpss_2f_cos")
             parts.append(
-                f"{name}: the 2f HWPSS amplitude drifts by {_fmt(hwpss['slope_per_hour'])}/h "
+                f"{name}: the 2f HWPSS amplitude drifts by {format_temperature(hwpss['slope_per_hour'])}/h "
                 f"({hwpss['significance_sigma']:.0f} sigma) while the dipole amplitude does not "
                 f"({dipole['slope_per_hour'] * 100:.2g} +- {dipole['sigma_per_hour'] * 100:.2g} %/h, "
                 f"{dipole['significance_sigma']:.1f} sigma): only the HWP emission changes"
@@ -655,7 +657,7 @@ class Glitches(Effect):
         counts = ", ".join(f"{n} in {name}" for name, n in per_det.items())
         return (
             f"{len(events)} isolated transients ({counts}); the strongest "
-            f"{_fmt(strongest.amplitude_k)} at t = {strongest.time_s:.2f} s ({strongest.significance:.0f} "
+            f"{format_temperature(strongest.amplitude_k)} at t = {strongest.time_s:.2f} s ({strongest.significance:.0f} "
             f"sigma) in {names[strongest.detector]}; exponential tails tau = "
             f"{np.median(taus) * 1e3:.0f} ms (median); localised in time, not periodic in chi"
         )

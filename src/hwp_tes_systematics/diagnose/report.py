@@ -10,6 +10,7 @@ import json
 from pathlib import Path
 
 from ..io import atomic_path
+from .effects import format_temperature
 
 
 def __getattr__(name):
@@ -18,16 +19,6 @@ def __getattr__(name):
 
         return diagnose
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
-def _fmt(value_k: float) -> str:
-    """A temperature in the most readable unit."""
-    magnitude = abs(value_k)
-    if magnitude >= 1e-1:
-        return f"{value_k:.4g} K"
-    if magnitude >= 1e-4:
-        return f"{value_k * 1e3:.4g} mK"
-    return f"{value_k * 1e6:.3g} uK"
 
 
 def write_outputs(
@@ -168,9 +159,9 @@ def markdown_report(result: dict, figure_files: dict | None = None) -> str:
     for line in result["lines"]:
         out.append(
             f"| {line['detector']} | {line['freq_hz']:.6f} | {line['identification']} | "
-            f"{_fmt(line['amplitude_before_k'])} | {line['significance_before_sigma']:.1f} | "
-            f"{_fmt(line['modulation_before_k'])} ({line['modulation_significance_sigma']:.1f} "
-            f"sigma) | {_fmt(line['amplitude_after_k'])} | {line['significance_after_sigma']:.1f} |"
+            f"{format_temperature(line['amplitude_before_k'])} | {line['significance_before_sigma']:.1f} | "
+            f"{format_temperature(line['modulation_before_k'])} ({line['modulation_significance_sigma']:.1f} "
+            f"sigma) | {format_temperature(line['amplitude_after_k'])} | {line['significance_after_sigma']:.1f} |"
         )
     out += ["", "## Noise (configured vs estimated from the residual)", ""]
     for nominal, estimated, det in zip(

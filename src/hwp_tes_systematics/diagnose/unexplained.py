@@ -37,6 +37,7 @@ import math
 import numpy as np
 import scipy.fft
 
+from .effects import format_temperature
 from .locate import find_lines, line_at, sinusoid_fit, sky_residual
 from .model import Context
 from .noise import NoiseModel, line_exclusion_mask, periodogram_scale
@@ -45,15 +46,6 @@ SKY_TOLERANCE = 0.10
 MIN_SIGMA = 5.0
 LINE_SEGMENTS = 8
 TIME_SEGMENTS = 24
-
-
-def _fmt(value_k: float) -> str:
-    magnitude = abs(value_k)
-    if magnitude >= 1e-1:
-        return f"{value_k:.4g} K"
-    if magnitude >= 1e-4:
-        return f"{value_k * 1e3:.4g} mK"
-    return f"{value_k * 1e6:.3g} uK"
 
 
 def _line_time_range(residual, ctx: Context, k: int, freq_hz: float, noise: NoiseModel):
@@ -266,10 +258,10 @@ def describe(entry: dict, tried_text: str) -> str:
     """One sentence: what is left, where, how significant, what was tried."""
     dets = " and ".join(entry["detectors"])
     if entry["kind"] == "line":
-        amplitudes = ", ".join(_fmt(v) for v in entry["amplitude_k"].values())
+        amplitudes = ", ".join(format_temperature(v) for v in entry["amplitude_k"].values())
         if entry.get("modulated"):
             amplitudes += " static, changing in time by " + ", ".join(
-                f"{_fmt(v)} rms" for v in entry["modulation_k"].values()
+                f"{format_temperature(v)} rms" for v in entry["modulation_k"].values()
             )
         where = entry["identification"]
         if where == "unidentified":
