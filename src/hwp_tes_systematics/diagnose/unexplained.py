@@ -38,7 +38,7 @@ import numpy as np
 import scipy.fft
 
 from .effects import format_temperature
-from .locate import find_lines, line_at, sinusoid_fit, sky_residual
+from .locate import excess_bands, find_lines, line_at, sinusoid_fit, sky_residual
 from .model import Context
 from .noise import NoiseModel, line_exclusion_mask, periodogram_scale
 
@@ -189,36 +189,19 @@ def _sky_region(residual_after, ctx: Context, noise_models) -> dict:
 
 
 def _bands(residual_f, freqs, s, use, det, tried) -> list[dict]:
-    ratio = (residual_f.real**2 + residual_f.imag**2) / np.maximum(s, 1e-300)
-    positive = freqs[use]
-    if positive.size < 10:
-        return []
-    edges = np.logspace(
-        np.log10(positive.min()),
-        np.log10(positive.max()) + 1e-9,
-        max(2, int(3 * np.log10(positive.max() / positive.min())) + 2),
-    )
-    out = []
-    for lo, hi in itertools.pairwise(edges):
-        band = use & (freqs >= lo) & (freqs < hi)
-        m = int(band.sum())
-        if m < 10:
-            continue
-        mean = float(ratio[band].mean())
-        significance = (mean - 1.0) * math.sqrt(m)
-        if significance > MIN_SIGMA:
-            out.append(
-                {
-                    "kind": "band",
-                    "f_lo_hz": float(lo),
-                    "f_hi_hz": float(hi),
-                    "detectors": [det],
-                    "power_ratio": mean,
-                    "significance_sigma": significance,
-                    "tried_and_rejected": tried,
-                }
-            )
-    return out
+    """:func:`locate.excess_bands` above MIN_SIGMA, as entries of ``unexplained``."""
+    return [
+        {
+            "kind": "band",
+            "f_lo_hz": band["f_lo_hz"],
+            "f_hi_hz": band["f_hi_hz"],
+            "detectors": [det],
+            "power_ratio": band["power_ratio"],
+            "significance_sigma": band["significance_sigma"],
+            "tried_and_rejected": tried,
+        }
+        for band in excess_bands(residual_f, freqs, s, use, det, min_sigma=MIN_SIGMA)
+    ]
 
 
 def _segments(residual_f, s, ctx: Context, k: int, tried, workers) -> list[dict]:
