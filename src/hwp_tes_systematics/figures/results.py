@@ -21,6 +21,22 @@ def sigma_label(sigma_g1_per_k: float | None) -> str:
     return f"sigma_g1 = {sigma_g1_per_k:.0e} K^-1"
 
 
+def log_axis_yerr(value, std) -> list[np.ndarray]:
+    """[lower, upper] error bars of ``value`` +- ``std`` for a log axis: NaN std -> no bar,
+    the lower bar clipped so its end stays above 0."""
+    value = np.asarray(value, dtype=float)
+    std = np.nan_to_num(np.asarray(std, dtype=float), nan=0.0)
+    return [np.minimum(std, 0.999 * value), std]
+
+
+def mark_requirement(axis, requirement: float, budget: float, color: str, va: str) -> None:
+    """A dotted vertical line at the requirement and its value written at the budget."""
+    axis.axvline(requirement, color=color, linestyle=":", linewidth=1.5)
+    axis.text(
+        requirement, budget, f"  sigma_g1 < {requirement:.2g} K^-1", color=color, va=va, ha="left"
+    )
+
+
 def plot_likelihoods(
     r_grid,
     curves: Mapping[str, np.ndarray],
@@ -106,14 +122,13 @@ def plot_requirement(
     sigma, mean, std = sigma[keep], mean[keep], std[keep]
 
     figure, axis = subplots(figsize=(7.0, 4.8))
-    lower = np.minimum(std, 0.999 * mean)  # keep the bar's lower end on the log axis
     exponent_text = f"{exponent:.3f}"
     if exponent_sigma is not None and np.isfinite(exponent_sigma):
         exponent_text += f" +- {exponent_sigma:.3f}"
     axis.errorbar(
         sigma,
         mean,
-        yerr=[lower, std],
+        yerr=log_axis_yerr(mean, std),
         fmt="o",
         color="C0",
         capsize=3,
@@ -129,11 +144,10 @@ def plot_requirement(
     )
     if systematic_only is not None:
         sys_sigma, sys_mean, sys_std, sys_k, sys_requirement = systematic_only
-        sys_std = np.nan_to_num(np.asarray(sys_std, dtype=float), nan=0.0)
         axis.errorbar(
             sys_sigma,
             sys_mean,
-            yerr=[np.minimum(sys_std, 0.999 * np.asarray(sys_mean)), sys_std],
+            yerr=log_axis_yerr(sys_mean, sys_std),
             fmt="s",
             mfc="none",
             color="C2",
@@ -141,25 +155,9 @@ def plot_requirement(
             label="systematic only (no-systematics weights, Fisher bias; +- std)",
         )
         axis.plot(x, sys_k * x**2, "-", color="C2", alpha=0.6, label=f"k = {sys_k:.3g} K^2")
-        axis.axvline(sys_requirement, color="C2", linestyle=":", linewidth=1.5)
-        axis.text(
-            sys_requirement,
-            budget,
-            f"  sigma_g1 < {sys_requirement:.2g} K^-1",
-            color="C2",
-            va="bottom",
-            ha="left",
-        )
+        mark_requirement(axis, sys_requirement, budget, "C2", "bottom")
     axis.axhline(budget, color="k", linestyle="-", label=f"budget delta r = {budget:.2g}")
-    axis.axvline(requirement, color="C3", linestyle=":", linewidth=1.5)
-    axis.text(
-        requirement,
-        budget,
-        f"  sigma_g1 < {requirement:.2g} K^-1",
-        color="C3",
-        va="top",
-        ha="left",
-    )
+    mark_requirement(axis, requirement, budget, "C3", "top")
     axis.set_xscale("log")
     axis.set_yscale("log")
     axis.set_xlim(x[0], x[-1])
@@ -207,16 +205,14 @@ def plot_a2_scaling(by_scale: list[dict], budget: float, path: str | os.PathLike
     path = Path(path)
     scale = np.array([row["a2_scale"] for row in by_scale], dtype=float)
     value = np.array([row["requirement_sigma_g1_per_k"] for row in by_scale], dtype=float)
-    std = np.nan_to_num(
-        np.array([row["requirement_std_over_seeds_per_k"] for row in by_scale], dtype=float)
-    )
+    std = np.array([row["requirement_std_over_seeds_per_k"] for row in by_scale], dtype=float)
     order = np.argsort(scale)
     scale, value, std = scale[order], value[order], std[order]
     figure, axis = subplots(figsize=(6.5, 4.5))
     axis.errorbar(
         scale,
         value,
-        yerr=[np.minimum(std, 0.999 * value), std],
+        yerr=log_axis_yerr(value, std),
         fmt="o-",
         color="C2",
         capsize=3,
