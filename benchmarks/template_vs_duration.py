@@ -2,6 +2,12 @@
 per-detector baselines: the groundwork of issue 13's "which terms of d^2 reach BB".
 
     python benchmarks/template_vs_duration.py --channel M1-140 --days 1 7 --nside 64
+    python benchmarks/template_vs_duration.py --days 1 --hwp-rate-factors 1 1.00064
+
+``--hwp-rate-factors`` scales the HWP rotation rate (and the notch with it): at the
+nominal 39 rpm (MFT) the HWP turns exactly 780 times per 20-minute spin period (61 rpm,
+HFT: 1220), so the leakage of successive spins can add coherently; a factor of
+1.00064 (half a turn more per spin) breaks the commensurability.
 
 For each duration, one pair of ``--channel`` is simulated through the job path (sky,
 dipole, noise at the default config's noise_scale, the channel's A_2 from the default
@@ -16,6 +22,7 @@ runs in this process, one thread; a year of a pair takes ~15-25 min.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 
 import healpy as hp
@@ -52,8 +59,9 @@ def template_summary(terms, templates, good, nside):
     return rows, correlation
 
 
-def one_point(config, channel_name, days, nside, baseline_length_s):
+def one_point(config, channel_name, days, nside, baseline_length_s, hwp_rate_factor=1.0):
     channel = load_channel(channel_name)
+    channel = dataclasses.replace(channel, hwp_rpm=channel.hwp_rpm * hwp_rate_factor)
     plan = MissionPlan(
         config["simulation"]["mission_start_tdb"], days * 86400.0, 86400.0, channel.sampling_rate_hz
     )
@@ -71,6 +79,7 @@ def one_point(config, channel_name, days, nside, baseline_length_s):
         baseline_length_s=baseline_length_s,
     )
     simulator = PairSimulator(channel, plan, nside)
+    simulator.hwp_rad_per_s = channel.hwp_frequency_hz * 2 * np.pi  # the scaled rate
     sky = channel_sky({**config, "maps": {**config["maps"], "nside": nside}}, channel, 0)["total"]
     maps, _, good = solve_maps(accumulate(simulator, settings, sky), 100.0)
     solved = split_solved_maps(maps, simulator.n_detectors, a2_k)
@@ -82,26 +91,32 @@ def main() -> None:
     parser.add_argument("--channel", default="M1-140")
     parser.add_argument("--days", type=float, nargs="+", default=[1.0])
     parser.add_argument("--nside", type=int, default=64)
+    parser.add_argument("--hwp-rate-factors", type=float, nargs="+", default=[1.0])
     arguments = parser.parse_args()
     config = load_config(default_config_path())
     print(
-        "| days | baselines | term | Q/U rms per unit g1 [K K] | BB ell 2-12 | ell 13-40 | "
+        "| days | HWP rate x | baselines | term | Q/U rms per unit g1 [K K] | BB ell 2-12 | ell 13-40 | "
         "ell 41-128 [K^2 K^2] | observed | detector correlation | wall [s] |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|")
-    for days in arguments.days:
-        for baselines in (60.0, None):
-            started = time.perf_counter()
-            (rows, correlation), good = one_point(
-                config, arguments.channel, days, arguments.nside, baselines
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    points = [
+        (days, factor, baselines)
+        for days in arguments.days
+        for factor in arguments.hwp_rate_factors
+        for baselines in (60.0, None)
+    ]
+    for days, factor, baselines in points:
+        started = time.perf_counter()
+        (rows, correlation), good = one_point(
+            config, arguments.channel, days, arguments.nside, baselines, factor
+        )
+        wall = time.perf_counter() - started
+        for name, rms, bb in rows:
+            print(
+                f"| {days:g} | {factor:g} | {baselines or 'none'} | {name} | {rms:.3g} | "
+                f"{bb[0]:.2g} | {bb[1]:.2g} | {bb[2]:.2g} | {good.mean():.0%} | "
+                f"{correlation:+.4f} | {wall:.0f} |"
             )
-            wall = time.perf_counter() - started
-            for name, rms, bb in rows:
-                print(
-                    f"| {days:g} | {baselines or 'none'} | {name} | {rms:.3g} | {bb[0]:.2g} | "
-                    f"{bb[1]:.2g} | {bb[2]:.2g} | {good.mean():.0%} | {correlation:+.4f} | "
-                    f"{wall:.0f} |"
-                )
 
 
 if __name__ == "__main__":

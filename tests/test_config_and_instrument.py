@@ -112,3 +112,11 @@ def test_config_reference_in_docs_is_in_step_with_schema(repo):
     assert (repo / "docs/config_reference.md").read_text() == config_reference_markdown(), (
         "regenerate: python -m hwp_tes_systematics config-reference > docs/config_reference.md"
     )
+
+
+@pytest.mark.parametrize("name", ["paper.yaml", "one_year.yaml"])
+def test_shipped_configurations_merge_over_the_default(repo, monkeypatch, name):
+    """The configurations the README names validate when merged over the default."""
+    monkeypatch.chdir(repo)
+    config = load_config(repo / "config/config.yaml", repo / "config" / name)
+    assert config["simulation"]["duration_days"] == 365.25

@@ -12,7 +12,7 @@ from helpers import make_workdir
 def rule_names(repo):
     names = set()
     for path in (repo / "workflow/rules").glob("*.smk"):
-        names |= set(re.findall(r"^rule (\w+):", path.read_text(), flags=re.MULTILINE))
+        names |= set(re.findall(r"^\s*rule (\w+):", path.read_text(), flags=re.MULTILINE))
     return names
 
 

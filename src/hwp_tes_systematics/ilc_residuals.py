@@ -21,25 +21,17 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import h5py
 import healpy as hp
 import numpy as np
 import pandas as pd
 
 from . import config as cfg
 from . import hilc, spectra
+from .maps_file import read_channel_maps
 from .systematics import maps_for_sigma, unit_g1_draws
 
 N_TEMPLATE_TERMS = 3  # s^2, s h, h^2
 SPECTRA = ("tt", "ee", "bb", "te", "eb", "tb")  # hp.alm2cl order
-
-
-def read_channel_maps(path) -> dict:
-    """All datasets of a pair_maps file, and its attributes under "attrs"."""
-    with h5py.File(path) as maps:
-        data = {name: maps[name][()] for name in maps}
-        data["attrs"] = dict(maps.attrs)
-    return data
 
 
 def analysis_mask(channel_maps: list[dict], settings: dict) -> np.ndarray:

@@ -123,3 +123,65 @@ def _add_rhs(pixels, cos_2alpha, sin_2alpha, weights, rho, tod, owner, rhs):
             rhs[0, p] += x
             rhs[1, p] += x * rho[det] * cos_2alpha[det, t]
             rhs[2, p] += x * rho[det] * sin_2alpha[det, t]
+
+
+# the weights y_t of the per-detector moment matrices sum_t w_k y_t a^T a (PixelMoments)
+MOMENT_WEIGHTS = ("1", "h", "h*h")
+
+
+class PixelMoments:
+    """Per detector k and pixel p, the 3 x 3 matrices sum_{t in k, p} w_k y_t a_t^T a_t for
+    y = 1, h, h^2 (h: the unit HWPSS of detector k), in MATRIX_ENTRIES order.
+
+    With white noise n of variance sigma_k^2 = 1 / w_k, the binned vectors
+    b_k = sum w_k a^T n and c_k = sum w_k a^T h n are jointly Gaussian with covariance
+    [[M_k, H_k], [H_k, Q_k]] (M, H, Q = the y = 1, h, h^2 moments), and the binned map of
+    h times a pixelized sky m is M^-1 sum_k H_k m: the seed-dependent part of the s h
+    template term in the map domain (:mod:`map_domain`). Stored per pixel, contiguous
+    (one cache line per sample), as ``values`` (n_det, npix, 3 weights, 6 entries)."""
+
+    def __init__(self, nside: int, n_det: int):
+        self.nside = nside
+        self.npix = hp.nside2npix(nside)
+        self.values = np.zeros((n_det, self.npix, len(MOMENT_WEIGHTS), 6))
+
+    def add(self, pixels, cos_2alpha, sin_2alpha, weights, pol_efficiency, hwpss) -> None:
+        """Add samples: pixels, angles, hwpss (n_det, n); weights, pol_efficiency (n_det,)."""
+        _add_moments(
+            pixels,
+            cos_2alpha,
+            sin_2alpha,
+            np.ascontiguousarray(weights, dtype=np.float64),
+            np.ascontiguousarray(pol_efficiency, dtype=np.float64),
+            hwpss,
+            self.values,
+        )
+
+
+def symmetric_matrices(entries: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) symmetric matrices from their 6 entries (..., 6) in MATRIX_ENTRIES order."""
+    full = np.empty((*entries.shape[:-1], 3, 3))
+    for entry, (i, j) in enumerate(MATRIX_ENTRIES):
+        full[..., i, j] = full[..., j, i] = entries[..., entry]
+    return full
+
+
+@numba.njit(cache=True, nogil=True)
+def _add_moments(pixels, cos_2alpha, sin_2alpha, weights, rho, hwpss, moments):
+    """moments[k, p, j, :] += w_k h^j [1, a1, a2, a1 a1, a1 a2, a2 a2], j = 0, 1, 2."""
+    for det in range(pixels.shape[0]):
+        w = weights[det]
+        for t in range(pixels.shape[1]):
+            p = pixels[det, t]
+            a1 = rho[det] * cos_2alpha[det, t]
+            a2 = rho[det] * sin_2alpha[det, t]
+            h = hwpss[det, t]
+            y = w
+            for j in range(3):
+                moments[det, p, j, 0] += y
+                moments[det, p, j, 1] += y * a1
+                moments[det, p, j, 2] += y * a2
+                moments[det, p, j, 3] += y * a1 * a1
+                moments[det, p, j, 4] += y * a1 * a2
+                moments[det, p, j, 5] += y * a2 * a2
+                y *= h

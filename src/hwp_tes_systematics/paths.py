@@ -17,6 +17,8 @@ FOREGROUND_MAP = f"{RESULTS}/sky/foreground_{{channel}}.fits"
 
 # Stage: per-(channel, seed) TOD -> notch -> binned maps and g1 templates
 PAIR_MAPS = f"{RESULTS}/maps/{{channel}}/seed{{seed}}.h5"
+# simulation.realizations = map_domain: the seed-independent TOD pass of a channel
+FIXED_PASS = f"{RESULTS}/maps/{{channel}}/fixed_pass.h5"
 
 # Stage: TOD figures and an example recording in litebird_sim's HDF5 format
 TOD_SAMPLE = f"{RESULTS}/tod/{{channel}}_sample.h5"

@@ -27,7 +27,7 @@ from tqdm import tqdm
 
 from .baselines import baseline_samples, remove_baselines
 from .hwpss_removal import remove_hwp_harmonics
-from .mapmaking import NormalEquations
+from .mapmaking import NormalEquations, PixelMoments
 from .notch import chunk_span, filter_chunk_with_margins
 from .timing import StageClock
 from .tod import MissionPlan, PairSimulator
@@ -66,7 +66,7 @@ class PairMapSettings:
                 start_time_tdb=simulation["mission_start_tdb"],
                 duration_s=simulation["duration_days"] * 86400.0,
                 chunk_duration_s=simulation["chunk_duration_s"],
-                sampling_rate_hz=channel.sampling_rate_hz,
+                sampling_rate_hz=simulation.get("sampling_rate_hz") or channel.sampling_rate_hz,
             ),
             a2_k_cmb=a2_k_cmb,
             notch_width_divisor=config["notch"]["width_divisor"],
@@ -85,9 +85,9 @@ def chunk_tods(
     sky_iqu_k: np.ndarray,
     clock: StageClock | None = None,
 ) -> Iterator[tuple[object, slice, np.ndarray]]:
-    """Yield (pointing, inner slice, s, h) chunk by chunk, with margins: s = sky + dipole +
-    noise [K_CMB] and h = cos 2(chi - theta_k) the unit HWPSS, so that the total TOD is
-    d = s + A_2 h."""
+    """Yield (chunk index, pointing, inner slice, s, h) chunk by chunk, with margins:
+    s = sky + dipole + noise [K_CMB] and h = cos 2(chi - theta_k) the unit HWPSS, so that
+    the total TOD is d = s + A_2 h."""
     clock = clock or StageClock()
     chunks = settings.plan.chunks()
     for chunk, first, n_samples in tqdm(
@@ -102,13 +102,14 @@ def chunk_tods(
             tod = simulator.scan_sky(pointing, sky_iqu_k)
         with clock("dipole"):
             tod += simulator.dipole(pointing)
-        with clock("noise"):
-            tod += simulator.noise(
-                pointing, settings.master_seed, settings.seed, chunk, settings.noise_scale
-            )
+        if settings.noise_scale != 0.0:  # 0: noiseless (the map-domain fixed pass)
+            with clock("noise"):
+                tod += simulator.noise(
+                    pointing, settings.master_seed, settings.seed, chunk, settings.noise_scale
+                )
         with clock("HWPSS"):
             unit_hwpss = simulator.hwpss(pointing, 1.0)
-        yield pointing, inner, tod, unit_hwpss
+        yield chunk, pointing, inner, tod, unit_hwpss
 
 
 def filter_tod(
@@ -153,6 +154,9 @@ def accumulate(
     on_chunk=None,
     references_iqu_k=(),
     clock: StageClock | None = None,
+    template_terms: bool = True,
+    moments: PixelMoments | None = None,
+    noise_reference_seed: int | None = None,
 ) -> NormalEquations:
     """Normal equations of the filtered TOD (F = notch after HWP-harmonic removal).
 
@@ -164,34 +168,56 @@ def accumulate(
     binning, the references of the component-separation residuals.
     ``on_chunk(samples_done, rss_mb)`` is called after each chunk (benchmarks);
     ``clock`` collects the wall-clock time per stage (logged at the end).
+    ``template_terms`` False skips the three terms (a channel without systematics);
+    ``moments``, if given, accumulates the per-detector moments of the HWPSS
+    (:class:`mapmaking.PixelMoments`) from the same pointing;
+    ``noise_reference_seed``, if given, adds two last TODs: the detector noise of that
+    realization (scale 1) after the filter and before it (the filter's action on noise).
     """
     clock = clock or StageClock()
     n_det = simulator.n_detectors
     linear = g1_per_k is None
-    n_terms = len(TEMPLATE_TERMS) if linear else 0
-    n_tods = 1 + n_terms * n_det + len(references_iqu_k)
+    n_terms = len(TEMPLATE_TERMS) if linear and template_terms else 0
+    n_noise = 0 if noise_reference_seed is None else 1
+    n_tods = 1 + n_terms * n_det + len(references_iqu_k) + 2 * n_noise
     equations = NormalEquations(settings.nside, n_tods)
     weights = detector_weights(simulator)
-    n_unfiltered = 1 + n_terms + len(references_iqu_k)
+    n_unfiltered = 1 + n_terms + len(references_iqu_k) + n_noise
     peak_rss_mb = 0.0
-    for pointing, inner, signal, hwpss in chunk_tods(simulator, settings, sky_iqu_k, clock):
+    for chunk, pointing, inner, signal, hwpss in chunk_tods(simulator, settings, sky_iqu_k, clock):
+        if moments is not None:
+            with clock("HWPSS moments"):
+                moments.add(
+                    pointing.pixels[:, inner],
+                    pointing.cos_2alpha[:, inner],
+                    pointing.sin_2alpha[:, inner],
+                    weights,
+                    simulator.pol_efficiency,
+                    hwpss[:, inner],
+                )
         # all TODs of the chunk in one array, for one batched 2f removal + notch
         with clock("nonlinearity terms"):
             unfiltered = np.empty((n_unfiltered, *signal.shape))
             tod = unfiltered[0]
             np.multiply(hwpss, settings.a2_k_cmb, out=tod)
             tod += signal
-            if linear:
+            if n_terms:
                 np.square(signal, out=unfiltered[1])
                 np.multiply(signal, hwpss, out=unfiltered[2])
                 np.square(hwpss, out=unfiltered[3])
-            else:
+            elif not linear:
                 tod += np.asarray(g1_per_k)[:, None] * tod**2
             del tod, signal, hwpss
         with clock("reference scans"):
-            first_reference = n_unfiltered - len(references_iqu_k)
+            first_reference = 1 + n_terms
             for index, reference_iqu_k in enumerate(references_iqu_k, start=first_reference):
                 simulator.scan_sky(pointing, reference_iqu_k, out=unfiltered[index])
+        if n_noise:
+            with clock("noise"):
+                unfiltered[-1] = simulator.noise(
+                    pointing, settings.master_seed, noise_reference_seed, chunk
+                )
+                unfiltered_noise = unfiltered[-1][:, inner].copy()
         with clock("2f removal + notch"):
             filtered = filter_tod(unfiltered, pointing, inner, simulator, settings, overwrite=True)
             del unfiltered
@@ -202,7 +228,10 @@ def accumulate(
             tods += [filtered[term]] * n_det
             owners += list(range(n_det))
         tods += list(filtered[1 + n_terms :])
-        owners += [None] * len(references_iqu_k)
+        owners += [None] * (len(references_iqu_k) + n_noise)
+        if n_noise:
+            tods.append(unfiltered_noise)
+            owners.append(None)
         with clock("binning"):
             equations.add(
                 pointing.pixels[:, inner],
@@ -214,6 +243,7 @@ def accumulate(
                 owners,
             )
         del filtered, tods
+        unfiltered_noise = None
         rss_mb = psutil.Process().memory_info().rss / 2**20
         peak_rss_mb = max(peak_rss_mb, rss_mb)
         if on_chunk is not None:
@@ -234,17 +264,24 @@ def templates_from_terms(terms: np.ndarray, a2_k_cmb: float) -> np.ndarray:
     return terms[0] + 2.0 * a2_k_cmb * terms[1] + a2_k_cmb**2 * terms[2]
 
 
-def split_solved_maps(maps: np.ndarray, n_det: int, a2_k_cmb: float) -> dict[str, np.ndarray]:
+def split_solved_maps(
+    maps: np.ndarray, n_det: int, a2_k_cmb: float, template_terms: bool = True
+) -> dict[str, np.ndarray]:
     """The solved maps of a linear accumulation by name: nosys (3, npix); template_terms
-    (3, n_det, 3, npix); templates (n_det, 3, npix) at A_2 = ``a2_k_cmb``; references
-    (n_refs, 3, npix), in the order given to :func:`accumulate`."""
+    (3, n_det, 3, npix) (zeros if the accumulation had none, ``template_terms`` False);
+    templates (n_det, 3, npix) at A_2 = ``a2_k_cmb``; references (n_refs, 3, npix), in
+    the order given to :func:`accumulate`."""
     n_terms = len(TEMPLATE_TERMS)
-    terms = maps[1 : 1 + n_terms * n_det].reshape(n_terms, n_det, *maps.shape[1:])
+    n_binned = n_terms * n_det if template_terms else 0
+    if template_terms:
+        terms = maps[1 : 1 + n_binned].reshape(n_terms, n_det, *maps.shape[1:])
+    else:
+        terms = np.zeros((n_terms, n_det, *maps.shape[1:]))
     seen = maps[0] != hp.UNSEEN
     templates = np.where(seen, templates_from_terms(terms, a2_k_cmb), hp.UNSEEN)
     return {
         "nosys": maps[0],
         "template_terms": terms,
         "templates": templates,
-        "references": maps[1 + n_terms * n_det :],
+        "references": maps[1 + n_binned :],
     }

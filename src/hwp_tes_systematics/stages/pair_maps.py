@@ -12,59 +12,24 @@ from __future__ import annotations
 import logging
 import time
 
-import h5py
-import numpy as np
-
 from .. import config as cfg
 from .. import sky
-from ..io import atomic_path, use_threads
+from ..io import use_threads
 from ..mapmaking import NormalEquations, solve_maps
+from ..maps_file import maps_attributes, write_channel_maps
 from ..tod import PairSimulator
-from ..tod_maps import TEMPLATE_TERMS, PairMapSettings, accumulate, split_solved_maps
+from ..tod_maps import PairMapSettings, accumulate, split_solved_maps
 
 log = logging.getLogger(__name__)
 
 
 def write_pair_maps(path, equations: NormalEquations, settings, simulator, metadata: dict) -> None:
-    """HDF5 [K_CMB]: nosys (3, npix); template_terms (3, n_det, 3, npix) [K_CMB^2], the
-    binned s^2, s h, h^2 of each detector (h: unit HWPSS); templates (n_det, 3, npix)
-    [K_CMB^2] = their sum at the simulated A_2; cmb_reference and foreground_reference
-    (3, npix) (each sky component alone through the same pointing, filter and binning);
-    hits, condition."""
+    """Solve the normal equations and write the maps file (:mod:`maps_file`)."""
     maps, condition, good = solve_maps(equations, settings.max_condition_number)
     solved = split_solved_maps(maps, simulator.n_detectors, settings.a2_k_cmb)
-    with atomic_path(path) as temporary, h5py.File(temporary, "w") as out:
-        for name in ("nosys", "templates", "template_terms"):
-            out.create_dataset(name, data=solved[name])
-        out.create_dataset("cmb_reference", data=solved["references"][0])
-        out.create_dataset("foreground_reference", data=solved["references"][1])
-        out.create_dataset("hits", data=equations.hits)
-        out.create_dataset("condition", data=condition)
-        out.attrs.update(
-            {
-                "units": "K_CMB",
-                "template_units": "K_CMB^2 (templates, template_terms; times g1 [1/K]: K_CMB)",
-                **sky.map_metadata(simulator.channel.fwhm_arcmin, simulator.channel.bandcenter_ghz),
-                "coordinates": "Galactic",
-                "ordering": "RING",
-                "nside": settings.nside,
-                "channel": simulator.channel.name,
-                "seed": settings.seed,
-                "detectors": simulator.detector_names,
-                "pol_angles_rad": simulator.pol_angles_rad,
-                "a2_k_cmb": settings.a2_k_cmb,
-                "noise_scale": settings.noise_scale,
-                "baseline_length_s": np.nan
-                if settings.baseline_length_s is None
-                else settings.baseline_length_s,
-                "template_terms": list(TEMPLATE_TERMS),
-                "duration_s": settings.plan.duration_s,
-                "observed_fraction": float(good.mean()),
-                "model": "m(g1) = nosys + sum_k g1_k templates[k]; g1 in 1/K; templates[k] = "
-                "template_terms[0, k] + 2 A_2 template_terms[1, k] + A_2^2 template_terms[2, k]",
-                **metadata,
-            }
-        )
+    solved["cmb_reference"], solved["foreground_reference"] = solved["references"]
+    attributes = maps_attributes(settings, simulator, good.mean())
+    write_channel_maps(path, solved, equations.hits, condition, {**attributes, **metadata})
 
 
 def run(

@@ -1,0 +1,88 @@
+"""What a one-year run costs on the map-domain path: the fixed TOD pass per channel-day and
+the map products per seed, measured, then extrapolated to a configuration's grid.
+
+    python benchmarks/map_domain_cost.py --nside 64 --rate 19 --seeds 20
+    python benchmarks/map_domain_cost.py --nside 512 --rate 31 --seeds 100   # paper grid
+
+For one MFT channel with systematics (M1-140: 7 filtered TODs, HWPSS moments) and one
+LFT channel without (L1-040: 4 TODs), one thread each, second run of the process (numba
+compiled): the fixed pass of ``--days`` (default 1), and the realization of one seed
+(CMB draw, noise draw, map products) from it. Printed: seconds per channel-day and per
+seed, and the extrapolation to 10 systematics + 12 other channels, one year and
+``--seeds`` seeds, in core-hours and in wall hours on ``--cores`` cores. The map-level
+stages after the maps (HILC, spectra, likelihood) are not included: they are measured
+per job by the workflow (``results/benchmarks/``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import healpy as hp
+import numpy as np
+
+from hwp_tes_systematics import map_domain
+from hwp_tes_systematics.instrument import load_channel
+from hwp_tes_systematics.tod import MissionPlan, PairSimulator
+from hwp_tes_systematics.tod_maps import PairMapSettings
+
+CHANNELS = {"M1-140": (True, 10), "L1-040": (False, 12)}  # (systematics, channels like it)
+YEAR_DAYS = 365.25
+
+
+def measure(name, carries_systematics, nside, rate_hz, days):
+    """(seconds per channel-day of the fixed pass, seconds per seed)."""
+    channel = load_channel(name)
+    plan = MissionPlan("2032-04-01T00:00:00", days * 86400.0, 86400.0, rate_hz)
+    settings = PairMapSettings(
+        master_seed=1,
+        seed=map_domain.NOISE_REFERENCE_SEED,
+        nside=nside,
+        plan=plan,
+        a2_k_cmb=0.264 if carries_systematics else 0.0,
+        notch_width_divisor=100.0,
+        notch_margin_s=1200.0,
+        max_condition_number=100.0,
+        baseline_length_s=60.0,
+    )
+    simulator = PairSimulator(channel, plan, nside, noise_model="keshner")
+    foreground = np.zeros((3, hp.nside2npix(nside)))
+    lmax = 3 * nside - 1
+    alm = map_domain.transfer_cmb_alm(lmax, 0.0, 1, channel.fwhm_arcmin)
+    started = time.perf_counter()
+    fixed = map_domain.fixed_pass(simulator, settings, foreground, alm, carries_systematics, lmax)
+    per_day = (time.perf_counter() - started) / days
+    started = time.perf_counter()
+    cmb_alm = map_domain.seed_cmb_alm(lmax, 0.0, 1, 0, channel.fwhm_arcmin)
+    map_domain.realize_seed(fixed, cmb_alm, lmax, 0.264, 1.0, np.random.default_rng)
+    return per_day, time.perf_counter() - started
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--nside", type=int, default=64)
+    parser.add_argument("--rate", type=float, default=19.0, help="sampling rate [Hz]")
+    parser.add_argument("--days", type=float, default=1.0)
+    parser.add_argument("--seeds", type=int, default=20)
+    parser.add_argument("--cores", type=int, default=2)
+    arguments = parser.parse_args()
+    for name, (carries, _) in CHANNELS.items():  # compile the kernels of both kinds
+        measure(name, carries, arguments.nside, arguments.rate, 0.05)
+    total_core_s = 0.0
+    print(f"nside {arguments.nside}, {arguments.rate:g} Hz, {arguments.seeds} seeds, one year")
+    print("| channel | fixed pass [s per day] | one year [min] | one seed [s] | x channels |")
+    print("|---|---|---|---|---|")
+    for name, (carries, count) in CHANNELS.items():
+        per_day, per_seed = measure(name, carries, arguments.nside, arguments.rate, arguments.days)
+        year_s = per_day * YEAR_DAYS
+        total_core_s += count * (year_s + arguments.seeds * per_seed)
+        print(f"| {name} | {per_day:.2f} | {year_s / 60:.1f} | {per_seed:.2f} | {count} |")
+    print(
+        f"fixed passes + seeds: {total_core_s / 3600:.2f} core-hours, "
+        f"{total_core_s / 3600 / arguments.cores:.2f} h on {arguments.cores} cores"
+    )
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,308 @@
+"""Realizations in the map domain: one seed-independent TOD pass per channel, then each
+seed as map products (the fast path to one year; the full-TOD path stays the reference).
+
+Of the TOD d = s + A_2 h, s = fg + dipole + CMB_seed + n_seed, only the CMB draw and the
+noise depend on the seed. Writing s = s_f + x (s_f = fg + dipole, x = CMB_seed + n_seed),
+the fixed pass simulates once, without CMB or noise, through the same HWP-harmonic
+removal, notch, baselines and binning as the full path (:func:`tod_maps.accumulate`):
+
+* m_f = bin F(s_f + A_2 h), the foreground reference bin F(fg), the template terms of s_f
+  (s_f^2, s_f h, h^2 per detector);
+* the HWPSS moments per detector k and pixel p (:class:`mapmaking.PixelMoments`):
+  M_k = sum w a^T a, H_k = sum w h a^T a, Q_k = sum w h^2 a^T a (M = sum_k M_k);
+* the filter's action on a reference CMB realization, T_ell = C_ell(bin F CMB, CMB) /
+  C_ell(CMB) (TT, EE, BB), and on a reference noise realization, the shaping S_ell
+  (~ sqrt(C_ell(bin F n) / C_ell(bin n)), calibrated so that shaping bin n gives the
+  pseudo-spectrum of bin F n on the observed pixels).
+
+Each seed then costs map operations only:
+
+    nosys            = m_f + T CMB_seed + S M^-1 sum_k b_k
+    s h term of k    = (s_f h term of k) + M^-1 H_k CMB_seed + S M^-1 c_k
+    cmb_reference    = T CMB_seed
+
+with (b_k, c_k) ~ N(0, noise_scale^2 [[M_k, H_k], [H_k, Q_k]]) the binned white noise and
+binned h n of detector k, drawn jointly per pixel (exact for white noise: b_k = sum w a^T n,
+c_k = sum w a^T h n, var(n) = 1 / w), and T, S applied to the T, E, B a_lm. The binning
+reads a TOD at 0 and 4 f_HWP, where the notch removes the noise's (and h n's) sky-scale
+part: without S the map-domain noise is too high (by 2x in variance at 1 day, nside 32).
+As the residual subtracts cmb_reference, the CMB cancels there exactly and enters only
+through the HILC weights, as in the full path.
+
+Approximated, and measured against the full path (tests/test_map_domain.py,
+benchmarks/map_domain_validation.py): the filter as multipole functions (an
+along-scan filter; good on a large observed sky, poor on a few hours' stripe); white
+noise (the 1/f part is left out: it reaches I, not Q/U, with a HWP); the filter's
+action on h CMB (7-13 % of that part); the seed part of the s^2 term, 2 s_f x + x^2
+(2 % of the s h part: s_f is the dipole and foregrounds, mK, against A_2 = 0.16-3.8 K).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import h5py
+import healpy as hp
+import numpy as np
+
+from . import seeding
+from .io import atomic_path
+from .mapmaking import PixelMoments, solve_maps, symmetric_matrices
+from .sky import cmb as sky_cmb
+from .tod_maps import TEMPLATE_TERMS, accumulate, split_solved_maps, templates_from_terms
+
+log = logging.getLogger(__name__)
+
+SH_TERM = TEMPLATE_TERMS.index("s*h")
+NOISE_REFERENCE_SEED = -1  # the fixed pass's noise realization: a stream no seed (0, 1, ...) uses
+SHAPING_BIN_WIDTH = 4  # multipoles averaged in the noise shaping
+SHAPING_ITERATIONS = 2  # corrections of the noise shaping for the mask's mode coupling
+TRANSFER_SPECTRA = ("tt", "ee", "bb")
+
+
+def transfer_cmb_alm(lmax: int, r: float, master_seed: int, fwhm_arcmin: float) -> np.ndarray:
+    """The fixed pass's reference CMB a_lm (3, nalm) [K_CMB], beam-smoothed: its own
+    random stream ("cmb-transfer"), so it is none of the seeds' realizations."""
+    cls = sky_cmb.cmb_spectra(r, lmax)
+    alm = sky_cmb.gaussian_alm(cls, lmax, seeding.rng(master_seed, "cmb-transfer"))
+    return sky_cmb.smooth_alm(alm, fwhm_arcmin, lmax)
+
+
+def seed_cmb_alm(lmax: int, r: float, master_seed: int, seed: int, fwhm_arcmin: float):
+    """CMB realization ``seed`` (3, nalm) [K_CMB], beam-smoothed: the same draw as the full
+    path's :func:`sky.cmb.cmb_map` for that seed."""
+    return sky_cmb.smooth_alm(sky_cmb.cmb_alm(lmax, r, master_seed, seed), fwhm_arcmin, lmax)
+
+
+def measure_transfer(output_iqu: np.ndarray, input_iqu: np.ndarray, good: np.ndarray, lmax: int):
+    """T_ell (3, lmax + 1) for TT, EE, BB: the cross pseudo-spectrum of the filtered-binned
+    map with its input over their input pseudo-spectrum, both on the observed pixels
+    ``good``; T_ell = 1 where the input has no power (ell < 2 in polarization)."""
+    masked_output = np.where(good, output_iqu, 0.0)
+    masked_input = np.where(good, input_iqu, 0.0)
+    cross = hp.anafast(masked_output, masked_input, lmax=lmax)[:3]
+    auto = hp.anafast(masked_input, lmax=lmax)[:3]
+    transfer = np.ones_like(auto)
+    np.divide(cross, auto, out=transfer, where=auto > 0)
+    return transfer
+
+
+def measure_noise_shaping(
+    filtered_iqu: np.ndarray, unfiltered_iqu: np.ndarray, good: np.ndarray, lmax: int
+) -> np.ndarray:
+    """S_ell (3, lmax + 1) for TT, EE, BB such that :func:`shaped_noise_map` of the
+    unfiltered noise realization bin n has the pseudo-spectrum of the filtered one,
+    bin F n, on ``good``: starting from sqrt(C_ell(bin F n) / C_ell(bin n)), corrected
+    SHAPING_ITERATIONS times by sqrt(C_ell(bin F n) / C_ell(shaped)) (the mask couples
+    multipoles, so shaping by S does not give S^2 exactly on a partial sky). Ratios of
+    the same realization (its own scatter cancels), averaged over SHAPING_BIN_WIDTH
+    multipoles."""
+    target = _binned_pseudo_spectra(filtered_iqu, good, lmax)
+    shaping = np.sqrt(_ratio(target, _binned_pseudo_spectra(unfiltered_iqu, good, lmax)))
+    for _ in range(SHAPING_ITERATIONS):
+        shaped = shaped_noise_map(unfiltered_iqu, shaping, good, lmax)
+        shaping *= np.sqrt(_ratio(target, _binned_pseudo_spectra(shaped, good, lmax)))
+    return shaping
+
+
+def _binned_pseudo_spectra(maps_iqu: np.ndarray, good: np.ndarray, lmax: int) -> np.ndarray:
+    """TT, EE, BB pseudo-spectra on ``good``, summed over SHAPING_BIN_WIDTH multipoles
+    (each multipole holds its bin's sum; ell < 2 holds its own value)."""
+    spectra = hp.anafast(np.where(good, maps_iqu, 0.0), lmax=lmax)[:3]
+    for first in range(2, lmax + 1, SHAPING_BIN_WIDTH):
+        window = slice(first, min(first + SHAPING_BIN_WIDTH, lmax + 1))
+        spectra[:, window] = spectra[:, window].sum(axis=1, keepdims=True)
+    return spectra
+
+
+def _ratio(numerator: np.ndarray, denominator: np.ndarray) -> np.ndarray:
+    """numerator / denominator, 1 where the denominator is 0 and below ell = 2."""
+    ratio = np.ones_like(numerator)
+    np.divide(numerator, denominator, out=ratio, where=denominator > 0)
+    ratio[:, :2] = 1.0
+    return ratio
+
+
+def shaped_noise_map(noise_iqu: np.ndarray, shaping: np.ndarray, good: np.ndarray, lmax: int):
+    """The noise map (zero off ``good``) with its T, E, B a_lm up to lmax times
+    ``shaping``: n + alm2map((shaping - 1) a_lm), so the power beyond lmax (white
+    pixel noise has it) is kept."""
+    nside = hp.npix2nside(good.size)
+    masked = np.where(good, noise_iqu, 0.0)
+    alm = hp.map2alm(masked, lmax=lmax, iter=1)
+    change = np.array([hp.almxfl(alm[i], shaping[i] - 1.0) for i in range(3)])
+    return masked + hp.alm2map(change, nside, lmax=lmax, pixwin=False)
+
+
+def filtered_cmb_map(alm: np.ndarray, transfer: np.ndarray, nside: int, lmax: int):
+    """(3, npix) map of the a_lm times T_ell per T, E, B [K_CMB]."""
+    filtered = np.array([hp.almxfl(alm[i], transfer[i]) for i in range(3)])
+    return hp.alm2map(filtered, nside, lmax=lmax, pixwin=False)
+
+
+@dataclasses.dataclass
+class FixedMaps:
+    """Everything the seeds of one channel share (the fixed pass's output)."""
+
+    nosys: np.ndarray  # (3, npix) bin F(s_f + A_2 h) [K_CMB]
+    template_terms: np.ndarray  # (3, n_det, 3, npix) terms of s_f [K_CMB^2]
+    foreground_reference: np.ndarray  # (3, npix) bin F(fg) [K_CMB]
+    transfer: np.ndarray  # (3, lmax + 1) T_ell of TT, EE, BB [1]
+    noise_shaping: np.ndarray  # (3, lmax + 1) sqrt(N_ell of F n / N_ell of n) [1]
+    matrix: np.ndarray  # (6, npix) sum_k M_k, MATRIX_ENTRIES order [K^-2]
+    moments: np.ndarray  # (n_det, npix, 3, 6) M_k, H_k, Q_k [K^-2]; (0,) without systematics
+    hits: np.ndarray
+    condition: np.ndarray
+    good: np.ndarray
+    carries_systematics: bool
+
+    def matrices(self, pixels) -> np.ndarray:
+        """(n, 3, 3) M of the pixels."""
+        return symmetric_matrices(self.matrix[:, pixels].T)
+
+    def moment(self, detector: int, weight: int, pixels) -> np.ndarray:
+        """(n, 3, 3) M_k (weight 0), H_k (1) or Q_k (2) of a detector at the pixels."""
+        return symmetric_matrices(self.moments[detector, pixels, weight])
+
+
+def fixed_pass(
+    simulator,
+    settings,
+    foreground_iqu_k: np.ndarray,
+    transfer_alm: np.ndarray,
+    carries_systematics: bool,
+    lmax: int,
+) -> FixedMaps:
+    """The seed-independent TOD pass of one channel (see the module docstring): no CMB, no
+    noise; ``transfer_alm`` (beam-smoothed) is scanned alone to measure T_ell."""
+    transfer_input = hp.alm2map(transfer_alm, settings.nside, lmax=lmax, pixwin=False)
+    moments = PixelMoments(settings.nside, simulator.n_detectors) if carries_systematics else None
+    noiseless = dataclasses.replace(settings, noise_scale=0.0)
+    equations = accumulate(
+        simulator,
+        noiseless,
+        foreground_iqu_k,
+        references_iqu_k=(foreground_iqu_k, transfer_input),
+        template_terms=carries_systematics,
+        moments=moments,
+        noise_reference_seed=NOISE_REFERENCE_SEED,
+    )
+    maps, condition, good = solve_maps(equations, settings.max_condition_number)
+    solved = split_solved_maps(
+        maps, simulator.n_detectors, settings.a2_k_cmb, template_terms=carries_systematics
+    )
+    foreground_reference, transfer_output, noise_filtered, noise_unfiltered = solved["references"]
+    return FixedMaps(
+        nosys=solved["nosys"],
+        template_terms=solved["template_terms"],
+        foreground_reference=foreground_reference,
+        transfer=measure_transfer(transfer_output, transfer_input, good, lmax),
+        noise_shaping=measure_noise_shaping(noise_filtered, noise_unfiltered, good, lmax),
+        matrix=equations.matrix,
+        moments=moments.values if carries_systematics else np.zeros(0),
+        hits=equations.hits,
+        condition=condition,
+        good=good,
+        carries_systematics=carries_systematics,
+    )
+
+
+def draw_binned_noise(fixed: FixedMaps, noise_scale: float, rng_of_detector) -> tuple:
+    """(b, c): b (3, npix) = sum_k b_k and c (n_det, 3, npix), the binned white noise and
+    binned h n per detector, on the good pixels (zero elsewhere); ``rng_of_detector(k)``
+    gives detector k's generator. Each 6-vector (b_k, c_k) is drawn from the eigenvectors
+    of its covariance noise_scale^2 [[M_k, H_k], [H_k, Q_k]] (negative rounding
+    eigenvalues set to 0). A channel without systematics has no moments: b is drawn from
+    noise_scale^2 M with detector 0's generator, and c is empty."""
+    good = np.flatnonzero(fixed.good)
+    b = np.zeros((3, fixed.good.size))
+    if not fixed.carries_systematics:
+        b[:, good] = _gaussian(noise_scale**2 * fixed.matrices(good), rng_of_detector(0)).T
+        return b, np.zeros((0, 3, fixed.good.size))
+    n_det = fixed.moments.shape[0]
+    c = np.zeros((n_det, 3, fixed.good.size))
+    for k in range(n_det):
+        m_k, h_k, q_k = (fixed.moment(k, j, good) for j in range(3))
+        covariance = np.block([[m_k, h_k], [h_k, q_k]]) * noise_scale**2
+        draw = _gaussian(covariance, rng_of_detector(k))
+        b[:, good] += draw[:, :3].T
+        c[k][:, good] = draw[:, 3:].T
+    return b, c
+
+
+def _gaussian(covariance: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """(n, d) draws, one per (d, d) covariance of (n, d, d), via its eigenvectors."""
+    eigenvalues, eigenvectors = np.linalg.eigh(covariance)
+    z = rng.standard_normal(eigenvalues.shape)
+    return np.einsum("pij,pj->pi", eigenvectors, np.sqrt(np.clip(eigenvalues, 0, None)) * z)
+
+
+def realize_seed(
+    fixed: FixedMaps,
+    cmb_alm: np.ndarray,
+    lmax: int,
+    a2_k_cmb: float,
+    noise_scale: float,
+    rng_of_detector,
+) -> dict[str, np.ndarray]:
+    """The maps of one seed from the fixed pass (see the module docstring): nosys,
+    template_terms, templates, cmb_reference, foreground_reference (UNSEEN where the
+    fixed pass is not good), as :func:`tod_maps.split_solved_maps` names them."""
+    nside = hp.npix2nside(fixed.good.size)
+    good = fixed.good
+    cmb = hp.alm2map(cmb_alm, nside, lmax=lmax, pixwin=False)
+    cmb_filtered = filtered_cmb_map(cmb_alm, fixed.transfer, nside, lmax)
+    b, c = draw_binned_noise(fixed, noise_scale, rng_of_detector)
+    matrix = fixed.matrices(good)
+
+    def solve(vectors):  # M^-1 v on the good pixels: (3, n_good) -> (3, n_good)
+        return np.linalg.solve(matrix, vectors.T[..., None])[..., 0].T
+
+    def filtered_noise(vectors):  # the binned white noise, shaped by the filter's action
+        white = np.zeros_like(fixed.nosys)
+        white[:, good] = solve(vectors)
+        return shaped_noise_map(white, fixed.noise_shaping, good, lmax)[:, good]
+
+    noise = np.zeros_like(fixed.nosys)
+    noise[:, good] = filtered_noise(b[:, good])
+    nosys = np.full_like(fixed.nosys, hp.UNSEEN)
+    nosys[:, good] = fixed.nosys[:, good] + cmb_filtered[:, good] + noise[:, good]
+    terms = fixed.template_terms.copy()
+    if fixed.carries_systematics:  # the s h term gets the seed's part
+        for k in range(terms.shape[1]):
+            h_k = fixed.moment(k, 1, good)
+            cmb_h = np.einsum("pij,jp->ip", h_k, cmb[:, good])
+            terms[SH_TERM, k][:, good] += solve(cmb_h) + filtered_noise(c[k][:, good])
+    templates = np.where(good, templates_from_terms(terms, a2_k_cmb), hp.UNSEEN)
+    return {
+        "nosys": nosys,
+        "template_terms": terms,
+        "templates": templates,
+        "cmb_reference": np.where(good, cmb_filtered, hp.UNSEEN),
+        "foreground_reference": fixed.foreground_reference,
+    }
+
+
+def write_fixed_maps(path, fixed: FixedMaps, attributes: dict) -> None:
+    """The fixed pass of one channel as HDF5 (datasets named as FixedMaps' fields)."""
+    with atomic_path(path) as temporary, h5py.File(temporary, "w") as out:
+        for field in dataclasses.fields(FixedMaps):
+            value = getattr(fixed, field.name)
+            if isinstance(value, np.ndarray):
+                out.create_dataset(field.name, data=value)
+        out.attrs.update(attributes)
+        out.attrs["carries_systematics"] = fixed.carries_systematics
+
+
+def read_fixed_maps(path) -> tuple[FixedMaps, dict]:
+    """(FixedMaps, attributes) of a file written by :func:`write_fixed_maps`."""
+    with h5py.File(path) as stored:
+        attributes = dict(stored.attrs)
+        arrays = {
+            field.name: stored[field.name][()]
+            for field in dataclasses.fields(FixedMaps)
+            if field.name in stored
+        }
+    carries = bool(attributes.pop("carries_systematics"))
+    return FixedMaps(**arrays, carries_systematics=carries), attributes

@@ -1,0 +1,13 @@
+"""Rule map_domain_maps: every seed's maps file of one channel from its fixed pass."""
+
+from hwp_tes_systematics.io import setup_logging
+from hwp_tes_systematics.stages import map_domain_maps
+
+setup_logging(snakemake.log[0])
+map_domain_maps.run_seeds(
+    snakemake.params.config,
+    channel_name=snakemake.wildcards.channel,
+    seeds=snakemake.params.seeds,
+    fixed_h5=snakemake.input.fixed,
+    out_h5s=snakemake.output.maps,
+)
