@@ -54,10 +54,7 @@ class NormalEquations:
 
     def full_matrix(self) -> np.ndarray:
         """(npix, 3, 3) symmetric matrices."""
-        full = np.empty((self.npix, 3, 3))
-        for entry, (i, j) in enumerate(MATRIX_ENTRIES):
-            full[:, i, j] = full[:, j, i] = self.matrix[entry]
-        return full
+        return symmetric_matrices(self.matrix.T)
 
     def merge(self, other: NormalEquations) -> None:
         """Add another accumulation (e.g. from another process or time range)."""
