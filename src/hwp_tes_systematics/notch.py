@@ -58,8 +58,18 @@ def apply_notch(
     delta_f_hz: float | None = None,
     workers: int = 1,
 ) -> np.ndarray:
-    """Filter along the last axis: irfft(F(f) rfft(tod)), zero-padded to a fast FFT
-    length (ducc0's FFT, ``workers`` threads; all rows in one call)."""
+    """Filter along the last axis: irfft(F(f) rfft(tod)) (see :func:`apply_transfer`)."""
+    return apply_transfer(
+        tod,
+        lambda n_fft: _transfer_on_rfft_grid(n_fft, sampling_rate_hz, f_hwp_hz, delta_f_hz),
+        workers,
+    )
+
+
+def apply_transfer(tod: np.ndarray, transfer_on_grid, workers: int = 1) -> np.ndarray:
+    """irfft(T(f) rfft(tod)) along the last axis, zero-padded to a fast FFT length
+    (ducc0's FFT, ``workers`` threads; all rows in one call). ``transfer_on_grid(n_fft)``
+    gives T at the rfft frequencies k f_s / n_fft, k = 0 .. n_fft // 2."""
     tod = np.asarray(tod, dtype=np.float64)
     n_samples = tod.shape[-1]
     n_fft = ducc0.fft.good_size(n_samples, True)
@@ -70,7 +80,7 @@ def apply_notch(
     axis = (tod.ndim - 1,)
     spectrum = ducc0.fft.r2c(tod, axes=axis, nthreads=workers)
     del tod
-    spectrum *= _transfer_on_rfft_grid(n_fft, sampling_rate_hz, f_hwp_hz, delta_f_hz)
+    spectrum *= transfer_on_grid(n_fft)
     filtered = ducc0.fft.c2r(
         spectrum, axes=axis, lastsize=n_fft, forward=False, inorm=2, nthreads=workers
     )

@@ -26,9 +26,10 @@ import psutil
 from tqdm import tqdm
 
 from .baselines import baseline_samples, remove_baselines
+from .demodulation import DemodulatedEquations, demodulate
 from .hwpss_removal import remove_hwp_harmonics
 from .mapmaking import NormalEquations, PixelMoments
-from .notch import chunk_span, filter_chunk_with_margins
+from .notch import apply_notch, chunk_span
 from .timing import StageClock
 from .tod import MissionPlan, PairSimulator
 
@@ -120,6 +121,12 @@ def filter_tod(
     per-detector baselines are removed (:mod:`baselines`; none on the paper-literal path,
     where the harmonic fit has no constant either).
     Linear in the TOD. ``overwrite`` lets the HWP-harmonic removal reuse ``tod``'s memory."""
+    notched = notch_with_margins(tod, pointing, simulator, settings, overwrite)
+    return remove_baselines(notched[..., inner], baseline_samples_of(settings))
+
+
+def notch_with_margins(tod, pointing, simulator, settings, overwrite: bool = False):
+    """HWP-harmonic template removal, then the notch, on the whole chunk with its margins."""
     f_hwp_hz = simulator.channel.hwp_frequency_hz
     cleaned = remove_hwp_harmonics(
         tod,
@@ -128,16 +135,18 @@ def filter_tod(
         overwrite=overwrite,
         offset=settings.baseline_length_s is not None,
     )
-    filtered = filter_chunk_with_margins(
+    return apply_notch(
         cleaned,
-        inner,
         settings.plan.sampling_rate_hz,
         f_hwp_hz,
         4 * f_hwp_hz / settings.notch_width_divisor,
         workers=settings.threads,
     )
-    samples = baseline_samples(settings.baseline_length_s, settings.plan.sampling_rate_hz)
-    return remove_baselines(filtered, samples)
+
+
+def baseline_samples_of(settings) -> int | None:
+    """Samples per baseline interval of the settings (None: no baselines)."""
+    return baseline_samples(settings.baseline_length_s, settings.plan.sampling_rate_hz)
 
 
 def detector_weights(simulator: PairSimulator) -> np.ndarray:
@@ -157,6 +166,7 @@ def accumulate(
     template_terms: bool = True,
     moments: PixelMoments | None = None,
     noise_reference_seed: int | None = None,
+    demodulated: DemodulatedEquations | None = None,
 ) -> NormalEquations:
     """Normal equations of the filtered TOD (F = notch after HWP-harmonic removal).
 
@@ -173,8 +183,14 @@ def accumulate(
     (:class:`mapmaking.PixelMoments`) from the same pointing;
     ``noise_reference_seed``, if given, adds two last TODs: the detector noise of that
     realization (scale 1) after the filter and before it (the filter's action on noise).
+    ``demodulated``, if given, also receives every filtered TOD through HWP demodulation
+    and a low-pass (:mod:`demodulation`; baselines, if any, removed from its intensity
+    stream only: the low-pass already removes offsets from Q and U): the same TODs, with
+    another map-maker.
     """
     clock = clock or StageClock()
+    if demodulated is not None and noise_reference_seed is not None:
+        raise ValueError("accumulate: demodulated maps of the noise reference are not supported")
     n_det = simulator.n_detectors
     linear = g1_per_k is None
     n_terms = len(TEMPLATE_TERMS) if linear and template_terms else 0
@@ -219,8 +235,20 @@ def accumulate(
                 )
                 unfiltered_noise = unfiltered[-1][:, inner].copy()
         with clock("2f removal + notch"):
-            filtered = filter_tod(unfiltered, pointing, inner, simulator, settings, overwrite=True)
+            notched = notch_with_margins(unfiltered, pointing, simulator, settings, overwrite=True)
             del unfiltered
+        if demodulated is not None:
+            with clock("demodulation"):
+                streams = demodulate(
+                    notched,
+                    pointing.hwp_angle_rad,
+                    settings.plan.sampling_rate_hz,
+                    simulator.channel.hwp_frequency_hz,
+                    settings.threads,
+                )[..., inner]
+                remove_baselines(streams[0], baseline_samples_of(settings))
+        filtered = remove_baselines(notched[..., inner], baseline_samples_of(settings))
+        del notched
         # a term's TOD is binned once per detector, with that detector's samples only
         tods = [filtered[0]]
         owners = [None]
@@ -242,6 +270,19 @@ def accumulate(
                 tods,
                 owners,
             )
+        if demodulated is not None:
+            with clock("binning"):
+                demodulated.add(
+                    pointing.pixels[:, inner],
+                    pointing.cos_2alpha[:, inner],
+                    pointing.sin_2alpha[:, inner],
+                    pointing.hwp_angle_rad[inner],
+                    weights,
+                    simulator.pol_efficiency,
+                    [streams[:, row] for row in _rows_of(n_terms, n_det, len(tods))],
+                    owners,
+                )
+            del streams
         del filtered, tods
         unfiltered_noise = None
         rss_mb = psutil.Process().memory_info().rss / 2**20
@@ -256,6 +297,15 @@ def accumulate(
         clock.summary(settings.plan.n_samples * n_det),
     )
     return equations
+
+
+def _rows_of(n_terms: int, n_det: int, n_tods: int) -> list[int]:
+    """Row of the filtered stack that each binned TOD comes from (a term's row is binned
+    once per detector)."""
+    rows = [0]
+    for term in range(1, 1 + n_terms):
+        rows += [term] * n_det
+    return rows + list(range(1 + n_terms, 1 + n_terms + n_tods - len(rows)))
 
 
 def templates_from_terms(terms: np.ndarray, a2_k_cmb: float) -> np.ndarray:

@@ -1,0 +1,132 @@
+"""HWP demodulation plus a low-pass (the map-maker beside the binned solve): the
+demodulated streams of a modulated signal, a noise-free polarised sky recovered, and
+the offset leakage of the binned solve absent."""
+
+import healpy as hp
+import numpy as np
+import pytest
+
+from hwp_tes_systematics.demodulation import DemodulatedEquations, demodulate, lowpass_transfer
+from hwp_tes_systematics.instrument import load_channel
+from hwp_tes_systematics.mapmaking import NormalEquations, solve_maps
+from hwp_tes_systematics.notch import chunk_span
+from hwp_tes_systematics.tod import MissionPlan, PairSimulator
+from hwp_tes_systematics.tod_maps import (
+    PairMapSettings,
+    accumulate,
+    detector_weights,
+    split_solved_maps,
+)
+
+NSIDE = 16
+
+
+def test_demodulated_streams_of_a_modulated_signal():
+    """d = I + rho (Q cos(4 chi + beta) + U sin(4 chi + beta)) + offset gives
+    (I + offset, rho (Q c + U s), rho (U c - Q s)) away from the edges."""
+    rate_hz, f_hwp_hz = 19.0, 0.65
+    t = np.arange(20000) / rate_hz
+    chi = 2 * np.pi * f_hwp_hz * t
+    beta = 0.3 + 0.002 * t  # a slowly turning polarisation angle
+    i_k, q_k, u_k, rho, offset_k = 2.0, 0.7, -0.4, 0.9, 5.0
+    tod = i_k + offset_k + rho * (q_k * np.cos(4 * chi + beta) + u_k * np.sin(4 * chi + beta))
+    streams = demodulate(tod, chi, rate_hz, f_hwp_hz)
+    middle = slice(2000, -2000)
+    expected = [
+        np.full(t.size, i_k + offset_k),
+        rho * (q_k * np.cos(beta) + u_k * np.sin(beta)),
+        rho * (u_k * np.cos(beta) - q_k * np.sin(beta)),
+    ]
+    for stream, want in zip(streams, expected, strict=True):
+        np.testing.assert_allclose(stream[middle], want[middle], atol=2e-3)
+    assert lowpass_transfer([0.0, 0.6, 0.65, 0.7], 0.6175, 0.0325).tolist()[::3] == [1.0, 0.0]
+
+
+@pytest.fixture(scope="module")
+def pair():
+    channel = load_channel("M1-140")
+    plan = MissionPlan("2032-04-01T00:00:00", 3 * 3600.0, 3 * 3600.0, channel.sampling_rate_hz)
+    return PairSimulator(channel, plan, NSIDE)
+
+
+def demodulated_map(pair, sky):
+    """Scan ``sky`` over the pair's three hours, demodulate, low-pass, bin: (maps, seen)."""
+    rate = pair.plan.sampling_rate_hz
+    start, n_simulated, inner = chunk_span(0, pair.plan.n_samples, rate, 300.0)
+    pointing = pair.pointing(start, n_simulated)
+    tod = pair.scan_sky(pointing, sky)
+    streams = demodulate(tod, pointing.hwp_angle_rad, rate, pair.channel.hwp_frequency_hz)
+    equations = DemodulatedEquations(NSIDE, 1)
+    equations.add(
+        pointing.pixels[:, inner],
+        pointing.cos_2alpha[:, inner],
+        pointing.sin_2alpha[:, inner],
+        pointing.hwp_angle_rad[inner],
+        detector_weights(pair),
+        pair.pol_efficiency,
+        [streams[..., inner]],
+    )
+    binned = NormalEquations(NSIDE, 1)
+    binned.add(
+        pointing.pixels[:, inner],
+        pointing.cos_2alpha[:, inner],
+        pointing.sin_2alpha[:, inner],
+        detector_weights(pair),
+        pair.pol_efficiency,
+        [tod[:, inner]],
+    )
+    binned_maps, _, good = solve_maps(binned, 100.0)
+    return equations.solve()[0], equations.hits > 0, binned_maps[0], good
+
+
+def test_demodulation_recovers_a_noise_free_polarised_sky(pair):
+    """A uniform polarised sky comes back exactly (the algebra of the module docstring);
+    a smooth one (20 deg FWHM) within 4 % rms of its Q/U (measured 1.6 %: the TOD of
+    a pixelized sky steps at pixel edges and the low-pass smooths the steps, which the
+    binned solve, exact on the same TOD, does not see)."""
+    npix = hp.nside2npix(NSIDE)
+    uniform = np.array([3.0, 0.7, -0.4])[:, None] * np.ones(npix) * 1e-6
+    maps, seen, _, _ = demodulated_map(pair, uniform)
+    assert seen.mean() > 0.02
+    np.testing.assert_allclose(maps[:, seen], uniform[:, seen], rtol=1e-6)
+    lmax = 3 * NSIDE - 1
+    rng = np.random.default_rng(7)
+    alm = rng.normal(size=(3, hp.Alm.getsize(lmax)), scale=1e-6) * (1 + 0j)
+    smooth = hp.alm2map(alm, NSIDE, lmax=lmax, fwhm=np.radians(20.0))
+    maps, seen, binned, good = demodulated_map(pair, smooth)
+    error = maps[1:, seen] - smooth[1:, seen]
+    relative = np.sqrt(np.mean(error**2) / np.mean(smooth[1:, seen] ** 2))
+    assert relative < 0.04, relative
+    np.testing.assert_allclose(binned[1:, good], smooth[1:, good], atol=1e-12)
+
+
+def test_demodulation_removes_the_offset_leakage_of_the_binned_solve(pair):
+    """On the paper-literal path (no baselines) the h^2 term of the nonlinearity
+    (a per-detector DC term A_2^2 / 2 and a 4f line) leaks into the binned Q/U through
+    the HWP-angle coverage; the demodulated maps of the same filtered TODs hold < 1e-4 of it (measured
+    1.7e-8 against 1.7e-2 K^2 per unit A_2^2)."""
+    settings = PairMapSettings(
+        master_seed=1,
+        seed=0,
+        nside=NSIDE,
+        plan=pair.plan,
+        a2_k_cmb=0.1,
+        notch_width_divisor=100.0,
+        notch_margin_s=300.0,
+        max_condition_number=100.0,
+        noise_scale=0.0,
+        baseline_length_s=None,
+    )
+    demodulated = DemodulatedEquations(NSIDE, 1 + 3 * pair.n_detectors)
+    equations = accumulate(
+        pair, settings, np.zeros((3, hp.nside2npix(NSIDE))), demodulated=demodulated
+    )
+    binned, _, good = solve_maps(equations, 100.0)
+    binned_hh = split_solved_maps(binned, pair.n_detectors, 0.1)["template_terms"][2]
+    demodulated_hh = split_solved_maps(demodulated.solve(), pair.n_detectors, 0.1)[
+        "template_terms"
+    ][2]
+    binned_rms = np.sqrt(np.mean(binned_hh[:, 1:, good] ** 2))
+    demodulated_rms = np.sqrt(np.mean(demodulated_hh[:, 1:, good] ** 2))
+    assert binned_rms > 1e-3, binned_rms  # per-cent leakage of the 0.5 DC term
+    assert demodulated_rms < 1e-4 * binned_rms, (demodulated_rms, binned_rms)
