@@ -52,3 +52,27 @@ def test_cli_bad_input_names_the_file(tmp_path):
     assert result.returncode == 2
     assert "notes.h5" in result.stderr and "HDF5" in result.stderr
     assert not (tmp_path / "out/diagnosis.json").exists()
+
+
+def test_cli_a2_for_a_lab_detector(tmp_path):
+    """A recording whose channel the instrument model does not know needs --a2: without it
+    the error says so, a negative --a2 is refused, both before anything is written."""
+    import h5py
+
+    recording = simulate_recording(CHANNEL, 0.05, MASTER_SEED, 4243, sky_map(), A2_K, [])
+    write_recording(tmp_path / "lab.h5", recording)
+    with h5py.File(tmp_path / "lab.h5", "r+") as handle:
+        detectors = json.loads(handle["tod"].attrs["detectors"])
+        handle["tod"].attrs["detectors"] = json.dumps(
+            [
+                {"name": f"lab{i}", "pol_angle_rad": d["pol_angle_rad"]}
+                for i, d in enumerate(detectors)
+            ]
+        )
+    sky.write_sky_map(tmp_path / "sky.fits", sky_map())
+    missing = cli(tmp_path, "lab.h5", "--sky", "sky.fits", "--out", "out")
+    assert missing.returncode == 2
+    assert "lab.h5" in missing.stderr and "--a2" in missing.stderr
+    negative = cli(tmp_path, "lab.h5", "--sky", "sky.fits", "--out", "out", "--a2", "-0.1")
+    assert negative.returncode == 2 and "expected an amplitude >= 0" in negative.stderr
+    assert not (tmp_path / "out").exists()

@@ -1,7 +1,8 @@
 """Time-ordered data of one detector pair, simulated chunk by chunk with litebird_sim.
 
 For chunk k of the mission (plus a margin on each side for the notch filter) the
-TOD of each detector, in K_CMB, is the paper's
+TOD of each detector, in K_CMB, is the paper's (the data model of :mod:`data_model`,
+shared with the diagnosis's nominal model)
 
     d = I + rho [Q cos 2 alpha + U sin 2 alpha] + dipole + A_2 cos(2 (chi - theta_det)) + n,
     alpha = 2 chi - theta_det + psi       (ideal HWP; litebird_sim's convention)
@@ -18,76 +19,21 @@ binning; a test checks the scan against ``lbs.scan_map_in_observations``.
 from __future__ import annotations
 
 import copy
-import functools
 import logging
 from dataclasses import asdict, dataclass
 from functools import cached_property
 
 import astropy.time
 import ducc0
-import numba
 import numpy as np
 
-from . import seeding
+from . import data_model, seeding
+from .data_model import cache_litebird_sim_kernels, ecliptic_to_galactic, orbit_table
 from .instrument import Channel, open_imo
 
 log = logging.getLogger(__name__)
 
 QUATERNION_STEP_S = 2.0  # spin-axis quaternion sampling (litebird_sim interpolates), ~1 arcsec
-ORBIT_STEP_S = 3600.0  # spacecraft position/velocity sampling for the dipole
-ORBIT_MARGIN_S = 86400.0  # orbit table from one day before to one day after (filter margins)
-
-
-@functools.cache
-def cache_litebird_sim_kernels() -> int:
-    """Turn on numba's on-disk cache for litebird_sim's compiled kernels.
-
-    litebird_sim compiles its numba kernels (pointing, HWP angle, dipole, add_2f, ...)
-    in every new process without caching them: ~10-25 s per process, more than a
-    one-day pair takes to simulate. With the cache, only the first process of an
-    installation compiles. Returns the number of kernels switched to caching.
-    """
-    import sys
-
-    import litebird_sim  # noqa: F401 (loads the modules whose kernels are cached)
-    from numba.core.registry import CPUDispatcher
-
-    kernels = {
-        id(obj): obj
-        for name, module in list(sys.modules.items())
-        if name.startswith("litebird_sim") and module is not None
-        for obj in vars(module).values()
-        if isinstance(obj, CPUDispatcher)
-    }
-    for kernel in kernels.values():
-        kernel.enable_caching()
-    return len(kernels)
-
-
-def orbit_table(start_time: astropy.time.Time, duration_s: float):
-    """Spacecraft position and velocity (litebird_sim, ecliptic) every ORBIT_STEP_S from
-    ORBIT_MARGIN_S before ``start_time`` to ORBIT_MARGIN_S after the end: the table the
-    dipole of the simulation and of the diagnosis's nominal model is computed from."""
-    import litebird_sim as lbs
-
-    orbit_start = start_time - astropy.time.TimeDelta(ORBIT_MARGIN_S, format="sec")
-    return lbs.spacecraft_pos_and_vel(
-        lbs.SpacecraftOrbit(orbit_start),
-        start_time=orbit_start,
-        time_span_s=duration_s + 2 * ORBIT_MARGIN_S,
-        delta_time_s=ORBIT_STEP_S,
-    )
-
-
-@functools.cache
-def ecliptic_to_galactic():
-    """The ecliptic -> Galactic rotation of litebird_sim: (3x3 matrix, RotQuaternion)."""
-    import litebird_sim as lbs
-    from scipy.spatial.transform import Rotation
-
-    matrix = np.asarray(lbs.coordinates.ECL_TO_GAL_ROT_MATRIX, dtype=float)
-    # litebird_sim quaternions are (x, y, z, w), as scipy's
-    return matrix, lbs.RotQuaternion(quats=Rotation.from_matrix(matrix).as_quat())
 
 
 @dataclass(frozen=True)
@@ -315,7 +261,7 @@ class PairSimulator:
                 galactic[direction, :, :2], nthreads=self.threads
             )
             owners = np.arange(self.n_detectors) if self.shares_direction else [direction]
-            _polarisation_angle_kernel(
+            data_model.polarisation_angles(
                 hwp_angle,
                 galactic[direction, :, 2],
                 self.pol_angles_rad[owners],
@@ -332,20 +278,14 @@ class PairSimulator:
     def scan_sky(self, pointing: ChunkPointing, sky_iqu_k: np.ndarray, out=None) -> np.ndarray:
         """I + rho (Q cos 2 alpha + U sin 2 alpha) at the nearest pixel [K_CMB], (n_det, n),
         written to ``out`` if given."""
-        if out is None:
-            out = np.empty(pointing.cos_2alpha.shape)
-        i_map, q_map, u_map = (np.ascontiguousarray(m, dtype=float) for m in sky_iqu_k)
-        _scan_kernel(
+        return data_model.scan(
             pointing.pixels,
             pointing.cos_2alpha,
             pointing.sin_2alpha,
-            self.pol_efficiency.astype(float),
-            i_map,
-            q_map,
-            u_map,
+            self.pol_efficiency,
+            sky_iqu_k,
             out,
         )
-        return out
 
     def dipole(self, pointing: ChunkPointing) -> np.ndarray:
         """Orbital + solar dipole [K_CMB] (litebird_sim, TOTAL_FROM_LIN_T), (n_det, n).
@@ -370,17 +310,7 @@ class PairSimulator:
 
     def hwpss(self, pointing: ChunkPointing, amplitude_k: float) -> np.ndarray:
         """A_2 cos(2 (chi - theta_det)) [K_CMB] via litebird_sim's add_2f, (n_det, n)."""
-        from litebird_sim.hwp_diff_emiss import add_2f
-
-        tod = np.zeros((self.n_detectors, pointing.hwp_angle_rad.size))
-        if amplitude_k != 0.0:
-            add_2f(
-                tod,
-                pointing.hwp_angle_rad,
-                self.pol_angles_rad,
-                np.full(self.n_detectors, float(amplitude_k)),
-            )
-        return tod
+        return data_model.hwpss(pointing.hwp_angle_rad, self.pol_angles_rad, float(amplitude_k))
 
     def noise(
         self, pointing: ChunkPointing, master_seed: int, seed: int, chunk: int, scale: float = 1.0
@@ -413,29 +343,3 @@ class PairSimulator:
             model=self.noise_model,
         )
         return tod
-
-
-@numba.njit(cache=True, nogil=True)
-def _polarisation_angle_kernel(hwp_angle, psi, pol_angles, cos_2alpha, sin_2alpha):
-    """cos, sin of 2 alpha_k = 2 (2 chi + psi) - 2 theta_k for each detector k, by angle
-    addition from the theta = 0 angle (one cos and one sin per sample)."""
-    cos_theta = np.cos(2 * pol_angles)
-    sin_theta = np.sin(2 * pol_angles)
-    for t in range(hwp_angle.size):
-        twice_alpha0 = 2 * (2 * hwp_angle[t] + psi[t])
-        cos0 = np.cos(twice_alpha0)
-        sin0 = np.sin(twice_alpha0)
-        for k in range(pol_angles.size):
-            cos_2alpha[k, t] = cos0 * cos_theta[k] + sin0 * sin_theta[k]
-            sin_2alpha[k, t] = sin0 * cos_theta[k] - cos0 * sin_theta[k]
-
-
-@numba.njit(cache=True, nogil=True)
-def _scan_kernel(pixels, cos_2alpha, sin_2alpha, rho, i_map, q_map, u_map, out):
-    """out[k, t] = I[p] + rho_k (Q[p] cos 2 alpha + U[p] sin 2 alpha), p = pixels[k, t]."""
-    for det in range(out.shape[0]):
-        for t in range(out.shape[1]):
-            p = pixels[det, t]
-            out[det, t] = i_map[p] + rho[det] * (
-                q_map[p] * cos_2alpha[det, t] + u_map[p] * sin_2alpha[det, t]
-            )

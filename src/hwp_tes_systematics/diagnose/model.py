@@ -13,7 +13,9 @@ polarisation efficiency and D the orbital + solar dipole that litebird_sim compu
 recorded pointing, with the spacecraft orbit tabulated exactly as
 :class:`~hwp_tes_systematics.tod.PairSimulator` tabulates it (from one day before the
 start, every hour), so that the dipole of a simulated recording is reproduced to
-~1e-12 K. This is the same data model as the simulation (``tod.py``).
+~1e-12 K. Scan, polarisation angle, HWPSS (``add_2f``), rotation, orbit and scanning
+rates come from :mod:`data_model`, the module the simulation (``tod.py``) builds its
+TOD from: one data model by construction.
 
 The :class:`Context` holds these pieces per detector (sky intensity, sky polarisation,
 dipole, HWPSS, the total d_nom, the other detector of the pair, the intensity seen
@@ -28,10 +30,16 @@ from functools import cached_property
 
 import numpy as np
 
-from ..tod import cache_litebird_sim_kernels, orbit_table
+from .. import data_model
+from ..data_model import cache_litebird_sim_kernels, orbit_table
 
-F_SPIN_HZ = 0.05 / 60.0  # PTEP spin rate 0.05 rpm
-F_PRECESSION_HZ = 1.0 / (192.348 * 60.0)  # PTEP precession period 192.348 min
+
+def _spin_rate_hz() -> float:
+    return data_model.scanning_rates_hz()[0]
+
+
+def _precession_rate_hz() -> float:
+    return data_model.scanning_rates_hz()[1]
 
 
 class SkyMapError(ValueError):
@@ -100,8 +108,8 @@ class Context:
     sky_polarization_quadrature: np.ndarray | None = None
     hwpss_phase_rad: np.ndarray | None = None  # (n_det,) phi: HWPSS A_2 cos(2 (chi - theta) - phi)
     adjustment: np.ndarray | None = None  # (n_det, n) fitted nominal adjustments (:mod:`.nominal`)
-    f_spin_hz: float = F_SPIN_HZ
-    f_precession_hz: float = F_PRECESSION_HZ
+    f_spin_hz: float = field(default_factory=_spin_rate_hz)  # the IMo's scanning strategy
+    f_precession_hz: float = field(default_factory=_precession_rate_hz)
     extra: dict = field(default_factory=dict)
 
     @property
@@ -135,8 +143,8 @@ class Context:
 
     @cached_property
     def carrier(self) -> np.ndarray:
-        """cos x: the 2f HWPSS carrier of unit amplitude."""
-        return np.cos(self.hwpss_angle)
+        """cos x: the 2f HWPSS carrier of unit amplitude (:func:`data_model.hwpss`)."""
+        return data_model.hwpss(self.hwp_angle_rad, self.pol_angle_rad, 1.0, self.hwpss_phase_rad)
 
     @cached_property
     def hwpss(self) -> np.ndarray:
@@ -233,9 +241,6 @@ def scan_sky(recording, sky: np.ndarray, threads: int = 1):
     d/d theta of the polarisation term = 2 rho (Q sin 2a - U cos 2a) (a = 2 chi - theta + psi).
     """
     import ducc0
-    import litebird_sim as lbs
-
-    cache_litebird_sim_kernels()
 
     nside = round(np.sqrt(sky.shape[1] / 12))
     healpix = ducc0.healpix.Healpix_Base(nside, "RING")
@@ -244,17 +249,18 @@ def scan_sky(recording, sky: np.ndarray, threads: int = 1):
     intensity = np.empty((n_det, n))
     polarization = np.empty((n_det, n))
     quadrature = np.empty((n_det, n))
-    chi = recording.hwp_angle_rad
+    chi = np.asarray(recording.hwp_angle_rad, dtype=float)
     for k in range(n_det):
-        galactic = lbs.rotate_coordinates_e2g(np.ascontiguousarray(recording.pointings_ecl[k]))
+        galactic = data_model.galactic_angles(recording.pointings_ecl[k])
         pixels[k] = healpix.ang2pix(galactic[:, :2], nthreads=threads)
-        alpha = 2 * chi - recording.pol_angles_rad[k] + galactic[:, 2]
-        pix = pixels[k]
-        intensity[k] = sky[0][pix]
-        cos2, sin2 = np.cos(2 * alpha), np.sin(2 * alpha)
-        rho = recording.pol_efficiency[k]
-        polarization[k] = rho * (sky[1][pix] * cos2 + sky[2][pix] * sin2)
-        quadrature[k] = rho * (sky[1][pix] * sin2 - sky[2][pix] * cos2)
+        angles = data_model.polarisation_angles(
+            chi, np.ascontiguousarray(galactic[:, 2]), recording.pol_angles_rad[k : k + 1]
+        )
+        rho = recording.pol_efficiency[k : k + 1]
+        row = pixels[k : k + 1]
+        intensity[k] = sky[0][pixels[k]]
+        polarization[k] = data_model.scan(row, *angles, rho, sky, intensity=False)[0]
+        quadrature[k] = data_model.scan_quadrature(row, *angles, rho, sky)[0]
     return intensity, polarization, pixels, nside, quadrature
 
 

@@ -49,7 +49,7 @@ from pathlib import Path
 import astropy.time
 import numpy as np
 
-from .. import seeding
+from .. import data_model, seeding
 from ..io import atomic_path
 from .effects import CATALOG, SIGNAL_EFFECTS, GlitchEvent, get_effect
 from .model import Context, per_detector
@@ -576,9 +576,13 @@ def simulate_recording(
     sky_polarization = simulator.scan_sky(pointing, sky) - sky_intensity
     delta = per_detector(pol_angle_offsets_rad, n_det, "pol_angle_offsets_rad")
     if np.any(delta != 0):
-        # rho (Q sin 2a - U cos 2a): the map (0, -U, Q) scanned
-        rotated = np.stack([np.zeros_like(sky[0]), -sky[2], sky[1]])
-        quadrature = simulator.scan_sky(pointing, rotated)
+        quadrature = data_model.scan_quadrature(
+            pointing.pixels,
+            pointing.cos_2alpha,
+            pointing.sin_2alpha,
+            simulator.pol_efficiency,
+            sky,
+        )
         sky_polarization = (
             np.cos(2 * delta)[:, None] * sky_polarization + np.sin(2 * delta)[:, None] * quadrature
         )
@@ -597,11 +601,8 @@ def simulate_recording(
         valid=np.ones((n_det, n), dtype=bool),
         detector_names=simulator.detector_names,
     )
-    # The HWPSS through litebird_sim's add_2f, as the study's simulation does.
-    from litebird_sim.hwp_diff_emiss import add_2f
-
-    hwpss = np.zeros((n_det, n))
-    add_2f(hwpss, pointing.hwp_angle_rad, pol_angles, a2)
+    # The HWPSS of the data model (litebird_sim's add_2f), as the study's simulation.
+    hwpss = data_model.hwpss(pointing.hwp_angle_rad, pol_angles, a2)
     signal = sky_intensity + sky_polarization + dipole + hwpss
 
     effects = [(str(name), dict(params)) for name, params in effects]
