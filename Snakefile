@@ -51,6 +51,7 @@ rule all:
         paths.FIG3_HWP_EMISSION,
         paths.FIG4_TES_RESPONSE,
         paths.REQUIREMENT,
+        paths.FIG_RESIDUAL_SPECTRA,
         expand(paths.DIAGNOSIS, recording=RECORDINGS),
         rules.tod_figures.output,
         rules.notch_effect.output,

@@ -1,14 +1,16 @@
 """What a one-year run costs on the map-domain path: the fixed TOD pass per channel-day and
 the map products per seed, measured, then extrapolated to a configuration's grid.
 
-    python benchmarks/map_domain_cost.py --nside 64 --rate 19 --seeds 20
+    python benchmarks/map_domain_cost.py --nside 64 --rate 19 --seeds 20 --days 4 \
+        --calibration-every 4
     python benchmarks/map_domain_cost.py --nside 512 --rate 31 --seeds 100   # paper grid
 
 For one MFT channel with systematics (M1-140: 7 filtered TODs, HWPSS moments) and one
 LFT channel without (L1-040: 4 TODs), one thread each, kernels compiled first: the fixed
 pass of ``--days`` and of twice that (the difference is the cost per day, the rest the
 once-per-pass part: solving the maps, the transfer and noise-shaping spectra), and the
-realization of one seed (CMB draw, noise draw, map products). Printed: seconds per channel-day and per
+realization of one seed (CMB draw, noise draw, map products). ``--calibration-every``:
+the filter's transfer and noise shaping from every n-th day (``--days`` a multiple of it). Printed: seconds per channel-day and per
 seed, and the extrapolation to 10 systematics + 12 other channels, one year and
 ``--seeds`` seeds, in core-hours and in wall hours on ``--cores`` cores. The map-level
 stages after the maps (HILC, spectra, likelihood) are not included: they are measured
@@ -32,7 +34,7 @@ CHANNELS = {"M1-140": (True, 10), "L1-040": (False, 12)}  # (systematics, channe
 YEAR_DAYS = 365.25
 
 
-def measure(name, carries_systematics, nside, rate_hz, days):
+def measure(name, carries_systematics, nside, rate_hz, days, calibration_every=1):
     """(seconds of the fixed pass of ``days``, seconds per seed)."""
     channel = load_channel(name)
     plan = MissionPlan("2032-04-01T00:00:00", days * 86400.0, 86400.0, rate_hz)
@@ -52,7 +54,9 @@ def measure(name, carries_systematics, nside, rate_hz, days):
     lmax = 3 * nside - 1
     alm = map_domain.transfer_cmb_alm(lmax, 0.0, 1, channel.fwhm_arcmin)
     started = time.perf_counter()
-    fixed = map_domain.fixed_pass(simulator, settings, foreground, alm, carries_systematics, lmax)
+    fixed = map_domain.fixed_pass(
+        simulator, settings, foreground, alm, carries_systematics, lmax, calibration_every
+    )
     fixed_s = time.perf_counter() - started
     started = time.perf_counter()
     cmb_alm = map_domain.seed_cmb_alm(lmax, 0.0, 1, 0, channel.fwhm_arcmin)
@@ -67,11 +71,15 @@ def main() -> None:
     parser.add_argument("--days", type=float, default=1.0)
     parser.add_argument("--seeds", type=int, default=20)
     parser.add_argument("--cores", type=int, default=2)
+    parser.add_argument("--calibration-every", type=int, default=1, help="days")
     arguments = parser.parse_args()
     for name, (carries, _) in CHANNELS.items():  # compile the kernels of both kinds
         measure(name, carries, arguments.nside, arguments.rate, 0.05)
     total_core_s = 0.0
-    print(f"nside {arguments.nside}, {arguments.rate:g} Hz, {arguments.seeds} seeds, one year")
+    print(
+        f"nside {arguments.nside}, {arguments.rate:g} Hz, {arguments.seeds} seeds, one year, "
+        f"calibration every {arguments.calibration_every} days"
+    )
     print(
         "| channel | fixed pass [s per day] | once per pass [s] | one year [min] | one seed [s] "
         "| x channels |"
@@ -80,8 +88,9 @@ def main() -> None:
     for name, (carries, count) in CHANNELS.items():
         # two durations: the slope is the cost per day, the intercept the once-per-pass part
         # (solving the maps, the transfer and noise-shaping spectra)
-        short_s, per_seed = measure(name, carries, arguments.nside, arguments.rate, arguments.days)
-        long_s, _ = measure(name, carries, arguments.nside, arguments.rate, 2 * arguments.days)
+        point = (name, carries, arguments.nside, arguments.rate)
+        short_s, per_seed = measure(*point, arguments.days, arguments.calibration_every)
+        long_s, _ = measure(*point, 2 * arguments.days, arguments.calibration_every)
         per_day = (long_s - short_s) / arguments.days
         once_s = short_s - per_day * arguments.days
         year_s = per_day * YEAR_DAYS + once_s

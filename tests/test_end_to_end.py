@@ -31,12 +31,14 @@ def test_whole_workflow_on_tiny_config(tiny_local_run):
         "notch_effect",
         "noise_model",
         "requirement",
+        "residual_spectra_figure",
     ):
         assert (workdir / f"logs/{rule}.log").exists(), rule
     # the new outputs of the analysis: both estimators and the regime
     assert isinstance(requirement["valid"], bool) and requirement["regime"]["reason"]
     assert np.isfinite(requirement["systematic_only"]["requirement_sigma_g1_per_k"])
     assert (workdir / "results/figures/requirement_vs_a2_scale.png").is_file()
+    assert (workdir / "results/figures/residual_spectra_bb.png").stat().st_size > 10_000
 
 
 def scheduled_rules(workdir, repo, *more_configfiles):

@@ -200,3 +200,37 @@ def test_fixed_maps_round_trip_through_hdf5(setup, tmp_path):
     assert attributes["channel"] == "M1-140" and read.carries_systematics
     for field in dataclasses.fields(fixed):
         np.testing.assert_array_equal(getattr(read, field.name), getattr(fixed, field.name))
+
+
+def test_calibration_tods_only_on_their_chunks():
+    """The calibration TODs (filter transfer and noise shaping) are binned into their own
+    normal equations on every n-th chunk only; the maps get every chunk."""
+    from hwp_tes_systematics.tod_maps import Calibration
+
+    channel = load_channel("M1-140")
+    plan = MissionPlan("2032-04-01T00:00:00", 3 * 1800.0, 1800.0, 19.0)
+    settings = PairMapSettings(
+        master_seed=MASTER_SEED,
+        seed=map_domain.NOISE_REFERENCE_SEED,
+        nside=8,
+        plan=plan,
+        a2_k_cmb=0.0,
+        notch_width_divisor=100.0,
+        notch_margin_s=300.0,
+        max_condition_number=100.0,
+        noise_scale=0.0,
+        baseline_length_s=60.0,
+    )
+    simulator = PairSimulator(channel, plan, 8, noise_model="keshner")
+    sky_map = np.zeros((3, hp.nside2npix(8)))
+    calibration = Calibration(8, (sky_map,), map_domain.NOISE_REFERENCE_SEED, every_chunks=2)
+    equations = accumulate(
+        simulator, settings, sky_map, template_terms=False, calibration=calibration
+    )
+    per_chunk = plan.samples_per_chunk * simulator.n_detectors
+    assert equations.hits.sum() == 3 * per_chunk
+    assert calibration.equations.hits.sum() == 2 * per_chunk  # chunks 0 and 2
+    assert calibration.equations.n_tods == 3  # the reference, noise filtered and not
+    assert np.abs(calibration.equations.rhs[1:]).max() > 0  # the noise reached them
+    with pytest.raises(ValueError, match="every_chunks = 0"):
+        Calibration(8, (), 0, every_chunks=0)

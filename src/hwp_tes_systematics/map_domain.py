@@ -13,7 +13,9 @@ removal, notch, baselines and binning as the full path (:func:`tod_maps.accumula
 * the filter's action on a reference CMB realization, T_ell = C_ell(bin F CMB, CMB) /
   C_ell(CMB) (TT, EE, BB), and on a reference noise realization, the shaping S_ell
   (~ sqrt(C_ell(bin F n) / C_ell(bin n)), calibrated so that shaping bin n gives the
-  pseudo-spectrum of bin F n on the observed pixels).
+  pseudo-spectrum of bin F n on the observed pixels); both from every
+  ``simulation.calibration_every_chunks``-th chunk (1 by default: a subset of the days
+  biases the low-ell shaping, benchmarks/calibration_stride_validation.py).
 
 Each seed then costs map operations only:
 
@@ -50,7 +52,13 @@ from . import seeding
 from .io import atomic_path
 from .mapmaking import PixelMoments, solve_maps, symmetric_matrices
 from .sky import cmb as sky_cmb
-from .tod_maps import TEMPLATE_TERMS, accumulate, split_solved_maps, templates_from_terms
+from .tod_maps import (
+    TEMPLATE_TERMS,
+    Calibration,
+    accumulate,
+    split_solved_maps,
+    templates_from_terms,
+)
 
 log = logging.getLogger(__name__)
 
@@ -173,32 +181,42 @@ def fixed_pass(
     transfer_alm: np.ndarray,
     carries_systematics: bool,
     lmax: int,
+    calibration_every_chunks: int = 1,
 ) -> FixedMaps:
     """The seed-independent TOD pass of one channel (see the module docstring): no CMB, no
-    noise; ``transfer_alm`` (beam-smoothed) is scanned alone to measure T_ell."""
+    noise; ``transfer_alm`` (beam-smoothed) is scanned alone to measure T_ell, and the
+    noise reference realization gives S_ell, both on every ``calibration_every_chunks``-th
+    chunk (:class:`tod_maps.Calibration`)."""
     transfer_input = hp.alm2map(transfer_alm, settings.nside, lmax=lmax, pixwin=False)
     moments = PixelMoments(settings.nside, simulator.n_detectors) if carries_systematics else None
     noiseless = dataclasses.replace(settings, noise_scale=0.0)
+    calibration = Calibration(
+        settings.nside, (transfer_input,), NOISE_REFERENCE_SEED, calibration_every_chunks
+    )
     equations = accumulate(
         simulator,
         noiseless,
         foreground_iqu_k,
-        references_iqu_k=(foreground_iqu_k, transfer_input),
+        references_iqu_k=(foreground_iqu_k,),
         template_terms=carries_systematics,
         moments=moments,
-        noise_reference_seed=NOISE_REFERENCE_SEED,
+        calibration=calibration,
     )
     maps, condition, good = solve_maps(equations, settings.max_condition_number)
     solved = split_solved_maps(
         maps, simulator.n_detectors, settings.a2_k_cmb, template_terms=carries_systematics
     )
-    foreground_reference, transfer_output, noise_filtered, noise_unfiltered = solved["references"]
+    (foreground_reference,) = solved["references"]
+    calibration_maps, _, calibrated = solve_maps(
+        calibration.equations, settings.max_condition_number
+    )
+    transfer_output, noise_filtered, noise_unfiltered = calibration_maps
     return FixedMaps(
         nosys=solved["nosys"],
         template_terms=solved["template_terms"],
         foreground_reference=foreground_reference,
-        transfer=measure_transfer(transfer_output, transfer_input, good, lmax),
-        noise_shaping=measure_noise_shaping(noise_filtered, noise_unfiltered, good, lmax),
+        transfer=measure_transfer(transfer_output, transfer_input, calibrated, lmax),
+        noise_shaping=measure_noise_shaping(noise_filtered, noise_unfiltered, calibrated, lmax),
         matrix=equations.matrix,
         moments=moments.values if carries_systematics else np.zeros(0),
         hits=equations.hits,

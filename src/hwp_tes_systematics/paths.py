@@ -51,6 +51,7 @@ NOTCH_SPECTRA = f"{RESULTS}/maps/notch_effect_{{channel}}.csv"
 FIG7_LIKELIHOODS = f"{RESULTS}/figures/fig7_likelihoods.png"
 FIG8_REQUIREMENT = f"{RESULTS}/figures/fig8_requirement.png"
 FIG_A2_SCALING = f"{RESULTS}/figures/requirement_vs_a2_scale.png"
+FIG_RESIDUAL_SPECTRA = f"{RESULTS}/figures/residual_spectra_bb.png"
 
 
 def log(rule: str, wildcards: str = "") -> str:

@@ -80,6 +80,29 @@ class PairMapSettings:
         )
 
 
+@dataclass
+class Calibration:
+    """TODs that measure what the filter does (the map-domain fixed pass), binned into their
+    own normal equations on every ``every_chunks``-th chunk only (chunk index divisible by
+    it): each map of ``references_iqu_k`` scanned alone, then the detector noise of
+    realization ``noise_seed`` (scale 1) after the filter and before it. The filter's
+    transfer and noise shaping are ratios of the same realization, so a subset of the
+    days measures them as well as all of them, at a fraction of the cost."""
+
+    nside: int
+    references_iqu_k: tuple
+    noise_seed: int
+    every_chunks: int = 1
+
+    def __post_init__(self):
+        if self.every_chunks < 1:
+            raise ValueError(f"calibration every_chunks = {self.every_chunks}: expected >= 1")
+        self.equations = NormalEquations(self.nside, len(self.references_iqu_k) + 2)
+
+    def includes(self, chunk: int) -> bool:
+        return chunk % self.every_chunks == 0
+
+
 def chunk_tods(
     simulator: PairSimulator,
     settings: PairMapSettings,
@@ -165,7 +188,7 @@ def accumulate(
     clock: StageClock | None = None,
     template_terms: bool = True,
     moments: PixelMoments | None = None,
-    noise_reference_seed: int | None = None,
+    calibration: Calibration | None = None,
     demodulated: DemodulatedEquations | None = None,
 ) -> NormalEquations:
     """Normal equations of the filtered TOD (F = notch after HWP-harmonic removal).
@@ -181,26 +204,27 @@ def accumulate(
     ``template_terms`` False skips the three terms (a channel without systematics);
     ``moments``, if given, accumulates the per-detector moments of the HWPSS
     (:class:`mapmaking.PixelMoments`) from the same pointing;
-    ``noise_reference_seed``, if given, adds two last TODs: the detector noise of that
-    realization (scale 1) after the filter and before it (the filter's action on noise).
+    ``calibration``, if given, receives its TODs (:class:`Calibration`) on its chunks.
     ``demodulated``, if given, also receives every filtered TOD through HWP demodulation
     and a low-pass (:mod:`demodulation`; baselines, if any, removed from its intensity
     stream only: the low-pass already removes offsets from Q and U): the same TODs, with
     another map-maker.
     """
     clock = clock or StageClock()
-    if demodulated is not None and noise_reference_seed is not None:
-        raise ValueError("accumulate: demodulated maps of the noise reference are not supported")
+    if demodulated is not None and calibration is not None:
+        raise ValueError("accumulate: demodulated maps of calibration TODs are not supported")
     n_det = simulator.n_detectors
     linear = g1_per_k is None
     n_terms = len(TEMPLATE_TERMS) if linear and template_terms else 0
-    n_noise = 0 if noise_reference_seed is None else 1
-    n_tods = 1 + n_terms * n_det + len(references_iqu_k) + 2 * n_noise
-    equations = NormalEquations(settings.nside, n_tods)
+    n_binned = 1 + n_terms + len(references_iqu_k)  # rows of the stack binned in ``equations``
+    equations = NormalEquations(settings.nside, 1 + n_terms * n_det + len(references_iqu_k))
     weights = detector_weights(simulator)
-    n_unfiltered = 1 + n_terms + len(references_iqu_k) + n_noise
     peak_rss_mb = 0.0
     for chunk, pointing, inner, signal, hwpss in chunk_tods(simulator, settings, sky_iqu_k, clock):
+        calibrating = calibration is not None and calibration.includes(chunk)
+        scanned = list(references_iqu_k)
+        if calibrating:
+            scanned += list(calibration.references_iqu_k)
         if moments is not None:
             with clock("HWPSS moments"):
                 moments.add(
@@ -213,7 +237,8 @@ def accumulate(
                 )
         # all TODs of the chunk in one array, for one batched 2f removal + notch
         with clock("nonlinearity terms"):
-            unfiltered = np.empty((n_unfiltered, *signal.shape))
+            n_rows = 1 + n_terms + len(scanned) + int(calibrating)
+            unfiltered = np.empty((n_rows, *signal.shape))
             tod = unfiltered[0]
             np.multiply(hwpss, settings.a2_k_cmb, out=tod)
             tod += signal
@@ -225,13 +250,12 @@ def accumulate(
                 tod += np.asarray(g1_per_k)[:, None] * tod**2
             del tod, signal, hwpss
         with clock("reference scans"):
-            first_reference = 1 + n_terms
-            for index, reference_iqu_k in enumerate(references_iqu_k, start=first_reference):
+            for index, reference_iqu_k in enumerate(scanned, start=1 + n_terms):
                 simulator.scan_sky(pointing, reference_iqu_k, out=unfiltered[index])
-        if n_noise:
+        if calibrating:
             with clock("noise"):
                 unfiltered[-1] = simulator.noise(
-                    pointing, settings.master_seed, noise_reference_seed, chunk
+                    pointing, settings.master_seed, calibration.noise_seed, chunk
                 )
                 unfiltered_noise = unfiltered[-1][:, inner].copy()
         with clock("2f removal + notch"):
@@ -255,27 +279,26 @@ def accumulate(
         for term in range(1, 1 + n_terms):
             tods += [filtered[term]] * n_det
             owners += list(range(n_det))
-        tods += list(filtered[1 + n_terms :])
-        owners += [None] * (len(references_iqu_k) + n_noise)
-        if n_noise:
-            tods.append(unfiltered_noise)
-            owners.append(None)
+        tods += list(filtered[1 + n_terms : n_binned])
+        owners += [None] * len(references_iqu_k)
+        binning_args = (
+            pointing.pixels[:, inner],
+            pointing.cos_2alpha[:, inner],
+            pointing.sin_2alpha[:, inner],
+            weights,
+            simulator.pol_efficiency,
+        )
         with clock("binning"):
-            equations.add(
-                pointing.pixels[:, inner],
-                pointing.cos_2alpha[:, inner],
-                pointing.sin_2alpha[:, inner],
-                weights,
-                simulator.pol_efficiency,
-                tods,
-                owners,
-            )
+            equations.add(*binning_args, tods, owners)
+            if calibrating:
+                calibration.equations.add(*binning_args, [*filtered[n_binned:], unfiltered_noise])
         if demodulated is not None:
             with clock("binning"):
+                pixels, cos_2alpha, sin_2alpha = binning_args[:3]
                 demodulated.add(
-                    pointing.pixels[:, inner],
-                    pointing.cos_2alpha[:, inner],
-                    pointing.sin_2alpha[:, inner],
+                    pixels,
+                    cos_2alpha,
+                    sin_2alpha,
                     pointing.hwp_angle_rad[inner],
                     weights,
                     simulator.pol_efficiency,

@@ -39,3 +39,28 @@ rule systematic_spectra:
         config=analysis_config(),
     script:
         "../scripts/systematic_spectra.py"
+
+
+rule residual_spectra_figure:
+    """BB of the CMB residual of each case (means over seeds), the systematic alone at
+    each sigma_g1, the noise and foreground residuals, beside the lensing and tensor BB.
+    No wildcards."""
+    input:
+        **{
+            case: expand(paths.RESIDUAL_SPECTRA, seed=SEEDS, case=case)
+            for case in CASES
+        },
+        systematic=expand(paths.SYSTEMATIC_SPECTRA, seed=SEEDS),
+    output:
+        figure=report(
+            paths.FIG_RESIDUAL_SPECTRA,
+            caption="../report/residual_spectra.rst",
+            category="3. Requirement",
+        ),
+    log:
+        paths.log("residual_spectra_figure"),
+    params:
+        config=config_sections("requirement"),
+        cases=CASES,
+    script:
+        "../scripts/residual_spectra_figure.py"

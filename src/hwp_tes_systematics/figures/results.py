@@ -235,3 +235,52 @@ def plot_a2_scaling(by_scale: list[dict], budget: float, path: str | os.PathLike
     axis.legend(fontsize="small")
     save_figure(figure, path)
     return path
+
+
+def plot_residual_spectra(
+    ell,
+    residual_bb_by_sigma: Mapping[float, np.ndarray],
+    systematic_bb_per_sigma2,
+    noise_bb,
+    foreground_bb,
+    lensing_bb,
+    tensor_bb_r1,
+    budget: float,
+    path: str | os.PathLike,
+) -> Path:
+    """D_ell^BB = ell (ell + 1) C_ell / 2 pi [uK^2] of the CMB residual, means over seeds.
+
+    ``residual_bb_by_sigma``: {sigma_g1 (0: no systematics): total residual C_ell};
+    ``systematic_bb_per_sigma2``: the systematic alone per unit sigma_g1^2 [K^2 K^2],
+    drawn dashed at each sigma of the residuals; ``noise_bb``, ``foreground_bb``: the
+    no-systematics residual's parts; ``lensing_bb``, ``tensor_bb_r1``: the PTEP spectra,
+    the tensor one at r = ``budget`` (the systematic budget) and r = 1e-3.
+    """
+    path = Path(path)
+    ell = np.asarray(ell, dtype=float)
+    shown = ell >= 2
+    to_dl = ell * (ell + 1) / (2 * np.pi) * 1e12  # K^2 -> uK^2
+
+    def draw(axis, values, *args, **kwargs):
+        axis.loglog(ell[shown], (to_dl * np.asarray(values, dtype=float))[shown], *args, **kwargs)
+
+    figure, axis = subplots(figsize=(7.5, 5.0))
+    draw(axis, lensing_bb, color="0.3", lw=2, label="lensing BB")
+    for r, style in ((1e-3, "-."), (budget, ":")):
+        draw(
+            axis, r * np.asarray(tensor_bb_r1), color="0.3", ls=style, label=f"tensor BB, r = {r:g}"
+        )
+    draw(axis, noise_bb, color="tab:gray", lw=1, alpha=0.7, label="noise residual (no sys.)")
+    draw(axis, foreground_bb, color="tab:olive", lw=1, alpha=0.7, label="foreground residual")
+    colors = iter(("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown"))
+    for sigma, residual in sorted(residual_bb_by_sigma.items()):
+        color = "k" if sigma == 0 else next(colors)
+        draw(axis, residual, color=color, lw=1.2, label=f"residual, {sigma_label(sigma)}")
+        if sigma > 0:
+            draw(axis, sigma**2 * np.asarray(systematic_bb_per_sigma2), color=color, ls="--", lw=1)
+    axis.set_xlabel("multipole ell")
+    axis.set_ylabel("D_ell^BB [uK^2]")
+    axis.set_title("BB of the CMB residual after the HILC (dashed: the systematic alone)")
+    axis.legend(fontsize=7, ncol=2)
+    save_figure(figure, path)
+    return path

@@ -45,7 +45,13 @@ def run_fixed_pass(
         len(settings.plan.chunks()),
     )
     fixed = map_domain.fixed_pass(
-        simulator, settings, foreground, transfer_alm, carries_systematics, lmax
+        simulator,
+        settings,
+        foreground,
+        transfer_alm,
+        carries_systematics,
+        lmax,
+        config["simulation"]["calibration_every_chunks"],
     )
     attributes = maps_attributes(settings, simulator, fixed.good.mean())
     attributes["foreground_source"] = sky.read_sky_header(foreground_fits).get(

@@ -20,6 +20,7 @@ import pandas as pd
 
 from ..ilc_residuals import SeedMaps, residual_spectra_table
 from ..io import write_csv
+from ..systematics import NOSYS, sigma_of_case
 
 log = logging.getLogger(__name__)
 
@@ -65,3 +66,33 @@ def noise_model(nosys_spectra_csvs: list[str]) -> pd.DataFrame:
 def run_noise_model(nosys_spectra_csvs: list[str], out_csv: str) -> None:
     write_csv(noise_model(nosys_spectra_csvs), out_csv)
     log.info("wrote %s from %d seeds", out_csv, len(nosys_spectra_csvs))
+
+
+def run_figure(config: dict, spectra_csvs: dict, systematic_csvs: list[str], out_png: str) -> None:
+    """The residual BB spectra figure: means over seeds of each case's residual
+    (``spectra_csvs``: {case: [csv per seed]}) and of the systematic alone per unit
+    sigma_g1^2 (``systematic_csvs``), beside the lensing and tensor BB."""
+    from .. import sky
+    from ..figures.results import plot_residual_spectra
+
+    grid = config["requirement"]["sigma_g1_per_k"]
+    means = {
+        case: pd.concat([pd.read_csv(path) for path in paths]).groupby("ell").mean()
+        for case, paths in spectra_csvs.items()
+    }
+    nosys = means[NOSYS]
+    ell = nosys.index.to_numpy()
+    systematic = pd.concat([pd.read_csv(path) for path in systematic_csvs]).groupby("ell").mean()
+    lmax = int(ell.max())
+    plot_residual_spectra(
+        ell,
+        {sigma_of_case(case, grid): table["bb_residual_k2"] for case, table in means.items()},
+        systematic["bb_unit_k4"],
+        nosys["bb_noise_residual_k2"],
+        nosys["bb_foreground_residual_k2"],
+        sky.lensing_bb(lmax),
+        sky.tensor_bb_r1(lmax),
+        config["requirement"]["delta_r_budget"],
+        out_png,
+    )
+    log.info("wrote %s (%d seeds)", out_png, len(systematic_csvs))
