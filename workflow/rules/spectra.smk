@@ -57,6 +57,7 @@ rule residual_spectra_figure:
             caption="../report/residual_spectra.rst",
             category="3. Requirement",
         ),
+        table=paths.RESIDUAL_SPECTRA_MEANS,
     log:
         paths.log("residual_spectra_figure"),
     params:

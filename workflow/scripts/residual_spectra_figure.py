@@ -9,4 +9,5 @@ residual_spectra.run_figure(
     {case: list(snakemake.input[case]) for case in snakemake.params.cases},
     list(snakemake.input.systematic),
     snakemake.output.figure,
+    snakemake.output.table,
 )

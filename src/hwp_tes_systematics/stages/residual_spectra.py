@@ -18,6 +18,8 @@ import h5py
 import numpy as np
 import pandas as pd
 
+from .. import sky
+from ..figures.results import plot_residual_spectra
 from ..ilc_residuals import SeedMaps, residual_spectra_table
 from ..io import write_csv
 from ..systematics import NOSYS, sigma_of_case
@@ -68,13 +70,12 @@ def run_noise_model(nosys_spectra_csvs: list[str], out_csv: str) -> None:
     log.info("wrote %s from %d seeds", out_csv, len(nosys_spectra_csvs))
 
 
-def run_figure(config: dict, spectra_csvs: dict, systematic_csvs: list[str], out_png: str) -> None:
-    """The residual BB spectra figure: means over seeds of each case's residual
-    (``spectra_csvs``: {case: [csv per seed]}) and of the systematic alone per unit
+def run_figure(
+    config: dict, spectra_csvs: dict, systematic_csvs: list[str], out_png: str, out_csv: str
+) -> None:
+    """The residual BB spectra figure and its table: means over seeds of each case's
+    residual (``spectra_csvs``: {case: [csv per seed]}) and of the systematic alone per unit
     sigma_g1^2 (``systematic_csvs``), beside the lensing and tensor BB."""
-    from .. import sky
-    from ..figures.results import plot_residual_spectra
-
     grid = config["requirement"]["sigma_g1_per_k"]
     means = {
         case: pd.concat([pd.read_csv(path) for path in paths]).groupby("ell").mean()
@@ -83,16 +84,24 @@ def run_figure(config: dict, spectra_csvs: dict, systematic_csvs: list[str], out
     nosys = means[NOSYS]
     ell = nosys.index.to_numpy()
     systematic = pd.concat([pd.read_csv(path) for path in systematic_csvs]).groupby("ell").mean()
+    table = pd.DataFrame({"ell": ell})
+    for case, case_means in means.items():
+        table[f"bb_residual_{case}_k2"] = case_means["bb_residual_k2"].to_numpy()
+    table["bb_noise_residual_nosys_k2"] = nosys["bb_noise_residual_k2"].to_numpy()
+    table["bb_foreground_residual_nosys_k2"] = nosys["bb_foreground_residual_k2"].to_numpy()
+    table["bb_systematic_per_sigma2_k4"] = systematic["bb_unit_k4"].to_numpy()
+    table["n_seeds"] = len(systematic_csvs)
+    write_csv(table, out_csv)
     lmax = int(ell.max())
     plot_residual_spectra(
         ell,
-        {sigma_of_case(case, grid): table["bb_residual_k2"] for case, table in means.items()},
-        systematic["bb_unit_k4"],
-        nosys["bb_noise_residual_k2"],
-        nosys["bb_foreground_residual_k2"],
+        {sigma_of_case(case, grid): table[f"bb_residual_{case}_k2"] for case in means},
+        table["bb_systematic_per_sigma2_k4"],
+        table["bb_noise_residual_nosys_k2"],
+        table["bb_foreground_residual_nosys_k2"],
         sky.lensing_bb(lmax),
         sky.tensor_bb_r1(lmax),
         config["requirement"]["delta_r_budget"],
         out_png,
     )
-    log.info("wrote %s (%d seeds)", out_png, len(systematic_csvs))
+    log.info("wrote %s and %s (%d seeds)", out_png, out_csv, len(systematic_csvs))
