@@ -169,6 +169,36 @@ def test_plot_requirement_says_when_invalid(tmp_path):
         None,
         tmp_path / "fig8.png",
         invalid_reason="the points do not follow sigma^2: exponent 0.50",
+        crossing=rq.budget_crossing(SIGMAS, mean),
         systematic_only=(SIGMAS, K_PAPER * SIGMAS**2, 0.1 * K_PAPER * SIGMAS**2, K_PAPER, 2e-3),
     )
     assert path.stat().st_size > 1000
+
+
+def test_budget_crossing_interpolates_a_power_law_exactly():
+    # delta r = 3e-5 sigma (linear, the one-year regime): reaches 6.5e-6 at sigma = 0.2167
+    sigmas = np.array([1e-3, 1e-2, 1e-1, 1.0])
+    linear = 3e-5 * sigmas
+    assert rq.budget_crossing(sigmas, linear) == pytest.approx(rq.DELTA_R_BUDGET / 3e-5)
+    # a curve bending between grid points: interpolated as a power law between them
+    bent = np.array([1e-9, 1e-8, 1e-6, 1e-4])
+    expected = 1e-1 * (rq.DELTA_R_BUDGET / 1e-6) ** (1 / 2)  # slope 2 from (0.1, 1e-6)
+    assert rq.budget_crossing(sigmas, bent) == pytest.approx(expected)
+    # never bracketed: NaN (below the budget everywhere, or above it from the start)
+    assert np.isnan(rq.budget_crossing(sigmas, 1e-9 * sigmas))
+    assert np.isnan(rq.budget_crossing(sigmas, 1.0 + sigmas))
+
+
+def test_budget_crossing_over_seeds():
+    sigmas = [1e-2, 1e-1, 1.0]
+    rows = [
+        {"seed": seed, "sigma_g1": s, "delta_r": scale * 1e-5 * s}
+        for seed, scale in enumerate([1.0, 2.0, 4.0])
+        for s in sigmas
+    ]
+    crossing = rq.budget_crossing_over_seeds(pd.DataFrame(rows))
+    per_seed = rq.DELTA_R_BUDGET / (1e-5 * np.array([1.0, 2.0, 4.0]))
+    assert crossing["per_seed_per_k"] == pytest.approx(per_seed)
+    assert crossing["std_over_seeds_per_k"] == pytest.approx(np.std(per_seed, ddof=1))
+    assert crossing["sigma_g1_per_k"] == pytest.approx(rq.DELTA_R_BUDGET / (1e-5 * 7 / 3))
+    assert crossing["n_seeds_crossing"] == 3

@@ -94,6 +94,7 @@ def plot_requirement(
     invalid_reason: str | None = None,
     systematic_only: tuple | None = None,
     quadratic_threshold: float | None = None,
+    crossing: float | None = None,
 ) -> Path:
     """Mean delta r over seeds versus sigma_g1 [1/K] (log-log), cf. Fig. 8 of the study.
 
@@ -107,7 +108,9 @@ def plot_requirement(
     reason is written on the figure. ``systematic_only``: (sigma, mean, std, k,
     requirement) of the systematic-only estimator, drawn in a second colour.
     ``quadratic_threshold``: the delta r below which the paper's estimator is quadratic
-    (0.1 sigma_r), a dotted grey line.
+    (0.1 sigma_r), a dotted grey line. ``crossing``: the sigma at which the points reach
+    the budget (:func:`requirement.budget_crossing`), marked instead of the quadratic
+    requirement when ``invalid_reason`` is given (and finite).
     Writes the PNG atomically; returns its path.
     """
     path = Path(path)
@@ -134,7 +137,8 @@ def plot_requirement(
         capsize=3,
         label=f"mean delta r over seeds (+- std); power-law exponent {exponent_text}",
     )
-    span = [requirement, *sigma]
+    show_crossing = invalid_reason is not None and crossing is not None and np.isfinite(crossing)
+    span = [crossing if show_crossing else requirement, *sigma]
     if systematic_only is not None:
         span += [systematic_only[4], *systematic_only[0]]
     x = np.logspace(np.log10(np.min(span)) - 0.3, np.log10(np.max(span)) + 0.3, 200)
@@ -157,7 +161,18 @@ def plot_requirement(
         axis.plot(x, sys_k * x**2, "-", color="C2", alpha=0.6, label=f"k = {sys_k:.3g} K^2")
         mark_requirement(axis, sys_requirement, budget, "C2", "bottom")
     axis.axhline(budget, color="k", linestyle="-", label=f"budget delta r = {budget:.2g}")
-    mark_requirement(axis, requirement, budget, "C3", "top")
+    if show_crossing:
+        axis.axvline(crossing, color="C0", linestyle=":", linewidth=1.5)
+        axis.text(
+            crossing,
+            budget,
+            f"  sigma_g1 < {crossing:.2g} K^-1\n  (budget crossing)",
+            color="C0",
+            va="top",
+            ha="left",
+        )
+    else:
+        mark_requirement(axis, requirement, budget, "C3", "top")
     axis.set_xscale("log")
     axis.set_yscale("log")
     axis.set_xlim(x[0], x[-1])
@@ -182,7 +197,11 @@ def plot_requirement(
             0.03,
             "paper's estimator: sigma^2 does NOT describe the points,\n"
             + textwrap.fill(invalid_reason, 60)
-            + "\nits requirement (red) is not valid",
+            + (
+                "\nmarked instead: where the points cross the budget (no model)"
+                if show_crossing
+                else "\nits requirement (red) is not valid"
+            ),
             transform=axis.transAxes,
             ha="right",
             va="bottom",
