@@ -7,6 +7,8 @@ which map-maker).
         --nsides 64 512 --rate 19 --json docs/one_year/template_vs_duration.json \
         --figure docs/one_year/template_vs_duration.png
     python benchmarks/template_vs_duration.py --days 1 --hwp-rate-factors 1 1.00064
+    python benchmarks/template_vs_duration.py --days 0 --merge a.json b.json --json all.json \
+        --figure all.png       # only merge runs made in parallel and draw them
 
 ``--hwp-rate-factors`` scales the HWP rotation rate (and the notch with it): at the
 nominal 39 rpm (MFT) the HWP turns exactly 780 times per 20-minute spin period (61 rpm,
@@ -153,11 +155,24 @@ def main() -> None:
     parser.add_argument("--rate", type=float, default=None, help="sampling rate [Hz] (IMO's)")
     parser.add_argument("--json", type=Path, help="write the rows here (appends to a file)")
     parser.add_argument("--figure", type=Path, help="draw the rows of --json here")
+    parser.add_argument(
+        "--merge",
+        type=Path,
+        nargs="+",
+        default=[],
+        help="JSON files of earlier runs (e.g. one per channel, run in parallel) to add to the "
+        "rows; with --days 0 nothing new is simulated and only --json / --figure are written",
+    )
     arguments = parser.parse_args()
     config = load_config(default_config_path())
     rows = (
         json.loads(arguments.json.read_text()) if arguments.json and arguments.json.exists() else []
     )
+    for path in arguments.merge:
+        rows += json.loads(path.read_text())
+    if arguments.json and arguments.merge:
+        with atomic_path(arguments.json) as temporary:
+            Path(temporary).write_text(json.dumps(rows, indent=1))
     print(
         "| channel | days | nside | HWP rate x | baselines | map-maker | term | Q/U rms per unit "
         "g1 [K K] | BB ell 2-12 | ell 13-40 | ell 41-128 [K^2 K^2] | observed | detector "
@@ -171,6 +186,7 @@ def main() -> None:
         for nside in arguments.nsides
         for factor in arguments.hwp_rate_factors
         for baselines in (60.0, None)
+        if days > 0
     ]
     for channel, days, nside, factor, baselines in points:
         started = time.perf_counter()

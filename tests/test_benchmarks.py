@@ -41,7 +41,7 @@ Finished jobid: 5 (Rule: component_separation)
 def benchmarks(repo, monkeypatch):
     monkeypatch.syspath_prepend(str(repo / "benchmarks"))
     yield
-    for name in ("timeline", "naive_vs_workflow", "common"):
+    for name in ("timeline", "naive_vs_workflow", "common", "template_vs_duration"):
         sys.modules.pop(name, None)
 
 
@@ -65,6 +65,35 @@ def test_timeline_reads_jobs_and_core_use(benchmarks, tmp_path):
     log.write_text("no jobs here\n")
     with pytest.raises(ValueError, match="no finished jobs"):
         timeline.parse_jobs(log)
+
+
+def test_template_vs_duration_merges_parallel_runs(benchmarks, tmp_path, monkeypatch):
+    """--days 0 --merge: rows of runs made in parallel joined into one JSON and one figure."""
+    import json
+
+    import template_vs_duration
+
+    def rows(channel):
+        return [
+            {"channel": channel, "days": days, "nside": 64, "hwp_rate_factor": 1.0,
+             "baselines": baselines, "map_maker": map_maker, "term": "total",
+             "bb": [1e-12 / days, 1e-12 / days, 1e-12 / days]}
+            for days in (1.0, 7.0)
+            for baselines in ("60.0", "none")
+            for map_maker in ("binned", "demodulated")
+        ]  # fmt: skip
+
+    parts = []
+    for channel in ("M1-140", "H3-402"):
+        parts.append(tmp_path / f"{channel}.json")
+        parts[-1].write_text(json.dumps(rows(channel)))
+    merged, figure = tmp_path / "all.json", tmp_path / "all.png"
+    argv = ["template_vs_duration.py", "--days", "0", "--merge", *map(str, parts)]
+    argv += ["--json", str(merged), "--figure", str(figure)]
+    monkeypatch.setattr(sys, "argv", argv)
+    template_vs_duration.main()
+    assert json.loads(merged.read_text()) == rows("M1-140") + rows("H3-402")
+    assert figure.stat().st_size > 10_000
 
 
 @pytest.mark.slow
