@@ -113,7 +113,8 @@ def one_point(config, channel_name, days, nside, baseline_length_s, hwp_rate_fac
 
 def plot_total_bb(rows: list[dict], path: Path) -> None:
     """Total template BB (ell 2-12 solid, 41-128 dashed) against the duration, one panel
-    per (channel, nside), a colour per (map-maker, baselines)."""
+    per (channel, nside), a colour per (map-maker, baselines); the demodulated map with
+    baselines is drawn in open markers, as it lies on the one without."""
     from hwp_tes_systematics.figures import save_figure, subplots
 
     totals = [row for row in rows if row["term"] == "total" and row["hwp_rate_factor"] == 1.0]
@@ -137,8 +138,11 @@ def plot_total_bb(rows: list[dict], path: Path) -> None:
                 continue
             days = [day for day, _ in points]
             label = f"{map_maker}, baselines {baselines}"
-            axis.loglog(days, [bb[0] for _, bb in points], "o-", color=color, label=label)
-            axis.loglog(days, [bb[2] for _, bb in points], "s--", color=color, alpha=0.6)
+            open_markers = {"markerfacecolor": "none", "markersize": 9} if color == "C2" else {}
+            ell_low = [bb[0] for _, bb in points]
+            ell_high = [bb[2] for _, bb in points]
+            axis.loglog(days, ell_low, "o-", color=color, label=label, **open_markers)
+            axis.loglog(days, ell_high, "s--", color=color, alpha=0.6, **open_markers)
         axis.set_title(f"{channel}, nside {nside}")
         axis.set_xlabel("observing time [days]")
     axes[0][0].set_ylabel("template BB per unit g1$^2$ [K$^2$ K$^2$]\n(o: ell 2-12, s: 41-128)")
