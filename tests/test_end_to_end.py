@@ -39,6 +39,7 @@ def test_whole_workflow_on_tiny_config(tiny_local_run):
     assert np.isfinite(requirement["systematic_only"]["requirement_sigma_g1_per_k"])
     crossing = requirement["budget_crossing"]  # NaN when the grid does not bracket the budget
     assert len(crossing["per_seed_per_k"]) == 2 and crossing["n_seeds_crossing"] <= 2
+    assert np.isfinite(crossing["sigma_g1_per_k"]) == (crossing["outside_grid"] is None)
     assert (workdir / "results/figures/requirement_vs_a2_scale.png").is_file()
     assert (workdir / "results/figures/residual_spectra_bb.png").stat().st_size > 10_000
 

@@ -187,6 +187,11 @@ def test_budget_crossing_interpolates_a_power_law_exactly():
     # never bracketed: NaN (below the budget everywhere, or above it from the start)
     assert np.isnan(rq.budget_crossing(sigmas, 1e-9 * sigmas))
     assert np.isnan(rq.budget_crossing(sigmas, 1.0 + sigmas))
+    # ... and the side of the grid it lies on is said in words
+    assert rq.crossing_outside_grid(sigmas, bent) is None
+    assert rq.crossing_outside_grid(sigmas, 1e-9 * sigmas).startswith("above the grid")
+    below = rq.crossing_outside_grid(sigmas, 1.0 + sigmas)
+    assert below.startswith("below the grid") and f"{sigmas.min():.3g}" in below
 
 
 def test_budget_crossing_over_seeds():

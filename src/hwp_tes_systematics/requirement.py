@@ -221,11 +221,38 @@ def budget_crossing(sigma, mean_delta_r, budget: float = DELTA_R_BUDGET) -> floa
     return float("nan")
 
 
+def crossing_outside_grid(sigma, mean_delta_r, budget: float = DELTA_R_BUDGET) -> str | None:
+    """Where the budget lies when :func:`budget_crossing` is NaN, in words; None otherwise.
+
+    "below": the lowest sigma_g1 of the grid already reaches the budget, so the crossing
+    (the requirement) is below it; "above": every point is under the budget.
+    """
+    if np.isfinite(budget_crossing(sigma, mean_delta_r, budget)):
+        return None
+    sigma = np.asarray(sigma, dtype=float)
+    mean_delta_r = np.asarray(mean_delta_r, dtype=float)
+    keep = (sigma > 0) & np.isfinite(mean_delta_r) & (mean_delta_r > 0)
+    if not keep.any():
+        return "no positive mean delta r on the grid"
+    lowest, highest = np.argmin(np.where(keep, sigma, np.inf)), np.argmax(np.where(keep, sigma, -1))
+    if mean_delta_r[lowest] >= budget:
+        return (
+            f"below the grid: mean delta r is {mean_delta_r[lowest]:.3g} >= {budget:.3g} already "
+            f"at the lowest sigma_g1, {sigma[lowest]:.3g} 1/K"
+        )
+    return (
+        f"above the grid: mean delta r is {mean_delta_r[highest]:.3g} < {budget:.3g} at the "
+        f"highest sigma_g1, {sigma[highest]:.3g} 1/K"
+    )
+
+
 def budget_crossing_over_seeds(table, budget: float = DELTA_R_BUDGET) -> dict:
     """:func:`budget_crossing` of the mean over seeds, and of each seed's own curve.
 
     ``table``: the delta r table (columns seed, sigma_g1, delta_r). Returns
-    {"sigma_g1_per_k", "per_seed_per_k", "std_over_seeds_per_k", "n_seeds_crossing"}.
+    {"sigma_g1_per_k", "outside_grid", "per_seed_per_k", "std_over_seeds_per_k",
+    "n_seeds_crossing"}; ``outside_grid`` (:func:`crossing_outside_grid`) says on which
+    side of the grid the mean's crossing lies when it is NaN.
     """
     summary = summarise(table)
     mean_crossing = budget_crossing(summary["sigma_g1"], summary["mean_delta_r"], budget)
@@ -238,6 +265,7 @@ def budget_crossing_over_seeds(table, budget: float = DELTA_R_BUDGET) -> dict:
         "definition": "sigma_g1 where mean delta r reaches the budget, interpolated in "
         "log-log between the bracketing grid points (no model assumed)",
         "sigma_g1_per_k": mean_crossing,
+        "outside_grid": crossing_outside_grid(summary["sigma_g1"], summary["mean_delta_r"], budget),
         "per_seed_per_k": per_seed,
         "std_over_seeds_per_k": float(np.std(finite, ddof=1)) if len(finite) > 1 else float("nan"),
         "n_seeds_crossing": len(finite),
