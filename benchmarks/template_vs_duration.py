@@ -138,7 +138,8 @@ def plot_total_bb(rows: list[dict], path: Path) -> None:
                 continue
             days = [day for day, _ in points]
             label = f"{map_maker}, baselines {baselines}"
-            open_markers = {"markerfacecolor": "none", "markersize": 9} if color == "C2" else {}
+            lies_on_another = (map_maker, baselines) == ("demodulated", "60.0")
+            open_markers = {"markerfacecolor": "none", "markersize": 9} if lies_on_another else {}
             ell_low = [bb[0] for _, bb in points]
             ell_high = [bb[2] for _, bb in points]
             axis.loglog(days, ell_low, "o-", color=color, label=label, **open_markers)

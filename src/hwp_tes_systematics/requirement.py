@@ -196,6 +196,15 @@ def requirement_sigma(k: float, budget: float = DELTA_R_BUDGET) -> float:
     return float(np.sqrt(budget / k))
 
 
+def _usable_points(sigma, mean_delta_r) -> tuple[np.ndarray, np.ndarray]:
+    """The grid points with sigma > 0 and a finite, positive delta r, sorted by sigma."""
+    sigma = np.asarray(sigma, dtype=float)
+    mean_delta_r = np.asarray(mean_delta_r, dtype=float)
+    keep = (sigma > 0) & np.isfinite(mean_delta_r) & (mean_delta_r > 0)
+    order = np.argsort(sigma[keep])
+    return sigma[keep][order], mean_delta_r[keep][order]
+
+
 def budget_crossing(sigma, mean_delta_r, budget: float = DELTA_R_BUDGET) -> float:
     """The sigma_g1 [1/K] at which the measured curve first reaches the budget, model-free.
 
@@ -208,11 +217,8 @@ def budget_crossing(sigma, mean_delta_r, budget: float = DELTA_R_BUDGET) -> floa
     Points with sigma <= 0 or a non-positive or non-finite delta r are skipped. NaN when
     no pair brackets the budget (all points below it, or the first already above it).
     """
-    sigma = np.asarray(sigma, dtype=float)
-    mean_delta_r = np.asarray(mean_delta_r, dtype=float)
-    keep = (sigma > 0) & np.isfinite(mean_delta_r) & (mean_delta_r > 0)
-    order = np.argsort(sigma[keep])
-    x, y = np.log(sigma[keep][order]), np.log(mean_delta_r[keep][order])
+    sigma, mean_delta_r = _usable_points(sigma, mean_delta_r)
+    x, y = np.log(sigma), np.log(mean_delta_r)
     target = np.log(float(budget))
     for i in range(len(x) - 1):
         if y[i] < target <= y[i + 1]:
@@ -229,20 +235,17 @@ def crossing_outside_grid(sigma, mean_delta_r, budget: float = DELTA_R_BUDGET) -
     """
     if np.isfinite(budget_crossing(sigma, mean_delta_r, budget)):
         return None
-    sigma = np.asarray(sigma, dtype=float)
-    mean_delta_r = np.asarray(mean_delta_r, dtype=float)
-    keep = (sigma > 0) & np.isfinite(mean_delta_r) & (mean_delta_r > 0)
-    if not keep.any():
+    sigma, mean_delta_r = _usable_points(sigma, mean_delta_r)
+    if sigma.size == 0:
         return "no positive mean delta r on the grid"
-    lowest, highest = np.argmin(np.where(keep, sigma, np.inf)), np.argmax(np.where(keep, sigma, -1))
-    if mean_delta_r[lowest] >= budget:
+    if mean_delta_r[0] >= budget:
         return (
-            f"below the grid: mean delta r is {mean_delta_r[lowest]:.3g} >= {budget:.3g} already "
-            f"at the lowest sigma_g1, {sigma[lowest]:.3g} 1/K"
+            f"below the grid: mean delta r is {mean_delta_r[0]:.3g} >= {budget:.3g} already "
+            f"at the lowest sigma_g1, {sigma[0]:.3g} 1/K"
         )
     return (
-        f"above the grid: mean delta r is {mean_delta_r[highest]:.3g} < {budget:.3g} at the "
-        f"highest sigma_g1, {sigma[highest]:.3g} 1/K"
+        f"above the grid: mean delta r is {mean_delta_r[-1]:.3g} < {budget:.3g} at the "
+        f"highest sigma_g1, {sigma[-1]:.3g} 1/K"
     )
 
 
