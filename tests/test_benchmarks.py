@@ -41,7 +41,13 @@ Finished jobid: 5 (Rule: component_separation)
 def benchmarks(repo, monkeypatch):
     monkeypatch.syspath_prepend(str(repo / "benchmarks"))
     yield
-    for name in ("timeline", "naive_vs_workflow", "common", "template_vs_duration"):
+    for name in (
+        "timeline",
+        "naive_vs_workflow",
+        "common",
+        "template_vs_duration",
+        "map_level_cost",
+    ):
         sys.modules.pop(name, None)
 
 
@@ -117,3 +123,15 @@ def test_naive_litebird_sim_path_equals_workflow_maps(benchmarks):
         ours = maps_for_sigma(solved[0], templates["templates"], draws, sigma)
         rms = np.sqrt(np.mean(ours[:, good] ** 2))
         assert np.abs(naive[:, good] - ours[:, good]).max() < 1e-8 * rms
+
+
+def test_map_level_cost_times_every_case_of_a_seed(benchmarks, monkeypatch, capsys):
+    """The map-level benchmark runs the per-seed jobs' work on synthetic maps of all 22
+    channels and prints one row of timings and the extrapolation."""
+    import map_level_cost
+
+    monkeypatch.setattr(sys, "argv", ["map_level_cost.py", "--nside", "16", "--seeds", "100"])
+    map_level_cost.main()
+    printed = capsys.readouterr().out
+    assert "22 channels, 5 cases" in printed
+    assert "100 seeds:" in printed and "core-hours" in printed

@@ -234,3 +234,33 @@ def test_calibration_tods_only_on_their_chunks():
     assert np.abs(calibration.equations.rhs[1:]).max() > 0  # the noise reached them
     with pytest.raises(ValueError, match="every_chunks = 0"):
         Calibration(8, (), 0, every_chunks=0)
+
+
+def test_shared_binned_noise_draws_the_same_seeds(setup):
+    """One BinnedNoise per channel (the job's eigendecompositions, computed once) gives the
+    seeds bit for bit as a fresh one per seed; its draws have the pixel covariance
+    noise_scale^2 [[M, H], [H, Q]] (sample covariance over many draws, one pixel)."""
+    fixed, _, fast = setup
+    shared = map_domain.BinnedNoise(fixed, NOISE_SCALE)
+    fwhm_arcmin = load_channel("M1-140").fwhm_arcmin
+    for seed in SEEDS:
+        again = map_domain.realize_seed(
+            fixed,
+            map_domain.seed_cmb_alm(LMAX, 0.0, MASTER_SEED, seed, fwhm_arcmin),
+            LMAX,
+            A2_K_CMB,
+            NOISE_SCALE,
+            lambda k, seed=seed: seeding.rng(MASTER_SEED, "test", seed, k),
+            shared,
+        )
+        for name in ("nosys", "template_terms"):
+            assert np.array_equal(again[name], fast[seed][name]), name
+    pixel = int(np.flatnonzero(fixed.good)[0])
+    drawn = [shared.draw(lambda k, i=i: np.random.default_rng([i, k])) for i in range(4000)]
+    b = np.array([b[:, pixel] for b, _ in drawn])
+    c_0 = np.array([c[0, :, pixel] for _, c in drawn])
+    expected_b = NOISE_SCALE**2 * sum(fixed.moment(k, 0, [pixel])[0] for k in range(2))
+    expected_c = NOISE_SCALE**2 * fixed.moment(0, 2, [pixel])[0]
+    for sample, expected in ((b, expected_b), (c_0, expected_c)):
+        scale = np.sqrt(np.outer(np.diag(expected), np.diag(expected)))
+        np.testing.assert_allclose(np.cov(sample.T) / scale, expected / scale, atol=0.1)

@@ -28,7 +28,7 @@ import pandas as pd
 from . import config as cfg
 from . import hilc, spectra
 from .maps_file import read_channel_maps
-from .systematics import maps_for_sigma, unit_g1_draws
+from .systematics import unit_g1_draws
 
 N_TEMPLATE_TERMS = 3  # s^2, s h, h^2
 SPECTRA = ("tt", "ee", "bb", "te", "eb", "tb")  # hp.alm2cl order
@@ -61,7 +61,7 @@ class SeedMaps:
     bins: list[tuple[int, int]]
     fractions: dict
     unit_draws: list[np.ndarray]
-    _reference_alms: dict = field(default_factory=dict, repr=False)
+    _alms: dict = field(default_factory=dict, repr=False)  # kind -> a_lm, computed once
 
     @classmethod
     def load(cls, config: dict, seed: int, map_paths: dict[str, str]) -> SeedMaps:
@@ -108,21 +108,36 @@ class SeedMaps:
 
     def reference_alms(self, kind: str) -> np.ndarray:
         """a_lm of the "cmb_reference" or "foreground_reference" maps (computed once)."""
-        if kind not in self._reference_alms:
-            maps = [
-                np.where(data["nosys"] == hp.UNSEEN, hp.UNSEEN, data[kind])
-                for data in self.channel_maps
-            ]
-            self._reference_alms[kind] = self.alms(maps)
-        return self._reference_alms[kind]
+        return self._cached_alms(
+            kind, lambda data, draws: np.where(data["nosys"] == hp.UNSEEN, hp.UNSEEN, data[kind])
+        )
 
     def data_alms(self, sigma_g1_per_k: float) -> np.ndarray:
-        """a_lm of m_nosys + sigma sum_k z_k T_k for every channel."""
-        maps = [
-            maps_for_sigma(data["nosys"], data["templates"], draws, sigma_g1_per_k)
-            for data, draws in zip(self.channel_maps, self.unit_draws, strict=True)
-        ]
-        return self.alms(maps)
+        """a_lm of m_nosys + sigma sum_k z_k T_k for every channel, by linearity of the
+        masked, beam-matched transform: a(m_nosys) + sigma a(sum_k z_k T_k), both computed
+        once per realization (equal to transforming each case's maps, to round-off)."""
+        nosys = self._cached_alms("nosys", lambda data, draws: data["nosys"])
+        if sigma_g1_per_k == 0.0:
+            return nosys
+        return nosys + sigma_g1_per_k * self._cached_alms("contamination", _contamination)
+
+    def _cached_alms(self, kind: str, map_of) -> np.ndarray:
+        """(n_channels, 3, nalm) a_lm of ``map_of(channel maps, g1 draws)`` per channel, at
+        the common beam (computed once; a channel whose ``map_of`` is None gets zeros)."""
+        if kind not in self._alms:
+            alms = np.zeros((len(self.names), 3, hp.Alm.getsize(self.lmax)), dtype=complex)
+            for c, (data, draws) in enumerate(zip(self.channel_maps, self.unit_draws, strict=True)):
+                maps = map_of(data, draws)
+                if maps is not None:
+                    alms[c] = self.alms_of_channel(c, maps)
+            self._alms[kind] = alms
+        return self._alms[kind]
+
+    def alms_of_channel(self, c: int, maps: np.ndarray) -> np.ndarray:
+        """(3, nalm) a_lm of one (3, npix) map of channel ``c``, masked, at the common beam."""
+        return hilc.channel_alms(
+            [maps], [self.fwhms_arcmin[c]], self.mask, self.lmax, self.common_fwhm_arcmin
+        )[0]
 
     def residual(self, sigma_g1_per_k: float) -> dict[str, np.ndarray]:
         """The paper's HILC at sigma: weights recomputed on the contaminated maps.
@@ -153,13 +168,7 @@ class SeedMaps:
                 contamination = np.full_like(data["nosys"], hp.UNSEEN)
                 summed = np.tensordot(draws, data["template_terms"][j], axes=1)
                 contamination[:, seen] = coefficient * summed[:, seen]
-                terms[j, c] = hilc.channel_alms(
-                    [contamination],
-                    [self.fwhms_arcmin[c]],
-                    self.mask,
-                    self.lmax,
-                    self.common_fwhm_arcmin,
-                )[0]
+                terms[j, c] = self.alms_of_channel(c, contamination)
         return np.array([hilc.apply_ilc(t, weights, self.bins, self.lmax) for t in terms])
 
     def residual_spectra(self, sigma_g1_per_k: float) -> pd.DataFrame:
@@ -181,6 +190,16 @@ class SeedMaps:
             self.fractions,
             self.common_fwhm_arcmin,
         )
+
+
+def _contamination(data: dict, unit_draws: np.ndarray) -> np.ndarray | None:
+    """sum_k z_k T_k (3, npix) at sigma = 1 [K_CMB K], UNSEEN where the channel is
+    unobserved; None for a channel without systematics (all z_k = 0)."""
+    if not np.any(unit_draws):
+        return None
+    seen = data["nosys"][0] != hp.UNSEEN
+    summed = np.tensordot(np.asarray(unit_draws, dtype=float), data["templates"], axes=1)
+    return np.where(seen, summed, hp.UNSEEN)
 
 
 def unit_beam_spectra(alm, alm2, lmax: int, w2: float, common_fwhm_arcmin: float) -> np.ndarray:

@@ -226,34 +226,54 @@ def fixed_pass(
     )
 
 
-def draw_binned_noise(fixed: FixedMaps, noise_scale: float, rng_of_detector) -> tuple:
-    """(b, c): b (3, npix) = sum_k b_k and c (n_det, 3, npix), the binned white noise and
-    binned h n per detector, on the good pixels (zero elsewhere); ``rng_of_detector(k)``
-    gives detector k's generator. Each 6-vector (b_k, c_k) is drawn from the eigenvectors
-    of its covariance noise_scale^2 [[M_k, H_k], [H_k, Q_k]] (negative rounding
-    eigenvalues set to 0). A channel without systematics has no moments: b is drawn from
-    noise_scale^2 M with detector 0's generator, and c is empty."""
-    good = np.flatnonzero(fixed.good)
-    b = np.zeros((3, fixed.good.size))
-    if not fixed.carries_systematics:
-        b[:, good] = _gaussian(noise_scale**2 * fixed.matrices(good), rng_of_detector(0)).T
-        return b, np.zeros((0, 3, fixed.good.size))
-    n_det = fixed.moments.shape[0]
-    c = np.zeros((n_det, 3, fixed.good.size))
-    for k in range(n_det):
-        m_k, h_k, q_k = (fixed.moment(k, j, good) for j in range(3))
-        covariance = np.block([[m_k, h_k], [h_k, q_k]]) * noise_scale**2
-        draw = _gaussian(covariance, rng_of_detector(k))
-        b[:, good] += draw[:, :3].T
-        c[k][:, good] = draw[:, 3:].T
-    return b, c
+class BinnedNoise:
+    """The binned white noise of a channel's fixed pass, drawn seed after seed: (b, c) with
+    b (3, npix) = sum_k b_k and c (n_det, 3, npix) the binned h n per detector, on the good
+    pixels (zero elsewhere). Each 6-vector (b_k, c_k) is drawn from the eigenvectors of
+    its covariance noise_scale^2 [[M_k, H_k], [H_k, Q_k]] (negative rounding eigenvalues
+    set to 0): the per-pixel eigendecompositions depend on the fixed pass only, so they
+    are computed once here and every seed costs one matrix-vector product per pixel. A
+    channel without systematics has no moments: b is drawn from noise_scale^2 M with
+    detector 0's generator, and c is empty."""
+
+    def __init__(self, fixed: FixedMaps, noise_scale: float):
+        self.good = np.flatnonzero(fixed.good)
+        self.npix = fixed.good.size
+        self.carries_systematics = fixed.carries_systematics
+        if not fixed.carries_systematics:
+            self.factors = [_eigen_factor(noise_scale**2 * fixed.matrices(self.good))]
+            return
+        self.factors = []
+        for k in range(fixed.moments.shape[0]):
+            m_k, h_k, q_k = (fixed.moment(k, j, self.good) for j in range(3))
+            covariance = np.block([[m_k, h_k], [h_k, q_k]]) * noise_scale**2
+            self.factors.append(_eigen_factor(covariance))
+
+    def draw(self, rng_of_detector) -> tuple[np.ndarray, np.ndarray]:
+        """(b, c) of one seed; ``rng_of_detector(k)`` gives detector k's generator."""
+        b = np.zeros((3, self.npix))
+        if not self.carries_systematics:
+            b[:, self.good] = _gaussian(self.factors[0], rng_of_detector(0)).T
+            return b, np.zeros((0, 3, self.npix))
+        c = np.zeros((len(self.factors), 3, self.npix))
+        for k, factor in enumerate(self.factors):
+            draw = _gaussian(factor, rng_of_detector(k))
+            b[:, self.good] += draw[:, :3].T
+            c[k][:, self.good] = draw[:, 3:].T
+        return b, c
 
 
-def _gaussian(covariance: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """(n, d) draws, one per (d, d) covariance of (n, d, d), via its eigenvectors."""
+def _eigen_factor(covariance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(eigenvectors (n, d, d), sqrt of the eigenvalues clipped at 0 (n, d)) of (n, d, d)."""
     eigenvalues, eigenvectors = np.linalg.eigh(covariance)
-    z = rng.standard_normal(eigenvalues.shape)
-    return np.einsum("pij,pj->pi", eigenvectors, np.sqrt(np.clip(eigenvalues, 0, None)) * z)
+    return eigenvectors, np.sqrt(np.clip(eigenvalues, 0, None))
+
+
+def _gaussian(factor: tuple[np.ndarray, np.ndarray], rng: np.random.Generator) -> np.ndarray:
+    """(n, d) draws x = V sqrt(lambda) z, z ~ N(0, 1), with (V, sqrt(lambda)) = ``factor``."""
+    eigenvectors, root_eigenvalues = factor
+    z = rng.standard_normal(root_eigenvalues.shape)
+    return np.einsum("pij,pj->pi", eigenvectors, root_eigenvalues * z)
 
 
 def realize_seed(
@@ -263,15 +283,19 @@ def realize_seed(
     a2_k_cmb: float,
     noise_scale: float,
     rng_of_detector,
+    binned_noise: BinnedNoise | None = None,
 ) -> dict[str, np.ndarray]:
     """The maps of one seed from the fixed pass (see the module docstring): nosys,
     template_terms, templates, cmb_reference, foreground_reference (UNSEEN where the
-    fixed pass is not good), as :func:`tod_maps.split_solved_maps` names them."""
+    fixed pass is not good), as :func:`tod_maps.split_solved_maps` names them.
+    ``binned_noise``: the :class:`BinnedNoise` of (fixed, noise_scale), shared by the seeds
+    of a channel (built here if None)."""
     nside = hp.npix2nside(fixed.good.size)
     good = fixed.good
     cmb = hp.alm2map(cmb_alm, nside, lmax=lmax, pixwin=False)
     cmb_filtered = filtered_cmb_map(cmb_alm, fixed.transfer, nside, lmax)
-    b, c = draw_binned_noise(fixed, noise_scale, rng_of_detector)
+    binned_noise = binned_noise or BinnedNoise(fixed, noise_scale)
+    b, c = binned_noise.draw(rng_of_detector)
     matrix = fixed.matrices(good)
 
     def solve(vectors):  # M^-1 v on the good pixels: (3, n_good) -> (3, n_good)

@@ -1,4 +1,4 @@
-"""Rule component_separation: HILC of one (seed, case)."""
+"""Rule component_separation: HILC of one seed, every case."""
 
 from hwp_tes_systematics.io import setup_logging
 from hwp_tes_systematics.stages import component_separation
@@ -7,7 +7,7 @@ setup_logging(snakemake.log[0])
 component_separation.run(
     snakemake.params.config,
     seed=int(snakemake.wildcards.seed),
-    case=snakemake.wildcards.case,
+    cases=list(snakemake.params.cases),
     map_paths=dict(snakemake.input.items()),
-    out_h5=snakemake.output.hilc,
+    out_h5s=list(snakemake.output.hilc),
 )

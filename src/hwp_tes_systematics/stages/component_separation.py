@@ -1,8 +1,9 @@
-"""Stage: harmonic ILC over all channels for one (seed, case), and the CMB residual.
+"""Stage: harmonic ILC over all channels for one seed and each case, and the CMB residual.
 
-For case ``nosys`` or ``sigma<value>`` the residual of :class:`ilc_residuals.SeedMaps`
+For each case ``nosys`` or ``sigma<value>`` the residual of :class:`ilc_residuals.SeedMaps`
 (the paper's HILC, weights recomputed on the contaminated maps) and its foreground part
-are written as a_lm, with the weights and the mask.
+are written as a_lm, with the weights and the mask, one file per case. The maps, the
+mask and the references' a_lm are read and computed once for all cases.
 """
 
 from __future__ import annotations
@@ -20,10 +21,20 @@ from ..systematics import sigma_of_case
 log = logging.getLogger(__name__)
 
 
-def run(config: dict, seed: int, case: str, map_paths: dict[str, str], out_h5: str) -> None:
-    """HILC of (seed, case); writes the residual and foreground-residual a_lm and weights."""
-    sigma = sigma_of_case(case, config["requirement"]["sigma_g1_per_k"])
+def run(
+    config: dict, seed: int, cases: list[str], map_paths: dict[str, str], out_h5s: list[str]
+) -> None:
+    """HILC of (seed, case) for each case; writes ``out_h5s[i]`` for ``cases[i]``."""
+    if len(cases) != len(out_h5s):
+        raise ValueError(f"component_separation: {len(cases)} cases but {len(out_h5s)} outputs")
     seed_maps = SeedMaps.load(config, seed, map_paths)
+    for case, out_h5 in zip(cases, out_h5s, strict=True):
+        write_case(config, seed_maps, case, out_h5)
+
+
+def write_case(config: dict, seed_maps: SeedMaps, case: str, out_h5: str) -> None:
+    """The residual of one case (nosys or sigma<value>) of the loaded realization."""
+    sigma = sigma_of_case(case, config["requirement"]["sigma_g1_per_k"])
     result = seed_maps.residual(sigma)
     with atomic_path(out_h5) as temporary, h5py.File(temporary, "w") as out:
         for name, values in result.items():
@@ -32,7 +43,7 @@ def run(config: dict, seed: int, case: str, map_paths: dict[str, str], out_h5: s
         out.create_dataset("mask", data=seed_maps.mask)
         out.attrs.update(
             {
-                "seed": seed,
+                "seed": seed_maps.seed,
                 "case": case,
                 "sigma_g1_per_k": sigma,
                 "lmax": seed_maps.lmax,
@@ -45,7 +56,7 @@ def run(config: dict, seed: int, case: str, map_paths: dict[str, str], out_h5: s
         )
     log.info(
         "seed %d %s: HILC of %d channels on %.1f%% of the sky (common FWHM %.1f')",
-        seed,
+        seed_maps.seed,
         case,
         len(seed_maps.names),
         100 * seed_maps.fractions["fsky"],
