@@ -120,3 +120,16 @@ def test_shipped_configurations_merge_over_the_default(repo, monkeypatch, name):
     monkeypatch.chdir(repo)
     config = load_config(repo / "config/config.yaml", repo / "config" / name)
     assert config["simulation"]["duration_days"] == 365.25
+
+
+def test_no_baselines_overlay_merges_after_one_year(repo, monkeypatch):
+    """config/no_baselines.yaml, given after one_year.yaml, only switches the baselines off."""
+    monkeypatch.chdir(repo)
+    base = load_config(repo / "config/config.yaml", repo / "config/one_year.yaml")
+    overlaid = load_config(
+        repo / "config/config.yaml", repo / "config/one_year.yaml", repo / "config/no_baselines.yaml"
+    )
+    assert base["maps"]["baseline_length_s"] == 60.0
+    assert overlaid["maps"]["baseline_length_s"] is None
+    overlaid["maps"]["baseline_length_s"] = 60.0
+    assert overlaid == base
