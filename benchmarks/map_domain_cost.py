@@ -4,6 +4,7 @@ the map products per seed, measured, then extrapolated to a configuration's grid
     python benchmarks/map_domain_cost.py --nside 64 --rate 19 --seeds 20 --days 4 \
         --calibration-every 4
     python benchmarks/map_domain_cost.py --nside 512 --rate 31 --seeds 100   # paper grid
+    python benchmarks/map_domain_cost.py --seeds-only --nside 512 --filter-lmax 512
 
 For one MFT channel with systematics (M1-140: 7 filtered TODs, HWPSS moments) and one
 LFT channel without (L1-040: 4 TODs), one thread each, kernels compiled first: the fixed
@@ -27,6 +28,7 @@ import numpy as np
 
 from hwp_tes_systematics import map_domain
 from hwp_tes_systematics.instrument import load_channel
+from hwp_tes_systematics.mapmaking import MATRIX_ENTRIES
 from hwp_tes_systematics.tod import MissionPlan, PairSimulator
 from hwp_tes_systematics.tod_maps import PairMapSettings
 
@@ -64,6 +66,66 @@ def measure(name, carries_systematics, nside, rate_hz, days, calibration_every=1
     return fixed_s, time.perf_counter() - started
 
 
+def synthetic_full_sky(nside: int, carries_systematics: bool, samples_per_pixel: int = 8):
+    """A FixedMaps of a year: every pixel good, its HWPSS moments summed over
+    ``samples_per_pixel`` random HWP angles per detector (a^T a, h a^T a, h^2 a^T a with
+    a = (1, cos 4 psi, sin 4 psi), h = cos 2 chi), flat transfer and noise shaping."""
+    npix = hp.nside2npix(nside)
+    lmax = 3 * nside - 1
+    rng = np.random.default_rng(0)
+    n_det = 2 if carries_systematics else 0
+    moments = np.zeros((max(n_det, 1), npix, 3, 6))
+    for k in range(max(n_det, 1)):
+        for _ in range(samples_per_pixel):
+            chi = rng.uniform(0, 2 * np.pi, npix)
+            a = np.stack([np.ones(npix), np.cos(4 * chi), np.sin(4 * chi)])
+            h = np.cos(2 * chi)
+            for entry, (i, j) in enumerate(MATRIX_ENTRIES):
+                for weight in range(3):
+                    moments[k, :, weight, entry] += h**weight * a[i] * a[j]
+    zeros = np.zeros((3, npix))
+    return map_domain.FixedMaps(
+        nosys=zeros,
+        template_terms=np.zeros((3, n_det, 3, npix)),
+        foreground_reference=zeros,
+        transfer=np.ones((3, lmax + 1)),
+        noise_shaping=np.full((3, lmax + 1), 0.9),
+        matrix=moments[:, :, 0].sum(axis=0).T.copy(),
+        moments=moments if carries_systematics else np.zeros((0,)),
+        hits=np.full(npix, 100.0),
+        condition=np.full(npix, 2.0),
+        good=np.ones(npix, bool),
+        carries_systematics=carries_systematics,
+    )
+
+
+def seed_costs(nside: int, filter_lmax: int | None, seeds: int = 2) -> None:
+    """Prints what the ``map_domain_maps`` job of a one-year channel costs at ``nside``:
+    the shared operators (noise factors, M^-1, H_k: once per channel) and each seed (CMB
+    draw and map products, the noise shaped up to ``filter_lmax``), on a synthetic
+    full-sky fixed pass."""
+    lmax = 3 * nside - 1
+    filter_lmax = lmax if filter_lmax is None else filter_lmax
+    print(f"nside {nside}, lmax {lmax}, noise shaped to ell {filter_lmax}, full sky, one thread")
+    print("| channel kind | shared operators, once per channel [s] | one seed [s] |")
+    print("|---|---|---|")
+    for name, (carries, _) in CHANNELS.items():
+        fixed = synthetic_full_sky(nside, carries)
+        fwhm = load_channel(name).fwhm_arcmin
+        started = time.perf_counter()
+        operators = map_domain.SeedOperators(fixed, 1.0, filter_lmax)
+        factors_s = time.perf_counter() - started
+        started = time.perf_counter()
+        for seed in range(seeds):
+            cmb_alm = map_domain.seed_cmb_alm(lmax, 0.0, 1, seed, fwhm)
+            map_domain.realize_seed(
+                fixed, cmb_alm, lmax, 0.264, 1.0, np.random.default_rng, operators
+            )
+        per_seed = (time.perf_counter() - started) / seeds
+        kind = "with systematics" if carries else "without"
+        print(f"| {name} ({kind}) | {factors_s:.1f} | {per_seed:.1f} |")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--nside", type=int, default=64)
@@ -72,7 +134,21 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=20)
     parser.add_argument("--cores", type=int, default=2)
     parser.add_argument("--calibration-every", type=int, default=1, help="days")
+    parser.add_argument(
+        "--seeds-only",
+        action="store_true",
+        help="time only the seeds' map products, on a synthetic full-sky fixed pass",
+    )
+    parser.add_argument(
+        "--filter-lmax",
+        type=int,
+        default=None,
+        help="with --seeds-only: simulation.filter_lmax (default: 3 nside - 1)",
+    )
     arguments = parser.parse_args()
+    if arguments.seeds_only:
+        seed_costs(arguments.nside, arguments.filter_lmax)
+        return
     for name, (carries, _) in CHANNELS.items():  # compile the kernels of both kinds
         measure(name, carries, arguments.nside, arguments.rate, 0.05)
     total_core_s = 0.0

@@ -2,7 +2,8 @@
 sigma_g1 of the grid) and the systematic-only spectra, on synthetic maps of every channel.
 
     OMP_NUM_THREADS=1 python benchmarks/map_level_cost.py --nside 64
-    OMP_NUM_THREADS=1 python benchmarks/map_level_cost.py --nside 512 --seeds 100   # paper grid
+    OMP_NUM_THREADS=1 python benchmarks/map_level_cost.py --nside 512 --lmax 512 --seeds 100
+                                                            # paper grid (config/paper.yaml's lmax)
 
 Writes maps files of all channels of the embedded default configuration (a common
 CMB-like sky, white noise per channel, random template terms on the systematics
@@ -62,9 +63,24 @@ def main() -> None:
     parser.add_argument("--nside", type=int, default=64)
     parser.add_argument("--seeds", type=int, default=20)
     parser.add_argument("--cores", type=int, default=2)
+    parser.add_argument(
+        "--lmax", type=int, default=None, help="component_separation lmax (default: 2 nside)"
+    )
+    parser.add_argument(
+        "--channels",
+        nargs="+",
+        default="all",
+        help="a subset of the channels (an nside-512 seed of all 22 needs ~24 GB): the cost "
+        "is a sum over channels, so a subset with and without systematics gives each kind's",
+    )
     arguments = parser.parse_args()
     config = deep_merge(
-        load_config(cfg.default_config_path()), {"maps": {"nside": arguments.nside}}
+        load_config(cfg.default_config_path()),
+        {
+            "maps": {"nside": arguments.nside},
+            "component_separation": {"lmax": arguments.lmax},
+            "instrument": {"channels": arguments.channels},
+        },
     )
     cases = case_names(config["requirement"]["sigma_g1_per_k"])
     with tempfile.TemporaryDirectory() as folder:

@@ -127,7 +127,9 @@ def test_no_baselines_overlay_merges_after_one_year(repo, monkeypatch):
     monkeypatch.chdir(repo)
     base = load_config(repo / "config/config.yaml", repo / "config/one_year.yaml")
     overlaid = load_config(
-        repo / "config/config.yaml", repo / "config/one_year.yaml", repo / "config/no_baselines.yaml"
+        repo / "config/config.yaml",
+        repo / "config/one_year.yaml",
+        repo / "config/no_baselines.yaml",
     )
     assert base["maps"]["baseline_length_s"] == 60.0
     assert overlaid["maps"]["baseline_length_s"] is None

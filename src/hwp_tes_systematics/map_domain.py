@@ -135,18 +135,24 @@ def _ratio(numerator: np.ndarray, denominator: np.ndarray) -> np.ndarray:
 def shaped_noise_map(noise_iqu: np.ndarray, shaping: np.ndarray, good: np.ndarray, lmax: int):
     """The noise map (zero off ``good``) with its T, E, B a_lm up to lmax times
     ``shaping``: n + alm2map((shaping - 1) a_lm), so the power beyond lmax (white
-    pixel noise has it) is kept."""
+    pixel noise has it) is kept unshaped."""
     nside = hp.npix2nside(good.size)
     masked = np.where(good, noise_iqu, 0.0)
     alm = hp.map2alm(masked, lmax=lmax, iter=1)
-    change = np.array([hp.almxfl(alm[i], shaping[i] - 1.0) for i in range(3)])
+    change = np.array([hp.almxfl(alm[i], shaping[i, : lmax + 1] - 1.0) for i in range(3)])
     return masked + hp.alm2map(change, nside, lmax=lmax, pixwin=False)
 
 
-def filtered_cmb_map(alm: np.ndarray, transfer: np.ndarray, nside: int, lmax: int):
-    """(3, npix) map of the a_lm times T_ell per T, E, B [K_CMB]."""
-    filtered = np.array([hp.almxfl(alm[i], transfer[i]) for i in range(3)])
-    return hp.alm2map(filtered, nside, lmax=lmax, pixwin=False)
+def filtered_cmb_map(
+    cmb_iqu: np.ndarray, alm: np.ndarray, transfer: np.ndarray, lmax: int, filter_lmax: int
+):
+    """(3, npix) map of the a_lm times T_ell per T, E, B up to ``filter_lmax`` [K_CMB]:
+    cmb + alm2map((T_ell - 1) a_lm), with ``cmb_iqu`` the map of ``alm`` (band ``lmax``),
+    so above ``filter_lmax`` the CMB is kept unfiltered."""
+    nside = hp.npix2nside(cmb_iqu.shape[-1])
+    band = hp.resize_alm(alm, lmax, lmax, filter_lmax, filter_lmax)
+    change = np.array([hp.almxfl(band[i], transfer[i, : filter_lmax + 1] - 1.0) for i in range(3)])
+    return cmb_iqu + hp.alm2map(change, nside, lmax=filter_lmax, pixwin=False)
 
 
 @dataclasses.dataclass
@@ -263,6 +269,26 @@ class BinnedNoise:
         return b, c
 
 
+class SeedOperators:
+    """What every seed of a channel applies, computed once from its fixed pass: the binned
+    noise's factors (:class:`BinnedNoise`), M^-1 and the H_k of the good pixels, and the
+    last multipole ``filter_lmax`` to which the filter's action (T_ell on the CMB, S_ell on
+    the noise) is applied: the analysis reads no higher (component_separation lmax), and
+    filtering beyond it costs transforms at the map's full band for nothing it uses."""
+
+    def __init__(self, fixed: FixedMaps, noise_scale: float, filter_lmax: int):
+        good = np.flatnonzero(fixed.good)
+        self.noise = BinnedNoise(fixed, noise_scale)
+        self.inverse = np.linalg.inv(fixed.matrices(good))  # (n_good, 3, 3) M^-1 [K^2]
+        n_det = fixed.moments.shape[0] if fixed.carries_systematics else 0
+        self.h_matrices = [fixed.moment(k, 1, good) for k in range(n_det)]  # H_k [K^-2]
+        self.filter_lmax = filter_lmax
+
+    def solve(self, vectors: np.ndarray) -> np.ndarray:
+        """M^-1 v on the good pixels: (3, n_good) -> (3, n_good)."""
+        return np.einsum("pij,jp->ip", self.inverse, vectors)
+
+
 def _eigen_factor(covariance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(eigenvectors (n, d, d), sqrt of the eigenvalues clipped at 0 (n, d)) of (n, d, d)."""
     eigenvalues, eigenvectors = np.linalg.eigh(covariance)
@@ -283,39 +309,34 @@ def realize_seed(
     a2_k_cmb: float,
     noise_scale: float,
     rng_of_detector,
-    binned_noise: BinnedNoise | None = None,
+    operators: SeedOperators | None = None,
 ) -> dict[str, np.ndarray]:
     """The maps of one seed from the fixed pass (see the module docstring): nosys,
     template_terms, templates, cmb_reference, foreground_reference (UNSEEN where the
     fixed pass is not good), as :func:`tod_maps.split_solved_maps` names them.
-    ``binned_noise``: the :class:`BinnedNoise` of (fixed, noise_scale), shared by the seeds
-    of a channel (built here if None)."""
+    ``operators``: the :class:`SeedOperators` of (fixed, noise_scale), shared by the seeds
+    of a channel (built here, shaping to ``lmax``, if None)."""
     nside = hp.npix2nside(fixed.good.size)
     good = fixed.good
+    operators = operators or SeedOperators(fixed, noise_scale, lmax)
     cmb = hp.alm2map(cmb_alm, nside, lmax=lmax, pixwin=False)
-    cmb_filtered = filtered_cmb_map(cmb_alm, fixed.transfer, nside, lmax)
-    binned_noise = binned_noise or BinnedNoise(fixed, noise_scale)
-    b, c = binned_noise.draw(rng_of_detector)
-    matrix = fixed.matrices(good)
-
-    def solve(vectors):  # M^-1 v on the good pixels: (3, n_good) -> (3, n_good)
-        return np.linalg.solve(matrix, vectors.T[..., None])[..., 0].T
+    cmb_filtered = filtered_cmb_map(cmb, cmb_alm, fixed.transfer, lmax, operators.filter_lmax)
+    b, c = operators.noise.draw(rng_of_detector)
 
     def filtered_noise(vectors):  # the binned white noise, shaped by the filter's action
         white = np.zeros_like(fixed.nosys)
-        white[:, good] = solve(vectors)
-        return shaped_noise_map(white, fixed.noise_shaping, good, lmax)[:, good]
+        white[:, good] = operators.solve(vectors)
+        shaped = shaped_noise_map(white, fixed.noise_shaping, good, operators.filter_lmax)
+        return shaped[:, good]
 
     noise = np.zeros_like(fixed.nosys)
     noise[:, good] = filtered_noise(b[:, good])
     nosys = np.full_like(fixed.nosys, hp.UNSEEN)
     nosys[:, good] = fixed.nosys[:, good] + cmb_filtered[:, good] + noise[:, good]
     terms = fixed.template_terms.copy()
-    if fixed.carries_systematics:  # the s h term gets the seed's part
-        for k in range(terms.shape[1]):
-            h_k = fixed.moment(k, 1, good)
-            cmb_h = np.einsum("pij,jp->ip", h_k, cmb[:, good])
-            terms[SH_TERM, k][:, good] += solve(cmb_h) + filtered_noise(c[k][:, good])
+    for k, h_k in enumerate(operators.h_matrices):  # the s h term gets the seed's part
+        cmb_h = np.einsum("pij,jp->ip", h_k, cmb[:, good])
+        terms[SH_TERM, k][:, good] += operators.solve(cmb_h) + filtered_noise(c[k][:, good])
     templates = np.where(good, templates_from_terms(terms, a2_k_cmb), hp.UNSEEN)
     return {
         "nosys": nosys,

@@ -81,7 +81,14 @@ def run_seeds(config: dict, channel_name: str, seeds, fixed_h5: str, out_h5s) ->
     lmax = 3 * int(attributes["nside"]) - 1
     master_seed = config["master_seed"]
     detectors = list(attributes["detectors"])
-    binned_noise = map_domain.BinnedNoise(fixed, config["simulation"]["noise_scale"])
+    filter_lmax = config["simulation"]["filter_lmax"]
+    if filter_lmax is not None and filter_lmax > lmax:
+        raise ValueError(
+            f"simulation.filter_lmax = {filter_lmax} exceeds the map's band 3 nside - 1 = {lmax}"
+        )
+    operators = map_domain.SeedOperators(
+        fixed, config["simulation"]["noise_scale"], lmax if filter_lmax is None else filter_lmax
+    )
     for seed, out_h5 in zip(seeds, out_h5s, strict=True):
         cmb_alm = map_domain.seed_cmb_alm(
             lmax, config["simulation"]["cmb_r"], master_seed, seed, channel.fwhm_arcmin
@@ -97,7 +104,7 @@ def run_seeds(config: dict, channel_name: str, seeds, fixed_h5: str, out_h5s) ->
             float(attributes["a2_k_cmb"]),
             config["simulation"]["noise_scale"],
             rng_of_detector,
-            binned_noise,
+            operators,
         )
         seed_attributes = {**attributes, "seed": seed, "realization": "map_domain"}
         write_channel_maps(out_h5, maps, fixed.hits, fixed.condition, seed_attributes)
