@@ -2,12 +2,12 @@
 sigma_g1 of the grid) and the systematic-only spectra, on synthetic maps of every channel.
 
     OMP_NUM_THREADS=1 python benchmarks/map_level_cost.py --nside 64
-    OMP_NUM_THREADS=1 python benchmarks/map_level_cost.py --nside 512 --lmax 512 --seeds 100
-                                                            # paper grid (config/paper.yaml's lmax)
+    OMP_NUM_THREADS=1 python benchmarks/map_level_cost.py --nside 512 --lmax 512 \
+        --map2alm-iter 0 --seeds 100 --channels L1-040 L2-050 M1-140 H3-402   # paper grid
 
 Writes maps files of all channels of the embedded default configuration (a common
 CMB-like sky, white noise per channel, random template terms on the systematics
-channels; full sky with the default Galactic cut) and times (one thread with ``OMP_NUM_THREADS=1``, as a workflow job) what the
+channels, none on the others; full sky with the default Galactic cut) and times (one thread with ``OMP_NUM_THREADS=1``, as a workflow job) what the
 workflow's per-seed jobs do: ``component_separation`` (load, the a_lm of the no-systematics
 maps, of the contamination sum_k z_k T_k and of the two references, computed once; the
 weights and residual of every case) and ``systematic_spectra`` (the three template terms
@@ -44,7 +44,10 @@ def synthetic_maps(config: dict, folder: Path) -> dict[str, str]:
     paths = {}
     for name in cfg.selected_channels(config):
         a2_k = 0.26 if name in systematics else 0.0
-        terms = rng.normal(size=(3, 2, 3, npix)) * np.array([1e-6, 1e-4, 1e-3])[:, None, None, None]
+        n_det = 2 if name in systematics else 0  # as the workflow's files: no terms without
+        terms = (
+            rng.normal(size=(3, n_det, 3, npix)) * np.array([1e-6, 1e-4, 1e-3])[:, None, None, None]
+        )
         maps = {
             "nosys": cmb + rng.normal(size=(3, npix)) * 1e-6,
             "template_terms": terms,
@@ -67,6 +70,9 @@ def main() -> None:
         "--lmax", type=int, default=None, help="component_separation lmax (default: 2 nside)"
     )
     parser.add_argument(
+        "--map2alm-iter", type=int, default=3, help="component_separation map2alm_iter"
+    )
+    parser.add_argument(
         "--channels",
         nargs="+",
         default="all",
@@ -78,7 +84,10 @@ def main() -> None:
         load_config(cfg.default_config_path()),
         {
             "maps": {"nside": arguments.nside},
-            "component_separation": {"lmax": arguments.lmax},
+            "component_separation": {
+                "lmax": arguments.lmax,
+                "map2alm_iter": arguments.map2alm_iter,
+            },
             "instrument": {"channels": arguments.channels},
         },
     )
@@ -100,7 +109,7 @@ def main() -> None:
     per_seed = load_s + hilc_s + systematic_s
     print(
         f"nside {arguments.nside}, lmax {seed_maps.lmax}, {len(paths)} channels, "
-        f"{len(cases)} cases, one thread"
+        f"{len(cases)} cases, map2alm iter {arguments.map2alm_iter}, one thread"
     )
     print("| load + mask [s] | HILC of every case [s] | systematic spectra [s] | per seed [s] |")
     print("|---|---|---|---|")

@@ -61,6 +61,7 @@ class SeedMaps:
     bins: list[tuple[int, int]]
     fractions: dict
     unit_draws: list[np.ndarray]
+    map2alm_iter: int = hilc.MAP2ALM_ITER
     _alms: dict = field(default_factory=dict, repr=False)  # kind -> a_lm, computed once
 
     @classmethod
@@ -98,12 +99,18 @@ class SeedMaps:
             bins=bins,
             fractions=fractions,
             unit_draws=draws,
+            map2alm_iter=settings["map2alm_iter"],
         )
 
     def alms(self, maps: list[np.ndarray]) -> np.ndarray:
         """(n_channels, 3, nalm) a_lm of one map per channel, masked, at the common beam."""
         return hilc.channel_alms(
-            maps, self.fwhms_arcmin, self.mask, self.lmax, self.common_fwhm_arcmin
+            maps,
+            self.fwhms_arcmin,
+            self.mask,
+            self.lmax,
+            self.common_fwhm_arcmin,
+            self.map2alm_iter,
         )
 
     def reference_alms(self, kind: str) -> np.ndarray:
@@ -136,7 +143,12 @@ class SeedMaps:
     def alms_of_channel(self, c: int, maps: np.ndarray) -> np.ndarray:
         """(3, nalm) a_lm of one (3, npix) map of channel ``c``, masked, at the common beam."""
         return hilc.channel_alms(
-            [maps], [self.fwhms_arcmin[c]], self.mask, self.lmax, self.common_fwhm_arcmin
+            [maps],
+            [self.fwhms_arcmin[c]],
+            self.mask,
+            self.lmax,
+            self.common_fwhm_arcmin,
+            self.map2alm_iter,
         )[0]
 
     def residual(self, sigma_g1_per_k: float) -> dict[str, np.ndarray]:

@@ -135,10 +135,12 @@ def _ratio(numerator: np.ndarray, denominator: np.ndarray) -> np.ndarray:
 def shaped_noise_map(noise_iqu: np.ndarray, shaping: np.ndarray, good: np.ndarray, lmax: int):
     """The noise map (zero off ``good``) with its T, E, B a_lm up to lmax times
     ``shaping``: n + alm2map((shaping - 1) a_lm), so the power beyond lmax (white
-    pixel noise has it) is kept unshaped."""
+    pixel noise has it) is kept unshaped. One Jacobi iteration of the analysis above
+    lmax = nside, none at or below it (where the quadrature alone is accurate to ~1e-3,
+    on a correction that is itself (shaping - 1) of the noise)."""
     nside = hp.npix2nside(good.size)
     masked = np.where(good, noise_iqu, 0.0)
-    alm = hp.map2alm(masked, lmax=lmax, iter=1)
+    alm = hp.map2alm(masked, lmax=lmax, iter=0 if lmax <= nside else 1)
     change = np.array([hp.almxfl(alm[i], shaping[i, : lmax + 1] - 1.0) for i in range(3)])
     return masked + hp.alm2map(change, nside, lmax=lmax, pixwin=False)
 
