@@ -25,7 +25,11 @@ Each seed then costs map operations only:
 
 with (b_k, c_k) ~ N(0, noise_scale^2 [[M_k, H_k], [H_k, Q_k]]) the binned white noise and
 binned h n of detector k, drawn jointly per pixel (exact for white noise: b_k = sum w a^T n,
-c_k = sum w a^T h n, var(n) = 1 / w), and T, S applied to the T, E, B a_lm. The binning
+c_k = sum w a^T h n, var(n) = 1 / w), and T, S applied to the T, E, B a_lm up to
+``simulation.filter_lmax`` (the map's whole band by default; the analysis reads nothing
+above component_separation lmax, so at nside 512 stopping there saves most transforms).
+What the seeds of a channel share (noise factors, M^-1, H_k) is computed once
+(:class:`SeedOperators`). The binning
 reads a TOD at 0 and 4 f_HWP, where the notch removes the noise's (and h n's) sky-scale
 part: without S the map-domain noise is too high (by 2x in variance at 1 day, nside 32).
 As the residual subtracts cmb_reference, the CMB cancels there exactly and enters only
@@ -317,7 +321,7 @@ def realize_seed(
     template_terms, templates, cmb_reference, foreground_reference (UNSEEN where the
     fixed pass is not good), as :func:`tod_maps.split_solved_maps` names them.
     ``operators``: the :class:`SeedOperators` of (fixed, noise_scale), shared by the seeds
-    of a channel (built here, shaping to ``lmax``, if None)."""
+    of a channel (built here, filtering up to ``lmax``, if None)."""
     nside = hp.npix2nside(fixed.good.size)
     good = fixed.good
     operators = operators or SeedOperators(fixed, noise_scale, lmax)
