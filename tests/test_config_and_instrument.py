@@ -135,3 +135,22 @@ def test_no_baselines_overlay_merges_after_one_year(repo, monkeypatch):
     assert overlaid["maps"]["baseline_length_s"] is None
     overlaid["maps"]["baseline_length_s"] = 60.0
     assert overlaid == base
+
+
+def test_channels_without_systematics_can_be_sampled_slower(repo, monkeypatch):
+    """simulation.sampling_rate_without_systematics_hz applies to the channels outside
+    instrument.systematics_channels only; null leaves every channel at sampling_rate_hz."""
+    from hwp_tes_systematics.config import channel
+    from hwp_tes_systematics.tod_maps import simulated_rate_hz
+
+    monkeypatch.chdir(repo)
+    config = load_config(repo / "config/config.yaml", repo / "config/one_year.yaml")
+    lft, mft = channel(config, "L1-040"), channel(config, "M1-140")
+    assert config["simulation"]["sampling_rate_without_systematics_hz"] == 10.0
+    config["simulation"]["sampling_rate_without_systematics_hz"] = None
+    assert simulated_rate_hz(config, lft) == simulated_rate_hz(config, mft) == 19.0
+    config["simulation"]["sampling_rate_without_systematics_hz"] = 10.0
+    assert simulated_rate_hz(config, lft) == 10.0
+    assert simulated_rate_hz(config, mft) == 19.0
+    config["simulation"]["sampling_rate_hz"] = None
+    assert simulated_rate_hz(config, mft) == mft.sampling_rate_hz

@@ -67,7 +67,7 @@ class PairMapSettings:
                 start_time_tdb=simulation["mission_start_tdb"],
                 duration_s=simulation["duration_days"] * 86400.0,
                 chunk_duration_s=simulation["chunk_duration_s"],
-                sampling_rate_hz=simulation.get("sampling_rate_hz") or channel.sampling_rate_hz,
+                sampling_rate_hz=simulated_rate_hz(config, channel),
             ),
             a2_k_cmb=a2_k_cmb,
             notch_width_divisor=config["notch"]["width_divisor"],
@@ -78,6 +78,18 @@ class PairMapSettings:
             baseline_length_s=config["maps"]["baseline_length_s"],
             threads=threads,
         )
+
+
+def simulated_rate_hz(config: dict, channel) -> float:
+    """The TOD sampling rate of ``channel`` [Hz]: simulation.sampling_rate_without_systematics_hz
+    for a channel outside instrument.systematics_channels if set (its TOD holds nothing
+    above 4 f_HWP + the sky band: no d^2 to 8 f_HWP), else simulation.sampling_rate_hz,
+    else the instrument model's."""
+    simulation = config["simulation"]
+    rate = simulation["sampling_rate_hz"] or channel.sampling_rate_hz
+    if channel.name in config["instrument"]["systematics_channels"]:
+        return rate
+    return simulation["sampling_rate_without_systematics_hz"] or rate
 
 
 @dataclass
