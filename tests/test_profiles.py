@@ -8,6 +8,8 @@ import pytest
 import yaml
 from helpers import make_workdir
 
+TINY_NODE_MEM_MB = 8000  # what a laptop-sized SLURM node can give one job
+
 
 def rule_names(repo):
     names = set()
@@ -47,3 +49,7 @@ def test_profile_dry_run_on_tiny_config(repo, tmp_path, name):
         check=False,
     )
     assert result.returncode == 0, result.stderr[-4000:]
+    # what each job asks the scheduler for fits a small node on the tiny config: memory
+    # that the rules scale with nside and channels (CI's one-node cluster refused 32 GB)
+    requests = re.findall(r"mem_mb=(\d+)", result.stdout + result.stderr)
+    assert requests and max(map(int, requests)) <= TINY_NODE_MEM_MB, requests

@@ -34,6 +34,13 @@ def pair_maps_mem_mb(wildcards, attempt):
     return int(1500 + chunk_mb + maps_mb) * attempt
 
 
+def component_separation_mem_mb(wildcards, attempt):
+    """Memory of one seed's HILC: every channel's maps held at once (~60 doubles per pixel
+    per channel: > 22 GB measured for 22 channels at nside 512, map_level_cost.py)."""
+    maps_mb = len(CHANNELS) * 12 * config["maps"]["nside"] ** 2 * 60 * 8 / 2**20
+    return int(1000 + maps_mb) * attempt
+
+
 CASES = case_names(config["requirement"]["sigma_g1_per_k"])
 
 

@@ -11,6 +11,8 @@ rule component_separation:
         paths.log("component_separation", "seed{seed}"),
     benchmark:
         paths.benchmark("component_separation", "seed{seed}")
+    resources:
+        mem_mb=component_separation_mem_mb,
     params:
         config=analysis_config(),
         cases=CASES,
