@@ -37,6 +37,7 @@ import numpy as np
 
 from hwp_tes_systematics import sky
 from hwp_tes_systematics.diagnose import (
+    CATALOG,
     diagnose,
     read_recording,
     simulate_recording,
@@ -114,6 +115,12 @@ def _one(support, effects, seed, hours, folder):
     return result
 
 
+def _family(name: str) -> str:
+    """The effect a nested variant extends (tes_nonlinearity_cubic -> tes_nonlinearity)."""
+    effect = CATALOG.get(name)
+    return (effect.extends if effect is not None else None) or name
+
+
 def _within(result, effect, name, truth) -> bool:
     """Main parameter within 3 sigma of its truth on every detector.
 
@@ -122,7 +129,7 @@ def _within(result, effect, name, truth) -> bool:
     the same gain, so the fitted g1 is not rescaled by it.
     """
     for item in result["effects"]:
-        if item["name"] != effect:
+        if _family(item["name"]) != effect:
             continue
         for k, det in enumerate(result["recording"]["detectors"]):
             entry = item["parameters"].get(f"{name}[{det}]")
@@ -164,12 +171,12 @@ def rates(arguments) -> None:
                 for _ in range(n_seeds):
                     result = _one(support, [(effect, make(amplitude))], seed, hours, folder)
                     seed += 1
-                    names = [e["name"] for e in result["effects"]]
+                    names = [_family(e["name"]) for e in result["effects"]]
                     found += bool(accepted & set(names))  # among the effects
                     correct += bool(names) and names[0] in accepted  # ranked first
                     if names:
                         reported += 1
-                        ties = set(result["effects"][0].get("look_alikes", []))
+                        ties = {_family(n) for n in result["effects"][0].get("look_alikes", [])}
                         tied += names[0] not in accepted and bool(accepted & ties)
                     if param is not None and names and names[0] in accepted:
                         within += _within(result, effect, param, amplitude)
@@ -197,7 +204,7 @@ def rates(arguments) -> None:
             for _ in range(n_seeds):
                 result = _one(support, effects, seed, hours, folder)
                 seed += 1
-                names = {e["name"] for e in result["effects"]}
+                names = {_family(e["name"]) for e in result["effects"]}
                 both += {name for name, _ in effects} <= names
             report(f"pair {label}: both found {both}/{n_seeds}")
         outside_ok = True

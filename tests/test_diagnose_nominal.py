@@ -80,20 +80,25 @@ def test_nonlinearity_found_despite_nominal_errors(tmp_path, seed):
         assert within(entry, g1), entry
 
 
-def test_nonlinearity_with_4f_hwpss(tmp_path):
+@pytest.mark.parametrize(("seed", "noise_seed"), [(31, 3131), (28, 10_028)])
+def test_nonlinearity_with_4f_hwpss(tmp_path, seed, noise_seed):
     """A 4f HWPSS and a nonlinearity together: both, the nonlinearity with its g1.
 
     Fitted jointly: the 4f line is shared between hwpss_harmonics (free amplitude and
     phase) and the nonlinearity, whose g1 is fixed by its DC-free intermodulation lines
     2 f_HWP +- f_spin (g1 A_2 D) and the intensity dependence d^2, not by the 4f line.
+    Once the harmonics hold the 4f line, the intensity coupling makes the same sidebands
+    with two parameters (a_c, a_s) where the quadratic g1 is one: seed 28 (the rates
+    benchmark's recording) was reported as harmonics + intensity coupling while the
+    nonlinearity carried an idle g2 (a Delta BIC tie, -148.3 against -148.1).
     """
-    errors = nominal_errors(np.random.default_rng(31))
+    errors = nominal_errors(np.random.default_rng(seed))
     # with the 4f line shared (and the DC shift in the offset), g1 rests on the
     # 2 f_HWP +- f_spin lines, g1 A_2 D_spin each (D_spin = 1.6 mK here): 8.6 uK at
     # g1 = -2e-2, 7 sigma each in one hour; g1 = -3e-3 would need ~2 days
     g1 = -2e-2
     effects = [("hwpss_harmonics", {"c4": 60e-6, "s4": -30e-6}), ("tes_nonlinearity", {"g1": g1})]
-    recording, _ = recorded_with_errors(tmp_path, effects, 3131, errors, hours=1.0)
+    recording, _ = recorded_with_errors(tmp_path, effects, noise_seed, errors, hours=1.0)
     result = run_with(recording, errors)
     assert sorted(names(result)) == ["hwpss_harmonics", "tes_nonlinearity"], names(result)
     for k in range(2):

@@ -21,13 +21,20 @@ x = 2 (t - t0) / (t_end - t0) - 1.
 Catalog (model and parameters | signature | how it is told apart from look-alikes):
 
 tes_nonlinearity
-    model   d + g1 d^2 + g2 d^3 on the total signal; g1 [1/K], g2 [1/K^2]
+    model   d + g1 d^2 on the total signal (the paper's quadratic model); g1 [1/K]
     sign.   4 f_HWP line g1 A_2^2/2 WITH a DC shift g1 A_2^2/2 (absorbed by the offset
             adjustment in real data); lines at 2 f_HWP +- f_dipole
-            (f_spin) of g1 A_2 D each (HWPSS x dipole); 6 f_HWP line g2 A_2^3/4
+            (f_spin) of g1 A_2 D each (HWPSS x dipole), in phase with the 2f HWPSS
     apart   a 4f HWPSS harmonic has no sidebands (and is fitted jointly with it: the shared 4f
             line does not decide, the sidebands and d^2 do); intensity coupling has the
-            sidebands but no 4f line and no DC; the sidebands scale as A_2 I (not as I)
+            sidebands but no 4f line and no DC, and a free phase (a_c, a_s: two parameters
+            where g1 is one); the sidebands scale as A_2 I (not as I)
+tes_nonlinearity_cubic
+    model   d + g1 d^2 + g2 d^3; g1 [1/K], g2 [1/K^2] (e.g. an electrothermal TES far from
+            its linear range)
+    sign.   as tes_nonlinearity, plus a 6 f_HWP line g2 A_2^3/4 and a 2f line 3 g2 A_2^3/4
+    apart   tes_nonlinearity is its nested special case (g2 = 0): the BIC keeps the cubic
+            term only when its own lines pay for g2 (the backward step drops the other)
 detector_time_constant
     model   IFFT[D(f) / (1 + 2 pi i f tau)] (single pole); tau [s]; template -d d_nom/dt
     sign.   phase lag atan(2 pi f tau) growing with frequency: 2f HWPSS, the 4f line of a
@@ -154,6 +161,7 @@ class Effect:
     stage: str = "signal"
     signature: str = ""
     discrimination: str = ""
+    extends: str | None = None  # the simpler catalog effect this one nests (same physics)
 
     def param_units(self, ctx: Context | None = None) -> dict[str, str]:
         """Parameter -> unit for this recording (most effects: the fixed ``parameters``)."""
@@ -182,32 +190,41 @@ class Effect:
 
 
 class TesNonlinearity(Effect):
-    """d_obs = d + g1 d^2 + g2 d^3 on the total signal (TES gain compression).
+    """d_obs = d + g1 d^2 on the total signal (TES gain compression; the paper's model).
 
     With d = A_2 cos x + D (x = 2 (chi - theta)): g1 d^2 = g1 A_2^2 / 2 (DC) +
     g1 A_2^2 / 2 cos 2x (4 f_HWP) + 2 g1 A_2 D cos x (for D = D0 cos 2 pi f_D t: two lines
-    at 2 f_HWP +- f_D of amplitude g1 A_2 D0 each) + g1 D^2;
-    g2 d^3 adds 3 g2 A_2^3 / 4 cos x and g2 A_2^3 / 4 cos 3x (6 f_HWP).
+    at 2 f_HWP +- f_D of amplitude g1 A_2 D0 each) + g1 D^2.
     """
 
     name = "tes_nonlinearity"
     title = "TES gain nonlinearity"
-    parameters: ClassVar[dict[str, str]] = {"g1": "1/K", "g2": "1/K^2"}
+    parameters: ClassVar[dict[str, str]] = {"g1": "1/K"}
+    powers: ClassVar[tuple[int, ...]] = (2,)  # d_obs - d = sum_j p_j d^powers[j]
     main_parameters = ("g1",)
     stage = "response"
     signature = (
         "4 f_HWP line g1 A_2^2/2 (and a DC shift, inside the offset), 2 f_HWP +- f_spin "
-        "sidebands g1 A_2 D each, 6 f_HWP line g2 A_2^3/4"
+        "sidebands g1 A_2 D each"
     )
     discrimination = "2f +- f_dipole sidebands (g1 A_2 D) accompany the 4f line"
 
+    def response_templates(self, signal: np.ndarray) -> np.ndarray:
+        """d^p for each power p of the model, (n_param, n) for one detector's signal d."""
+        return np.stack([signal**p for p in self.powers])
+
     def templates(self, ctx):
-        d = ctx.d_nom
-        return np.stack([d**2, d**3], axis=1)
+        return np.stack([ctx.d_nom**p for p in self.powers], axis=1)
 
     def apply(self, ctx, params, tod=None):
         tod = ctx.d_nom if tod is None else tod
         n = tod.shape[0]
+        unknown = set(params) - set(self.parameters)
+        if unknown:
+            raise KeyError(
+                f"{self.name} has parameters {sorted(self.parameters)}, not {sorted(unknown)}"
+                + (" (a cubic term: tes_nonlinearity_cubic)" if "g2" in unknown else "")
+            )
         return apply_nonlinearity(tod, _value(params, "g1", n), _value(params, "g2", n))
 
     def evidence(self, ev, fit) -> str:
@@ -215,7 +232,7 @@ class TesNonlinearity(Effect):
         parts = []
         for k, name in enumerate(ev.ctx.detector_names):
             g1 = fit.values["g1"][k]
-            g2 = fit.values["g2"][k]
+            g2 = fit.values["g2"][k] if "g2" in fit.values else 0.0
             a2 = ev.a2[k]
             h4 = ev.harmonic(k, 4)
             h6 = ev.harmonic(k, 6)
@@ -232,13 +249,32 @@ class TesNonlinearity(Effect):
                 f"2 f_HWP + f_spin lines {format_temperature(lo)} and {format_temperature(hi)} at {lo_sig:.1f} and "
                 f"{hi_sig:.1f} sigma (predicted g1 A_2 D = {format_temperature(side_pred)} each)"
             )
-            if h6 is not None and abs(fit.sigmas["g2"][k]) > 0:
+            if h6 is not None and "g2" in fit.values and abs(fit.sigmas["g2"][k]) > 0:
                 text += (
                     f"; 6 f_HWP line {format_temperature(h6.amplitude_k)} at {h6.significance_sigma:.1f} sigma "
                     f"(g2 A_2^3/4 = {format_temperature(abs(g2) * a2**3 / 4)})"
                 )
             parts.append(text)
         return "; ".join(parts)
+
+
+class TesNonlinearityCubic(TesNonlinearity):
+    """d_obs = d + g1 d^2 + g2 d^3: the quadratic model with a cubic term.
+
+    g2 d^3 adds 3 g2 A_2^3 / 4 cos x (2 f_HWP) and g2 A_2^3 / 4 cos 3x (6 f_HWP). The
+    quadratic ``tes_nonlinearity`` is its nested special case (g2 = 0): the selection keeps
+    whichever the BIC prefers, so g2 is reported only when its lines pay for it.
+    """
+
+    name = "tes_nonlinearity_cubic"
+    title = "TES gain nonlinearity with a cubic term"
+    parameters: ClassVar[dict[str, str]] = {"g1": "1/K", "g2": "1/K^2"}
+    powers: ClassVar[tuple[int, ...]] = (2, 3)
+    extends = "tes_nonlinearity"
+    signature = TesNonlinearity.signature + ", 6 f_HWP line g2 A_2^3/4"
+    discrimination = (
+        "as tes_nonlinearity; the 6 f_HWP line g2 A_2^3/4 in phase with 3 x the 2f HWPSS"
+    )
 
 
 def single_pole(freqs_hz: np.ndarray, tau_s: float) -> np.ndarray:
@@ -722,6 +758,7 @@ CATALOG: dict[str, Effect] = {
     effect.name: effect
     for effect in (
         TesNonlinearity(),
+        TesNonlinearityCubic(),
         DetectorTimeConstant(),
         HwpssHarmonics(),
         HwpssIntensityCoupling(),

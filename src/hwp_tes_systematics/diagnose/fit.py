@@ -30,7 +30,7 @@ effects by a robust (MAD) threshold and fitted per event (:func:`.effects.fit_gl
 an event is kept if its own Delta chi^2 = (A/sigma_A)^2 exceeds its BIC penalty 3 ln N_eff.
 Noise: Whittle maximum likelihood on the residual periodogram (:func:`.noise.whittle_fit`,
 line bins excluded from the fit). The nonlinearity acts on the total signal: when other
-signal effects are selected with it, its templates d^2, d^3 are recomputed on
+signal effects are selected with it, its templates (d^2, and d^3 for the cubic term) are recomputed on
 d = d_nom + (their fitted model) (the full forward model to second order, e.g. a gain
 drift modulating the 4f line), unless that cross term is below Delta chi^2 = 0.01; in
 later passes they are rebuilt only when the fitted model moved enough since the last
@@ -500,12 +500,14 @@ class FitProblem:
         has_noise = NOISE in selected
         composed = self._composed(selected)
         nl_rows = np.zeros(0, dtype=int)
+        responses = []  # the response effects selected, in bank-row order
         if composed:
             position = self.n_nominal
             for name in linear:
                 width = self.slices[name].stop - self.slices[name].start
                 if name in RESPONSE_STAGE:
-                    nl_rows = np.arange(position, position + width)
+                    nl_rows = np.concatenate([nl_rows, np.arange(position, position + width)])
+                    responses.append(self.effects[name])
                 position += width
         others = np.ones(rows.size)  # 1 on the rows the nonlinearity acts on (not its own)
         others[nl_rows] = 0.0
@@ -575,8 +577,9 @@ class FitProblem:
                     recomposed[k] = True
                     built_on[k] = extra
                     banks[k] = bank.copy()
+                    templates = np.concatenate([e.response_templates(signal) for e in responses])
                     banks[k][nl_rows] = scipy.fft.rfft(
-                        np.stack([signal**2, signal**3]) * self.valid[k],
+                        templates * self.valid[k],
                         axis=-1,
                         workers=self.workers,
                     )

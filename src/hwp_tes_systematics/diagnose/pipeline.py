@@ -114,7 +114,16 @@ def look_alikes(steps, threshold: float) -> dict[str, list[str]]:
     Those explained the residual (nearly) equally well at that step, so the data do not
     tell them apart (e.g. a gain drift and a 2f amplitude drift in a recording too short
     for the dipole's change to show): the report says so instead of picking silently.
+    A nested variant of the same physics (``Effect.extends``) is not a look-alike.
     """
+
+    def same_physics(a: str, b: str) -> bool:
+        return (
+            a == b
+            or getattr(CATALOG.get(a), "extends", None) == b
+            or (getattr(CATALOG.get(b), "extends", None) == a)
+        )
+
     out: dict[str, list[str]] = {}
     for step in steps:
         if not step.added or step.added not in step.candidates:
@@ -123,7 +132,7 @@ def look_alikes(steps, threshold: float) -> dict[str, list[str]]:
         ties = [
             name
             for name, c in step.candidates.items()
-            if name != step.added and c["delta_bic"] - best < -threshold
+            if not same_physics(name, step.added) and c["delta_bic"] - best < -threshold
         ]
         out[step.added] = sorted(set(out.get(step.added, [])) | set(ties))
     return out

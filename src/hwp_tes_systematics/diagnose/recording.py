@@ -51,7 +51,7 @@ import numpy as np
 
 from .. import data_model, seeding
 from ..io import atomic_path
-from .effects import CATALOG, SIGNAL_EFFECTS, GlitchEvent, get_effect
+from .effects import CATALOG, RESPONSE_STAGE, SIGNAL_EFFECTS, GlitchEvent, get_effect
 from .model import Context, per_detector
 
 DEFAULT_START_TDB = "2032-04-01T00:00:00"
@@ -494,7 +494,7 @@ def _noise(simulator, pointing, master_seed, noise_seed, params: dict | None) ->
     return out
 
 
-RESPONSE_EFFECTS = {"tes_nonlinearity", "tes_electrothermal"}
+RESPONSE_EFFECTS = RESPONSE_STAGE | {"tes_electrothermal"}
 
 
 def _hwpss_sine_modulation(ctx: Context, params: dict, tod: np.ndarray) -> np.ndarray:
@@ -620,7 +620,7 @@ def simulate_recording(
     noise_params = next((p for name, p in effects if name == "noise_mismatch"), None)
     tod = signal + _noise(simulator, pointing, master_seed, noise_seed, noise_params)
     for name, params in effects:
-        if name == "tes_nonlinearity":
+        if name in RESPONSE_STAGE:
             tod = get_effect(name).apply(ctx, params, tod)
         elif name == "tes_electrothermal":
             tod = _electrothermal(tod, params)
