@@ -8,10 +8,11 @@ sigma_g1 of the grid) and the systematic-only spectra, on synthetic maps of ever
 Writes maps files of all channels of the embedded default configuration (a common
 CMB-like sky, white noise per channel, random template terms on the systematics
 channels, none on the others; full sky with the default Galactic cut) and times (one thread with ``OMP_NUM_THREADS=1``, as a workflow job) what the
-workflow's per-seed jobs do: ``component_separation`` (load, the a_lm of the no-systematics
+workflow's per-seed job does: ``component_separation`` (load, the a_lm of the no-systematics
 maps, of the contamination sum_k z_k T_k and of the two references, computed once; the
-weights and residual of every case) and ``systematic_spectra`` (the three template terms
-of every systematics channel through the no-systematics weights). Prints seconds per seed
+weights and residual of every case; then the systematic-only spectra: the three template
+terms of every systematics channel through the no-systematics weights, on the maps
+already loaded). Prints seconds per seed
 and the extrapolation to ``--seeds`` seeds in core-hours. The fixed TOD passes and the
 seeds' maps are measured by ``benchmarks/map_domain_cost.py``.
 """
@@ -104,7 +105,7 @@ def main() -> None:
             nosys_weights = result["weights"] if nosys_weights is None else nosys_weights
         hilc_s = time.perf_counter() - started
         started = time.perf_counter()
-        SeedMaps.load(config, 0, paths).systematic_spectra(nosys_weights)
+        seed_maps.systematic_spectra(nosys_weights)
         systematic_s = time.perf_counter() - started
     per_seed = load_s + hilc_s + systematic_s
     print(

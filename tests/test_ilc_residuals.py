@@ -5,13 +5,15 @@ import dataclasses
 import h5py
 import healpy as hp
 import numpy as np
+import pandas as pd
 import pytest
 
 from hwp_tes_systematics import hilc, requirement, sky
 from hwp_tes_systematics.config import deep_merge, load_config
 from hwp_tes_systematics.ilc_residuals import SeedMaps, systematic_bb, unit_beam_spectra
 from hwp_tes_systematics.likelihood import BBModel, fisher_bias, fit_r
-from hwp_tes_systematics.systematics import maps_for_sigma
+from hwp_tes_systematics.stages import component_separation
+from hwp_tes_systematics.systematics import case_names, maps_for_sigma
 from hwp_tes_systematics.tod_maps import templates_from_terms
 
 NSIDE = 16
@@ -19,9 +21,10 @@ CHANNELS = {"L1-040": 0.0, "M1-140": 0.26}  # channel: A_2 [K_CMB]
 
 
 @pytest.fixture(scope="module")
-def seed_maps(tmp_path_factory, repo):
-    """Synthetic pair_maps files of two channels: a common CMB-like sky, channel noise and
-    random template terms; the HILC set-up of the workflow on the full sky."""
+def synthetic(tmp_path_factory, repo):
+    """(config, {channel: maps file}): synthetic pair_maps files of two channels, a common
+    CMB-like sky, channel noise and random template terms; the HILC set-up of the workflow
+    on the full sky."""
     config = deep_merge(
         load_config(repo / "config/config.yaml"),
         {
@@ -45,7 +48,35 @@ def seed_maps(tmp_path_factory, repo):
             out["cmb_reference"] = cmb
             out["foreground_reference"] = np.zeros((3, npix))
             out.attrs.update({"detectors": ["det_a", "det_b"], "a2_k_cmb": a2_k})
+    return config, paths
+
+
+@pytest.fixture(scope="module")
+def seed_maps(synthetic):
+    config, paths = synthetic
     return SeedMaps.load(config, 0, paths)
+
+
+def test_component_separation_stage_writes_every_case_and_the_systematic(synthetic, tmp_path):
+    """One job per seed: a file per case, and the systematic-only spectra through the
+    no-systematics weights of that same job (the maps read once)."""
+    config, paths = synthetic
+    cases = case_names(config["requirement"]["sigma_g1_per_k"])
+    outs = [str(tmp_path / f"{case}.h5") for case in cases]
+    csv = tmp_path / "systematic_only.csv"
+    component_separation.run(config, 0, cases, paths, outs, str(csv))
+    seed_maps = SeedMaps.load(config, 0, paths)
+    for case, out in zip(cases, outs, strict=True):
+        with h5py.File(out) as hilc:
+            assert hilc.attrs["case"] == case
+            if case == "nosys":
+                weights = hilc["weights"][()]
+    expected = seed_maps.systematic_spectra(weights)
+    written = pd.read_csv(csv)
+    assert list(written.columns) == list(expected.columns)
+    np.testing.assert_allclose(written.to_numpy(), expected.to_numpy(), rtol=1e-9, atol=0)
+    with pytest.raises(ValueError, match="nosys"):
+        component_separation.run(config, 0, cases[1:], paths, outs[1:], str(csv))
 
 
 def direct_systematic_bb(seed_maps, weights, sigma, a2_scale=1.0):

@@ -1,12 +1,15 @@
 rule component_separation:
     """Harmonic ILC over all channels of realization `seed`, for every case (nosys and each
     sigma<value>: maps = nosys + sigma sum_k z_k T_k on the systematics channels); the CMB
-    residual and its foreground part as a_lm, one file per case. One job per seed, so the
-    references' a_lm (the same in every case) are computed once. Wildcard: seed."""
+    residual and its foreground part as a_lm, one file per case; and the BB and EE cross
+    spectra of the systematic's three terms (s^2, s h, h^2 of d^2) at sigma_g1 = 1 through
+    the no-systematics weights (the systematic-only estimator). One job per seed, so the
+    maps are read and the references' a_lm computed once. Wildcard: seed."""
     input:
         unpack(channel_maps_of_seed),
     output:
         hilc=expand(paths.HILC, case=CASES, allow_missing=True),
+        systematic=paths.SYSTEMATIC_SPECTRA,
     log:
         paths.log("component_separation", "seed{seed}"),
     benchmark:

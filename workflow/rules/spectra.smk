@@ -24,23 +24,6 @@ rule noise_model:
         "../scripts/noise_model.py"
 
 
-rule systematic_spectra:
-    """BB and EE cross spectra of the systematic's three terms (s^2, s h, h^2 of d^2) at
-    sigma_g1 = 1 through the no-systematics HILC weights: the systematic-only estimator.
-    Wildcards: seed."""
-    input:
-        unpack(channel_maps_of_seed),
-        nosys_hilc=paths.HILC.replace("{case}", "nosys"),
-    output:
-        spectra=paths.SYSTEMATIC_SPECTRA,
-    log:
-        paths.log("systematic_spectra", "seed{seed}"),
-    params:
-        config=analysis_config(),
-    script:
-        "../scripts/systematic_spectra.py"
-
-
 rule residual_spectra_figure:
     """BB of the CMB residual of each case (means over seeds), the systematic alone at
     each sigma_g1, the noise and foreground residuals, beside the lensing and tensor BB.

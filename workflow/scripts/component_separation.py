@@ -1,4 +1,4 @@
-"""Rule component_separation: HILC of one seed, every case."""
+"""Rule component_separation: HILC of one seed, every case, and the systematic-only spectra."""
 
 from hwp_tes_systematics.io import setup_logging
 from hwp_tes_systematics.stages import component_separation
@@ -10,4 +10,5 @@ component_separation.run(
     cases=list(snakemake.params.cases),
     map_paths=dict(snakemake.input.items()),
     out_h5s=list(snakemake.output.hilc),
+    systematic_csv=snakemake.output.systematic,
 )

@@ -158,6 +158,26 @@ def _check_fwhm(fwhm_arcmin: float) -> float:
     return fwhm_arcmin
 
 
+BEAM_POWER_FLOOR = 1e-10  # B_ell^2 below which a beamed map's multipoles are dropped
+
+
+def beam_band_limit(fwhm_arcmin: float, lmax: int, power_floor: float = BEAM_POWER_FLOOR) -> int:
+    """The band a map smoothed by the beam needs: the smallest L <= ``lmax`` with
+    B_ell^2 < ``power_floor`` for every ell > L (T, E and B windows), i.e.
+    L (L + 1) sigma^2 ~ -ln(power_floor); ``lmax`` for no beam or a beam too narrow.
+
+    A 70.5' beam (L1-040): L = 551; 30.8' (M1-140): 1261; above it the beam has removed all
+    but 1e-10 of the power, so a map synthesised up to L equals the full-band one to
+    < 1e-4 of its rms in every pixel (``tests/test_map_domain.py``), at (L / lmax)^2 of the cost.
+    """
+    fwhm_arcmin = _check_fwhm(fwhm_arcmin)
+    if fwhm_arcmin == 0:
+        return lmax
+    beam = hp.gauss_beam(np.radians(fwhm_arcmin / 60.0), lmax=lmax, pol=True)[:, :3]
+    above = np.nonzero(np.max(beam**2, axis=1) >= power_floor)[0]
+    return int(min(lmax, above.max() + 1)) if above.size else 0
+
+
 def smooth_alm(alm: np.ndarray, fwhm_arcmin: float, lmax: int) -> np.ndarray:
     """T, E, B a_lm times the Gaussian beam window B_ell of FWHM ``fwhm_arcmin``.
 

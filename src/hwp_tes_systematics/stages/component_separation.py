@@ -2,8 +2,9 @@
 
 For each case ``nosys`` or ``sigma<value>`` the residual of :class:`ilc_residuals.SeedMaps`
 (the paper's HILC, weights recomputed on the contaminated maps) and its foreground part
-are written as a_lm, with the weights and the mask, one file per case. The maps, the
-mask and the references' a_lm are read and computed once for all cases.
+are written as a_lm, with the weights and the mask, one file per case; the systematic's
+spectra through the no-systematics weights (the systematic-only estimator) go to a CSV.
+The maps, the mask and the references' a_lm are read and computed once for all of them.
 """
 
 from __future__ import annotations
@@ -14,26 +15,39 @@ import h5py
 import numpy as np
 
 from ..ilc_residuals import SeedMaps
-from ..io import atomic_path
+from ..io import atomic_path, write_csv
 from ..sky import map_metadata
-from ..systematics import sigma_of_case
+from ..systematics import NOSYS, sigma_of_case
 
 log = logging.getLogger(__name__)
 
 
 def run(
-    config: dict, seed: int, cases: list[str], map_paths: dict[str, str], out_h5s: list[str]
+    config: dict,
+    seed: int,
+    cases: list[str],
+    map_paths: dict[str, str],
+    out_h5s: list[str],
+    systematic_csv: str,
 ) -> None:
-    """HILC of (seed, case) for each case; writes ``out_h5s[i]`` for ``cases[i]``."""
+    """HILC of (seed, case) for each case, written to ``out_h5s[i]`` for ``cases[i]``; the
+    systematic-only spectra (sigma_g1 = 1, no-systematics weights) to ``systematic_csv``."""
     if len(cases) != len(out_h5s):
         raise ValueError(f"component_separation: {len(cases)} cases but {len(out_h5s)} outputs")
+    if NOSYS not in cases:
+        raise ValueError(f"component_separation: the cases {cases} lack {NOSYS!r}")
     seed_maps = SeedMaps.load(config, seed, map_paths)
+    nosys_weights = None
     for case, out_h5 in zip(cases, out_h5s, strict=True):
-        write_case(config, seed_maps, case, out_h5)
+        result = write_case(config, seed_maps, case, out_h5)
+        if case == NOSYS:
+            nosys_weights = result["weights"]
+    write_csv(seed_maps.systematic_spectra(nosys_weights), systematic_csv)
+    log.info("seed %d: wrote the systematic-only spectra %s", seed, systematic_csv)
 
 
-def write_case(config: dict, seed_maps: SeedMaps, case: str, out_h5: str) -> None:
-    """The residual of one case (nosys or sigma<value>) of the loaded realization."""
+def write_case(config: dict, seed_maps: SeedMaps, case: str, out_h5: str) -> dict:
+    """The residual of one case (nosys or sigma<value>) of the loaded realization; returns it."""
     sigma = sigma_of_case(case, config["requirement"]["sigma_g1_per_k"])
     result = seed_maps.residual(sigma)
     with atomic_path(out_h5) as temporary, h5py.File(temporary, "w") as out:
@@ -62,3 +76,4 @@ def write_case(config: dict, seed_maps: SeedMaps, case: str, out_h5: str) -> Non
         100 * seed_maps.fractions["fsky"],
         seed_maps.common_fwhm_arcmin,
     )
+    return result

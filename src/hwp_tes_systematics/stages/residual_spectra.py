@@ -1,13 +1,12 @@
-"""Stage: spectra of the CMB residual of one (seed, case), of the systematic alone, and
-the model's noise terms.
+"""Stage: spectra of the CMB residual of one (seed, case), and the model's noise terms.
 
 From the HILC residual a_lm (masked, common beam): the pseudo-C_ell / w2 (the f_sky
 correction), with the common beam deconvolved, of the total residual and of its
 foreground part; the noise part is their difference in a_lm. All with the same
 normalisation (:func:`ilc_residuals.unit_beam_spectra`). The likelihood's N_ell and
 C_FGres are the means over seeds of the no-systematics noise and foreground residuals
-(:func:`noise_model`). The systematic alone: the cross spectra of the three terms X_j
-of :mod:`ilc_residuals` through the no-systematics weights, at sigma_g1 = 1.
+(:func:`noise_model`). The systematic alone (:meth:`ilc_residuals.SeedMaps.systematic_spectra`)
+is computed by the component separation, which holds the maps.
 """
 
 from __future__ import annotations
@@ -20,7 +19,7 @@ import pandas as pd
 
 from .. import sky
 from ..figures.results import plot_residual_spectra
-from ..ilc_residuals import SeedMaps, residual_spectra_table
+from ..ilc_residuals import residual_spectra_table
 from ..io import write_csv
 from ..systematics import NOSYS, sigma_of_case
 
@@ -43,15 +42,6 @@ def run(hilc_h5: str, out_csv: str) -> None:
     table = residual_spectra(hilc_h5)
     write_csv(table, out_csv)
     log.info("wrote %s", out_csv)
-
-
-def run_systematic(config: dict, seed: int, map_paths: dict, nosys_hilc_h5: str, out_csv: str):
-    """Systematic-only spectra of one seed (sigma_g1 = 1, no-systematics weights)."""
-    seed_maps = SeedMaps.load(config, seed, map_paths)
-    with h5py.File(nosys_hilc_h5) as hilc:
-        weights = hilc["weights"][()]
-    write_csv(seed_maps.systematic_spectra(weights), out_csv)
-    log.info("seed %d: wrote the systematic-only spectra %s", seed, out_csv)
 
 
 def noise_model(nosys_spectra_csvs: list[str]) -> pd.DataFrame:
