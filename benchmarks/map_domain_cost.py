@@ -61,8 +61,8 @@ def measure(name, carries_systematics, nside, rate_hz, days, calibration_every=1
     )
     fixed_s = time.perf_counter() - started
     started = time.perf_counter()
-    cmb_alm = map_domain.seed_cmb_alm(lmax, 0.0, 1, 0, channel.fwhm_arcmin)
-    map_domain.realize_seed(fixed, cmb_alm, lmax, 0.264, 1.0, np.random.default_rng)
+    cmb_alm, band = map_domain.band_limited_seed_cmb(lmax, 0.0, 1, 0, channel.fwhm_arcmin)
+    map_domain.realize_seed(fixed, cmb_alm, band, 0.264, 1.0, np.random.default_rng)
     return fixed_s, time.perf_counter() - started
 
 
@@ -102,7 +102,8 @@ def synthetic_full_sky(nside: int, carries_systematics: bool, samples_per_pixel:
 def seed_costs(nside: int, filter_lmax: int | None, seeds: int = 2) -> None:
     """Prints what the ``map_domain_maps`` job of a one-year channel costs at ``nside``:
     the shared operators (noise factors, M^-1, H_k: once per channel) and each seed (CMB
-    draw and map products, the noise shaped up to ``filter_lmax``), on a synthetic
+    draw to the beam's band limit and map products, the noise shaped up to
+    ``filter_lmax``), as the workflow's ``map_domain_maps`` does, on a synthetic
     full-sky fixed pass."""
     lmax = 3 * nside - 1
     filter_lmax = lmax if filter_lmax is None else filter_lmax
@@ -117,9 +118,9 @@ def seed_costs(nside: int, filter_lmax: int | None, seeds: int = 2) -> None:
         factors_s = time.perf_counter() - started
         started = time.perf_counter()
         for seed in range(seeds):
-            cmb_alm = map_domain.seed_cmb_alm(lmax, 0.0, 1, seed, fwhm)
+            cmb_alm, band = map_domain.band_limited_seed_cmb(lmax, 0.0, 1, seed, fwhm)
             map_domain.realize_seed(
-                fixed, cmb_alm, lmax, 0.264, 1.0, np.random.default_rng, operators
+                fixed, cmb_alm, band, 0.264, 1.0, np.random.default_rng, operators
             )
         per_seed = (time.perf_counter() - started) / seeds
         kind = "with systematics" if carries else "without"

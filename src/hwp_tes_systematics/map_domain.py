@@ -87,6 +87,15 @@ def seed_cmb_alm(lmax: int, r: float, master_seed: int, seed: int, fwhm_arcmin: 
     return sky_cmb.smooth_alm(sky_cmb.cmb_alm(lmax, r, master_seed, seed), fwhm_arcmin, lmax)
 
 
+def band_limited_seed_cmb(lmax: int, r: float, master_seed: int, seed: int, fwhm_arcmin: float):
+    """(a_lm, L): CMB realization ``seed`` as :func:`seed_cmb_alm` (the same draw), cut
+    at the beam's band limit L = :func:`sky.beam_band_limit` (B_ell^2 >= 1e-10): its maps
+    equal the full band's to < 1e-4 of their rms, at (L / lmax)^2 of the transforms."""
+    alm = seed_cmb_alm(lmax, r, master_seed, seed, fwhm_arcmin)
+    band = sky_cmb.beam_band_limit(fwhm_arcmin, lmax)
+    return hp.resize_alm(alm, lmax, lmax, band, band), band
+
+
 def measure_transfer(output_iqu: np.ndarray, input_iqu: np.ndarray, good: np.ndarray, lmax: int):
     """T_ell (3, lmax + 1) for TT, EE, BB: the cross pseudo-spectrum of the filtered-binned
     map with its input over their input pseudo-spectrum, both on the observed pixels

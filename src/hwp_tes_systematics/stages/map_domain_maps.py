@@ -6,7 +6,6 @@ from __future__ import annotations
 import logging
 import time
 
-import healpy as hp
 import pandas as pd
 
 from .. import config as cfg
@@ -90,13 +89,10 @@ def run_seeds(config: dict, channel_name: str, seeds, fixed_h5: str, out_h5s) ->
     operators = map_domain.SeedOperators(
         fixed, config["simulation"]["noise_scale"], lmax if filter_lmax is None else filter_lmax
     )
-    # the seed's beamed CMB is synthesised up to where the beam leaves 1e-10 of its power
-    cmb_band = sky.beam_band_limit(channel.fwhm_arcmin, lmax)
     for seed, out_h5 in zip(seeds, out_h5s, strict=True):
-        cmb_alm = map_domain.seed_cmb_alm(
+        cmb_alm, cmb_band = map_domain.band_limited_seed_cmb(
             lmax, config["simulation"]["cmb_r"], master_seed, seed, channel.fwhm_arcmin
         )
-        cmb_alm = hp.resize_alm(cmb_alm, lmax, lmax, cmb_band, cmb_band)
 
         def rng_of_detector(k, seed=seed):
             return seeding.rng(master_seed, "map-domain noise", channel_name, seed, detectors[k])
