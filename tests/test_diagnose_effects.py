@@ -87,6 +87,8 @@ def test_single_effect_found(tmp_path, effect, injected, truths, seed):
     # the evidence is measured on the recording (the effect's own text), not its signature
     top = result["effects"][0]
     assert top["evidence"] != top["signature"] and "sigma" in top["evidence"], top["evidence"]
+    if effect == "tes_nonlinearity":  # its 2f +- f_spin sidebands seen: no look-alike
+        assert top["look_alikes"] == [], top["look_alikes"]
     if effect == "hwpss_harmonics":  # its c2 is a 2f amplitude error: an adjustment
         for k in range(2):
             a2 = adjustment(result, k, "hwpss_2f_amplitude")

@@ -80,6 +80,21 @@ def test_nonlinearity_found_despite_nominal_errors(tmp_path, seed):
         assert within(entry, g1), entry
 
 
+def test_weak_nonlinearity_names_the_4f_harmonic_as_its_look_alike(tmp_path):
+    """g1 = -1e-3 in one hour: its 4f line (g1 A_2^2/2 = 35 uK) is seen, its sidebands
+    (g1 A_2 D ~ 0.4 uK) are not, so a 4f HWPSS in phase with twice the 2f phase would make
+    the same data: reported, with hwpss_harmonics named as a look-alike and why."""
+    errors = nominal_errors(np.random.default_rng(24))
+    recording, _ = recorded_with_errors(
+        tmp_path, [("tes_nonlinearity", {"g1": -1e-3})], 3124, errors, hours=1.0
+    )
+    result = run_with(recording, errors)
+    assert names(result) == ["tes_nonlinearity"], names(result)
+    top = result["effects"][0]
+    assert top["look_alikes"] == ["hwpss_harmonics"], top["look_alikes"]
+    assert "below detection" in top["evidence"], top["evidence"]
+
+
 @pytest.mark.parametrize(("seed", "noise_seed"), [(31, 3131), (28, 10_028)])
 def test_nonlinearity_with_4f_hwpss(tmp_path, seed, noise_seed):
     """A 4f HWPSS and a nonlinearity together: both, the nonlinearity with its g1.

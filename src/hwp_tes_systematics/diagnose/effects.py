@@ -185,6 +185,11 @@ class Effect:
         """The signature measured on the residual ``ev`` (:class:`.evidence.Evidence`), in words."""
         return self.signature
 
+    def unresolved_look_alikes(self, ev, fit) -> list[str]:
+        """Catalog effects this fit cannot be told from because the signature that would
+        tell them apart is below detection in this recording (none by default)."""
+        return []
+
     def __repr__(self) -> str:
         return f"<effect {self.name}>"
 
@@ -256,6 +261,18 @@ class TesNonlinearity(Effect):
                 )
             parts.append(text)
         return "; ".join(parts)
+
+    def unresolved_look_alikes(self, ev, fit) -> list[str]:
+        """A 4f HWPSS harmonic, when the sidebands g1 A_2 D that the nonlinearity predicts
+        are below 3 sigma together (both lines, all detectors): then the nonlinearity rests
+        on its 4f line alone, which a 4f harmonic in phase with twice the 2f phase makes too."""
+        snr2 = 0.0
+        for k in range(len(ev.ctx.detector_names)):
+            predicted = abs(fit.values["g1"][k]) * ev.a2[k] * ev.dipole_amplitude(k)
+            for line in ev.sidebands(k):
+                sigma = line[1]
+                snr2 += (predicted / sigma) ** 2 if sigma > 0 else 0.0
+        return ["hwpss_harmonics"] if snr2 < 9.0 else []
 
 
 class TesNonlinearityCubic(TesNonlinearity):

@@ -318,6 +318,17 @@ def diagnose(
                 f"within {-delta_bic_threshold:g} of it when it was selected): the data fit "
                 "either equally well, so read it as one of these"
             )
+        unresolved = [
+            other
+            for other in CATALOG[name].unresolved_look_alikes(evidence, fit)
+            if other not in ties.get(name, []) and other not in selection.ranked
+        ]
+        if unresolved:
+            text += (
+                f"; NOT told apart from {', '.join(unresolved)}: the signature that would "
+                "tell them apart is below detection in this recording"
+            )
+            ties[name] = sorted(set(ties.get(name, [])) | set(unresolved))
         effect = CATALOG[name]
         effects_out.append(
             {
