@@ -36,8 +36,9 @@ CHANNELS = {"M1-140": (True, 10), "L1-040": (False, 12)}  # (systematics, channe
 YEAR_DAYS = 365.25
 
 
-def measure(name, carries_systematics, nside, rate_hz, days, calibration_every=1):
-    """(seconds of the fixed pass of ``days``, seconds per seed)."""
+def measure(name, carries_systematics, nside, rate_hz, days, calibration_every=1, filter_lmax=None):
+    """(seconds of the fixed pass of ``days``, seconds per seed); the filter's T_ell and
+    S_ell measured up to ``filter_lmax`` (simulation.filter_lmax; None: the full band)."""
     channel = load_channel(name)
     plan = MissionPlan("2032-04-01T00:00:00", days * 86400.0, 86400.0, rate_hz)
     settings = PairMapSettings(
@@ -57,7 +58,14 @@ def measure(name, carries_systematics, nside, rate_hz, days, calibration_every=1
     alm = map_domain.transfer_cmb_alm(lmax, 0.0, 1, channel.fwhm_arcmin)
     started = time.perf_counter()
     fixed = map_domain.fixed_pass(
-        simulator, settings, foreground, alm, carries_systematics, lmax, calibration_every
+        simulator,
+        settings,
+        foreground,
+        alm,
+        carries_systematics,
+        lmax,
+        calibration_every,
+        measure_lmax=filter_lmax,
     )
     fixed_s = time.perf_counter() - started
     started = time.perf_counter()
@@ -144,14 +152,15 @@ def main() -> None:
         "--filter-lmax",
         type=int,
         default=None,
-        help="with --seeds-only: simulation.filter_lmax (default: 3 nside - 1)",
+        help="simulation.filter_lmax: the seeds' filter band and, without --seeds-only, the "
+        "band to which the fixed pass measures T_ell and S_ell (default: 3 nside - 1)",
     )
     arguments = parser.parse_args()
     if arguments.seeds_only:
         seed_costs(arguments.nside, arguments.filter_lmax)
         return
     for name, (carries, _) in CHANNELS.items():  # compile the kernels of both kinds
-        measure(name, carries, arguments.nside, arguments.rate, 0.05)
+        measure(name, carries, arguments.nside, arguments.rate, 0.05, 1, arguments.filter_lmax)
     total_core_s = 0.0
     print(
         f"nside {arguments.nside}, {arguments.rate:g} Hz, {arguments.seeds} seeds, one year, "
@@ -166,8 +175,12 @@ def main() -> None:
         # two durations: the slope is the cost per day, the intercept the once-per-pass part
         # (solving the maps, the transfer and noise-shaping spectra)
         point = (name, carries, arguments.nside, arguments.rate)
-        short_s, per_seed = measure(*point, arguments.days, arguments.calibration_every)
-        long_s, _ = measure(*point, 2 * arguments.days, arguments.calibration_every)
+        short_s, per_seed = measure(
+            *point, arguments.days, arguments.calibration_every, arguments.filter_lmax
+        )
+        long_s, _ = measure(
+            *point, 2 * arguments.days, arguments.calibration_every, arguments.filter_lmax
+        )
         per_day = (long_s - short_s) / arguments.days
         once_s = short_s - per_day * arguments.days
         year_s = per_day * YEAR_DAYS + once_s

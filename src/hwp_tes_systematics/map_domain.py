@@ -177,8 +177,8 @@ class FixedMaps:
     nosys: np.ndarray  # (3, npix) bin F(s_f + A_2 h) [K_CMB]
     template_terms: np.ndarray  # (3, n_det, 3, npix) terms of s_f [K_CMB^2]
     foreground_reference: np.ndarray  # (3, npix) bin F(fg) [K_CMB]
-    transfer: np.ndarray  # (3, lmax + 1) T_ell of TT, EE, BB [1]
-    noise_shaping: np.ndarray  # (3, lmax + 1) sqrt(N_ell of F n / N_ell of n) [1]
+    transfer: np.ndarray  # (3, measure_lmax + 1) T_ell of TT, EE, BB [1]
+    noise_shaping: np.ndarray  # (3, measure_lmax + 1) sqrt(N_ell of F n / N_ell of n) [1]
     matrix: np.ndarray  # (6, npix) sum_k M_k, MATRIX_ENTRIES order [K^-2]
     moments: np.ndarray  # (n_det, npix, 3, 6) M_k, H_k, Q_k [K^-2]; (0,) without systematics
     hits: np.ndarray
@@ -203,11 +203,18 @@ def fixed_pass(
     carries_systematics: bool,
     lmax: int,
     calibration_every_chunks: int = 1,
+    measure_lmax: int | None = None,
 ) -> FixedMaps:
     """The seed-independent TOD pass of one channel (see the module docstring): no CMB, no
-    noise; ``transfer_alm`` (beam-smoothed) is scanned alone to measure T_ell, and the
-    noise reference realization gives S_ell, both on every ``calibration_every_chunks``-th
-    chunk (:class:`tod_maps.Calibration`)."""
+    noise; ``transfer_alm`` (beam-smoothed, band ``lmax``) is scanned alone to measure
+    T_ell, and the noise reference realization gives S_ell, both on every
+    ``calibration_every_chunks``-th chunk (:class:`tod_maps.Calibration`), up to
+    ``measure_lmax`` (default ``lmax``): the seeds apply them up to
+    ``simulation.filter_lmax`` only, so measuring beyond it (full-band spherical
+    transforms, most of a pass's fixed cost at nside 512) buys nothing."""
+    measure_lmax = lmax if measure_lmax is None else measure_lmax
+    if not 0 < measure_lmax <= lmax:
+        raise ValueError(f"measure_lmax = {measure_lmax} must be in 1..lmax = {lmax}")
     transfer_input = hp.alm2map(transfer_alm, settings.nside, lmax=lmax, pixwin=False)
     moments = PixelMoments(settings.nside, simulator.n_detectors) if carries_systematics else None
     noiseless = dataclasses.replace(settings, noise_scale=0.0)
@@ -236,8 +243,10 @@ def fixed_pass(
         nosys=solved["nosys"],
         template_terms=solved["template_terms"],
         foreground_reference=foreground_reference,
-        transfer=measure_transfer(transfer_output, transfer_input, calibrated, lmax),
-        noise_shaping=measure_noise_shaping(noise_filtered, noise_unfiltered, calibrated, lmax),
+        transfer=measure_transfer(transfer_output, transfer_input, calibrated, measure_lmax),
+        noise_shaping=measure_noise_shaping(
+            noise_filtered, noise_unfiltered, calibrated, measure_lmax
+        ),
         matrix=equations.matrix,
         moments=moments.values if carries_systematics else np.zeros(0),
         hits=equations.hits,

@@ -52,6 +52,7 @@ def run_fixed_pass(
         carries_systematics,
         lmax,
         config["simulation"]["calibration_every_chunks"],
+        measure_lmax=config["simulation"]["filter_lmax"],  # null: the full band
     )
     attributes = maps_attributes(settings, simulator, fixed.good.mean())
     attributes["foreground_source"] = sky.read_sky_header(foreground_fits).get(
@@ -86,9 +87,14 @@ def run_seeds(config: dict, channel_name: str, seeds, fixed_h5: str, out_h5s) ->
         raise ValueError(
             f"simulation.filter_lmax = {filter_lmax} exceeds the map's band 3 nside - 1 = {lmax}"
         )
-    operators = map_domain.SeedOperators(
-        fixed, config["simulation"]["noise_scale"], lmax if filter_lmax is None else filter_lmax
-    )
+    filter_lmax = lmax if filter_lmax is None else filter_lmax
+    measured = fixed.transfer.shape[1] - 1
+    if measured < filter_lmax:
+        raise ValueError(
+            f"{fixed_h5}: the fixed pass measured the filter up to ell = {measured}, but "
+            f"simulation.filter_lmax asks for {filter_lmax}: rerun its fixed_pass rule"
+        )
+    operators = map_domain.SeedOperators(fixed, config["simulation"]["noise_scale"], filter_lmax)
     for seed, out_h5 in zip(seeds, out_h5s, strict=True):
         cmb_alm, cmb_band = map_domain.band_limited_seed_cmb(
             lmax, config["simulation"]["cmb_r"], master_seed, seed, channel.fwhm_arcmin
