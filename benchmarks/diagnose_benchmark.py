@@ -116,9 +116,9 @@ def _one(support, effects, seed, hours, folder):
 
 
 def _family(name: str) -> str:
-    """The effect a nested variant extends (tes_nonlinearity_cubic -> tes_nonlinearity)."""
-    effect = CATALOG.get(name)
-    return (effect.extends if effect is not None else None) or name
+    """The effect a nested variant extends (tes_nonlinearity_cubic -> tes_nonlinearity);
+    a name outside the catalog (an injection-only effect) is its own family."""
+    return CATALOG[name].family if name in CATALOG else name
 
 
 def _within(result, effect, name, truth) -> bool:

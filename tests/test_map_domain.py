@@ -53,18 +53,22 @@ def fixed_pass_inputs():
     return simulator, settings, foreground
 
 
+def m1_140_fixed_pass(measure_lmax=None):
+    """The fixed pass of :func:`fixed_pass_inputs`, T_ell and S_ell measured to ``measure_lmax``."""
+    simulator, settings, foreground = fixed_pass_inputs()
+    transfer_alm = map_domain.transfer_cmb_alm(
+        LMAX, 0.0, MASTER_SEED, load_channel("M1-140").fwhm_arcmin
+    )
+    return map_domain.fixed_pass(
+        simulator, settings, foreground, transfer_alm, True, LMAX, measure_lmax=measure_lmax
+    )
+
+
 @pytest.fixture(scope="module")
 def setup():
     channel = load_channel("M1-140")
     simulator, settings, foreground = fixed_pass_inputs()
-    fixed = map_domain.fixed_pass(
-        simulator,
-        settings,
-        foreground,
-        map_domain.transfer_cmb_alm(LMAX, 0.0, MASTER_SEED, channel.fwhm_arcmin),
-        True,
-        LMAX,
-    )
+    fixed = m1_140_fixed_pass()
     full = {}
     for seed in SEEDS:
         cmb = sky.cmb_map(NSIDE, LMAX, 0.0, MASTER_SEED, seed, channel.fwhm_arcmin)
@@ -362,18 +366,8 @@ def test_fixed_pass_measures_the_filter_to_the_band_it_is_applied_to(setup):
     measurement's first multipoles (to the transforms' quadrature iterations), S_ell is
     calibrated for the band-limited shaping the seeds apply, and the maps are unchanged."""
     fixed = setup[0]
-    simulator, settings, foreground = fixed_pass_inputs()
-    channel = load_channel("M1-140")
     band = 20
-    limited = map_domain.fixed_pass(
-        simulator,
-        settings,
-        foreground,
-        map_domain.transfer_cmb_alm(LMAX, 0.0, MASTER_SEED, channel.fwhm_arcmin),
-        True,
-        LMAX,
-        measure_lmax=band,
-    )
+    limited = m1_140_fixed_pass(measure_lmax=band)
     assert limited.transfer.shape == (3, band + 1)
     assert limited.noise_shaping.shape == (3, band + 1)
     np.testing.assert_allclose(limited.transfer, fixed.transfer[:, : band + 1], rtol=0, atol=0.03)
@@ -385,6 +379,4 @@ def test_fixed_pass_measures_the_filter_to_the_band_it_is_applied_to(setup):
     )
     np.testing.assert_array_equal(limited.nosys, fixed.nosys)
     with pytest.raises(ValueError, match="measure_lmax"):
-        map_domain.fixed_pass(
-            simulator, settings, foreground, np.zeros(1), True, LMAX, measure_lmax=LMAX + 1
-        )
+        m1_140_fixed_pass(measure_lmax=LMAX + 1)

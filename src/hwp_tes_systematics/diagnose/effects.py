@@ -163,6 +163,11 @@ class Effect:
     discrimination: str = ""
     extends: str | None = None  # the simpler catalog effect this one nests (same physics)
 
+    @property
+    def family(self) -> str:
+        """The physics it names: the effect it nests (``extends``), else itself."""
+        return self.extends or self.name
+
     def param_units(self, ctx: Context | None = None) -> dict[str, str]:
         """Parameter -> unit for this recording (most effects: the fixed ``parameters``)."""
         return dict(self.parameters)

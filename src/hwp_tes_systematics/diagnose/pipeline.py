@@ -117,12 +117,11 @@ def look_alikes(steps, threshold: float) -> dict[str, list[str]]:
     A nested variant of the same physics (``Effect.extends``) is not a look-alike.
     """
 
+    def family(name: str) -> str:
+        return CATALOG[name].family if name in CATALOG else name
+
     def same_physics(a: str, b: str) -> bool:
-        return (
-            a == b
-            or getattr(CATALOG.get(a), "extends", None) == b
-            or (getattr(CATALOG.get(b), "extends", None) == a)
-        )
+        return family(a) == family(b)
 
     out: dict[str, list[str]] = {}
     for step in steps:
