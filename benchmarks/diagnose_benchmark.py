@@ -53,29 +53,75 @@ EFFECTS = {
 }
 
 
-# effect -> (main parameter, amplitudes from barely detectable to strong, params(amplitude),
-#            accepted top-ranked names)
+# effect -> (main parameter, amplitudes from barely detectable to strong,
+#            params(amplitude, rng), accepted top-ranked names). What is not the amplitude is
+#            drawn per recording (phases of lines, sign and shape of drifts, times of events):
+#            the diagnosis is scored on the effect's physics, not on one configuration of it.
+
+
+def _phase(rng) -> float:
+    return float(rng.uniform(0.0, 2.0 * np.pi))
+
+
+def _line(n: int, amplitude: float, rng) -> dict:
+    """c_n cos + s_n sin of amplitude ``amplitude`` and random phase."""
+    phase = _phase(rng)
+    return {f"c{n}": amplitude * np.cos(phase), f"s{n}": amplitude * np.sin(phase)}
+
+
+def _drift(amplitude: float, rng) -> dict:
+    """c1 = +-amplitude, c2 and c3 up to half of it: a slow drift of random sign and shape."""
+    return {
+        "c1": amplitude * rng.choice([-1.0, 1.0]),
+        "c2": amplitude * rng.uniform(-0.5, 0.5),
+        "c3": amplitude * rng.uniform(-0.5, 0.5),
+    }
+
+
 AMPLITUDES = {
-    "tes_nonlinearity": ("g1", [-1e-3, -3e-3, -1e-2], lambda a: {"g1": a}, None),
-    "hwpss_harmonics": ("c4", [2e-6, 6e-6, 20e-6], lambda a: {"c4": a, "s3": a}, None),
-    "hwpss_intensity_coupling": ("a2c", [5e-4, 2e-3, 1e-2], lambda a: {"a2c": a}, None),
-    "gain_drift": ("g1", [1e-3, 3e-3, 3e-2], lambda a: {"g1": a}, None),
+    "tes_nonlinearity": ("g1", [-1e-3, -3e-3, -1e-2], lambda a, rng: {"g1": a}, None),
+    "hwpss_harmonics": (
+        "c4",
+        [2e-6, 6e-6, 20e-6],
+        lambda a, rng: {**_line(4, a, rng), **_line(3, a, rng)},
+        None,
+    ),
+    "hwpss_intensity_coupling": (
+        "a2c",
+        [5e-4, 2e-3, 1e-2],
+        lambda a, rng: {"a2c": a * np.cos(p := _phase(rng)), "a2s": a * np.sin(p)},
+        None,
+    ),
+    "gain_drift": (
+        "g1",
+        [1e-3, 3e-3, 3e-2],
+        lambda a, rng: {f"g{j}": v for j, v in enumerate(_drift(a, rng).values(), 1)},
+        None,
+    ),
     "hwp_temperature_drift": (
         "c1",
         [3e-6, 1e-5, 1e-4],
-        lambda a: {"c1": a},
+        _drift,
         {"hwp_temperature_drift", "hwpss_slow_modulation"},
     ),
     "glitches": (
         None,
         [3e-4, 1e-3, 3e-3],
-        lambda a: {"events": [(k % 2, 600.0 + 1500.0 * k, a, 0.1) for k in range(4)]},
+        lambda a, rng: {
+            "events": [
+                (k % 2, 600.0 + 1500.0 * k + rng.uniform(0.0, 1000.0), a, 0.1) for k in range(4)
+            ]
+        },
         None,
     ),
     "hwpss_sine_modulation": (
         None,
         [1e-4, 1e-3, 1e-2],
-        lambda a: {"relative": a, "period_s": 5400.0, "phase_rad": 0.3},
+        lambda a, rng: {
+            "relative": a,
+            "period_s": float(rng.uniform(3600.0, 3 * 3600.0)),
+            "phase_rad": _phase(rng),
+        },
         {"hwpss_slow_modulation", "hwp_temperature_drift"},
     ),
 }
@@ -169,7 +215,8 @@ def rates(arguments) -> None:
             for amplitude in amplitudes:
                 found = correct = within = reported = tied = 0
                 for _ in range(n_seeds):
-                    result = _one(support, [(effect, make(amplitude))], seed, hours, folder)
+                    injected = make(amplitude, np.random.default_rng([seed, 1]))
+                    result = _one(support, [(effect, injected)], seed, hours, folder)
                     seed += 1
                     names = [_family(e["name"]) for e in result["effects"]]
                     found += bool(accepted & set(names))  # among the effects
@@ -179,7 +226,7 @@ def rates(arguments) -> None:
                         ties = {_family(n) for n in result["effects"][0].get("look_alikes", [])}
                         tied += names[0] not in accepted and bool(accepted & ties)
                     if param is not None and names and names[0] in accepted:
-                        within += _within(result, effect, param, amplitude)
+                        within += _within(result, effect, param, injected[param])
                 top_ok += correct
                 top_n += reported
                 top_tied += tied

@@ -183,3 +183,22 @@ def test_gain_drift_and_2f_drift_not_told_apart_in_one_hour_are_named_together(t
     top = result["effects"][0]
     assert {top["name"], *top["look_alikes"]} >= {"gain_drift", "hwp_temperature_drift"}, top
     assert "NOT told apart" in top["evidence"]
+
+
+def test_gain_drift_scales_the_signal_not_the_detector_offset(tmp_path):
+    """A gain drift of 3e-3 in six hours on detectors with a 10 mK offset: the responsivity
+    scales the signal (HWPSS, dipole, sky), not the readout offset, so the gain-drift model
+    must not predict a drift of the offset. With the offset in its templates it predicted a
+    30 uK ramp the data do not have and lost to the HWP temperature drift (2f only) although
+    the dipole's drift tells them apart here."""
+    errors = nominal_errors(np.random.default_rng(17))
+    errors["offset_k"] = np.array([10e-3, -10e-3])
+    recording, _ = recorded_with_errors(
+        tmp_path, [("gain_drift", {"g1": 3e-3})], 10_017, errors, hours=6.0
+    )
+    result = run_with(recording, errors)
+    top = result["effects"][0]
+    assert top["name"] == "gain_drift", names(result)
+    assert "hwp_temperature_drift" not in top["look_alikes"], top["look_alikes"]
+    for k in range(2):
+        assert within(parameter(result, "gain_drift", "g1", k), 3e-3)

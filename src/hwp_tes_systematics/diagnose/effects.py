@@ -55,8 +55,8 @@ hwpss_intensity_coupling
     apart   proportional to I, not to A_2 I; no 4f line, no DC (a nonlinearity making the
             same sidebands, g1 = a / (2 A_2), would add a 4f line g1 A_2^2/2)
 gain_drift
-    model   [sum_{j=1..3} g_j P_j(x)] d_nom (gain drift; a constant gain error is a nominal
-            adjustment); g_j [1]
+    model   [sum_{j=1..3} g_j P_j(x)] (d_nom - <d_nom>) (gain drift of the signal, not of the
+            readout offset; a constant gain error is a nominal adjustment); g_j [1]
     sign.   residual proportional to the whole signal, changing in time; the dipole amplitude
             drifts together with the 2f HWPSS
     apart   multiplies the dipole and the sky too; the HWP temperature drift moves only the 2f
@@ -464,7 +464,14 @@ class HwpssIntensityCoupling(Effect):
 
 
 class GainDrift(Effect):
-    """Relative gain drift: d_obs = [1 + sum_j g_j P_j(x)] d, j = 1..3 (g0: a nominal adjustment)."""
+    """Relative gain drift: d_obs = [1 + sum_j g_j P_j(x)] d, j = 1..3 (g0: a nominal adjustment).
+
+    The templates multiply the signal's variations, d - <d>, not its DC level: a detector's
+    DC level is mostly a readout offset that the responsivity does not scale, and a drift of
+    the DC level cannot be told from the 1/f noise anyway. (With <d> in the template, a gain
+    drift of 3e-3 on a 2 mK offset adds a 6 uK ramp that the data do not have, and loses to
+    the HWP temperature drift by ~13 in BIC on a recording with a pure gain drift.)
+    """
 
     name = "gain_drift"
     title = "gain error and drift"
@@ -475,6 +482,7 @@ class GainDrift(Effect):
 
     def templates(self, ctx):
         d = ctx.d_nom
+        d = d - np.array([d[k][ctx.valid[k]].mean() for k in range(ctx.n_detectors)])[:, None]
         return np.stack([ctx.legendre(j)[None, :] * d for j in GAIN_DEGREES], axis=1)
 
     def apply(self, ctx, params, tod=None):
