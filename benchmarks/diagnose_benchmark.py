@@ -15,8 +15,11 @@ Rates (``--rates``): recordings of the M1-140 pair, each with RANDOM nominal err
 polarisation angle ~0.5 deg, offsets, noise level ~10 %, knee ~30 %, the supplied sky
 rescaled ~5 % plus a residual map) and its own noise seed: ``--clean`` clean ones (false
 alarms: ``mismatch_found``), each catalog effect at three amplitudes from barely
-detectable to strong (``--seeds`` recordings each), pairs of effects and two effects
-outside the catalog. Prints per case the detection rate, the rate at which the
+detectable to strong (``--seeds`` recordings each; the phases of lines, the sign and
+shape of drifts and the times of events drawn per recording), a time constant alone (a 2f
+phase adjustment: no effect, its lag in the adjusted phase), pairs of effects and two
+effects outside the catalog; ``--only`` runs some of these cases (several runs with
+far-apart ``--first-seed`` add up). Prints per case the detection rate, the rate at which the
 top-ranked effect is the injected one and its main parameter within 3 sigma, the
 detection threshold of each effect (the smallest amplitude found in >= 90 % of its
 recordings), the false-alarm rate and whether every out-of-catalog effect landed in
@@ -125,25 +128,41 @@ AMPLITUDES = {
         {"hwpss_slow_modulation", "hwp_temperature_drift"},
     ),
 }
+# pair -> (injected effects, the effects the report must list). A time constant is a 2f
+# phase adjustment, not an effect: for 2 pi f tau << 1 a single pole is a time delay, the
+# nonlinearity's 4f line lags by twice the 2f lag, as d_nom^2 with the adjusted phase does.
 PAIRS = {
-    "nonlinearity+gain_drift": [("tes_nonlinearity", {"g1": -1e-2}), ("gain_drift", {"g1": 1e-2})],
-    "nonlinearity+4f_hwpss": [
-        ("tes_nonlinearity", {"g1": -2e-2}),
-        ("hwpss_harmonics", {"c4": 60e-6, "s4": -30e-6}),
-    ],
-    "harmonics+glitches": [
-        ("hwpss_harmonics", {"c3": 20e-6}),
-        ("glitches", {"events": [(0, 900.0, 3e-3, 0.1), (1, 2000.0, 5e-3, 0.05)]}),
-    ],
+    "nonlinearity+gain_drift": (
+        [("tes_nonlinearity", {"g1": -1e-2}), ("gain_drift", {"g1": 1e-2})],
+        {"tes_nonlinearity", "gain_drift"},
+    ),
+    "nonlinearity+4f_hwpss": (
+        [("tes_nonlinearity", {"g1": -2e-2}), ("hwpss_harmonics", {"c4": 60e-6, "s4": -30e-6})],
+        {"tes_nonlinearity", "hwpss_harmonics"},
+    ),
+    "nonlinearity+time_constant": (
+        [("tes_nonlinearity", {"g1": -2e-2}), ("detector_time_constant", {"tau": 3e-3})],
+        {"tes_nonlinearity"},
+    ),
+    "harmonics+glitches": (
+        [
+            ("hwpss_harmonics", {"c3": 20e-6}),
+            ("glitches", {"events": [(0, 900.0, 3e-3, 0.1), (1, 2000.0, 5e-3, 0.05)]}),
+        ],
+        {"hwpss_harmonics", "glitches"},
+    ),
 }
+# a time constant alone: no effect, its lag atan(2 pi 2 f_HWP tau) in the 2f phase adjustment
+TIME_CONSTANTS_S = [1e-3, 3e-3, 1e-2]
 OUTSIDE = {
     "pickup_line": ("pickup_line", {"freq_hz": 1.7, "amplitude_k": 20e-6}),
     "spin_modulated_3f": ("hwpss_spin_modulation", {"harmonic": 3, "amplitude_k": 40e-6}),
 }
 
 
-def _one(support, effects, seed, hours, folder):
-    """Simulate with random nominal errors, diagnose; the result. One line on stderr."""
+def _one(support, effects, seed, hours, folder, with_errors=False):
+    """Simulate with random nominal errors, diagnose; the result (and the errors drawn, with
+    ``with_errors``). One line on stderr."""
     started = time.perf_counter()
     errors = support.nominal_errors(np.random.default_rng(seed))
     recording, _ = support.recorded_with_errors(
@@ -158,7 +177,19 @@ def _one(support, effects, seed, hours, folder):
         file=sys.stderr,
         flush=True,
     )
-    return result
+    return (result, errors) if with_errors else result
+
+
+def _lag_in_phase(result, errors, tau_s) -> bool:
+    """The fitted 2f phase = phase error + 2 x polarisation-angle error + atan(2 pi 2 f_HWP
+    tau), within 3 sigma, on every detector."""
+    lag_deg = np.degrees(np.arctan(2 * np.pi * 2 * result["recording"]["f_hwp_hz"] * tau_s))
+    for k, det in enumerate(result["recording"]["detectors"]):
+        phase = result["nominal_adjustments"][det]["hwpss_2f_phase"]
+        truth = errors["phase_deg"][k] + 2 * errors["pol_angle_deg"][k] + lag_deg
+        if not abs(phase["value"] - truth) < 3 * phase["sigma"] + 1e-6:
+            return False
+    return True
 
 
 def _family(name: str) -> str:
@@ -201,15 +232,21 @@ def rates(arguments) -> None:
         lines.append(line)
         print("  " + line, flush=True)
 
+    def wanted(case: str) -> bool:
+        return not arguments.only or case in arguments.only
+
     with tempfile.TemporaryDirectory() as folder:
         seed = arguments.first_seed
         alarms = 0
-        for _ in range(arguments.clean):
+        for _ in range(arguments.clean if wanted("clean") else 0):
             result = _one(support, [], seed, hours, folder)
             seed += 1
             alarms += bool(result["mismatch_found"])
-        report(f"clean: false alarms {alarms} / {arguments.clean}")
+        if wanted("clean"):
+            report(f"clean: false alarms {alarms} / {arguments.clean}")
         for effect, (param, amplitudes, make, accepted) in AMPLITUDES.items():
+            if not wanted(effect):
+                continue
             accepted = accepted or {effect}
             found_at = []
             for amplitude in amplitudes:
@@ -246,16 +283,39 @@ def rates(arguments) -> None:
                 )
             detected = [a for a, rate in found_at if rate >= 0.9]
             thresholds[effect] = min(detected, key=abs) if detected else None
-        for label, effects in PAIRS.items():
+        for label, (effects, expected) in PAIRS.items():
+            if not wanted(label):
+                continue
             both = 0
             for _ in range(n_seeds):
                 result = _one(support, effects, seed, hours, folder)
                 seed += 1
                 names = {_family(e["name"]) for e in result["effects"]}
-                both += {name for name, _ in effects} <= names
-            report(f"pair {label}: both found {both}/{n_seeds}")
+                both += expected <= names
+            report(f"pair {label}: {' and '.join(sorted(expected))} found {both}/{n_seeds}")
+        if wanted("detector_time_constant"):
+            for tau in TIME_CONSTANTS_S:
+                quiet = lagged = 0
+                for _ in range(n_seeds):
+                    result, errors = _one(
+                        support,
+                        [("detector_time_constant", {"tau": tau})],
+                        seed,
+                        hours,
+                        folder,
+                        with_errors=True,
+                    )
+                    seed += 1
+                    quiet += not result["mismatch_found"]
+                    lagged += _lag_in_phase(result, errors, tau)
+                report(
+                    f"detector_time_constant tau = {tau:g} s alone: no effect {quiet}/{n_seeds}, "
+                    f"its lag in the 2f phase adjustment within 3 sigma {lagged}/{n_seeds}"
+                )
         outside_ok = True
         for label, effect in OUTSIDE.items():
+            if not wanted(label):
+                continue
             landed = 0
             for _ in range(n_seeds):
                 result = _one(support, [effect], seed, hours, folder)
@@ -302,6 +362,10 @@ def main() -> None:
         default=1,
         help="seed of the first recording (--rates); runs with far-apart first seeds draw "
         "independent recordings and can run in parallel",
+    )
+    cases = ["clean", *AMPLITUDES, "detector_time_constant", *PAIRS, *OUTSIDE]
+    parser.add_argument(
+        "--only", nargs="+", choices=cases, metavar="CASE", help=f"--rates cases: {cases}"
     )
     arguments = parser.parse_args()
     if arguments.rates:

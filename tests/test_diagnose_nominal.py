@@ -121,6 +121,31 @@ def test_nonlinearity_with_4f_hwpss(tmp_path, seed, noise_seed):
         assert within(entry, g1), entry
 
 
+def test_nonlinearity_with_a_time_constant(tmp_path):
+    """A nonlinearity seen through a 3 ms detector time constant: g1 found, the lag in the
+    2f phase adjustment.
+
+    For 2 pi f tau << 1 a single pole is a time delay (lag 2 pi f tau at every frequency),
+    so the nonlinearity's 4f line lags twice as much as the 2f HWPSS, exactly what d_nom^2
+    with the adjusted 2f phase predicts: the time constant stays a 2f phase adjustment (its
+    equivalent tau reported there) and g1 is not biased by the 4f lag. What would tell tau
+    apart from a phase error, the amplitude loss (2 pi f tau)^2 / 2 and the lag's curvature,
+    is ~1e-7 K here.
+    """
+    errors = nominal_errors(np.random.default_rng(41))
+    g1, tau = -2e-2, 3e-3
+    effects = [("tes_nonlinearity", {"g1": g1}), ("detector_time_constant", {"tau": tau})]
+    recording, _ = recorded_with_errors(tmp_path, effects, 10_041, errors, hours=2.0)
+    result = run_with(recording, errors)
+    assert names(result) == ["tes_nonlinearity"], names(result)
+    f_hwp = result["recording"]["f_hwp_hz"]
+    lag_deg = math.degrees(math.atan(2 * math.pi * 2 * f_hwp * tau))
+    for k in range(2):
+        assert within(parameter(result, "tes_nonlinearity", "g1", k), g1)
+        phase_true = errors["phase_deg"][k] + 2 * errors["pol_angle_deg"][k] + lag_deg
+        assert within(adjustment(result, k, "hwpss_2f_phase"), phase_true, floor=1e-6)
+
+
 def test_slow_periodic_a2_modulation(tmp_path):
     """A 1 % sinusoidal modulation of A_2 with a 1.5 h period: hwpss_slow_modulation (any shape).
 
