@@ -17,7 +17,8 @@ rescaled ~5 % plus a residual map) and its own noise seed: ``--clean`` clean one
 alarms: ``mismatch_found``), each catalog effect at three amplitudes from barely
 detectable to strong (``--seeds`` recordings each; the phases of lines, the sign and
 shape of drifts and the times of events drawn per recording), a time constant alone (a 2f
-phase adjustment: no effect, its lag in the adjusted phase), pairs of effects and two
+phase adjustment: no effect and its lag in the adjusted phase, or, where the lag of the
+other frequencies shows, the effect with its tau), pairs of effects and two
 effects outside the catalog; ``--only`` runs some of these cases (several runs with
 far-apart ``--first-seed`` add up). Prints per case the detection rate, the rate at which the
 top-ranked effect is the injected one and its main parameter within 3 sigma, the
@@ -30,6 +31,7 @@ false alarms <= 5 %, every out-of-catalog effect in ``unexplained``.
 from __future__ import annotations
 
 import argparse
+import json
 import resource
 import sys
 import tempfile
@@ -152,7 +154,8 @@ PAIRS = {
         {"hwpss_harmonics", "glitches"},
     ),
 }
-# a time constant alone: no effect, its lag atan(2 pi 2 f_HWP tau) in the 2f phase adjustment
+# a time constant alone: its lag atan(2 pi 2 f_HWP tau) in the 2f phase adjustment (no effect),
+# or, where the lag of the other frequencies shows, the effect with its tau
 TIME_CONSTANTS_S = [1e-3, 3e-3, 1e-2]
 OUTSIDE = {
     "pickup_line": ("pickup_line", {"freq_hz": 1.7, "amplitude_k": 20e-6}),
@@ -218,84 +221,78 @@ def _within(result, effect, name, truth) -> bool:
     return False
 
 
-def rates(arguments) -> None:
-    """Many recordings with random nominal errors: the rates and thresholds (module docstring)."""
+def _tally(counts: dict, key: str, **increments) -> None:
+    """Add ``increments`` to the counters ``counts[key]`` (created at zero)."""
+    entry = counts.setdefault(key, {})
+    for name, value in increments.items():
+        entry[name] = entry.get(name, 0) + int(value)
+
+
+def rates(arguments) -> dict:
+    """Many recordings with random nominal errors: the counts behind the rates (module
+    docstring), printed as they come and returned (``--out`` writes them as JSON)."""
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
     import test_diagnose_support as support
 
     hours, n_seeds = arguments.hours, arguments.seeds
     started = time.perf_counter()
-    lines, top_ok, top_n, top_tied, par_ok, par_n = [], 0, 0, 0, 0, 0
-    thresholds = {}
-
-    def report(line: str) -> None:  # kept for the summary, and shown as soon as known
-        lines.append(line)
-        print("  " + line, flush=True)
+    counts = {
+        "hours": hours,
+        "first_seeds": [arguments.first_seed],
+        "clean": {},
+        "effects": {},
+        "pairs": {},
+        "time_constants": {},
+        "outside": {},
+    }
 
     def wanted(case: str) -> bool:
         return not arguments.only or case in arguments.only
 
     with tempfile.TemporaryDirectory() as folder:
         seed = arguments.first_seed
-        alarms = 0
         for _ in range(arguments.clean if wanted("clean") else 0):
             result = _one(support, [], seed, hours, folder)
             seed += 1
-            alarms += bool(result["mismatch_found"])
-        if wanted("clean"):
-            report(f"clean: false alarms {alarms} / {arguments.clean}")
+            _tally(counts, "clean", n=1, alarms=result["mismatch_found"])
         for effect, (param, amplitudes, make, accepted) in AMPLITUDES.items():
             if not wanted(effect):
                 continue
             accepted = accepted or {effect}
-            found_at = []
+            cases = counts["effects"].setdefault(effect, {"param": param, "amplitudes": {}})
             for amplitude in amplitudes:
-                found = correct = within = reported = tied = 0
                 for _ in range(n_seeds):
                     injected = make(amplitude, np.random.default_rng([seed, 1]))
                     result = _one(support, [(effect, injected)], seed, hours, folder)
                     seed += 1
                     names = [_family(e["name"]) for e in result["effects"]]
-                    found += bool(accepted & set(names))  # among the effects
-                    correct += bool(names) and names[0] in accepted  # ranked first
-                    if names:
-                        reported += 1
-                        ties = {_family(n) for n in result["effects"][0].get("look_alikes", [])}
-                        tied += names[0] not in accepted and bool(accepted & ties)
-                    if param is not None and names and names[0] in accepted:
-                        within += _within(result, effect, param, injected[param])
-                top_ok += correct
-                top_n += reported
-                top_tied += tied
-                if param is not None:
-                    par_ok += within
-                    par_n += found
-                found_at.append((amplitude, found / n_seeds))
-                report(
-                    f"{effect} {param or 'amplitude'} = {amplitude:g}: found {found}/{n_seeds}, "
-                    f"top-ranked correct {correct}/{reported} reported"
-                    + (
-                        f" ({tied} more with the truth named as an equal look-alike)"
-                        if tied
-                        else ""
+                    top_ok = bool(names) and names[0] in accepted
+                    ties = {
+                        _family(n) for n in (result["effects"] or [{}])[0].get("look_alikes", [])
+                    }
+                    _tally(
+                        cases["amplitudes"],
+                        f"{amplitude:g}",
+                        n=1,
+                        found=bool(accepted & set(names)),  # among the effects
+                        reported=bool(names),
+                        correct=top_ok,  # ranked first
+                        tied=bool(names) and not top_ok and bool(accepted & ties),
+                        within=param is not None
+                        and top_ok
+                        and _within(result, effect, param, injected[param]),
                     )
-                    + (f", parameter within 3 sigma {within}/{found}" if param else "")
-                )
-            detected = [a for a, rate in found_at if rate >= 0.9]
-            thresholds[effect] = min(detected, key=abs) if detected else None
+                print("  " + _amplitude_line(effect, param, amplitude, cases), flush=True)
         for label, (effects, expected) in PAIRS.items():
             if not wanted(label):
                 continue
-            both = 0
             for _ in range(n_seeds):
                 result = _one(support, effects, seed, hours, folder)
                 seed += 1
                 names = {_family(e["name"]) for e in result["effects"]}
-                both += expected <= names
-            report(f"pair {label}: {' and '.join(sorted(expected))} found {both}/{n_seeds}")
+                _tally(counts["pairs"], label, n=1, found=expected <= names)
         if wanted("detector_time_constant"):
             for tau in TIME_CONSTANTS_S:
-                quiet = lagged = 0
                 for _ in range(n_seeds):
                     result, errors = _one(
                         support,
@@ -306,40 +303,193 @@ def rates(arguments) -> None:
                         with_errors=True,
                     )
                     seed += 1
-                    quiet += not result["mismatch_found"]
-                    lagged += _lag_in_phase(result, errors, tau)
-                report(
-                    f"detector_time_constant tau = {tau:g} s alone: no effect {quiet}/{n_seeds}, "
-                    f"its lag in the 2f phase adjustment within 3 sigma {lagged}/{n_seeds}"
-                )
-        outside_ok = True
+                    top = (result["effects"] or [{"name": None}])[0]["name"]
+                    _tally(
+                        counts["time_constants"],
+                        f"{tau:g}",
+                        n=1,
+                        in_phase=not result["mismatch_found"]
+                        and _lag_in_phase(result, errors, tau),
+                        as_effect=top == "detector_time_constant"
+                        and _within(result, "detector_time_constant", "tau", tau),
+                    )
         for label, effect in OUTSIDE.items():
             if not wanted(label):
                 continue
-            landed = 0
             for _ in range(n_seeds):
                 result = _one(support, [effect], seed, hours, folder)
                 seed += 1
-                landed += bool(result["unexplained"])
-            outside_ok &= landed == n_seeds
-            report(f"outside the catalog {label}: in unexplained {landed}/{n_seeds}")
-    print(
-        f"{hours:g} h M1-140 pair recordings with random nominal errors "
-        f"({seed - arguments.first_seed} recordings, "
-        f"{time.perf_counter() - started:.0f} s)"
+                _tally(counts["outside"], label, n=1, landed=bool(result["unexplained"]))
+    counts["recordings"] = seed - arguments.first_seed
+    counts["seconds"] = round(time.perf_counter() - started)
+    return counts
+
+
+def _amplitude_line(effect: str, param: str | None, amplitude: float, cases: dict) -> str:
+    c = cases["amplitudes"][f"{amplitude:g}"]
+    return (
+        f"{effect} {param or 'amplitude'} = {amplitude:g}: found {c['found']}/{c['n']}, "
+        f"top-ranked correct {c['correct']}/{c['reported']} reported"
+        + (f" ({c['tied']} more with the truth named as an equal look-alike)" if c["tied"] else "")
+        + (f", parameter within 3 sigma {c['within']}/{c['correct']}" if param else "")
     )
-    for line in lines:
-        print("  " + line)
-    print(
-        f"top-ranked effect correct: {top_ok}/{top_n} = {top_ok / max(top_n, 1):.0%} of the "
-        f"recordings where an effect was reported; {top_tied} more had the truth named as an "
-        "equal look-alike of the top one"
+
+
+def merge_counts(a: dict, b: dict) -> dict:
+    """Two runs' counts added up (numbers summed, lists joined, the rest from ``a``)."""
+    out = dict(a)
+    for key, value in b.items():
+        if key not in a:
+            out[key] = value
+        elif isinstance(value, dict):
+            out[key] = merge_counts(a[key], value)
+        elif isinstance(value, list) or (isinstance(value, (int, float)) and key != "hours"):
+            out[key] = a[key] + value
+    return out
+
+
+def summary(counts: dict) -> list[str]:
+    """The rates, the targets' four numbers and the thresholds, as lines of text."""
+    lines = [
+        (
+            f"{counts['hours']:g} h M1-140 pair recordings with random nominal errors "
+            f"({counts['recordings']} recordings, {counts['seconds']} s of wall time, first "
+            f"seeds {counts['first_seeds']})"
+        )
+    ]
+    clean = counts["clean"]
+    if clean:
+        lines.append(f"  clean: false alarms {clean['alarms']} / {clean['n']}")
+    top_ok = top_n = tied = par_ok = par_n = 0
+    thresholds = {}
+    for effect, cases in counts["effects"].items():
+        detected = []
+        for label, c in cases["amplitudes"].items():
+            lines.append("  " + _amplitude_line(effect, cases["param"], float(label), cases))
+            top_ok, top_n, tied = top_ok + c["correct"], top_n + c["reported"], tied + c["tied"]
+            if cases["param"] is not None:
+                par_ok, par_n = par_ok + c["within"], par_n + c["correct"]
+            if c["found"] >= 0.9 * c["n"]:
+                detected.append(float(label))
+        thresholds[effect] = min(detected, key=abs) if detected else None
+    for label, c in counts["pairs"].items():
+        expected = " and ".join(sorted(PAIRS[label][1])) if label in PAIRS else "both"
+        lines.append(f"  pair {label}: {expected} found {c['found']}/{c['n']}")
+    for tau, c in counts["time_constants"].items():
+        lines.append(
+            f"  detector_time_constant tau = {tau} s alone: its lag in the 2f phase adjustment "
+            f"(no effect) {c['in_phase']}/{c['n']}, reported as the effect with tau within 3 "
+            f"sigma {c['as_effect']}/{c['n']}, otherwise {c['n'] - c['in_phase'] - c['as_effect']}"
+        )
+    for label, c in counts["outside"].items():
+        lines.append(f"  outside the catalog {label}: in unexplained {c['landed']}/{c['n']}")
+    lines.append(
+        f"top-ranked effect correct: {top_ok}/{top_n} = {top_ok / max(top_n, 1):.1%} of the "
+        f"recordings where an effect was reported (target >= 90 %); {tied} more had the truth "
+        "named as an equal look-alike of the top one"
     )
-    print(f"main parameter within 3 sigma: {par_ok}/{par_n} = {par_ok / max(par_n, 1):.0%}")
-    print(f"every out-of-catalog effect in unexplained: {outside_ok}")
-    print("detection thresholds (smallest amplitude found >= 90 %):")
+    lines.append(
+        f"main parameter within 3 sigma: {par_ok}/{par_n} = {par_ok / max(par_n, 1):.1%} "
+        "(target >= 80 %)"
+    )
+    if clean:
+        lines.append(
+            f"false alarms: {clean['alarms']}/{clean['n']} = "
+            f"{clean['alarms'] / max(clean['n'], 1):.1%} (target <= 5 %)"
+        )
+    outside_ok = all(c["landed"] == c["n"] for c in counts["outside"].values())
+    lines.append(f"every out-of-catalog effect in unexplained: {outside_ok}")
+    lines.append("detection thresholds (smallest amplitude found >= 90 %):")
     for effect, value in thresholds.items():
-        print(f"  {effect}: {value if value is not None else 'above the largest tried'}")
+        lines.append(f"  {effect}: {value if value is not None else 'above the largest tried'}")
+    return lines
+
+
+def rates_figure(counts: dict, path: Path) -> None:
+    """Per effect, versus amplitude: found, top-ranked correct and parameter within 3 sigma
+    (fractions of the recordings); the last panel: false alarms, pairs, time constants and
+    out-of-catalog effects."""
+    import matplotlib
+    import matplotlib.ticker
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from hwp_tes_systematics.io import atomic_path
+
+    effects = list(counts["effects"].items())
+    columns = 4
+    rows = (len(effects) + 1 + columns - 1) // columns
+    figure, axes = plt.subplots(rows, columns, figsize=(4 * columns, 3.2 * rows), squeeze=False)
+    axes = axes.ravel()
+    for ax, (effect, cases) in zip(axes, effects, strict=False):
+        amplitudes = [float(a) for a in cases["amplitudes"]]
+        entries = list(cases["amplitudes"].values())
+        x = np.abs(amplitudes)
+        n = np.array([c["n"] for c in entries], dtype=float)
+        ax.plot(x, [c["found"] for c in entries] / n, "o-", label="found")
+        ax.plot(x, [c["correct"] for c in entries] / n, "s--", label="ranked first")
+        if cases["param"] is not None:
+            ax.plot(x, [c["within"] for c in entries] / n, "^:", label="ranked first, param. 3σ")
+        ax.axhline(0.9, color="0.6", lw=0.8)
+        ax.set_xscale("log")
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+        ax.set_ylim(-0.05, 1.05)
+        ax.set_title(effect, fontsize=10)
+        ax.set_xlabel(f"|{cases['param'] or 'amplitude'}| (n = {int(n.max())} each)")
+    axes[0].set_ylabel("fraction of recordings")
+    axes[0].legend(fontsize=8, loc="center right")
+    ax = axes[len(effects)]
+    bars = []
+    if counts["clean"]:
+        c = counts["clean"]
+        bars.append(("clean: no alarm", 1 - c["alarms"] / c["n"], c["n"]))
+    bars += [(f"pair {k}", c["found"] / c["n"], c["n"]) for k, c in counts["pairs"].items()]
+    bars += [
+        (f"tau {k} s: in 2f phase or as tau", (c["in_phase"] + c["as_effect"]) / c["n"], c["n"])
+        for k, c in counts["time_constants"].items()
+    ]
+    bars += [
+        (f"{k}: unexplained", c["landed"] / c["n"], c["n"]) for k, c in counts["outside"].items()
+    ]
+    ax.barh([f"{label} ({n})" for label, _, n in bars], [v for _, v, _ in bars], color="C2")
+    ax.set_xlim(0, 1.05)
+    ax.tick_params(axis="y", labelsize=7)
+    ax.set_title("clean, pairs, time constant, outside the catalog", fontsize=10)
+    for extra in axes[len(effects) + 1 :]:
+        extra.axis("off")
+    figure.suptitle(
+        f"diagnosis of {counts['recordings']} {counts['hours']:g}-hour M1-140 pair recordings "
+        "with random nominal errors"
+    )
+    figure.tight_layout()
+    with atomic_path(path) as temporary:
+        figure.savefig(temporary, dpi=110, format="png")
+    plt.close(figure)
+
+
+def run_rates(arguments) -> None:
+    """--rates (a run, optionally written with --out) or --combine (runs added up); the
+    summary printed, the figure written with --figure."""
+    if arguments.combine:
+        counts = None
+        for path in arguments.combine:
+            try:
+                loaded = json.loads(Path(path).read_text())
+            except (OSError, json.JSONDecodeError) as error:
+                sys.exit(f"{path}: not a rates file written by --rates --out ({error})")
+            counts = loaded if counts is None else merge_counts(counts, loaded)
+    else:
+        counts = rates(arguments)
+    if arguments.out:
+        from hwp_tes_systematics.io import atomic_path
+
+        with atomic_path(arguments.out) as temporary:
+            Path(temporary).write_text(json.dumps(counts, indent=1))
+    print("\n".join(summary(counts)))
+    if arguments.figure:
+        rates_figure(counts, Path(arguments.figure))
+        print(f"figure: {arguments.figure}")
 
 
 def main() -> None:
@@ -367,9 +517,14 @@ def main() -> None:
     parser.add_argument(
         "--only", nargs="+", choices=cases, metavar="CASE", help=f"--rates cases: {cases}"
     )
+    parser.add_argument("--out", help="--rates: write the counts to this JSON file")
+    parser.add_argument(
+        "--combine", nargs="+", metavar="JSON", help="add up the counts of --out files"
+    )
+    parser.add_argument("--figure", help="--rates/--combine: the rates figure (PNG)")
     arguments = parser.parse_args()
-    if arguments.rates:
-        rates(arguments)
+    if arguments.rates or arguments.combine:
+        run_rates(arguments)
         return
 
     sky_map = sky.cmb_map(arguments.nside, 3 * arguments.nside - 1, 0.0, 1, 0, 30.8)
