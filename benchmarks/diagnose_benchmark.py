@@ -361,9 +361,9 @@ def summary(counts: dict) -> list[str]:
     if clean:
         lines.append(f"  clean: false alarms {clean['alarms']} / {clean['n']}")
     top_ok = top_n = tied = par_ok = par_n = 0
-    thresholds = {}
+    thresholds, thresholds_named = {}, {}
     for effect, cases in counts["effects"].items():
-        detected = []
+        detected, named = [], []
         for label, c in cases["amplitudes"].items():
             lines.append("  " + _amplitude_line(effect, cases["param"], float(label), cases))
             top_ok, top_n, tied = top_ok + c["correct"], top_n + c["reported"], tied + c["tied"]
@@ -371,7 +371,10 @@ def summary(counts: dict) -> list[str]:
                 par_ok, par_n = par_ok + c["within"], par_n + c["correct"]
             if c["found"] >= 0.9 * c["n"]:
                 detected.append(float(label))
+            if min(c["found"] + c["tied"], c["n"]) >= 0.9 * c["n"]:
+                named.append(float(label))
         thresholds[effect] = min(detected, key=abs) if detected else None
+        thresholds_named[effect] = min(named, key=abs) if named else None
     for label, c in counts["pairs"].items():
         expected = " and ".join(sorted(PAIRS[label][1])) if label in PAIRS else "both"
         lines.append(f"  pair {label}: {expected} found {c['found']}/{c['n']}")
@@ -399,9 +402,15 @@ def summary(counts: dict) -> list[str]:
         )
     outside_ok = all(c["landed"] == c["n"] for c in counts["outside"].values())
     lines.append(f"every out-of-catalog effect in unexplained: {outside_ok}")
-    lines.append("detection thresholds (smallest amplitude found >= 90 %):")
+    lines.append(
+        "detection thresholds (smallest amplitude found >= 90 %; in brackets where it differs: "
+        "found or named as the equal look-alike of the effect reported instead):"
+    )
     for effect, value in thresholds.items():
-        lines.append(f"  {effect}: {value if value is not None else 'above the largest tried'}")
+        text = f"{value:g}" if value is not None else "above the largest tried"
+        if thresholds_named[effect] != value and thresholds_named[effect] is not None:
+            text += f" ({thresholds_named[effect]:g})"
+        lines.append(f"  {effect}: {text}")
     return lines
 
 
