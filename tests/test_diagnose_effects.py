@@ -30,7 +30,6 @@ SINGLE = [
             "s3": [15e-6] * 2,
             "c4": [30e-6, 25e-6],
             "s4": [-10e-6] * 2,
-            "c6": [0.0] * 2,
         },
         103,
     ),
@@ -90,6 +89,8 @@ def test_single_effect_found(tmp_path, effect, injected, truths, seed):
     if effect == "tes_nonlinearity":  # its 2f +- f_spin sidebands seen: no look-alike
         assert top["look_alikes"] == [], top["look_alikes"]
     if effect == "hwpss_harmonics":  # its c2 is a 2f amplitude error: an adjustment
+        # found line by line: the injected lines, and no other
+        assert sorted(top["members"]) == [f"hwpss_harmonic_{n}" for n in (1, 3, 4)], top
         for k in range(2):
             a2 = adjustment(result, k, "hwpss_2f_amplitude")
             assert abs(a2["value"] - (A2_K + 50e-6)) < 3 * a2["sigma"] + 1e-9, a2

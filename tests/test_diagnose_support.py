@@ -110,7 +110,13 @@ def supplied_sky(errors: dict) -> np.ndarray:
 
 
 def recorded_with_errors(
-    tmp_path, effects, noise_seed: int, errors: dict, hours: float = 2.0, name: str = "rec.h5"
+    tmp_path,
+    effects,
+    noise_seed: int,
+    errors: dict,
+    hours: float = 2.0,
+    name: str = "rec.h5",
+    channel: str = CHANNEL,
 ):
     """Like :func:`recorded`, with the nominal ``errors`` in the recording (not in the model).
 
@@ -119,7 +125,7 @@ def recorded_with_errors(
     """
     from hwp_tes_systematics.diagnose.recording import _simulated_base
 
-    simulator = _simulated_base(CHANNEL, float(hours), "2032-04-01T00:00:00", NSIDE)[0]
+    simulator = _simulated_base(channel, float(hours), "2032-04-01T00:00:00", NSIDE)[0]
     detectors = [{"net_ukrts": d.net_ukrts, "fknee_mhz": d.fknee_mhz} for d in simulator.detectors]
     a2_true = A2_K * (1.0 + errors["a2_relative"])
     effects = [  # a modulation of the HWPSS modulates the recording's true HWPSS
@@ -129,7 +135,7 @@ def recorded_with_errors(
         for name, params in effects
     ]
     recording = simulate_recording(
-        CHANNEL,
+        channel,
         hours,
         MASTER_SEED,
         noise_seed,

@@ -43,9 +43,11 @@ detector_time_constant
             HWPSS and a faint sky the two are the SAME signal (the adjustment reports the
             equivalent tau = tan(phi) / (2 pi 2 f_HWP)); tau is selected only when the lag
             of the other frequencies is seen (fitted jointly with the 2f phase)
-hwpss_harmonics
+hwpss_harmonics (selected line by line: hwpss_harmonic_n, n = 1, 3..6; reported merged)
     model   sum_{n=1,3..6} c_n cos n(chi - theta) + s_n sin n(chi - theta); c_n, s_n [K]
-            (n = 2 is the nominal 2f amplitude and phase adjustment, not an effect)
+            (n = 2 is the nominal 2f amplitude and phase adjustment, not an effect); each
+            line its own candidate with two parameters per detector, so a single line is
+            not charged the BIC penalty of ten
     sign.   lines at n f_HWP, stationary
     apart   NO 2f +- f_spin sidebands (unlike the nonlinearity), constant in
             time (unlike the HWP temperature drift), free phase per harmonic (unlike tau)
@@ -162,11 +164,15 @@ class Effect:
     signature: str = ""
     discrimination: str = ""
     extends: str | None = None  # the simpler catalog effect this one nests (same physics)
+    # the report's name for it when it is one member of a family found piece by piece
+    # (each line of hwpss_harmonics): the report merges the members it keeps
+    reported_as: str | None = None
 
     @property
     def family(self) -> str:
-        """The physics it names: the effect it nests (``extends``), else itself."""
-        return self.extends or self.name
+        """The physics it names: the effect it nests (``extends``) or is a member of
+        (``reported_as``), else itself."""
+        return self.extends or self.reported_as or self.name
 
     def param_units(self, ctx: Context | None = None) -> dict[str, str]:
         """Parameter -> unit for this recording (most effects: the fixed ``parameters``)."""
@@ -367,11 +373,23 @@ class DetectorTimeConstant(Effect):
         return "; ".join(parts)
 
 
+def harmonic_templates(ctx: Context, harmonics) -> np.ndarray:
+    """cos n(chi - theta), sin n(chi - theta) for each n of ``harmonics``: (n_det, 2 len, n)."""
+    angle = ctx.detector_angle
+    rows = []
+    for n in harmonics:
+        rows += [np.cos(n * angle), np.sin(n * angle)]
+    return np.stack(rows, axis=1)
+
+
 class HwpssHarmonics(Effect):
     """HWP synchronous signal left out of the nominal model (which has only A_2 cos 2(chi-theta)).
 
     sum_n c_n cos n(chi - theta) + s_n sin n(chi - theta), n = 1, 3, 4, 5, 6; the 2f
-    amplitude and phase (n = 2) are nominal adjustments (:mod:`.nominal`).
+    amplitude and phase (n = 2) are nominal adjustments (:mod:`.nominal`). The report's
+    name for the harmonics found; the selection tries each line on its own
+    (:class:`HwpssHarmonic`, two parameters per detector, so a single line is not charged
+    for ten) and the report merges the lines it keeps under this name.
     """
 
     name = "hwpss_harmonics"
@@ -380,45 +398,58 @@ class HwpssHarmonics(Effect):
         f"{cs}{n}": "K" for n in HWPSS_HARMONICS for cs in ("c", "s")
     }
     main_parameters = tuple(parameters)
+    selectable = False  # selected line by line: HwpssHarmonic(n)
     signature = "lines at n f_HWP, stationary, with no 2f +- f_spin sidebands"
     discrimination = "no 2f +- f_spin sidebands, constant in time"
 
     def templates(self, ctx):
-        return self._templates(ctx, HWPSS_HARMONICS)
-
-    @staticmethod
-    def _templates(ctx, harmonics):
-        angle = ctx.detector_angle
-        rows = []
-        for n in harmonics:
-            rows += [np.cos(n * angle), np.sin(n * angle)]
-        return np.stack(rows, axis=1)
+        return harmonic_templates(ctx, HWPSS_HARMONICS)
 
     def apply(self, ctx, params, tod=None):
         """Injection: any harmonic n = 1..6 (c2, s2 too: a 2f error of the simulated HWP)."""
         tod = ctx.d_nom if tod is None else tod
         names = [f"{cs}{n}" for n in INJECTION_HARMONICS for cs in ("c", "s")]
         values = np.stack([_value(params, p, ctx.n_detectors) for p in names], axis=1)
-        return tod + np.einsum("kj,kjn->kn", values, self._templates(ctx, INJECTION_HARMONICS))
+        return tod + np.einsum("kj,kjn->kn", values, harmonic_templates(ctx, INJECTION_HARMONICS))
+
+
+class HwpssHarmonic(Effect):
+    """One line of the HWP synchronous signal: c_n cos n(chi - theta) + s_n sin n(chi - theta).
+
+    A member of ``hwpss_harmonics`` (``reported_as``): selected on its own, reported with
+    the other lines found under the family's name.
+    """
+
+    title = HwpssHarmonics.title
+    signature = HwpssHarmonics.signature
+    discrimination = HwpssHarmonics.discrimination
+    reported_as = "hwpss_harmonics"
+
+    def __init__(self, n: int):
+        self.n = n
+        self.name = f"hwpss_harmonic_{n}"
+        self.parameters = {f"c{n}": "K", f"s{n}": "K"}
+        self.main_parameters = (f"c{n}",)
+
+    def templates(self, ctx):
+        return harmonic_templates(ctx, (self.n,))
+
+    def apply(self, ctx, params, tod=None):
+        return self._linear_apply(ctx, params, tod)
 
     def evidence(self, ev, fit) -> str:
         """The signature measured on the residual ``ev`` (:class:`.evidence.Evidence`), in words."""
-        parts = []
+        n, parts = self.n, []
         for k, name in enumerate(ev.ctx.detector_names):
-            found = []
-            for n in HWPSS_HARMONICS:
-                c, s = fit.values[f"c{n}"][k], fit.values[f"s{n}"][k]
-                sigma = max(fit.sigmas[f"c{n}"][k], fit.sigmas[f"s{n}"][k])
-                amplitude = math.hypot(c, s)
-                if sigma > 0 and amplitude / sigma > 3:
-                    found.append(
-                        f"{n} f_HWP {format_temperature(amplitude)} ({amplitude / sigma:.0f} sigma)"
-                    )
+            c, s = fit.values[f"c{n}"][k], fit.values[f"s{n}"][k]
+            sigma = max(fit.sigmas[f"c{n}"][k], fit.sigmas[f"s{n}"][k])
+            amplitude = math.hypot(c, s)
+            significance = amplitude / sigma if sigma > 0 else 0.0
             (_lo, _, _, lo_sig, *_), (_hi, _, _, hi_sig, *_) = ev.sidebands(k)
             parts.append(
-                f"{name}: lines at {', '.join(found) or 'no single harmonic above 3 sigma'}; "
-                f"no 2 f_HWP +- f_spin sidebands ({lo_sig:.1f} and {hi_sig:.1f} sigma), unlike "
-                "a nonlinearity"
+                f"{name}: a {n} f_HWP line {format_temperature(amplitude)} ({significance:.0f} "
+                f"sigma), phase {math.degrees(math.atan2(s, c)):.0f} deg; no 2 f_HWP +- f_spin "
+                f"sidebands ({lo_sig:.1f} and {hi_sig:.1f} sigma), unlike a nonlinearity"
             )
         return "; ".join(parts)
 
@@ -791,6 +822,7 @@ CATALOG: dict[str, Effect] = {
         TesNonlinearityCubic(),
         DetectorTimeConstant(),
         HwpssHarmonics(),
+        *(HwpssHarmonic(n) for n in HWPSS_HARMONICS),
         HwpssIntensityCoupling(),
         GainDrift(),
         HwpTemperatureDrift(),

@@ -47,8 +47,10 @@ Delta BIC = BIC(selected + effect) - BIC(selected); keep the effect with the low
 Delta BIC (equivalently the largest Delta chi^2 - Delta k ln N_eff) if it is below
 ``delta_bic_threshold`` (default -10: "very strong" evidence on the Kass & Raftery scale,
 a Bayes factor above e^5 ~ 150) and stop otherwise. The lowest Delta BIC is used rather
-than the largest Delta chi^2 because an effect with many parameters (hwpss_harmonics: 12
-per detector) gains Delta chi^2 from the noise alone. After each addition, a backward
+than the largest Delta chi^2 because an effect with many parameters (hwpss_slow_modulation:
+up to 24 per detector) gains Delta chi^2 from the noise alone; for the same reason the
+HWPSS harmonics are tried line by line (two parameters per detector each, reported
+together), and ``max_effects`` counts families, not lines. After each addition, a backward
 step removes an effect that the later ones made redundant (its removal raises the BIC by
 less than |threshold|); a set once removed is not revisited, so the search ends.
 
@@ -813,7 +815,7 @@ def select_templates(problem, names, threshold, max_effects, noise: bool, steps:
         templates, current = _backward(
             problem, templates, current, extra, threshold, removed_sets, steps, keep=0
         )
-    while len(templates) < max_effects:
+    while len({problem.effects[n].family for n in templates}) < max_effects:
         remaining = [
             n
             for n in names
@@ -836,7 +838,58 @@ def select_templates(problem, names, threshold, max_effects, noise: bool, steps:
         templates, current = _backward(
             problem, templates, current, extra, threshold, removed_sets, steps
         )
-    return templates
+    return _one_family_for_a_line(problem, templates, current, extra, threshold, steps)
+
+
+def _one_family_for_a_line(problem, templates, current, extra, threshold, steps):
+    """Mechanism parsimony: when a family found line by line (``Effect.reported_as``: the
+    HWPSS harmonics) is among the selected effects, an effect whose lines one more member
+    of that family fits as well (chi^2 within |threshold|) is replaced by it.
+
+    E.g. lines at f_HWP and at 4 f_HWP, the 4f line in phase with twice the 2f phase and
+    no 2 f_HWP +- f_spin sidebands: the nonlinearity fits the 4f line with one parameter
+    per detector where the harmonic needs two, but with the harmonics already present
+    "two HWPSS lines" is one mechanism where "a line and a nonlinearity" is two. A
+    nonlinearity whose sidebands are seen is kept (replacing it raises chi^2 by more).
+    """
+    ln_n = problem.ln_n_eff
+    while True:
+        families = {problem.effects[n].reported_as for n in templates} - {None}
+        members = [
+            m
+            for m, e in problem.effects.items()
+            if e.reported_as in families and m not in templates
+        ]
+        others = [n for n in templates if problem.effects[n].reported_as is None]
+        best = None
+        for name in others:
+            kept = tuple(t for t in templates if t != name)
+            for member in members:
+                trial = problem.fit(kept + (member,) + extra)
+                if trial.chi2 - current.chi2 < -threshold and (
+                    best is None or trial.chi2 < best[2].chi2
+                ):
+                    best = (name, member, trial)
+        if best is None:
+            return templates
+        name, member, trial = best
+        _step(
+            steps,
+            current,
+            trial,
+            ln_n,
+            {
+                member: {
+                    "delta_chi2": trial.chi2 - current.chi2,
+                    "delta_bic": trial.bic(ln_n) - current.bic(ln_n),
+                }
+            },
+            added=member,
+            removed=name,
+            note=f"{name} replaced by {member}: one family explains the lines as well",
+        )
+        templates = tuple(t for t in templates if t != name) + (member,)
+        current = trial
 
 
 def stepwise(

@@ -114,6 +114,8 @@ def look_alikes(steps, threshold: float) -> dict[str, list[str]]:
     Those explained the residual (nearly) equally well at that step, so the data do not
     tell them apart (e.g. a gain drift and a 2f amplitude drift in a recording too short
     for the dipole's change to show): the report says so instead of picking silently.
+    An effect that replaced another (one family explaining the lines as well, see
+    :func:`.fit.select_templates`) names the one it replaced.
     A nested variant of the same physics (``Effect.extends``) is not a look-alike.
     """
 
@@ -125,6 +127,9 @@ def look_alikes(steps, threshold: float) -> dict[str, list[str]]:
 
     out: dict[str, list[str]] = {}
     for step in steps:
+        if step.added and step.removed:  # a replacement: the two fit the lines as well
+            out[step.added] = sorted(set(out.get(step.added, [])) | {step.removed})
+            continue
         if not step.added or step.added not in step.candidates:
             continue
         best = step.candidates[step.added]["delta_bic"]
@@ -135,6 +140,42 @@ def look_alikes(steps, threshold: float) -> dict[str, list[str]]:
         ]
         out[step.added] = sorted(set(out.get(step.added, [])) | set(ties))
     return out
+
+
+def merge_members(effects: list[dict]) -> list[dict]:
+    """The report's entries with the members of one family (``Effect.reported_as``: the
+    lines of hwpss_harmonics) merged into one entry under the family's name: parameters
+    and evidence joined, Delta chi^2 and Delta BIC summed, look-alikes named by what the
+    report calls them; ranked again by Delta chi^2."""
+    merged: dict[str, dict] = {}
+    for entry in effects:
+        effect = CATALOG[entry["name"]]
+        name = effect.reported_as or entry["name"]
+        look_alikes = {
+            CATALOG[n].reported_as or n if n in CATALOG else n for n in entry["look_alikes"]
+        }
+        if name not in merged:
+            family = CATALOG[name]
+            merged[name] = dict(
+                entry,
+                name=name,
+                title=family.title,
+                signature=family.signature,
+                look_alikes=sorted(look_alikes - {name}),
+            )
+            if effect.reported_as:
+                merged[name]["members"] = [entry["name"]]
+                merged[name]["main_parameters"] = list(entry["main_parameters"])
+            continue
+        into = merged[name]
+        into["members"].append(entry["name"])
+        into["main_parameters"] += entry["main_parameters"]
+        into["parameters"] = {**into["parameters"], **entry["parameters"]}
+        into["delta_chi2"] += entry["delta_chi2"]
+        into["delta_bic"] += entry["delta_bic"]
+        into["evidence"] += "; " + entry["evidence"]
+        into["look_alikes"] = sorted((set(into["look_alikes"]) | look_alikes) - {name})
+    return sorted(merged.values(), key=lambda e: -e["delta_chi2"])
 
 
 def _parameters(name, fit, detector_names, sampling_rate_hz, units) -> dict:
@@ -317,10 +358,11 @@ def diagnose(
                 f"within {-delta_bic_threshold:g} of it when it was selected): the data fit "
                 "either equally well, so read it as one of these"
             )
+        found = {CATALOG[n].family for n in selection.ranked}
         unresolved = [
             other
             for other in CATALOG[name].unresolved_look_alikes(evidence, fit)
-            if other not in ties.get(name, []) and other not in selection.ranked
+            if other not in ties.get(name, []) and other not in found
         ]
         if unresolved:
             text += (
@@ -344,6 +386,7 @@ def diagnose(
                 "look_alikes": ties.get(name, []),
             }
         )
+    effects_out = merge_members(effects_out)
     lines = _line_table(mismatch, ctx, residual, residual_after, noise_models)
     corrections = final.effects[NOMINAL.name]
     adjustments = adjustments_report(
