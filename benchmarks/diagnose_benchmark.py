@@ -10,7 +10,8 @@ unexplained) without and with the figures/report. Prints the wall time, the
 detector-samples per second and the peak resident memory. Target: a one-day recording at
 31 Hz in under 2 minutes on 2 cores.
 
-Rates (``--rates``): recordings of the M1-140 pair, each with RANDOM nominal errors
+Rates (``--rates``): recordings of a pair (``--channel``, default M1-140), each with RANDOM
+nominal errors (their spreads times ``--error-scale``, default 1)
 (tests/test_diagnose_support.nominal_errors: A_2 ~3 %, 2f phase ~1 deg, gain ~1 %,
 polarisation angle ~0.5 deg, offsets, noise level ~10 %, knee ~30 %, the supplied sky
 rescaled ~5 % plus a residual map) and its own noise seed: ``--clean`` clean ones (false
@@ -163,13 +164,19 @@ OUTSIDE = {
 }
 
 
-def _one(support, effects, seed, hours, folder, with_errors=False):
+def _one(support, effects, seed, settings, folder, with_errors=False):
     """Simulate with random nominal errors, diagnose; the result (and the errors drawn, with
-    ``with_errors``). One line on stderr."""
+    ``with_errors``). One line on stderr. ``settings``: hours, channel, error_scale."""
     started = time.perf_counter()
-    errors = support.nominal_errors(np.random.default_rng(seed))
+    errors = support.nominal_errors(np.random.default_rng(seed), scale=settings.error_scale)
     recording, _ = support.recorded_with_errors(
-        Path(folder), effects, 10_000 + seed, errors, hours=hours, name=f"r{seed}.h5"
+        Path(folder),
+        effects,
+        10_000 + seed,
+        errors,
+        hours=settings.hours,
+        name=f"r{seed}.h5",
+        channel=settings.channel,
     )
     result = diagnose(recording, support.supplied_sky(errors), support.A2_K, figures=False)
     names = [e["name"] for e in result["effects"]] or ["-"]
@@ -238,6 +245,8 @@ def rates(arguments) -> dict:
     started = time.perf_counter()
     counts = {
         "hours": hours,
+        "channel": arguments.channel,
+        "error_scale": arguments.error_scale,
         "first_seeds": [arguments.first_seed],
         "clean": {},
         "effects": {},
@@ -252,7 +261,7 @@ def rates(arguments) -> dict:
     with tempfile.TemporaryDirectory() as folder:
         seed = arguments.first_seed
         for _ in range(arguments.clean if wanted("clean") else 0):
-            result = _one(support, [], seed, hours, folder)
+            result = _one(support, [], seed, arguments, folder)
             seed += 1
             _tally(counts, "clean", n=1, alarms=result["mismatch_found"])
         for effect, (param, amplitudes, make, accepted) in AMPLITUDES.items():
@@ -263,7 +272,7 @@ def rates(arguments) -> dict:
             for amplitude in amplitudes:
                 for _ in range(n_seeds):
                     injected = make(amplitude, np.random.default_rng([seed, 1]))
-                    result = _one(support, [(effect, injected)], seed, hours, folder)
+                    result = _one(support, [(effect, injected)], seed, arguments, folder)
                     seed += 1
                     names = [_family(e["name"]) for e in result["effects"]]
                     top_ok = bool(names) and names[0] in accepted
@@ -287,7 +296,7 @@ def rates(arguments) -> dict:
             if not wanted(label):
                 continue
             for _ in range(n_seeds):
-                result = _one(support, effects, seed, hours, folder)
+                result = _one(support, effects, seed, arguments, folder)
                 seed += 1
                 names = {_family(e["name"]) for e in result["effects"]}
                 _tally(counts["pairs"], label, n=1, found=expected <= names)
@@ -298,7 +307,7 @@ def rates(arguments) -> dict:
                         support,
                         [("detector_time_constant", {"tau": tau})],
                         seed,
-                        hours,
+                        arguments,
                         folder,
                         with_errors=True,
                     )
@@ -317,7 +326,7 @@ def rates(arguments) -> dict:
             if not wanted(label):
                 continue
             for _ in range(n_seeds):
-                result = _one(support, [effect], seed, hours, folder)
+                result = _one(support, [effect], seed, arguments, folder)
                 seed += 1
                 _tally(counts["outside"], label, n=1, landed=bool(result["unexplained"]))
     counts["recordings"] = seed - arguments.first_seed
@@ -335,15 +344,22 @@ def _amplitude_line(effect: str, param: str | None, amplitude: float, cases: dic
     )
 
 
+SETTINGS = ("hours", "channel", "error_scale")  # what runs must share to be added up
+
+
 def merge_counts(a: dict, b: dict) -> dict:
-    """Two runs' counts added up (numbers summed, lists joined, the rest from ``a``)."""
+    """Two runs' counts added up (numbers summed, lists joined); ValueError if the runs'
+    settings (duration, channel, error scale) differ."""
     out = dict(a)
     for key, value in b.items():
-        if key not in a:
+        if key in SETTINGS:
+            if a.get(key) != value:
+                raise ValueError(f"runs with different {key}: {a.get(key)} and {value}")
+        elif key not in a:
             out[key] = value
         elif isinstance(value, dict):
             out[key] = merge_counts(a[key], value)
-        elif isinstance(value, list) or (isinstance(value, (int, float)) and key != "hours"):
+        elif isinstance(value, (list, int, float)):
             out[key] = a[key] + value
     return out
 
@@ -352,7 +368,8 @@ def summary(counts: dict) -> list[str]:
     """The rates, the targets' four numbers and the thresholds, as lines of text."""
     lines = [
         (
-            f"{counts['hours']:g} h M1-140 pair recordings with random nominal errors "
+            f"{counts['hours']:g} h {counts.get('channel', 'M1-140')} pair recordings with random "
+            f"nominal errors (x{counts.get('error_scale', 1.0):g}) "
             f"({counts['recordings']} recordings, {counts['seconds']} s of run time summed over "
             f"{len(counts['first_seeds'])} run(s), first seeds {counts['first_seeds']})"
         )
@@ -470,8 +487,9 @@ def rates_figure(counts: dict, path: Path) -> None:
     for extra in axes[len(effects) + 1 :]:
         extra.axis("off")
     figure.suptitle(
-        f"diagnosis of {counts['recordings']} {counts['hours']:g}-hour M1-140 pair recordings "
-        "with random nominal errors"
+        f"diagnosis of {counts['recordings']} {counts['hours']:g}-hour "
+        f"{counts.get('channel', 'M1-140')} pair recordings with random nominal errors "
+        f"(x{counts.get('error_scale', 1.0):g})"
     )
     figure.tight_layout()
     with atomic_path(path) as temporary:
@@ -489,7 +507,10 @@ def run_rates(arguments) -> None:
                 loaded = json.loads(Path(path).read_text())
             except (OSError, json.JSONDecodeError) as error:
                 sys.exit(f"{path}: not a rates file written by --rates --out ({error})")
-            counts = loaded if counts is None else merge_counts(counts, loaded)
+            try:
+                counts = loaded if counts is None else merge_counts(counts, loaded)
+            except ValueError as error:
+                sys.exit(f"{path}: cannot be added to the runs before it: {error}")
     else:
         counts = rates(arguments)
     if arguments.out:
@@ -527,6 +548,12 @@ def main() -> None:
     cases = ["clean", *AMPLITUDES, "detector_time_constant", *PAIRS, *OUTSIDE]
     parser.add_argument(
         "--only", nargs="+", choices=cases, metavar="CASE", help=f"--rates cases: {cases}"
+    )
+    parser.add_argument(
+        "--error-scale",
+        type=float,
+        default=1.0,
+        help="--rates: multiply the spread of every nominal error (robustness)",
     )
     parser.add_argument("--out", help="--rates: write the counts to this JSON file")
     parser.add_argument(

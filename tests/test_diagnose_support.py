@@ -66,23 +66,24 @@ def names(result: dict) -> list[str]:
     return [effect["name"] for effect in result["effects"]]
 
 
-def nominal_errors(rng: np.random.Generator, n_det: int = 2) -> dict:
+def nominal_errors(rng: np.random.Generator, n_det: int = 2, scale: float = 1.0) -> dict:
     """Random nominal-model errors of realistic size (what a real recording differs by).
 
     A_2 off by a few %, 2f phase ~1 deg, gain ~1 %, polarisation angle ~0.5 deg, detector
     offsets ~mK, noise level ~10 % (and knee ~30 %), the supplied sky map rescaled by a
     few % with a small unknown residual. Drawn per recording; the diagnosis is told none.
+    ``scale`` multiplies every spread (a robustness check: errors larger than expected).
     """
     return {
-        "a2_relative": rng.normal(0.0, 0.03, n_det),
-        "phase_deg": rng.normal(0.0, 1.0, n_det),
-        "gain": rng.normal(0.0, 0.01, n_det),
-        "pol_angle_deg": rng.normal(0.0, 0.5, n_det),
-        "offset_k": rng.normal(0.0, 2e-3, n_det),
-        "net_factor": 1.0 + rng.normal(0.0, 0.10, n_det),
-        "fknee_factor": np.exp(rng.normal(0.0, 0.3, n_det)),
-        "sky_scale": 1.0 + rng.normal(0.0, 0.05),
-        "sky_residual": abs(rng.normal(0.0, 0.05)),
+        "a2_relative": rng.normal(0.0, 0.03 * scale, n_det),
+        "phase_deg": rng.normal(0.0, 1.0 * scale, n_det),
+        "gain": rng.normal(0.0, 0.01 * scale, n_det),
+        "pol_angle_deg": rng.normal(0.0, 0.5 * scale, n_det),
+        "offset_k": rng.normal(0.0, 2e-3 * scale, n_det),
+        "net_factor": 1.0 + rng.normal(0.0, 0.10 * scale, n_det),
+        "fknee_factor": np.exp(rng.normal(0.0, 0.3 * scale, n_det)),
+        "sky_scale": 1.0 + rng.normal(0.0, 0.05 * scale),
+        "sky_residual": abs(rng.normal(0.0, 0.05 * scale)),
         "sky_seed": int(rng.integers(1, 2**31)),
     }
 
