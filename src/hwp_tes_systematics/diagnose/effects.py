@@ -420,7 +420,6 @@ class HwpssHarmonic(Effect):
     the other lines found under the family's name.
     """
 
-    title = HwpssHarmonics.title
     signature = HwpssHarmonics.signature
     discrimination = HwpssHarmonics.discrimination
     reported_as = "hwpss_harmonics"
@@ -428,6 +427,7 @@ class HwpssHarmonic(Effect):
     def __init__(self, n: int):
         self.n = n
         self.name = f"hwpss_harmonic_{n}"
+        self.title = f"HWP synchronous signal: the {n} f_HWP line"
         self.parameters = {f"c{n}": "K", f"s{n}": "K"}
         self.main_parameters = (f"c{n}",)
 

@@ -354,9 +354,9 @@ def diagnose(
         text = CATALOG[name].evidence(evidence, fit)
         if ties.get(name):
             text += (
-                f"; NOT told apart in this recording from {', '.join(ties[name])} (Delta BIC "
-                f"within {-delta_bic_threshold:g} of it when it was selected): the data fit "
-                "either equally well, so read it as one of these"
+                f"; NOT told apart in this recording from {', '.join(ties[name])} (within "
+                f"{-delta_bic_threshold:g} of it in BIC when it was selected, or in chi^2 when "
+                "it replaced it): the data fit either equally well, so read it as one of these"
             )
         found = {CATALOG[n].family for n in selection.ranked}
         unresolved = [
