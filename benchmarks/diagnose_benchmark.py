@@ -43,12 +43,12 @@ import numpy as np
 
 from hwp_tes_systematics import sky
 from hwp_tes_systematics.diagnose import (
-    CATALOG,
     diagnose,
     read_recording,
     simulate_recording,
     write_recording,
 )
+from hwp_tes_systematics.diagnose.effects import family_of
 
 EFFECTS = {
     "none": [],
@@ -202,12 +202,6 @@ def _lag_in_phase(result, errors, tau_s) -> bool:
     return True
 
 
-def _family(name: str) -> str:
-    """The effect a nested variant extends (tes_nonlinearity_cubic -> tes_nonlinearity);
-    a name outside the catalog (an injection-only effect) is its own family."""
-    return CATALOG[name].family if name in CATALOG else name
-
-
 def _within(result, effect, name, truth) -> bool:
     """Main parameter within 3 sigma of its truth on every detector.
 
@@ -216,7 +210,7 @@ def _within(result, effect, name, truth) -> bool:
     the same gain, so the fitted g1 is not rescaled by it.
     """
     for item in result["effects"]:
-        if _family(item["name"]) != effect:
+        if family_of(item["name"]) != effect:
             continue
         for k, det in enumerate(result["recording"]["detectors"]):
             entry = item["parameters"].get(f"{name}[{det}]")
@@ -274,10 +268,10 @@ def rates(arguments) -> dict:
                     injected = make(amplitude, np.random.default_rng([seed, 1]))
                     result = _one(support, [(effect, injected)], seed, arguments, folder)
                     seed += 1
-                    names = [_family(e["name"]) for e in result["effects"]]
+                    names = [family_of(e["name"]) for e in result["effects"]]
                     top_ok = bool(names) and names[0] in accepted
                     ties = {
-                        _family(n) for n in (result["effects"] or [{}])[0].get("look_alikes", [])
+                        family_of(n) for n in (result["effects"] or [{}])[0].get("look_alikes", [])
                     }
                     _tally(
                         cases["amplitudes"],
@@ -298,7 +292,7 @@ def rates(arguments) -> dict:
             for _ in range(n_seeds):
                 result = _one(support, effects, seed, arguments, folder)
                 seed += 1
-                names = {_family(e["name"]) for e in result["effects"]}
+                names = {family_of(e["name"]) for e in result["effects"]}
                 _tally(counts["pairs"], label, n=1, found=expected <= names)
         if wanted("detector_time_constant"):
             for tau in TIME_CONSTANTS_S:

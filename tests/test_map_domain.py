@@ -53,9 +53,10 @@ def fixed_pass_inputs():
     return simulator, settings, foreground
 
 
-def m1_140_fixed_pass(measure_lmax=None):
-    """The fixed pass of :func:`fixed_pass_inputs`, T_ell and S_ell measured to ``measure_lmax``."""
-    simulator, settings, foreground = fixed_pass_inputs()
+def m1_140_fixed_pass(inputs, measure_lmax=None):
+    """The fixed pass of ``inputs`` (:func:`fixed_pass_inputs`), T_ell and S_ell measured
+    to ``measure_lmax``."""
+    simulator, settings, foreground = inputs
     transfer_alm = map_domain.transfer_cmb_alm(
         LMAX, 0.0, MASTER_SEED, load_channel("M1-140").fwhm_arcmin
     )
@@ -67,8 +68,9 @@ def m1_140_fixed_pass(measure_lmax=None):
 @pytest.fixture(scope="module")
 def setup():
     channel = load_channel("M1-140")
-    simulator, settings, foreground = fixed_pass_inputs()
-    fixed = m1_140_fixed_pass()
+    inputs = fixed_pass_inputs()
+    simulator, settings, foreground = inputs
+    fixed = m1_140_fixed_pass(inputs)
     full = {}
     for seed in SEEDS:
         cmb = sky.cmb_map(NSIDE, LMAX, 0.0, MASTER_SEED, seed, channel.fwhm_arcmin)
@@ -367,7 +369,8 @@ def test_fixed_pass_measures_the_filter_to_the_band_it_is_applied_to(setup):
     calibrated for the band-limited shaping the seeds apply, and the maps are unchanged."""
     fixed = setup[0]
     band = 20
-    limited = m1_140_fixed_pass(measure_lmax=band)
+    inputs = fixed_pass_inputs()
+    limited = m1_140_fixed_pass(inputs, measure_lmax=band)
     assert limited.transfer.shape == (3, band + 1)
     assert limited.noise_shaping.shape == (3, band + 1)
     np.testing.assert_allclose(limited.transfer, fixed.transfer[:, : band + 1], rtol=0, atol=0.03)
@@ -379,4 +382,4 @@ def test_fixed_pass_measures_the_filter_to_the_band_it_is_applied_to(setup):
     )
     np.testing.assert_array_equal(limited.nosys, fixed.nosys)
     with pytest.raises(ValueError, match="measure_lmax"):
-        m1_140_fixed_pass(measure_lmax=LMAX + 1)
+        m1_140_fixed_pass(inputs, measure_lmax=LMAX + 1)

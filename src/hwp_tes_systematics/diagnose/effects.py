@@ -839,6 +839,12 @@ SIGNAL_EFFECTS = frozenset(name for name, e in CATALOG.items() if e.stage == "si
 RESPONSE_STAGE = frozenset(name for name, e in CATALOG.items() if e.stage == "response")
 
 
+def family_of(name: str) -> str:
+    """The physics a name reports (:attr:`Effect.family`); a name outside the catalog (an
+    injection-only effect) is its own family."""
+    return CATALOG[name].family if name in CATALOG else name
+
+
 def get_effect(name: str) -> Effect:
     try:
         return CATALOG[name]

@@ -34,7 +34,7 @@ import math
 
 import numpy as np
 
-from .effects import CATALOG
+from .effects import CATALOG, family_of
 from .evidence import Evidence
 from .fit import FitProblem, stepwise
 from .locate import line_at, locate
@@ -119,11 +119,8 @@ def look_alikes(steps, threshold: float) -> dict[str, list[str]]:
     A nested variant of the same physics (``Effect.extends``) is not a look-alike.
     """
 
-    def family(name: str) -> str:
-        return CATALOG[name].family if name in CATALOG else name
-
     def same_physics(a: str, b: str) -> bool:
-        return family(a) == family(b)
+        return family_of(a) == family_of(b)
 
     out: dict[str, list[str]] = {}
     for step in steps:
@@ -347,6 +344,7 @@ def diagnose(
     partial = problem.partial_residuals(final)
 
     ties = look_alikes(history, delta_bic_threshold)
+    found = {family_of(n) for n in selection.ranked}
     effects_out = []
     for name in selection.ranked:
         fit = final.effects[name]
@@ -358,7 +356,6 @@ def diagnose(
                 f"{-delta_bic_threshold:g} of it in BIC when it was selected, or in chi^2 when "
                 "it replaced it): the data fit either equally well, so read it as one of these"
             )
-        found = {CATALOG[n].family for n in selection.ranked}
         unresolved = [
             other
             for other in CATALOG[name].unresolved_look_alikes(evidence, fit)
