@@ -84,6 +84,17 @@ def _drift(amplitude: float, rng) -> dict:
     }
 
 
+def _gain_drift(amplitude: float, rng, per_detector: bool) -> dict:
+    """g_j of a drift of random sign and shape; ``per_detector``: each detector's drift
+    times its own factor in [0.5, 1.5] (each TES its own responsivity, as litebird_sim's
+    gain drift draws a slope per detector), else the same in both (a common mode)."""
+    factors = rng.uniform(0.5, 1.5, 2) if per_detector else np.ones(2)
+    return {f"g{j}": v * factors for j, v in enumerate(_drift(amplitude, rng).values(), 1)}
+
+
+# gain_drift_common_mode is injected as gain_drift (the same drift in both detectors)
+INJECTED_AS = {"gain_drift_common_mode": "gain_drift"}
+
 AMPLITUDES = {
     "tes_nonlinearity": ("g1", [-1e-3, -3e-3, -1e-2], lambda a, rng: {"g1": a}, None),
     "hwpss_harmonics": (
@@ -98,14 +109,15 @@ AMPLITUDES = {
         lambda a, rng: {"a2c": a * np.cos(p := _phase(rng)), "a2s": a * np.sin(p)},
         None,
     ),
-    "gain_drift": (
+    "gain_drift": ("g1", [1e-3, 3e-3, 3e-2], lambda a, rng: _gain_drift(a, rng, True), None),
+    "gain_drift_common_mode": (
         "g1",
         [1e-3, 3e-3, 3e-2],
-        lambda a, rng: {f"g{j}": v for j, v in enumerate(_drift(a, rng).values(), 1)},
-        None,
+        lambda a, rng: _gain_drift(a, rng, False),
+        {"gain_drift"},
     ),
     "hwp_temperature_drift": (
-        "c1",
+        "r1",  # checked as r1 = c1 / A_2, the relative drift common to the detectors
         [3e-6, 1e-5, 1e-4],
         _drift,
         {"hwp_temperature_drift", "hwpss_slow_modulation"},
@@ -136,7 +148,7 @@ AMPLITUDES = {
 # nonlinearity's 4f line lags by twice the 2f lag, as d_nom^2 with the adjusted phase does.
 PAIRS = {
     "nonlinearity+gain_drift": (
-        [("tes_nonlinearity", {"g1": -1e-2}), ("gain_drift", {"g1": 1e-2})],
+        [("tes_nonlinearity", {"g1": -1e-2}), ("gain_drift", {"g1": [1e-2, 0.6e-2]})],
         {"tes_nonlinearity", "gain_drift"},
     ),
     "nonlinearity+4f_hwpss": (
@@ -202,8 +214,17 @@ def _lag_in_phase(result, errors, tau_s) -> bool:
     return True
 
 
+def _truth(param: str, injected: dict, support):
+    """The truth of a main parameter: the injected value (one, or one per detector); r1,
+    the relative drift of the HWP emission common to the detectors, is c1 / A_2."""
+    if param == "r1":
+        return injected["c1"] / support.A2_K
+    return injected[param]
+
+
 def _within(result, effect, name, truth) -> bool:
-    """Main parameter within 3 sigma of its truth on every detector.
+    """Main parameter within 3 sigma of its truth on every detector (``truth``: one value
+    or one per detector), or of the common value where the effect is shared.
 
     For g1 the truth is the injected value itself: the recorder applies the gain error to
     the incoming signal, before the TES response, and the adjusted nominal model carries
@@ -212,11 +233,14 @@ def _within(result, effect, name, truth) -> bool:
     for item in result["effects"]:
         if family_of(item["name"]) != effect:
             continue
-        for k, det in enumerate(result["recording"]["detectors"]):
-            entry = item["parameters"].get(f"{name}[{det}]")
+        detectors = result["recording"]["detectors"]
+        keys = [f"{name}[common]"] if f"{name}[common]" in item["parameters"] else None
+        truths = np.broadcast_to(np.asarray(truth, dtype=float), (len(detectors),))
+        for k, key in enumerate(keys or [f"{name}[{det}]" for det in detectors]):
+            entry = item["parameters"].get(key)
             if entry is None:
                 return False
-            if not abs(entry["value"] - truth) < 3 * entry["sigma"]:
+            if not abs(entry["value"] - truths[k]) < 3 * entry["sigma"]:
                 return False
         return True
     return False
@@ -266,7 +290,8 @@ def rates(arguments) -> dict:
             for amplitude in amplitudes:
                 for _ in range(n_seeds):
                     injected = make(amplitude, np.random.default_rng([seed, 1]))
-                    result = _one(support, [(effect, injected)], seed, arguments, folder)
+                    injection = [(INJECTED_AS.get(effect, effect), injected)]
+                    result = _one(support, injection, seed, arguments, folder)
                     seed += 1
                     names = [family_of(e["name"]) for e in result["effects"]]
                     top_ok = bool(names) and names[0] in accepted
@@ -283,7 +308,7 @@ def rates(arguments) -> dict:
                         tied=bool(names) and not top_ok and bool(accepted & ties),
                         within=param is not None
                         and top_ok
-                        and _within(result, effect, param, injected[param]),
+                        and _within(result, names[0], param, _truth(param, injected, support)),
                     )
                 print("  " + _amplitude_line(effect, param, amplitude, cases), flush=True)
         for label, (effects, expected) in PAIRS.items():

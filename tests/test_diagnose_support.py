@@ -110,6 +110,18 @@ def supplied_sky(errors: dict) -> np.ndarray:
     return errors["sky_scale"] * sky_map() + errors["sky_residual"] * other
 
 
+def _on_true_hwpss(name: str, params: dict, a2_true: np.ndarray, errors: dict):
+    """An effect of the HWPSS acts on the recording's TRUE HWPSS: a modulation modulates
+    it; a drift of the HWP temperature is a relative drift of its emission, so c_j in K
+    (given for the nominal A_2) scales with each detector's true A_2."""
+    if name == "hwpss_sine_modulation":
+        return name, dict(params, a2_k=a2_true, hwpss_phase_rad=np.radians(errors["phase_deg"]))
+    if name == "hwp_temperature_drift":
+        relative = a2_true / A2_K
+        return name, {p: np.asarray(v, dtype=float) * relative for p, v in params.items()}
+    return name, params
+
+
 def recorded_with_errors(
     tmp_path,
     effects,
@@ -129,12 +141,10 @@ def recorded_with_errors(
     simulator = _simulated_base(channel, float(hours), "2032-04-01T00:00:00", NSIDE)[0]
     detectors = [{"net_ukrts": d.net_ukrts, "fknee_mhz": d.fknee_mhz} for d in simulator.detectors]
     a2_true = A2_K * (1.0 + errors["a2_relative"])
-    effects = [  # a modulation of the HWPSS modulates the recording's true HWPSS
-        (name, dict(params, a2_k=a2_true, hwpss_phase_rad=np.radians(errors["phase_deg"])))
-        if name == "hwpss_sine_modulation"
-        else (name, params)
-        for name, params in effects
-    ]
+    effects = [_on_true_hwpss(name, params, a2_true, errors) for name, params in effects]
+    # the optical signal first (the true 2f HWPSS, then the effects), the detector's gain
+    # error on all of it, then the noise
+    a2_error, gain_error, noise_error = error_effects(errors, detectors)
     recording = simulate_recording(
         channel,
         hours,
@@ -142,7 +152,7 @@ def recorded_with_errors(
         noise_seed,
         sky_map(),
         A2_K,
-        error_effects(errors, detectors) + list(effects),
+        [a2_error, *effects, gain_error, noise_error],
         pol_angle_offsets_rad=np.radians(errors["pol_angle_deg"]),
     )
     recording.tod += np.asarray(errors["offset_k"])[:, None]

@@ -11,7 +11,10 @@ effects),
 so an effect is only what these adjustments cannot produce: new frequencies, time
 dependence, dependence on the incoming intensity, transients.
 
-and has named per-detector parameters with units. ``templates(ctx)`` returns T of shape
+Each effect has named per-detector parameters with units; a ``shared`` effect has one set
+for all detectors, p_k = s_k r (the HWP temperature drift: one HWP), which the fit imposes
+exactly on the per-detector solutions (:func:`.linalg.share_across_detectors`) and the
+BIC counts once. ``templates(ctx)`` returns T of shape
 (n_det, n_param, n) such that, to first order, recording - d_nom = sum_j p_j T_j
 (exactly so for the effects whose ``kind`` is "linear"); ``apply(ctx, params, tod)`` is
 the full forward model used to inject the effect into a simulated recording (the SAME
@@ -58,17 +61,25 @@ hwpss_intensity_coupling
             same sidebands, g1 = a / (2 A_2), would add a 4f line g1 A_2^2/2)
 gain_drift
     model   [sum_{j=1..3} g_j P_j(x)] (d_nom - <d_nom>) (gain drift of the signal, not of the
-            readout offset; a constant gain error is a nominal adjustment); g_j [1]
+            readout offset; a constant gain error is a nominal adjustment); g_j [1], one set
+            per detector (each TES its own responsivity)
     sign.   residual proportional to the whole signal, changing in time; the dipole amplitude
             drifts together with the 2f HWPSS
-    apart   multiplies the dipole and the sky too; the HWP temperature drift moves only the 2f
-            HWPSS (the difference is g(t) x dipole, at f_spin in the 1/f noise: it needs a
-            drift of a few %/h in a 2-hour recording)
+    apart   the detectors' relative drifts differ (one HWP drifts them alike: the HWP
+            temperature drift, shared, cannot follow); it multiplies the dipole and the sky
+            too (g(t) x dipole, at f_spin in the 1/f noise: a few %/h in 2 hours, ~1 %/h in 6)
 hwp_temperature_drift
-    model   [sum_{j=1..3} c_j P_j(x)] cos(2(chi - theta) - phi); c_j [K]
+    model   A_2,k [sum_{j=1..3} r_j P_j(x)] cos(2(chi - theta_k) - phi_k); r_j [1] SHARED by
+            the detectors (one HWP: its emission drifts by the same relative amount in all);
+            reported as c_j,k = A_2,k r_j [K] per detector and r_j [common]
     sign.   2f line broadened (sidebands at ~1/T), 2f demodulated amplitude drifting in time
-    apart   dipole and sky untouched (unlike the gain drift); a constant 2f amplitude error
-            is the nominal adjustment
+            by the same relative amount in every detector
+    apart   a gain drift that differs between detectors does not fit it, and it costs 3
+            parameters where a gain drift costs 3 per detector; dipole and sky untouched
+            (unlike any gain drift); a gain drift the same in every detector (a common mode)
+            differs only by the dipole: when the dipole's measured drift cannot exclude it,
+            it is named as the unresolved look-alike; a constant 2f amplitude error is the
+            nominal adjustment
 hwpss_slow_modulation
     model   [sum_{j=1..D} c_j P_j(x)] cos(2(chi - theta) - phi), D = T / 8 min (4..24): a
             slow modulation of the 2f amplitude of ANY shape (drift, periodic, smoothed
@@ -167,6 +178,19 @@ class Effect:
     # the report's name for it when it is one member of a family found piece by piece
     # (each line of hwpss_harmonics): the report merges the members it keeps
     reported_as: str | None = None
+    # True: one set of parameters for all detectors, p_k = s_k r (``shared_scale``), e.g.
+    # one HWP, so one relative drift of its emission; the BIC counts len(parameters) once
+    shared: bool = False
+    # -2 ln(prior odds) against the effect, added to its BIC (0: none; see GainDriftCommon)
+    prior_penalty: float = 0.0
+
+    def shared_scale(self, ctx: Context) -> np.ndarray:
+        """s_k of a shared effect, (n_det,): detector k's parameters are s_k times the common ones."""
+        return np.ones(ctx.n_detectors)
+
+    def shared_units(self, ctx: Context | None = None) -> dict[str, str]:
+        """Common parameter -> unit of a shared effect (default: its own parameters)."""
+        return self.param_units(ctx)
 
     @property
     def family(self) -> str:
@@ -543,18 +567,104 @@ class GainDrift(Effect):
                 f"the whole signal scales, as a gain drift g1 P1 (= {2 * g1 / hours * 100:.3g} %/h) "
                 "predicts and an HWP temperature drift (2f only) does not"
             )
+        if ev.ctx.n_detectors > 1 and not self.shared:
+            g1, sigma = fit.values["g1"], np.maximum(fit.sigmas["g1"], 1e-300)
+            mean = np.sum(g1 / sigma**2) / np.sum(1 / sigma**2)
+            spread = math.sqrt(float(np.sum(((g1 - mean) / sigma) ** 2)))
+            values = ", ".join(f"{v:.3g}" for v in g1)
+            parts.append(
+                f"the detectors drift differently (g1 = {values}, {spread:.1f} sigma apart): "
+                "each TES its own responsivity, where one HWP would move the 2f HWPSS of "
+                "every detector by the same relative amount"
+                if spread >= 3
+                else f"the detectors drift alike (g1 = {values}, {spread:.1f} sigma apart): "
+                "the dipole's drift, not the difference between detectors, makes it a gain"
+            )
         return "; ".join(parts)
 
 
+class GainDriftCommon(GainDrift):
+    """A gain drift the same in every detector (a common mode, e.g. of the bath temperature).
+
+    The templates of :class:`GainDrift` with one set of g_j for all detectors (``shared``).
+    It differs from the HWP temperature drift (also one relative drift for all) only by the
+    dipole and sky drifting too, so it carries a prior penalty of 10 in BIC (odds of e^5
+    ~ 150 against it): TES responsivities drift by their own amounts (litebird_sim draws
+    a slope per detector), one HWP moves every detector's 2f HWPSS alike. It is taken when
+    the dipole's drift shows (e.g. 1e-2 in 6 hours), else the HWP temperature drift is, with
+    the gain drift named as its unresolved look-alike. Reported as ``gain_drift``.
+    """
+
+    name = "gain_drift_common"
+    title = "gain drift common to the detectors"
+    reported_as = "gain_drift"
+    shared = True
+    prior_penalty = 10.0
+    signature = (
+        "residual proportional to the whole signal (HWPSS and dipole), drifting in time by "
+        "the same relative amount in every detector"
+    )
+    discrimination = (
+        "the dipole amplitude drifts together with the 2f HWPSS (the same relative drift "
+        "in every detector, as one HWP's would be: only the dipole tells them apart)"
+    )
+
+    def evidence(self, ev, fit) -> str:
+        """The signature measured on the residual ``ev`` (:class:`.evidence.Evidence`), in words."""
+        return (
+            f"one relative drift for all detectors, g1 = {fit.shared_values['g1']:.3g} +- "
+            f"{fit.shared_sigmas['g1']:.2g} (sharing it costs chi^2 {fit.sharing_chi2:.1f} "
+            f"for {fit.sharing_dof} fewer parameters); " + super().evidence(ev, fit)
+        )
+
+
 class HwpTemperatureDrift(Effect):
-    """Slow drift of the 2f HWPSS amplitude: [sum_{j=1..3} c_j P_j(x)] cos(2 (chi - theta) - phi)."""
+    """Slow drift of the 2f HWPSS amplitude: A_2,k [sum_{j=1..3} r_j P_j(x)] cos(2 (chi - theta) - phi).
+
+    One HWP: its emission drifts by the same RELATIVE amount r(t) in every detector of a
+    channel, so the per-detector amplitudes c_j,k = A_2,k r_j share one set of r_j
+    (``shared``). This is what tells it from a gain drift that differs between detectors
+    (each TES its own responsivity, as litebird_sim's gain drift draws per detector).
+    """
 
     name = "hwp_temperature_drift"
     title = "HWP temperature drift (2f amplitude drift)"
     parameters: ClassVar[dict[str, str]] = {f"c{j}": "K" for j in range(1, DRIFT_DEGREE + 1)}
     main_parameters = ("c1",)
-    signature = "2 f_HWP demodulated amplitude drifting in time; dipole and sky untouched"
-    discrimination = "only the 2f HWPSS moves, the dipole does not"
+    signature = (
+        "2 f_HWP demodulated amplitude drifting in time by the same relative amount in every "
+        "detector; dipole and sky untouched"
+    )
+    discrimination = (
+        "only the 2f HWPSS moves, the dipole does not; one relative drift for all detectors "
+        "(one HWP), where a gain drift may differ from detector to detector"
+    )
+    shared = True
+
+    def shared_scale(self, ctx):
+        """s_k = A_2,k: c_j,k = A_2,k r_j."""
+        return np.asarray(ctx.a2_k, dtype=float)
+
+    def shared_units(self, ctx=None):
+        return {f"r{j}": "1" for j in range(1, self.degree(ctx) + 1)}
+
+    def unresolved_look_alikes(self, ev, fit) -> list[str]:
+        """A gain drift the same in every detector, g_j = r_j, when the dipole's drift it
+        would add (2 r_1 / T per hour, relative) is within 3 sigma of the one measured (all
+        detectors together): only the dipole tells the two apart, and it does not here."""
+        if not self.shared:
+            return []
+        hours = ev.ctx.duration_s / 3600
+        predicted = 2 * fit.shared_values["r1"] / hours
+        chi2_gain = chi2_none = 0.0
+        for k in range(ev.ctx.n_detectors):
+            dipole = ev.drift(k, "dipole_gain")
+            sigma = dipole["sigma_per_hour"]
+            if not sigma > 0:
+                continue
+            chi2_gain += ((dipole["slope_per_hour"] - predicted) / sigma) ** 2
+            chi2_none += (dipole["slope_per_hour"] / sigma) ** 2
+        return ["gain_drift"] if chi2_gain - chi2_none < 9.0 else []
 
     def degree(self, ctx: Context | None) -> int:
         return DRIFT_DEGREE
@@ -589,6 +699,14 @@ class HwpTemperatureDrift(Effect):
                 f"({dipole['slope_per_hour'] * 100:.2g} +- {dipole['sigma_per_hour'] * 100:.2g} %/h, "
                 f"{dipole['significance_sigma']:.1f} sigma): only the HWP emission changes"
             )
+        if self.shared:
+            parts.insert(
+                0,
+                f"one relative drift for all detectors (one HWP): r1 = "
+                f"{fit.shared_values['r1']:.3g} +- {fit.shared_sigmas['r1']:.2g} of A_2 "
+                f"(sharing it costs chi^2 {fit.sharing_chi2:.1f} for {fit.sharing_dof} "
+                "fewer parameters)",
+            )
         return "; ".join(parts)
 
 
@@ -607,6 +725,7 @@ class HwpssSlowModulation(HwpTemperatureDrift):
 
     name = "hwpss_slow_modulation"
     title = "slow modulation of the 2f HWPSS amplitude (any shape)"
+    shared = False  # any shape, per detector: a modulation need not come from the HWP alone
     parameters: ClassVar[dict[str, str]] = {
         f"c{j}": "K" for j in range(1, MODULATION_MIN + 1)
     }  # D grows with the recording's length: see param_units
@@ -825,6 +944,7 @@ CATALOG: dict[str, Effect] = {
         *(HwpssHarmonic(n) for n in HWPSS_HARMONICS),
         HwpssIntensityCoupling(),
         GainDrift(),
+        GainDriftCommon(),
         HwpTemperatureDrift(),
         HwpssSlowModulation(),
         Glitches(),

@@ -52,7 +52,11 @@ up to 24 per detector) gains Delta chi^2 from the noise alone; for the same reas
 HWPSS harmonics are tried line by line (two parameters per detector each, reported
 together), and ``max_effects`` counts families, not lines. After each addition, a backward
 step removes an effect that the later ones made redundant (its removal raises the BIC by
-less than |threshold|); a set once removed is not revisited, so the search ends.
+less than |threshold|); a set once removed is not revisited, so the search ends. Last, a
+selected linear signal effect is swapped for an unselected one when that lowers the BIC
+(forward selection never revisits its first choice, made with the noise weights of that
+moment: an HWP temperature drift taken before the refitted 1/f noise lets a gain drift's
+dipole drift show).
 
 The noise model is decided after the template effects (all but noise_mismatch): the
 Whittle fit of the white + 1/f noise to the final residual is kept if it lowers the BIC
@@ -89,7 +93,7 @@ from .effects import (
     single_pole,
     single_pole_derivative,
 )
-from .linalg import cross, realify, solve_normal
+from .linalg import cross, realify, share_across_detectors, solve_normal
 from .locate import find_transients
 from .model import Context
 from .noise import NoiseModel, line_exclusion_mask, periodogram_scale, whittle_fit
@@ -110,6 +114,13 @@ class EffectFit:
     sigmas: dict[str, np.ndarray] = field(default_factory=dict)
     events: list[GlitchEvent] = field(default_factory=list)
     noise: list[NoiseModel] = field(default_factory=list)
+    # a shared effect (``Effect.shared``): its common parameters, and the chi^2 that sharing
+    # them costs against a separate fit per detector, for sharing_dof fewer parameters
+    shared_values: dict[str, float] = field(default_factory=dict)
+    shared_sigmas: dict[str, float] = field(default_factory=dict)
+    shared_units: dict[str, str] = field(default_factory=dict)
+    sharing_chi2: float = 0.0
+    sharing_dof: int = 0
 
 
 @dataclass
@@ -126,8 +137,10 @@ class FitResult:
     chi2_off_lines: float = math.nan  # the same chi^2 over the modes away from the lines
     parts: dict | None = field(default=None, repr=False)  # effect -> per-detector rfft model
 
+    prior_penalty: float = 0.0  # sum of the selected effects' Effect.prior_penalty
+
     def bic(self, ln_n_eff: float) -> float:
-        return self.chi2 + self.n_params * ln_n_eff
+        return self.chi2 + self.n_params * ln_n_eff + self.prior_penalty
 
 
 class FitProblem:
@@ -290,9 +303,48 @@ class FitProblem:
             effect = self.effects[name]
             if effect.kind == "events":
                 total += 3 * n_events
+            elif effect.shared:
+                total += len(self.units[name])
             else:
                 total += len(self.units[name]) * self.n_det
         return total
+
+    def prior_penalty(self, selected) -> float:
+        return float(sum(self.effects[name].prior_penalty for name in selected))
+
+    def _share(self, selected, values, covariances):
+        """Impose the shared effects' constraints p_k = s_k r on the per-detector solutions.
+
+        (:func:`.linalg.share_across_detectors`; exact for the linear fit.) Returns the new
+        values and covariances and {effect: (r, sigma_r, chi^2 cost)}.
+        """
+        shared = {}
+        offset = self.n_nominal
+        for name in selected:
+            if name not in self.slices:
+                continue
+            width = self.slices[name].stop - self.slices[name].start
+            if self.effects[name].shared and self.n_det > 1:
+                positions = np.arange(offset, offset + width)
+                scale = self.effects[name].shared_scale(self.ctx)
+                scales = np.repeat(scale[:, None], width, axis=1)
+                values, covariances, r, cov_r, cost = share_across_detectors(
+                    values, covariances, positions, scales
+                )
+                shared[name] = (r, np.sqrt(np.clip(np.diag(cov_r), 0, None)), cost)
+            offset += width
+        return values, covariances, shared
+
+    def _with_shared(self, fits: dict, shared: dict) -> dict:
+        """The EffectFits with the shared effects' common values filled in."""
+        for name, (r, sigma, cost) in shared.items():
+            units = self.effects[name].shared_units(self.ctx)
+            fits[name].shared_values = {p: float(v) for p, v in zip(units, r, strict=True)}
+            fits[name].shared_sigmas = {p: float(v) for p, v in zip(units, sigma, strict=True)}
+            fits[name].shared_units = units
+            fits[name].sharing_chi2 = float(cost)
+            fits[name].sharing_dof = len(units) * (self.n_det - 1)
+        return fits
 
     def _ordered(self, selected) -> tuple[str, ...]:
         order = list(self.effects)
@@ -367,6 +419,7 @@ class FitProblem:
             chi2=base.chi2,
             chi2_per_detector=base.chi2_per_detector,
             n_params=base.n_params + self.n_det,
+            prior_penalty=base.prior_penalty,
             effects=effects,
             model_f=None,
             noise_models=base.noise_models,
@@ -410,9 +463,13 @@ class FitProblem:
             gram = self.gram_nom[k][np.ix_(rows, rows)]
             rhs = self.rhs_nom[k][rows]
             a, cov = solve_normal(gram, rhs)
-            chi2s.append(self.yy_nom[k] - 2 * rhs @ a + a @ gram @ a)
             values.append(a)
             covariances.append(cov)
+        values, covariances, shared = self._share(selected, values, covariances)
+        for k in range(self.n_det):
+            gram = self.gram_nom[k][np.ix_(rows, rows)]
+            rhs, a = self.rhs_nom[k][rows], values[k]
+            chi2s.append(self.yy_nom[k] - 2 * rhs @ a + a @ gram @ a)
             model = a @ self.bank[k][rows] if rows.size else np.zeros(self.freqs.size, complex)
             models.append(model)
             off += self.chi2_of(k, model, self.s_nom[k])[1]
@@ -424,7 +481,10 @@ class FitProblem:
             chi2=float(np.sum(chi2s)),
             chi2_per_detector=np.array(chi2s),
             n_params=self.count_parameters(selected, 0),
-            effects=self._linear_effect_fits(selected, values, covariances),
+            prior_penalty=self.prior_penalty(selected),
+            effects=self._with_shared(
+                self._linear_effect_fits(selected, values, covariances), shared
+            ),
             model_f=models,
             noise_models=list(self.nominal_noise),
             chi2_off_lines=off,
@@ -585,6 +645,10 @@ class FitProblem:
                         axis=-1,
                         workers=self.workers,
                     )
+            values, covariances, shared = self._share(linear, values, covariances)
+            if shared:
+                for k in range(n_det):
+                    models[k] = values[k] @ used_banks[k] + tau_parts[k] + glitch_f[k]
             if has_glitch:
                 events = []
                 for k in range(n_det):
@@ -617,7 +681,7 @@ class FitProblem:
             previous_chi2 = total
         both = [self.chi2_of(k, models[k], s[k]) for k in range(n_det)]
         chi2s = np.array([b[0] for b in both])
-        fits = self._linear_effect_fits(selected, values, covariances)
+        fits = self._with_shared(self._linear_effect_fits(selected, values, covariances), shared)
         if has_tau:
             fits["detector_time_constant"] = EffectFit(
                 "detector_time_constant",
@@ -649,6 +713,7 @@ class FitProblem:
             chi2=float(chi2s.sum()),
             chi2_per_detector=chi2s,
             n_params=self.count_parameters(selected, len(events)),
+            prior_penalty=self.prior_penalty(selected),
             effects=fits,
             model_f=models,
             noise_models=noise_models,
@@ -838,7 +903,54 @@ def select_templates(problem, names, threshold, max_effects, noise: bool, steps:
         templates, current = _backward(
             problem, templates, current, extra, threshold, removed_sets, steps
         )
+    templates, current = _swap_look_alikes(problem, names, templates, current, extra, steps)
     return _one_family_for_a_line(problem, templates, current, extra, threshold, steps)
+
+
+def _swappable(effect) -> bool:
+    return effect.kind == "linear" and effect.stage == "signal"
+
+
+def _swap_look_alikes(problem, names, templates, current, extra, steps):
+    """Replace a selected effect by an unselected one when that lowers the BIC.
+
+    Forward selection never revisits a choice: the effect taken first (with the noise
+    weights of that moment) stays even when a look-alike fits better once the noise is
+    refitted or the other effects are in, e.g. an HWP temperature drift taken before a
+    gain drift whose dipole drift shows only with the refitted 1/f noise. Tried for the
+    linear signal effects (cheap fits); each swap is a step naming what it replaced.
+    """
+    ln_n = problem.ln_n_eff
+    seen = {frozenset(templates)}
+    while True:
+        best = None
+        for out in [n for n in templates if _swappable(problem.effects[n])]:
+            kept = tuple(t for t in templates if t != out)
+            for candidate in names:
+                if candidate in templates or not _swappable(problem.effects[candidate]):
+                    continue
+                if frozenset(kept + (candidate,)) in seen:
+                    continue
+                trial = problem.fit(kept + (candidate,) + extra)
+                gain = trial.bic(ln_n) - current.bic(ln_n)
+                if gain < 0 and (best is None or gain < best[3]):
+                    best = (out, candidate, trial, gain)
+        if best is None:
+            return templates, current
+        out, candidate, trial, gain = best
+        _step(
+            steps,
+            current,
+            trial,
+            ln_n,
+            {candidate: {"delta_chi2": trial.chi2 - current.chi2, "delta_bic": gain}},
+            added=candidate,
+            removed=out,
+            note=f"{out} swapped for {candidate}: a lower BIC",
+        )
+        templates = tuple(t for t in templates if t != out) + (candidate,)
+        seen.add(frozenset(templates))
+        current = trial
 
 
 def _one_family_for_a_line(problem, templates, current, extra, threshold, steps):

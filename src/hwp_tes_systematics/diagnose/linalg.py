@@ -74,3 +74,49 @@ def whitened_lstsq(residual_f: np.ndarray, templates_f: np.ndarray, weights: np.
     gram = cross(templates_f, templates_f, weights)
     values, cov = solve_normal(gram, cross(templates_f, residual_f, weights))
     return values, np.sqrt(np.clip(np.diag(cov), 0, None))
+
+
+def share_across_detectors(values, covariances, positions, scales):
+    """Least squares with parameters shared by the detectors: p_k[positions] = s_k * r.
+
+    ``values``, ``covariances``: each detector's unconstrained solution a_k and its
+    covariance C_k (the detectors' fits are independent); ``positions`` (S,): where the
+    shared parameters sit in each a_k; ``scales`` (n_det, S): s_k. With c_k = a_k[S] and
+    P_k = C_k[S, S]^-1, the chi^2 of detector k rises by (c_k - s_k r)^T P_k (c_k - s_k r)
+    when its other parameters are re-solved (a_k' = a_k + C_k[:, S] P_k (s_k r - c_k)),
+    so the common value is
+
+        r = F^-1 sum_k s_k P_k c_k,   F = sum_k s_k P_k s_k,   cov(r) = F^-1.
+
+    Returns (the constrained a_k', their covariances with the shared block replaced by
+    s_k cov(r) s_k, r, cov(r), the chi^2 the constraint costs).
+    """
+    positions = np.asarray(positions, dtype=int)
+    n_shared = positions.size
+    fisher = np.zeros((n_shared, n_shared))
+    pulled = np.zeros(n_shared)
+    precisions = []
+    for a, cov, s in zip(values, covariances, scales, strict=True):
+        block = cov[np.ix_(positions, positions)]
+        finite = np.isfinite(np.diag(block))
+        precision = np.zeros((n_shared, n_shared))
+        if finite.any():
+            precision[np.ix_(finite, finite)] = np.linalg.pinv(block[np.ix_(finite, finite)])
+        precisions.append(precision)
+        weighted = s[:, None] * precision * s[None, :]
+        fisher += weighted
+        pulled += s * (precision @ a[positions])
+    cov_r = np.linalg.pinv(fisher)
+    r = cov_r @ pulled
+    new_values, new_covariances, cost = [], [], 0.0
+    for a, cov, s, precision in zip(values, covariances, scales, precisions, strict=True):
+        miss = s * r - a[positions]
+        cost += float(miss @ precision @ miss)
+        coupling = np.where(np.isfinite(cov[:, positions]), cov[:, positions], 0.0)
+        new = a + coupling @ (precision @ miss)
+        new[positions] = s * r
+        new_cov = cov.copy()
+        new_cov[np.ix_(positions, positions)] = s[:, None] * cov_r * s[None, :]
+        new_values.append(new)
+        new_covariances.append(new_cov)
+    return new_values, new_covariances, r, cov_r, cost

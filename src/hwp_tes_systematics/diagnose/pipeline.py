@@ -124,8 +124,9 @@ def look_alikes(steps, threshold: float) -> dict[str, list[str]]:
 
     out: dict[str, list[str]] = {}
     for step in steps:
-        if step.added and step.removed:  # a replacement: the two fit the lines as well
-            out[step.added] = sorted(set(out.get(step.added, [])) | {step.removed})
+        if step.added and step.removed:  # a replacement: named if (nearly) as good
+            if step.delta_bic > threshold:
+                out[step.added] = sorted(set(out.get(step.added, [])) | {step.removed})
             continue
         if not step.added or step.added not in step.candidates:
             continue
@@ -212,6 +213,14 @@ def _parameters(name, fit, detector_names, sampling_rate_hz, units) -> dict:
                 "parameter": param,
             }
             out[f"{param}[{det}]"] = entry
+    for param, value in fit.shared_values.items():  # a shared effect's common parameters
+        out[f"{param}[common]"] = {
+            "value": value,
+            "sigma": fit.shared_sigmas[param],
+            "unit": fit.shared_units[param],
+            "detector": "common",
+            "parameter": param,
+        }
     return out
 
 
@@ -343,7 +352,10 @@ def diagnose(
     residual_after = problem.residual_after(final)
     partial = problem.partial_residuals(final)
 
-    ties = look_alikes(history, delta_bic_threshold)
+    ties = {  # named as the report names them (a member by its family)
+        name: sorted({CATALOG[n].reported_as or n if n in CATALOG else n for n in others})
+        for name, others in look_alikes(history, delta_bic_threshold).items()
+    }
     found = {family_of(n) for n in selection.ranked}
     effects_out = []
     for name in selection.ranked:
