@@ -126,6 +126,7 @@ from ..nonlinearity import apply_nonlinearity
 from .model import Context, per_detector
 
 HWPSS_HARMONICS = (1, 3, 4, 5, 6)  # n = 2 is the nominal 2f adjustment
+NONLINEARITY_HARMONICS = (4, 6)  # the HWPSS lines d^2 and d^3 make of a 2f HWPSS
 INJECTION_HARMONICS = (1, 2, 3, 4, 5, 6)  # a simulated recording may carry any of them
 GAIN_DEGREES = (1, 2, 3)  # g0 (a constant gain error) is the nominal gain adjustment
 DRIFT_DEGREE = 3  # hwp_temperature_drift: P1..P3
@@ -469,12 +470,17 @@ class HwpssHarmonic(Effect):
             sigma = max(fit.sigmas[f"c{n}"][k], fit.sigmas[f"s{n}"][k])
             amplitude = math.hypot(c, s)
             significance = amplitude / sigma if sigma > 0 else 0.0
-            (_lo, _, _, lo_sig, *_), (_hi, _, _, hi_sig, *_) = ev.sidebands(k)
-            parts.append(
+            text = (
                 f"{name}: a {n} f_HWP line {format_temperature(amplitude)} ({significance:.0f} "
-                f"sigma), phase {math.degrees(math.atan2(s, c)):.0f} deg; no 2 f_HWP +- f_spin "
-                f"sidebands ({lo_sig:.1f} and {hi_sig:.1f} sigma), unlike a nonlinearity"
+                f"sigma), phase {math.degrees(math.atan2(s, c)):.0f} deg"
             )
+            if n in NONLINEARITY_HARMONICS:  # a line a nonlinearity makes too
+                (_lo, _, _, lo_sig, *_), (_hi, _, _, hi_sig, *_) = ev.sidebands(k)
+                text += (
+                    f"; no 2 f_HWP +- f_spin sidebands ({lo_sig:.1f} and {hi_sig:.1f} sigma), "
+                    "unlike a nonlinearity"
+                )
+            parts.append(text)
         return "; ".join(parts)
 
 
