@@ -117,7 +117,7 @@ AMPLITUDES = {
         {"gain_drift"},
     ),
     "hwp_temperature_drift": (
-        "r1",  # checked as r1 = c1 / A_2, the relative drift common to the detectors
+        "c1",  # [K]; checked as r1 = c1 / A_2, the relative drift shared by the detectors
         [3e-6, 1e-5, 1e-4],
         _drift,
         {"hwp_temperature_drift", "hwpss_slow_modulation"},
@@ -214,12 +214,13 @@ def _lag_in_phase(result, errors, tau_s) -> bool:
     return True
 
 
-def _truth(param: str, injected: dict, support):
-    """The truth of a main parameter: the injected value (one, or one per detector); r1,
-    the relative drift of the HWP emission common to the detectors, is c1 / A_2."""
-    if param == "r1":
-        return injected["c1"] / support.A2_K
-    return injected[param]
+def _checked(effect: str, param: str, injected: dict, support) -> tuple[str, object]:
+    """(parameter, truth) checked for the main parameter: the injected value (one, or one
+    per detector); for the HWP temperature drift, r1 = c1 / A_2, the relative drift of the
+    HWP emission shared by the detectors."""
+    if effect == "hwp_temperature_drift":
+        return "r1", injected["c1"] / support.A2_K
+    return param, injected[param]
 
 
 def _within(result, effect, name, truth) -> bool:
@@ -308,7 +309,7 @@ def rates(arguments) -> dict:
                         tied=bool(names) and not top_ok and bool(accepted & ties),
                         within=param is not None
                         and top_ok
-                        and _within(result, names[0], param, _truth(param, injected, support)),
+                        and _within(result, names[0], *_checked(effect, param, injected, support)),
                     )
                 print("  " + _amplitude_line(effect, param, amplitude, cases), flush=True)
         for label, (effects, expected) in PAIRS.items():

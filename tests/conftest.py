@@ -1,8 +1,15 @@
 """Shared fixtures: the repository root, the default configuration, the tiny run."""
 
+import os
+
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    # One BLAS thread per xdist worker (before numpy loads it): two workers with two
+    # busy-waiting OpenBLAS threads each on two cores run several times slower.
+    for _name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(_name, "1")
+
 import fcntl
 import json
-import os
 import shutil
 from pathlib import Path
 from types import SimpleNamespace
