@@ -524,6 +524,15 @@ class HwpssIntensityCoupling(Effect):
         return "; ".join(parts)
 
 
+def _one_relative_drift(fit, param: str, of: str, why: str = "") -> str:
+    """The sentence stating a shared drift's common value and what sharing it cost."""
+    return (
+        f"one relative drift for all detectors{why}: {param} = "
+        f"{fit.shared_values[param]:.3g} +- {fit.shared_sigmas[param]:.2g}{of} (sharing it "
+        f"costs chi^2 {fit.sharing_chi2:.1f} for {fit.sharing_dof} fewer parameters)"
+    )
+
+
 class GainDrift(Effect):
     """Relative gain drift: d_obs = [1 + sum_j g_j P_j(x)] d, j = 1..3 (g0: a nominal adjustment).
 
@@ -617,11 +626,7 @@ class GainDriftCommon(GainDrift):
 
     def evidence(self, ev, fit) -> str:
         """The signature measured on the residual ``ev`` (:class:`.evidence.Evidence`), in words."""
-        return (
-            f"one relative drift for all detectors, g1 = {fit.shared_values['g1']:.3g} +- "
-            f"{fit.shared_sigmas['g1']:.2g} (sharing it costs chi^2 {fit.sharing_chi2:.1f} "
-            f"for {fit.sharing_dof} fewer parameters); " + super().evidence(ev, fit)
-        )
+        return _one_relative_drift(fit, "g1", "") + "; " + super().evidence(ev, fit)
 
 
 class HwpTemperatureDrift(Effect):
@@ -706,13 +711,7 @@ class HwpTemperatureDrift(Effect):
                 f"{dipole['significance_sigma']:.1f} sigma): only the HWP emission changes"
             )
         if self.shared:
-            parts.insert(
-                0,
-                f"one relative drift for all detectors (one HWP): r1 = "
-                f"{fit.shared_values['r1']:.3g} +- {fit.shared_sigmas['r1']:.2g} of A_2 "
-                f"(sharing it costs chi^2 {fit.sharing_chi2:.1f} for {fit.sharing_dof} "
-                "fewer parameters)",
-            )
+            parts.insert(0, _one_relative_drift(fit, "r1", " of A_2", " (one HWP)"))
         return "; ".join(parts)
 
 
@@ -963,6 +962,11 @@ CATALOG: dict[str, Effect] = {
 # Effects on the signal, which the detector nonlinearity then acts on (they come before it).
 SIGNAL_EFFECTS = frozenset(name for name, e in CATALOG.items() if e.stage == "signal")
 RESPONSE_STAGE = frozenset(name for name, e in CATALOG.items() if e.stage == "response")
+
+
+def reported_name(name: str) -> str:
+    """The name the report gives an effect: its family's for a member (``reported_as``)."""
+    return CATALOG[name].reported_as or name if name in CATALOG else name
 
 
 def family_of(name: str) -> str:

@@ -319,21 +319,30 @@ class FitProblem:
         values and covariances and {effect: (r, sigma_r, chi^2 cost)}.
         """
         shared = {}
-        offset = self.n_nominal
-        for name in selected:
-            if name not in self.slices:
-                continue
-            width = self.slices[name].stop - self.slices[name].start
-            if self.effects[name].shared and self.n_det > 1:
-                positions = np.arange(offset, offset + width)
+        if self.n_det < 2:
+            return values, covariances, shared
+        for name, rows in self._positions(selected).items():
+            if self.effects[name].shared:
+                positions = np.arange(rows.start, rows.stop)
                 scale = self.effects[name].shared_scale(self.ctx)
-                scales = np.repeat(scale[:, None], width, axis=1)
+                scales = np.repeat(scale[:, None], positions.size, axis=1)
                 values, covariances, r, cov_r, cost = share_across_detectors(
                     values, covariances, positions, scales
                 )
                 shared[name] = (r, np.sqrt(np.clip(np.diag(cov_r), 0, None)), cost)
-            offset += width
         return values, covariances, shared
+
+    def _positions(self, selected) -> dict[str, slice]:
+        """Where each linear effect of ``selected`` sits in a fit's parameter vector (the
+        bank rows :meth:`rows` takes: the nominal adjustments, then these in order)."""
+        positions = {}
+        offset = self.n_nominal
+        for name in selected:
+            if name in self.slices:
+                width = self.slices[name].stop - self.slices[name].start
+                positions[name] = slice(offset, offset + width)
+                offset += width
+        return positions
 
     def _with_shared(self, fits: dict, shared: dict) -> dict:
         """The EffectFits with the shared effects' common values filled in."""
@@ -458,17 +467,15 @@ class FitProblem:
 
     def _fit_linear(self, selected) -> FitResult:
         rows = self.rows([n for n in selected if n in self.slices])
-        values, covariances, chi2s, models, off = [], [], [], [], 0.0
+        grams = [self.gram_nom[k][np.ix_(rows, rows)] for k in range(self.n_det)]
+        rhss = [self.rhs_nom[k][rows] for k in range(self.n_det)]
+        solved = [solve_normal(gram, rhs) for gram, rhs in zip(grams, rhss, strict=True)]
+        values, covariances, shared = self._share(
+            selected, [a for a, _ in solved], [cov for _, cov in solved]
+        )
+        chi2s, models, off = [], [], 0.0
         for k in range(self.n_det):
-            gram = self.gram_nom[k][np.ix_(rows, rows)]
-            rhs = self.rhs_nom[k][rows]
-            a, cov = solve_normal(gram, rhs)
-            values.append(a)
-            covariances.append(cov)
-        values, covariances, shared = self._share(selected, values, covariances)
-        for k in range(self.n_det):
-            gram = self.gram_nom[k][np.ix_(rows, rows)]
-            rhs, a = self.rhs_nom[k][rows], values[k]
+            gram, rhs, a = grams[k], rhss[k], values[k]
             chi2s.append(self.yy_nom[k] - 2 * rhs @ a + a @ gram @ a)
             model = a @ self.bank[k][rows] if rows.size else np.zeros(self.freqs.size, complex)
             models.append(model)
@@ -493,18 +500,10 @@ class FitProblem:
 
     def _linear_parts(self, selected, banks, values) -> dict:
         """Per-effect Fourier models of the linear effects (rows in ``selected`` order)."""
-        parts = {}
-        offset = self.n_nominal
-        for name in selected:
-            if name not in self.slices:
-                continue
-            width = self.slices[name].stop - self.slices[name].start
-            parts[name] = [
-                values[k][offset : offset + width] @ banks[k][offset : offset + width]
-                for k in range(self.n_det)
-            ]
-            offset += width
-        return parts
+        return {
+            name: [values[k][rows] @ banks[k][rows] for k in range(self.n_det)]
+            for name, rows in self._positions(selected).items()
+        }
 
     def _fit_tau(self, k, y, bank, gram, w, start):
         """Variable projection: tau by least_squares with the linear parameters profiled out.

@@ -34,7 +34,7 @@ import math
 
 import numpy as np
 
-from .effects import CATALOG, family_of
+from .effects import CATALOG, family_of, reported_name
 from .evidence import Evidence
 from .fit import FitProblem, stepwise
 from .locate import line_at, locate
@@ -148,10 +148,8 @@ def merge_members(effects: list[dict]) -> list[dict]:
     merged: dict[str, dict] = {}
     for entry in effects:
         effect = CATALOG[entry["name"]]
-        name = effect.reported_as or entry["name"]
-        look_alikes = {
-            CATALOG[n].reported_as or n if n in CATALOG else n for n in entry["look_alikes"]
-        }
+        name = reported_name(entry["name"])
+        look_alikes = {reported_name(n) for n in entry["look_alikes"]}
         if name not in merged:
             family = CATALOG[name]
             merged[name] = dict(
@@ -353,7 +351,7 @@ def diagnose(
     partial = problem.partial_residuals(final)
 
     ties = {  # named as the report names them (a member by its family)
-        name: sorted({CATALOG[n].reported_as or n if n in CATALOG else n for n in others})
+        name: sorted({reported_name(n) for n in others})
         for name, others in look_alikes(history, delta_bic_threshold).items()
     }
     found = {family_of(n) for n in selection.ranked}
