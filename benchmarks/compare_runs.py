@@ -31,7 +31,7 @@ def row(name: str, folder: Path) -> str:
     )
     return (
         f"| {name} | {settings['baseline_length_s']} | {settings['g1_per']} | "
-        f"{settings['notch_transfer_in_model']} | {result['requirement_sigma_g1_per_k']:.2g} | "
+        f"{settings.get('likelihood_model', settings.get('notch_transfer_in_model'))} | {result['requirement_sigma_g1_per_k']:.2g} | "
         f"{result['power_law_fit']['exponent']:.2f} +- "
         f"{result['power_law_fit']['exponent_sigma']:.2f} | {regime['valid']} | "
         f"{systematic['requirement_sigma_g1_per_k']:.2g} +- "

@@ -42,6 +42,23 @@ def test_whole_workflow_on_tiny_config(tiny_local_run):
     assert np.isfinite(crossing["sigma_g1_per_k"]) == (crossing["outside_grid"] is None)
     assert (workdir / "results/figures/requirement_vs_a2_scale.png").is_file()
     assert (workdir / "results/figures/residual_spectra_bb.png").stat().st_size > 10_000
+    # the model check, both conventions, where the information and the bias come from
+    headline = requirement["headline"]
+    assert headline["model"] == "paper_recipe" and isinstance(headline["consistent"], bool)
+    assert headline["consistent"] == requirement["consistency"]["consistent"]
+    assert [row["ell"][0] for row in requirement["consistency"]["bins"]][:2] == [2, 5]
+    assert np.isfinite(headline["fisher_peak_shift_requirement_sigma_g1_per_k"])
+    shift = requirement["systematic_only"]["fraction_point"]
+    assert len(shift["mean_delta_r"]) == len(shift["sigma_g1_per_k"]) == 21
+    computed = np.array(shift["mean_delta_r"])  # NaN beyond 1e3 x the budget
+    computed = computed[np.isfinite(computed)]
+    assert computed.size >= 2 and np.all(np.diff(computed) > 0)  # the own power grows
+    assert shift["exponent_at_smallest_sigma"] == pytest.approx(2.0, abs=0.05)
+    fractions = [row["information_fraction"] for row in requirement["ell_distribution"]["bins"]]
+    assert sum(fractions) == pytest.approx(1.0)
+    assert (workdir / "results/figures/information_and_bias_vs_ell.png").stat().st_size > 10_000
+    noise_model = (workdir / "results/spectra/noise_model.csv").read_text().splitlines()[0]
+    assert "sky_transfer_bb" in noise_model
 
 
 def scheduled_rules(workdir, repo, *more_configfiles):

@@ -116,3 +116,25 @@ def test_same_seed_identical_other_seed_different(simulator):
     np.testing.assert_array_equal(first, again)
     seen = first[0, 0] != hp.UNSEEN
     assert not np.allclose(first[0][:, seen], other[0][:, seen])
+
+
+def test_without_a_notch_the_4f_harmonic_template_removes_the_line(simulator):
+    """config/keep_sky.yaml: no notch (notch.width_divisor null), the 4 f_HWP line
+    g1 A_2^2 / 2 cos(4 chi) removed as an HWP harmonic template: the line goes, the sky
+    passes untouched (no filter at all without templates)."""
+    from hwp_tes_systematics.tod_maps import notch_with_margins
+
+    settings = settings_for(simulator)
+    settings.notch_width_divisor = None
+    pointing = simulator.pointing(0, simulator.plan.n_samples)
+    sky = simulator.scan_sky(pointing, random_sky(2))  # (2 detectors, samples)
+    settings.removed_hwp_harmonics = ()
+    np.testing.assert_array_equal(notch_with_margins(sky, pointing, simulator, settings), sky)
+    line = 1e-4 * np.cos(4 * pointing.hwp_angle_rad + 0.3) * np.ones((2, 1))
+    settings.removed_hwp_harmonics = (2,)
+    np.testing.assert_allclose(
+        notch_with_margins(line, pointing, simulator, settings), line, atol=1e-6
+    )
+    settings.removed_hwp_harmonics = (2, 4)
+    cleaned = notch_with_margins(line, pointing, simulator, settings)
+    assert np.abs(cleaned).max() < 1e-12

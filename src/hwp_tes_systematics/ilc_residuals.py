@@ -11,7 +11,14 @@ are brought to a common beam and combined by the HILC (:mod:`hilc`). Two residua
 * the systematic alone: the weights of the no-systematics case applied to the
   contamination only, s_lm = sigma sum_c w_c^nosys sum_k z_ck T_ck, whose spectrum is
   exactly sigma^2 times that of sigma = 1 (no cross term with noise or foregrounds, no
-  re-weighting). With the template split T = T_ss + 2 A_2 T_sh + A_2^2 T_hh
+  re-weighting);
+* the paper's words read literally (``likelihood.model: paper_literal``): the residual
+  against the *unfiltered* input CMB, r_lm + sum_c w_c (a_ref,c - a_in,c), with a_in,c
+  the seed's CMB at channel c's beam before any filter (:meth:`SeedMaps.input_cmb_alms`):
+  it keeps the part of the CMB that the notch removed. The same a_lm give the end-to-end
+  transfer of the sky, T_ell = C(sum w a_ref, sum w a_in) / C(sum w a_in).
+
+With the template split T = T_ss + 2 A_2 T_sh + A_2^2 T_hh
   (:mod:`stages.pair_maps`) and A_2 scaled by a on every channel,
   s_lm(a) = X0 + a X1 + a^2 X2, X_j = sum_c w_c sum_k z_ck c_j(A_c) T^j_ck with
   c = (1, 2 A_c, A_c^2): three a_lm give the systematic for every HWPSS amplitude.
@@ -26,7 +33,7 @@ import numpy as np
 import pandas as pd
 
 from . import config as cfg
-from . import hilc, spectra
+from . import hilc, map_domain, spectra
 from .maps_file import read_channel_maps
 from .systematics import unit_g1_draws
 
@@ -116,25 +123,47 @@ class SeedMaps:
     def reference_alms(self, kind: str) -> np.ndarray:
         """a_lm of the "cmb_reference" or "foreground_reference" maps (computed once)."""
         return self._cached_alms(
-            kind, lambda data, draws: np.where(data["nosys"] == hp.UNSEEN, hp.UNSEEN, data[kind])
+            kind, lambda data, draws, c: np.where(data["nosys"] == hp.UNSEEN, hp.UNSEEN, data[kind])
         )
+
+    def input_cmb_alms(self) -> np.ndarray:
+        """a_lm of the seed's input CMB, unfiltered, per channel: the draw of
+        :func:`map_domain.band_limited_seed_cmb` (the one every path simulates) at the
+        channel's beam, on the channel's observed pixels, masked and at the common beam
+        like every other map (computed once)."""
+        simulation = self.config["simulation"]
+
+        def input_map(data, draws, c):
+            nside = hp.npix2nside(data["nosys"].shape[-1])
+            alm, band = map_domain.band_limited_seed_cmb(
+                3 * nside - 1,
+                simulation["cmb_r"],
+                self.config["master_seed"],
+                self.seed,
+                self.fwhms_arcmin[c],
+            )
+            cmb = hp.alm2map(alm, nside, lmax=band, pixwin=False)
+            return np.where(data["nosys"] == hp.UNSEEN, hp.UNSEEN, cmb)
+
+        return self._cached_alms("cmb_input", input_map)
 
     def data_alms(self, sigma_g1_per_k: float) -> np.ndarray:
         """a_lm of m_nosys + sigma sum_k z_k T_k for every channel, by linearity of the
         masked, beam-matched transform: a(m_nosys) + sigma a(sum_k z_k T_k), both computed
         once per realization (equal to transforming each case's maps, to round-off)."""
-        nosys = self._cached_alms("nosys", lambda data, draws: data["nosys"])
+        nosys = self._cached_alms("nosys", lambda data, draws, c: data["nosys"])
         if sigma_g1_per_k == 0.0:
             return nosys
         return nosys + sigma_g1_per_k * self._cached_alms("contamination", _contamination)
 
     def _cached_alms(self, kind: str, map_of) -> np.ndarray:
-        """(n_channels, 3, nalm) a_lm of ``map_of(channel maps, g1 draws)`` per channel, at
-        the common beam (computed once; a channel whose ``map_of`` is None gets zeros)."""
+        """(n_channels, 3, nalm) a_lm of ``map_of(channel maps, g1 draws, channel index)``
+        per channel, at the common beam (computed once; a channel whose ``map_of`` is None
+        gets zeros)."""
         if kind not in self._alms:
             alms = np.zeros((len(self.names), 3, hp.Alm.getsize(self.lmax)), dtype=complex)
             for c, (data, draws) in enumerate(zip(self.channel_maps, self.unit_draws, strict=True)):
-                maps = map_of(data, draws)
+                maps = map_of(data, draws, c)
                 if maps is not None:
                     alms[c] = self.alms_of_channel(c, maps)
             self._alms[kind] = alms
@@ -154,15 +183,25 @@ class SeedMaps:
     def residual(self, sigma_g1_per_k: float) -> dict[str, np.ndarray]:
         """The paper's HILC at sigma: weights recomputed on the contaminated maps.
 
-        Returns {"residual_alm", "foreground_residual_alm" (3, nalm), "weights"
-        (3, n_bins, n_channels)}."""
+        Returns {"residual_alm", "foreground_residual_alm", "cmb_input_alm",
+        "cmb_filter_loss_alm" (3, nalm), "weights" (3, n_bins, n_channels)}: the residual
+        against the filtered CMB reference, its foreground part, the input CMB through the
+        weights, and what the filters took from it (sum_c w_c (a_ref,c - a_in,c); the
+        residual against the unfiltered input is residual_alm + cmb_filter_loss_alm)."""
         data = self.data_alms(sigma_g1_per_k)
         _, weights = hilc.harmonic_ilc(data, self.bins, self.lmax)
         cmb = self.reference_alms("cmb_reference")
+        cmb_input = self.input_cmb_alms()
         foreground = self.reference_alms("foreground_reference")
+
+        def combined(alms):
+            return hilc.apply_ilc(alms, weights, self.bins, self.lmax)
+
         return {
-            "residual_alm": hilc.apply_ilc(data - cmb, weights, self.bins, self.lmax),
-            "foreground_residual_alm": hilc.apply_ilc(foreground, weights, self.bins, self.lmax),
+            "residual_alm": combined(data - cmb),
+            "foreground_residual_alm": combined(foreground),
+            "cmb_input_alm": combined(cmb_input),
+            "cmb_filter_loss_alm": combined(cmb - cmb_input),
             "weights": weights,
         }
 
@@ -192,6 +231,8 @@ class SeedMaps:
             self.lmax,
             self.fractions,
             self.common_fwhm_arcmin,
+            cmb_input_alm=result["cmb_input_alm"],
+            cmb_filter_loss_alm=result["cmb_filter_loss_alm"],
         )
 
     def systematic_spectra(self, nosys_weights: np.ndarray) -> pd.DataFrame:
@@ -204,7 +245,7 @@ class SeedMaps:
         )
 
 
-def _contamination(data: dict, unit_draws: np.ndarray) -> np.ndarray | None:
+def _contamination(data: dict, unit_draws: np.ndarray, channel_index: int) -> np.ndarray | None:
     """sum_k z_k T_k (3, npix) at sigma = 1 [K_CMB K], UNSEEN where the channel is
     unobserved; None for a channel without systematics (all z_k = 0)."""
     if not np.any(unit_draws):
@@ -221,17 +262,36 @@ def unit_beam_spectra(alm, alm2, lmax: int, w2: float, common_fwhm_arcmin: float
 
 
 def residual_spectra_table(
-    residual_alm, foreground_residual_alm, lmax: int, fractions: dict, common_fwhm_arcmin: float
+    residual_alm,
+    foreground_residual_alm,
+    lmax: int,
+    fractions: dict,
+    common_fwhm_arcmin: float,
+    cmb_input_alm=None,
+    cmb_filter_loss_alm=None,
 ) -> pd.DataFrame:
     """EE and BB [K_CMB^2] of the residual, its foreground part and the rest (noise), with
-    the same normalisation (:func:`unit_beam_spectra`), and the mask's fsky_eff."""
+    the same normalisation (:func:`unit_beam_spectra`), and the mask's fsky_eff.
+
+    With the input CMB through the weights and the filters' loss
+    (:meth:`SeedMaps.residual`), also: ``residual_unfiltered_cmb`` (the residual against
+    the unfiltered input CMB, the paper's words read literally), ``cmb_input`` (its
+    spectrum) and ``cmb_recovered_x_input`` (the cross spectrum of the recovered CMB,
+    input + loss, with the input): their ratio is the sky's end-to-end transfer T_ell."""
     table = {"ell": np.arange(lmax + 1)}
-    for label, alm in (
-        ("residual", residual_alm),
-        ("foreground_residual", foreground_residual_alm),
-        ("noise_residual", residual_alm - foreground_residual_alm),
-    ):
-        cl = unit_beam_spectra(alm, None, lmax, fractions["w2"], common_fwhm_arcmin)
+    pairs = [
+        ("residual", residual_alm, None),
+        ("foreground_residual", foreground_residual_alm, None),
+        ("noise_residual", residual_alm - foreground_residual_alm, None),
+    ]
+    if cmb_input_alm is not None and cmb_filter_loss_alm is not None:
+        pairs += [
+            ("residual_unfiltered_cmb", residual_alm + cmb_filter_loss_alm, None),
+            ("cmb_input", cmb_input_alm, None),
+            ("cmb_recovered_x_input", cmb_input_alm + cmb_filter_loss_alm, cmb_input_alm),
+        ]
+    for label, alm, alm2 in pairs:
+        cl = unit_beam_spectra(alm, alm2, lmax, fractions["w2"], common_fwhm_arcmin)
         for index in (1, 2):
             table[f"{SPECTRA[index]}_{label}_k2"] = cl[index]
     out = pd.DataFrame(table)

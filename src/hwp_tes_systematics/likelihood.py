@@ -483,22 +483,58 @@ def fit_r_common_grid(
     return [fit_r(c, model, fraction=fraction, grid=grid) for c in c_res_list]
 
 
-def notch_transfer_bb(notch_csv: str, lmax: int) -> np.ndarray:
-    """T_ell^BB on ell = 0..lmax from the notch_effect table (ell < 2 set to 1)."""
-    table = pd.read_csv(notch_csv)
-    if lmax > table["ell"].iloc[-1]:
+# ========================================================= the analyses of the residual
+# likelihood.model: what the residual is taken against and what the model's sky is.
+ANALYSES = {
+    "paper_recipe": "residual against the CMB through the same filters, unfiltered "
+    "C_lens and r C_GW in the model (the paper's eq. 8 as written)",
+    "transfer_in_model": "residual against the CMB through the same filters, C_lens and "
+    "r C_GW times the sky's end-to-end BB transfer T_ell measured in the run",
+    "paper_literal": "residual against the unfiltered input CMB (the paper's words read "
+    "literally: it keeps the CMB the filters removed), unfiltered model",
+}
+RESIDUAL_COLUMN = {
+    "paper_recipe": "bb_residual_k2",
+    "transfer_in_model": "bb_residual_k2",
+    "paper_literal": "bb_residual_unfiltered_cmb_k2",
+}
+
+
+def check_analysis(analysis: str) -> str:
+    """``analysis`` if it is one of :data:`ANALYSES`, else ValueError naming them."""
+    if analysis not in ANALYSES:
+        raise ValueError(f"likelihood.model = {analysis!r}: expected one of {sorted(ANALYSES)}")
+    return analysis
+
+
+def residual_bb(table: pd.DataFrame, analysis: str, lmax: int, source: str = "") -> np.ndarray:
+    """The BB residual [K^2] that ``analysis`` fits, ell = 0..lmax, from a residual
+    spectra table (:func:`ilc_residuals.residual_spectra_table`)."""
+    column = RESIDUAL_COLUMN[check_analysis(analysis)]
+    if column not in table:
         raise ValueError(
-            f"{notch_csv}: transfer function up to ell {table['ell'].iloc[-1]} < {lmax}"
+            f"{source or 'residual spectra'}: no column {column!r} for likelihood.model = "
+            f"{analysis!r} (made by an older component_separation: rerun it)"
         )
-    transfer = table["transfer_bb"].to_numpy()[: lmax + 1].copy()
-    transfer[:2] = 1.0
-    return transfer
+    return table[column].to_numpy()[: lmax + 1]
+
+
+def sky_transfer_bb(noise: pd.DataFrame, lmax: int, source: str = "") -> np.ndarray:
+    """The measured end-to-end BB transfer T_ell of the sky on ell = 0..lmax (noise model)."""
+    if "sky_transfer_bb" not in noise:
+        raise ValueError(
+            f"{source or 'noise model'}: no sky_transfer_bb column (made by an older "
+            "component_separation: rerun it and noise_model)"
+        )
+    return noise["sky_transfer_bb"].to_numpy()[: lmax + 1]
 
 
 def model_from_noise_csv(
-    noise_csv: str, lmin: int, lmax: int, notch_csv: str | None = None
+    noise_csv: str, lmin: int, lmax: int, analysis: str = "paper_recipe"
 ) -> BBModel:
-    """The likelihood's BB model; with ``notch_csv``, C_lens and C_GW through the notch."""
+    """The likelihood's BB model of ``analysis`` (:data:`ANALYSES`): N_ell and C_FGres as
+    measured (noise model), C_lens and C_GW times the measured T_ell for
+    ``transfer_in_model``."""
     noise = pd.read_csv(noise_csv)
     if lmax > noise["ell"].iloc[-1]:
         raise ValueError(
@@ -512,4 +548,66 @@ def model_from_noise_csv(
         n_ell=noise["n_ell_bb_k2"].to_numpy()[: lmax + 1],
         c_fg_res=noise["c_fg_res_bb_k2"].to_numpy()[: lmax + 1],
     )
-    return model if notch_csv is None else model.with_transfer(notch_transfer_bb(notch_csv, lmax))
+    if check_analysis(analysis) == "transfer_in_model":
+        transfer = sky_transfer_bb(noise, lmax, noise_csv).copy()
+        transfer[:2] = 1.0
+        model = model.with_transfer(np.clip(transfer, 0.0, None))
+    return model
+
+
+# ================================================= where the information and bias come from
+def fisher_information_per_ell(model: BBModel, r: float = 0.0) -> np.ndarray:
+    """F_ell = (2 ell + 1) f_sky / 2 (C_GW / C_mod(r))^2 on ``model.ell`` (0 outside
+    lmin..lmax): sum F_ell = 1 / sigma_r^2 (eq. 2)."""
+    out = np.zeros(model.ell.size)
+    ratio = model.c_gw_r1[model.mask] / model.c_mod(r)[model.mask]
+    out[model.mask] = (2 * model.ell_used + 1) * model.f_sky / 2.0 * ratio**2
+    return out
+
+
+def fisher_bias_per_ell(c_sys, model: BBModel, r: float = 0.0) -> np.ndarray:
+    """The terms of eq. (3) per ell: w C_GW C_sys / C_mod^2 / sum F (their sum is
+    :func:`fisher_bias`), on ``model.ell``."""
+    c_sys = _as_spectrum("c_sys", c_sys, model.ell.size)
+    out = np.zeros(model.ell.size)
+    c_mod = model.c_mod(r)[model.mask]
+    weight = (2 * model.ell_used + 1) * model.f_sky / 2.0
+    terms = weight * model.c_gw_r1[model.mask] * c_sys[model.mask] / c_mod**2
+    out[model.mask] = terms / fisher_information_per_ell(model, r).sum()
+    return out
+
+
+# ============================================== delta r of the systematic's own power, 68 %
+def fraction_point_shift(
+    c_res_nosys,
+    c_sys_unit,
+    model: BBModel,
+    sigmas,
+    fraction: float = DEFAULT_FRACTION,
+    stop_above: float | None = None,
+) -> np.ndarray:
+    """The paper's delta r for the systematic's own power: the shift of the ``fraction``
+    point of L(r) when sigma^2 C_sys is added to the no-systematics residual,
+
+        delta r(sigma) = r_f(C_res + sigma^2 C_sys) - r_f(C_res),
+
+    for each sigma of ``sigmas`` [1/K], ascending (``c_sys_unit`` in K^2 K^2 per unit
+    sigma^2); each pair on one grid (:func:`fit_r_common_grid`), so the grid's error
+    cancels in the difference. Found numerically through eq. (1): the quadratic law at
+    small sigma is a check, not an assumption. ``stop_above``: once a shift exceeds it,
+    the larger sigmas are not computed (NaN): far beyond the budget the likelihood would
+    need ever finer and wider grids for nothing."""
+    sigmas = np.asarray(sigmas, dtype=float)
+    if np.any(np.diff(sigmas) <= 0):
+        raise ValueError("sigmas: expected ascending values")
+    c_res_nosys = _as_spectrum("c_res_nosys", c_res_nosys, model.ell.size)
+    c_sys_unit = _as_spectrum("c_sys_unit", c_sys_unit, model.ell.size)
+    shifts = np.full(sigmas.size, np.nan)
+    for index, sigma in enumerate(sigmas):
+        nosys, contaminated = fit_r_common_grid(
+            [c_res_nosys, c_res_nosys + sigma**2 * c_sys_unit], model, fraction=fraction
+        )
+        shifts[index] = contaminated.r_fraction - nosys.r_fraction
+        if stop_above is not None and shifts[index] > stop_above:
+            break
+    return shifts

@@ -52,6 +52,7 @@ NOTCH_SPECTRA = f"{RESULTS}/maps/notch_effect_{{channel}}.csv"
 FIG7_LIKELIHOODS = f"{RESULTS}/figures/fig7_likelihoods.png"
 FIG8_REQUIREMENT = f"{RESULTS}/figures/fig8_requirement.png"
 FIG_A2_SCALING = f"{RESULTS}/figures/requirement_vs_a2_scale.png"
+FIG_ELL_DISTRIBUTION = f"{RESULTS}/figures/information_and_bias_vs_ell.png"
 FIG_RESIDUAL_SPECTRA = f"{RESULTS}/figures/residual_spectra_bb.png"
 
 

@@ -48,7 +48,7 @@ class PairMapSettings:
     nside: int
     plan: MissionPlan
     a2_k_cmb: float
-    notch_width_divisor: float
+    notch_width_divisor: float | None  # None: no notch
     notch_margin_s: float
     max_condition_number: float
     removed_hwp_harmonics: tuple[int, ...] = (2,)
@@ -161,7 +161,8 @@ def filter_tod(
 
 
 def notch_with_margins(tod, pointing, simulator, settings, overwrite: bool = False):
-    """HWP-harmonic template removal, then the notch, on the whole chunk with its margins."""
+    """HWP-harmonic template removal, then the notch (none when
+    ``settings.notch_width_divisor`` is None), on the whole chunk with its margins."""
     f_hwp_hz = simulator.channel.hwp_frequency_hz
     cleaned = remove_hwp_harmonics(
         tod,
@@ -170,6 +171,8 @@ def notch_with_margins(tod, pointing, simulator, settings, overwrite: bool = Fal
         overwrite=overwrite,
         offset=settings.baseline_length_s is not None,
     )
+    if settings.notch_width_divisor is None:
+        return cleaned
     return apply_notch(
         cleaned,
         settings.plan.sampling_rate_hz,

@@ -51,15 +51,11 @@ def analysis_config():
     requirement = {
         key: config["requirement"][key] for key in ("sigma_g1_per_k", "g1_per")
     }
-    return {**{key: config[key] for key in keys}, "requirement": requirement}
-
-
-def notch_transfer_input():
-    """The notch's BB transfer table when the likelihood model uses it (else nothing)."""
-    if not config["likelihood"]["notch_transfer_in_model"]:
-        return {}
+    simulation = {"cmb_r": config["simulation"]["cmb_r"]}  # the input CMB of a seed
     return {
-        "notch": paths.NOTCH_SPECTRA.format(channel=config["figures"]["tod_channel"])
+        **{key: config[key] for key in keys},
+        "requirement": requirement,
+        "simulation": simulation,
     }
 
 

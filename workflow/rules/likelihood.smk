@@ -4,7 +4,6 @@ rule likelihood:
     Wildcards: seed."""
     input:
         unpack(spectra_of_seed),
-        unpack(lambda wildcards: notch_transfer_input()),
         noise_model=paths.NOISE_MODEL,
         systematic=paths.SYSTEMATIC_SPECTRA,
     output:
@@ -16,7 +15,7 @@ rule likelihood:
             "likelihood": config["likelihood"],
             "requirement": {
                 key: config["requirement"][key]
-                for key in ("sigma_g1_per_k", "a2_scale_factors")
+                for key in ("sigma_g1_per_k", "a2_scale_factors", "delta_r_budget")
             },
         },
         cases=CASES,

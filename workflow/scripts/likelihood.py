@@ -11,5 +11,4 @@ likelihood_fit.run(
     noise_csv=snakemake.input.noise_model,
     systematic_csv=snakemake.input.systematic,
     out_json=snakemake.output.result,
-    notch_csv=snakemake.input.get("notch"),
 )

@@ -1,4 +1,4 @@
-"""Rule requirement: delta r versus sigma_g1 by two estimators, the requirements; Figs. 7, 8."""
+"""Rule requirement: delta r versus sigma_g1, the requirements, the model check; Figs. 7, 8."""
 
 from hwp_tes_systematics.io import setup_logging
 from hwp_tes_systematics.stages import requirement
@@ -13,10 +13,12 @@ requirement.run(
     fig_likelihoods=snakemake.output.fig_likelihoods,
     fig_requirement=snakemake.output.fig_requirement,
     fig_a2_scaling=snakemake.output.fig_a2_scaling,
+    fig_ell_distribution=snakemake.output.fig_ell_distribution,
+    noise_csv=snakemake.input.noise_model,
+    nosys_spectra_csvs=list(snakemake.input.nosys_spectra),
+    systematic_csvs=list(snakemake.input.systematic),
     extension={
         "map_paths": snakemake.params.map_paths,
         "nosys_spectra": dict(zip(seeds, snakemake.input.nosys_spectra, strict=True)),
-        "noise_csv": snakemake.input.noise_model,
-        "notch_csv": snakemake.input.get("notch"),
     },
 )

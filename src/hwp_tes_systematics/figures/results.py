@@ -29,11 +29,20 @@ def log_axis_yerr(value, std) -> list[np.ndarray]:
     return [np.minimum(std, 0.999 * value), std]
 
 
-def mark_requirement(axis, requirement: float, budget: float, color: str, va: str) -> None:
-    """A dotted vertical line at the requirement and its value written at the budget."""
+def mark_requirement(
+    axis, requirement: float, budget: float, color: str, va: str, height: float = 1.0
+) -> None:
+    """A dotted vertical line at the requirement and its value written at ``height`` x
+    the budget (distinct heights keep several marks from overlapping)."""
     axis.axvline(requirement, color=color, linestyle=":", linewidth=1.5)
     axis.text(
-        requirement, budget, f"  sigma_g1 < {requirement:.2g} K^-1", color=color, va=va, ha="left"
+        requirement,
+        budget * height,
+        f"  sigma_g1 < {requirement:.2g} K^-1",
+        color=color,
+        va=va,
+        ha="left",
+        fontsize="small",
     )
 
 
@@ -95,6 +104,8 @@ def plot_requirement(
     systematic_only: tuple | None = None,
     quadratic_threshold: float | None = None,
     crossing: float | None = None,
+    fraction_point: tuple | None = None,
+    inconsistent: str | None = None,
 ) -> Path:
     """Mean delta r over seeds versus sigma_g1 [1/K] (log-log), cf. Fig. 8 of the study.
 
@@ -110,7 +121,10 @@ def plot_requirement(
     ``quadratic_threshold``: the delta r below which the paper's estimator is quadratic
     (0.1 sigma_r), a dotted grey line. ``crossing``: the sigma at which the points reach
     the budget (:func:`requirement.budget_crossing`), marked instead of the quadratic
-    requirement when ``invalid_reason`` is given (and finite).
+    requirement when ``invalid_reason`` is given (and finite). ``fraction_point``:
+    (sigma, mean, requirement) of the systematic's own power in the paper's convention
+    (the 68 %-point shift), a line. ``inconsistent``: the likelihood model does not
+    describe the data (the failing bins, in words), written across the figure.
     Writes the PNG atomically; returns its path.
     """
     path = Path(path)
@@ -159,7 +173,21 @@ def plot_requirement(
             label="systematic only (no-systematics weights, Fisher bias; +- std)",
         )
         axis.plot(x, sys_k * x**2, "-", color="C2", alpha=0.6, label=f"k = {sys_k:.3g} K^2")
-        mark_requirement(axis, sys_requirement, budget, "C2", "bottom")
+        mark_requirement(axis, sys_requirement, budget, "C2", "top", height=0.5)
+    if fraction_point is not None:
+        fp_sigma, fp_mean, fp_requirement = fraction_point
+        fp_sigma, fp_mean = np.asarray(fp_sigma), np.asarray(fp_mean)
+        shown = (fp_mean > 0) & (fp_sigma >= x[0]) & (fp_sigma <= x[-1])
+        axis.plot(
+            fp_sigma[shown],
+            fp_mean[shown],
+            "-",
+            color="C1",
+            linewidth=2,
+            label="systematic only, 68 % point shift (the paper's delta r)",
+        )
+        if np.isfinite(fp_requirement):
+            mark_requirement(axis, fp_requirement, budget, "C1", "bottom", height=2.0)
     axis.axhline(budget, color="k", linestyle="-", label=f"budget delta r = {budget:.2g}")
     if show_crossing:
         axis.axvline(crossing, color="C0", linestyle=":", linewidth=1.5)
@@ -189,6 +217,20 @@ def plot_requirement(
             fontsize="x-small",
         )
     axis.set_title("Bias on r versus the nonlinearity spread")
+    if inconsistent is not None:
+        axis.text(
+            0.5,
+            0.5,
+            "INCONSISTENT: the likelihood model does not describe the data\n"
+            + textwrap.fill(inconsistent, 60),
+            transform=axis.transAxes,
+            ha="center",
+            va="center",
+            fontsize="small",
+            color="C3",
+            alpha=0.9,
+            bbox={"facecolor": "white", "edgecolor": "C3", "alpha": 0.8},
+        )
     axis.grid(alpha=0.3, which="both")
     axis.legend(fontsize="x-small", loc="upper left")
     if invalid_reason is not None:
@@ -301,5 +343,72 @@ def plot_residual_spectra(
     axis.set_ylabel("D_ell^BB [uK^2]")
     axis.set_title("BB of the CMB residual after the HILC (dashed: the systematic alone)")
     axis.legend(fontsize=7, ncol=2)
+    save_figure(figure, path)
+    return path
+
+
+def plot_ell_distribution(
+    ell,
+    information,
+    bias,
+    model_transfer,
+    data_transfer,
+    consistency: dict,
+    path: str | os.PathLike,
+) -> Path:
+    """Where in ell sigma_r and the bias come from, and whether the model fits the data.
+
+    Left: the Fisher information F_ell over its sum (:func:`likelihood.fisher_information_per_ell`)
+    and the systematic's bias per ell over the total (:func:`likelihood.fisher_bias_per_ell`),
+    cumulative. Right: the sky's BB transfer of the model and measured in the data, and
+    per bin (``consistency``, :func:`consistency.check_model`) the data's r = 0 BB over
+    the model's, failing bins in red.
+    """
+    path = Path(path)
+    ell = np.asarray(ell)
+    used = np.asarray(information) > 0
+    figure, (left, right) = subplots(1, 2, figsize=(11.0, 4.4))
+    info = np.asarray(information)[used] / np.sum(information)
+    bias_fraction = np.asarray(bias)[used] / np.sum(bias) if np.sum(bias) != 0 else 0 * info
+    left.step(ell[used], np.cumsum(info), where="mid", color="C0", label="1 / sigma_r^2 (Fisher)")
+    left.step(
+        ell[used], np.cumsum(bias_fraction), where="mid", color="C3", label="bias of the systematic"
+    )
+    left.set_xscale("log")
+    left.set_xlabel("multipole ell")
+    left.set_ylabel("cumulative fraction, from lmin")
+    left.set_ylim(-0.05, 1.1)
+    left.grid(alpha=0.3, which="both")
+    left.legend(fontsize="small", loc="lower right")
+    left.set_title("Where the information on r and the bias come from")
+    right.plot(
+        ell[used], np.asarray(model_transfer)[used], color="C0", label="model's sky transfer"
+    )
+    right.plot(
+        ell[used], np.asarray(data_transfer)[used], color="k", lw=1, label="measured T_ell (data)"
+    )
+    for row in consistency["bins"]:
+        first, last = row["ell"]
+        ok = row["sky_consistent"] and row["power_consistent"]
+        centre = np.sqrt(first * last)
+        right.errorbar(
+            centre,
+            row["data_over_model"],
+            yerr=row["data_bb_sem_k2"] / row["model_bb_k2"],
+            xerr=[[centre - first], [last - centre]],
+            fmt="s",
+            color="C2" if ok else "C3",
+            capsize=2,
+        )
+    right.plot([], [], "s", color="C2", label="data / model BB at r = 0, bin consistent")
+    right.plot([], [], "s", color="C3", label="... bin fails")
+    right.axhline(1.0, color="gray", lw=0.8)
+    right.set_xscale("log")
+    right.set_xlabel("multipole ell")
+    right.set_ylabel("transfer; data / model")
+    verdict = "consistent" if consistency["consistent"] else "INCONSISTENT"
+    right.set_title(f"Does the model describe the data? {verdict}")
+    right.grid(alpha=0.3, which="both")
+    right.legend(fontsize="x-small", loc="best")
     save_figure(figure, path)
     return path

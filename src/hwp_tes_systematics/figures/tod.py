@@ -70,9 +70,14 @@ def plot_tod_spectra(
 
 
 def plot_notch_transfer(f_hwp_by_telescope: dict, width_divisor: float, path) -> None:
-    """The notch F(f) around 4 f_HWP for each telescope."""
+    """The notch F(f) around 4 f_HWP for each telescope (``width_divisor`` None: no notch,
+    F = 1, drawn over +- 0.1 Hz)."""
     fig, ax = subplots(figsize=(7, 4))
     for telescope, f_hwp_hz in f_hwp_by_telescope.items():
+        if width_divisor is None:
+            freqs = 4 * f_hwp_hz + np.linspace(-0.1, 0.1, 3)
+            ax.plot(freqs, np.ones(3), label=f"{telescope}: no notch (notch.width_divisor null)")
+            continue
         delta_f = 4 * f_hwp_hz / width_divisor
         f1, _, _, f4 = notch_edges_hz(f_hwp_hz, delta_f)
         freqs = np.linspace(f1 - 2 * delta_f, f4 + 2 * delta_f, 2000)
@@ -125,10 +130,12 @@ def plot_notch_effect(table, channel_name, f_hwp_hz, width_divisor, path) -> Non
     spectra.set_ylabel(r"$D_\ell$ [$\mu$K$^2$]")
     spectra.set_ylim(1e-6, None)
     fsky = float(table["observed_fraction"].iloc[0])
-    delta_f = 4 * f_hwp_hz / width_divisor
+    notch = (
+        "no notch" if width_divisor is None else f"delta f = {4 * f_hwp_hz / width_divisor:.3f} Hz"
+    )
     spectra.set_title(
-        f"{channel_name}: CMB through the 4 f_HWP notch "
-        f"(delta f = {delta_f:.3f} Hz; measured on {100 * fsky:.0f}% of sky)"
+        f"{channel_name}: CMB through the 4 f_HWP notch ({notch}; measured on "
+        f"{100 * fsky:.0f}% of sky)"
     )
     spectra.legend(fontsize=7, ncol=2)
     ratio.semilogx(ell[keep], table["transfer_ee"][keep], color="tab:blue", label="EE -> EE")

@@ -3,13 +3,14 @@ the systematic-only bias.
 
 C_obs = C_res + C_lens and C_mod(r) = r C_GW(r=1) + C_lens + C_FGres + N_ell (paper eq. 8),
 with C_lens and C_GW from the PTEP spectra shipped with litebird_sim and N_ell, C_FGres
-from the noise model; with ``likelihood.notch_transfer_in_model`` C_lens and C_GW are
-multiplied by the notch's BB transfer function (the spectra of a CMB that went through
-the pipeline). All cases of a seed are fitted on one r grid, so the grid's
-discretisation cancels in delta r = |r_sys - r_nosys| (the paper's estimator). The
-systematic-only estimator is the Fisher bias of the systematic's spectrum through the
-no-systematics weights (:func:`likelihood.fisher_bias`): delta r = k sigma^2 exactly,
-given here as k per HWPSS scale factor.
+from the noise model; ``likelihood.model`` (:data:`likelihood.ANALYSES`) says what the
+residual is taken against and whether C_lens and C_GW carry the sky's measured transfer.
+All cases of a seed are fitted on one r grid, so the grid's discretisation cancels in
+delta r = |r_sys - r_nosys| (the paper's estimator). The systematic alone (its BB
+through the no-systematics weights) is given in both conventions: the shift of the
+likelihood's peak, the Fisher bias delta r = k sigma^2 exactly (k per HWPSS scale
+factor), and the shift of its 68 % point (the paper's delta r), found numerically
+through the likelihood on a grid of sigma_g1 (:func:`likelihood.fraction_point_shift`).
 """
 
 from __future__ import annotations
@@ -22,12 +23,22 @@ import pandas as pd
 
 from ..ilc_residuals import systematic_bb
 from ..io import atomic_path
-from ..likelihood import fisher_bias, fit_r_common_grid, model_from_noise_csv
-from ..systematics import sigma_of_case
+from ..likelihood import (
+    fisher_bias,
+    fit_r_common_grid,
+    fraction_point_shift,
+    model_from_noise_csv,
+    residual_bb,
+)
+from ..systematics import NOSYS, sigma_of_case
 
 log = logging.getLogger(__name__)
 
 CURVE_POINTS = 801  # points of L(r) kept for the figure
+# sigma_g1 [1/K] at which the 68 %-point shift of the systematic's own power is computed:
+# 4 per decade, 1e-5 to 1 (the requirement interpolates between them)
+SHIFT_SIGMAS_PER_K = np.logspace(-5.0, 0.0, 21)
+SHIFT_STOP_OVER_BUDGET = 1e3  # larger sigmas are not computed once the shift exceeds this x budget
 
 
 def run(
@@ -37,17 +48,26 @@ def run(
     noise_csv: str,
     systematic_csv: str,
     out_json: str,
-    notch_csv: str | None = None,
 ):
     settings = config["likelihood"]
     lmax = settings["lmax"]
-    model = model_from_noise_csv(noise_csv, settings["lmin"], lmax, notch_csv)
+    analysis = settings["model"]
+    model = model_from_noise_csv(noise_csv, settings["lmin"], lmax, analysis)
     cases = list(spectra_csvs)
     residuals = [
-        pd.read_csv(spectra_csvs[case])["bb_residual_k2"].to_numpy()[: lmax + 1] for case in cases
+        residual_bb(pd.read_csv(spectra_csvs[case]), analysis, lmax, spectra_csvs[case])
+        for case in cases
     ]
     results = fit_r_common_grid(residuals, model, fraction=settings["fraction"])
     systematic = pd.read_csv(systematic_csv).iloc[: lmax + 1]
+    shift = fraction_point_shift(
+        residuals[cases.index(NOSYS)],
+        systematic_bb(systematic, 1.0),
+        model,
+        SHIFT_SIGMAS_PER_K,
+        settings["fraction"],
+        stop_above=SHIFT_STOP_OVER_BUDGET * config["requirement"]["delta_r_budget"],
+    )
     k_per_scale = {
         float(scale): fisher_bias(systematic_bb(systematic, scale), model)
         for scale in config["requirement"]["a2_scale_factors"]
@@ -60,7 +80,7 @@ def run(
         "lmin": settings["lmin"],
         "lmax": lmax,
         "f_sky_eff": model.f_sky,
-        "notch_transfer_in_model": notch_csv is not None,
+        "model": analysis,
         "sigma_r_fisher_0": results[0].sigma_r_fisher_0,
         "r_grid": results[0].r_grid[keep].tolist(),
         "cases": {
@@ -79,6 +99,12 @@ def run(
             "k_per_k2_by_a2_scale": [
                 {"a2_scale": scale, "k_per_k2": k} for scale, k in k_per_scale.items()
             ],
+            "fraction_point_shift": {
+                "definition": "r_f(C_nosys + sigma^2 C_sys) - r_f(C_nosys), the shift of the "
+                "likelihood's fraction point (the paper's delta r) by the systematic's own power",
+                "sigma_g1_per_k": SHIFT_SIGMAS_PER_K.tolist(),
+                "delta_r": shift.tolist(),
+            },
         },
     }
     with atomic_path(out_json) as temporary:

@@ -13,6 +13,15 @@ systematic's BB through the no-systematics weights (rule likelihood), exactly
 quadratic; its requirement sqrt(budget / mean k), with the scatter over seeds, for the
 configured A_2 and for A_2 scaled by each of ``requirement.a2_scale_factors``.
 
+The systematic alone is also given in the paper's convention, the shift of the 68 %
+point (:func:`requirement.fraction_point_estimator`): the ``headline`` of
+requirement.json, with the Fisher peak shift beside it. Before any of it is a
+requirement, the stage checks that the likelihood model describes the data it is given
+(:mod:`consistency`: the model's sky transfer and r = 0 BB against the run's measured
+transfer and no-systematics residuals, per multipole bin); a configuration that fails
+says so (``consistency.consistent`` false, ``headline.consistent`` false, Fig. 8).
+Where in ell the information on r and the bias come from is tabulated and drawn.
+
 Whatever the model, ``budget_crossing`` gives the sigma_g1 at which the paper's mean
 delta r reaches the budget, interpolated between grid points (and per seed): the answer
 when sigma^2 does not describe the points (at one year the CMB x systematic cross term,
@@ -27,14 +36,30 @@ import logging
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 
-from ..figures.results import plot_a2_scaling, plot_likelihoods, plot_requirement
+from .. import consistency
+from ..figures.results import (
+    plot_a2_scaling,
+    plot_ell_distribution,
+    plot_likelihoods,
+    plot_requirement,
+)
+from ..ilc_residuals import systematic_bb
 from ..io import atomic_path, write_csv
-from ..likelihood import model_from_noise_csv
+from ..likelihood import (
+    ANALYSES,
+    fisher_bias_per_ell,
+    fisher_information_per_ell,
+    model_from_noise_csv,
+    residual_bb,
+    sky_transfer_bb,
+)
 from ..requirement import (
     budget_crossing_over_seeds,
     delta_r_table,
     fit_power_law,
+    fraction_point_estimator,
     paper_estimator,
     requirement_sigma,
     summarise,
@@ -57,20 +82,27 @@ def run(
     fig_likelihoods: str,
     fig_requirement: str,
     fig_a2_scaling: str,
+    fig_ell_distribution: str,
+    noise_csv: str,
+    nosys_spectra_csvs: list[str],
+    systematic_csvs: list[str],
     extension: dict | None = None,
 ) -> None:
-    """``extension``: {"map_paths": {seed: {channel: maps}}, "nosys_spectra": {seed: csv},
-    "noise_csv", "notch_csv"} to extend the paper estimator's grid (None: no extension)."""
+    """``extension``: {"map_paths": {seed: {channel: maps}}, "nosys_spectra": {seed: csv}}
+    to extend the paper estimator's grid (None: no extension)."""
     likelihoods = sorted(
         (json.loads(Path(path).read_text()) for path in likelihood_jsons), key=lambda r: r["seed"]
     )
     budget = config["requirement"]["delta_r_budget"]
+    settings = config["likelihood"]
+    analysis = settings["model"]
+    model = model_from_noise_csv(noise_csv, settings["lmin"], settings["lmax"], analysis)
     if extension is not None:
-        settings = config["likelihood"]
         extension = dict(extension)
-        extension["model"] = model_from_noise_csv(
-            extension["noise_csv"], settings["lmin"], settings["lmax"], extension.get("notch_csv")
-        )
+        extension["model"] = model
+    check, distribution = model_check(
+        config, model, noise_csv, nosys_spectra_csvs, systematic_csvs, fig_ell_distribution
+    )
     table = delta_r_table(likelihoods)
     grid_summary = summarise(table)
     table, regime = paper_estimator(table, config, extension)
@@ -92,6 +124,28 @@ def run(
     _, systematic_only["free_exponent"], systematic_only["free_exponent_sigma"] = fit_power_law(
         systematic_summary["sigma_g1"], systematic_summary["mean_delta_r"]
     )
+    systematic_only["fraction_point"] = fraction_point_estimator(likelihoods, budget)
+    fraction_point = systematic_only["fraction_point"]
+    failing = ", ".join(f"ell {first}-{last}" for first, last in check["failing_bins"])
+    headline = {
+        "definition": "the systematic's own power in the paper's convention: sigma_g1 where "
+        "the mean over seeds of the 68 %-point shift reaches the budget",
+        "model": analysis,
+        "model_description": ANALYSES[analysis],
+        "consistent": check["consistent"],
+        "requirement_sigma_g1_per_k": fraction_point["requirement_sigma_g1_per_k"],
+        "std_over_seeds_per_k": fraction_point["requirement_std_over_seeds_per_k"],
+        "fisher_peak_shift_requirement_sigma_g1_per_k": systematic_only[
+            "requirement_sigma_g1_per_k"
+        ],
+        "fisher_peak_shift_std_over_seeds_per_k": systematic_only[
+            "requirement_std_over_seeds_per_k"
+        ],
+        "sigma_r_fisher": model.fisher_sigma_r(0.0),
+        "note": "consistent: the likelihood model describes the data (consistency)"
+        if check["consistent"]
+        else f"NOT a requirement: the likelihood model does not describe the data in {failing}",
+    }
 
     def per_sigma(rows):
         return [
@@ -105,6 +159,9 @@ def run(
         ]
 
     output = {
+        "headline": headline,
+        "consistency": check,
+        "ell_distribution": distribution,
         "requirement_sigma_g1_per_k": requirement,
         "valid": regime["valid"],
         "delta_r_budget": budget,
@@ -128,7 +185,9 @@ def run(
         "settings": {
             "baseline_length_s": config["maps"]["baseline_length_s"],
             "g1_per": config["requirement"]["g1_per"],
-            "notch_transfer_in_model": config["likelihood"]["notch_transfer_in_model"],
+            "likelihood_model": analysis,
+            "notch_width_divisor": config["notch"]["width_divisor"],
+            "removed_hwp_harmonics": config["maps"]["removed_hwp_harmonics"],
             "hwpss_a2_over_delta_p": config["optics"]["hwpss_a2_over_delta_p"],
             "duration_days": config["simulation"]["duration_days"],
             "nside": config["maps"]["nside"],
@@ -160,10 +219,20 @@ def run(
     else:
         log.info("paper estimator, model-free budget crossing: %s", crossing["outside_grid"])
     log.info(
-        "systematic-only estimator: sigma_g1 < %.3e 1/K (+- %.2e over seeds; k = %.3e)",
+        "systematic-only estimator, Fisher peak shift: sigma_g1 < %.3e 1/K (+- %.2e over "
+        "seeds; k = %.3e)",
         systematic_only["requirement_sigma_g1_per_k"],
         systematic_only["requirement_std_over_seeds_per_k"],
         systematic_only["k_per_k2"],
+    )
+    log.info(
+        "headline (%s, 68 %% point shift): sigma_g1 < %.3e 1/K (+- %.2e over seeds), "
+        "sigma_r = %.3e; %s",
+        analysis,
+        headline["requirement_sigma_g1_per_k"],
+        headline["std_over_seeds_per_k"],
+        headline["sigma_r_fisher"],
+        headline["note"],
     )
     first = likelihoods[0]
     grid = np.array(first["r_grid"])
@@ -190,5 +259,65 @@ def run(
             systematic_only["k_per_k2"],
             systematic_only["requirement_sigma_g1_per_k"],
         ),
+        fraction_point=(
+            fraction_point["sigma_g1_per_k"],
+            fraction_point["mean_delta_r"],
+            fraction_point["requirement_sigma_g1_per_k"],
+        ),
+        inconsistent=None if check["consistent"] else f"{analysis}: fails in {failing}",
     )
     plot_a2_scaling(systematic_only["by_a2_scale"], budget, fig_a2_scaling)
+
+
+def model_check(
+    config: dict,
+    model,
+    noise_csv: str,
+    nosys_spectra_csvs: list[str],
+    systematic_csvs: list[str],
+    fig_ell_distribution: str,
+) -> tuple[dict, dict]:
+    """(:func:`consistency.check_model` of the analysis, the information and the bias
+    per bin), and their figure. The bias is that of the mean over seeds of the
+    systematic's BB at sigma_g1 = 1."""
+    settings = config["likelihood"]
+    analysis, lmax = settings["model"], settings["lmax"]
+    noise = pd.read_csv(noise_csv)
+    data_transfer = sky_transfer_bb(noise, lmax, noise_csv)
+    data_sem = noise["sky_transfer_bb_sem"].to_numpy()[: lmax + 1]
+    base = model_from_noise_csv(noise_csv, settings["lmin"], lmax, "paper_recipe")
+    model_transfer = (
+        model.c_gw_r1 / np.where(base.c_gw_r1 > 0, base.c_gw_r1, 1.0)
+        if analysis == "transfer_in_model"
+        else np.ones(lmax + 1)
+    )
+    residuals = np.array(
+        [residual_bb(pd.read_csv(path), analysis, lmax, path) for path in nosys_spectra_csvs]
+    )
+    check = consistency.check_model(base, model_transfer, data_transfer, data_sem, residuals)
+    c_sys = np.mean(
+        [systematic_bb(pd.read_csv(path).iloc[: lmax + 1], 1.0) for path in systematic_csvs],
+        axis=0,
+    )
+    information = fisher_information_per_ell(model)
+    bias = fisher_bias_per_ell(c_sys, model)
+    rows = []
+    for first, last in consistency.bins(model.lmin, model.lmax):
+        where = (model.ell >= first) & (model.ell <= last)
+        rows.append(
+            {
+                "ell": [int(first), int(last)],
+                "information_fraction": float(information[where].sum() / information.sum()),
+                "bias_fraction": float(bias[where].sum() / bias.sum()) if bias.sum() else 0.0,
+            }
+        )
+    distribution = {
+        "definition": "per bin: the fraction of the Fisher information 1 / sigma_r^2 and of "
+        "the Fisher bias of the mean systematic BB (sigma_g1 = 1), from the analysis's model",
+        "sigma_r_fisher": model.fisher_sigma_r(0.0),
+        "bins": rows,
+    }
+    plot_ell_distribution(
+        model.ell, information, bias, model_transfer, data_transfer, check, fig_ell_distribution
+    )
+    return check, distribution

@@ -1,0 +1,126 @@
+"""Does the likelihood model describe its data (module consistency), and the paper's
+delta r convention (the 68 %-point shift) for the systematic's own power."""
+
+import numpy as np
+import pytest
+
+from hwp_tes_systematics import consistency
+from hwp_tes_systematics import likelihood as lk
+from hwp_tes_systematics.stages.residual_spectra import measured_transfer
+
+LMAX = 128
+F_SKY = 0.65
+N_SEEDS = 20
+NOTCH_ELL = 40  # the paper's notch leaves no sky below ~ this at one year (MFT)
+
+
+@pytest.fixture(scope="module")
+def base():
+    """One-year-like: the white-noise level of the filtered maps, 2 uK-arcmin, 70'."""
+    ell = np.arange(LMAX + 1)
+    return lk.BBModel.from_ptep(F_SKY, lmin=2, lmax=LMAX, n_ell=lk.white_noise_bb(ell, 2.0, 70.5))
+
+
+def noise_draws(model, rng, n_seeds=N_SEEDS):
+    """Per-seed residual BB: N_ell times chi^2_nu / nu, nu = (2 ell + 1) f_sky."""
+    nu = np.maximum((2 * model.ell + 1) * model.f_sky, 1.0)
+    return model.n_ell * rng.chisquare(nu, size=(n_seeds, model.ell.size)) / nu
+
+
+def filtered_transfer(ell):
+    return np.where(ell < NOTCH_ELL, 0.0, 1.0)
+
+
+def test_bins_cover_the_likelihood_range():
+    assert consistency.bins(2, 128) == [(2, 4), (5, 10), (11, 20), (21, 40), (41, 80), (81, 128)]
+    assert consistency.bins(3, 30) == [(3, 4), (5, 10), (11, 20), (21, 30)]
+
+
+def test_a_model_with_sky_the_data_filtered_out_is_flagged(base):
+    rng = np.random.default_rng(1)
+    data_transfer = filtered_transfer(base.ell)
+    sem = np.full(base.ell.size, 0.01)
+    check = consistency.check_model(
+        base, np.ones(base.ell.size), data_transfer, sem, noise_draws(base, rng)
+    )
+    assert not check["consistent"]
+    failing = {tuple(row["ell"]) for row in check["bins"] if not row["sky_consistent"]}
+    assert failing == {(2, 4), (5, 10), (11, 20), (21, 40)}
+    assert check["failing_bins"][0] == [2, 4]
+    low = check["bins"][0]
+    assert low["model_transfer"] == 1.0 and low["data_transfer"] == 0.0
+    assert low["data_over_model"] < 0.5  # the model expects lensing the data do not hold
+
+
+def test_the_same_data_with_the_transfer_in_the_model_pass(base):
+    rng = np.random.default_rng(2)
+    data_transfer = filtered_transfer(base.ell)
+    sem = np.full(base.ell.size, 0.01)
+    check = consistency.check_model(base, data_transfer, data_transfer, sem, noise_draws(base, rng))
+    assert check["consistent"], check["failing_bins"]
+
+
+def test_a_residual_holding_the_filtered_cmb_fails_the_power_check(base):
+    """The paper's words read literally: recovered minus the unfiltered input keeps the
+    CMB the filter removed, which the model does not have as noise."""
+    rng = np.random.default_rng(3)
+    data_transfer = filtered_transfer(base.ell)
+    leftover = (1.0 - data_transfer) ** 2 * base.c_lens
+    residual = noise_draws(base, rng) + leftover
+    check = consistency.check_model(
+        base, data_transfer, data_transfer, np.full(base.ell.size, 0.01), residual
+    )
+    failing = {tuple(row["ell"]) for row in check["bins"] if not row["power_consistent"]}
+    assert (2, 4) in failing and (41, 80) not in failing
+
+
+def test_measured_transfer_is_the_ratio_of_the_seed_sums():
+    cross = np.array([[0.0, 0.0, 2.0, 1.0], [0.0, 0.0, 4.0, 3.0]])
+    auto = np.array([[0.0, 0.0, 4.0, 2.0], [0.0, 0.0, 4.0, 2.0]])
+    transfer, sem = measured_transfer(cross, auto)
+    np.testing.assert_allclose(transfer, [1.0, 1.0, 0.75, 1.0])
+    np.testing.assert_allclose(sem, [0.0, 0.0, 0.25, 0.5])  # ratios (0.5, 1), (0.5, 1.5)
+
+
+def test_information_and_bias_per_ell_sum_to_the_fisher_values(base):
+    c_sys = 1e-3 * base.c_lens
+    information = lk.fisher_information_per_ell(base)
+    np.testing.assert_allclose(information.sum(), base.fisher_sigma_r() ** -2, rtol=1e-12)
+    bias = lk.fisher_bias_per_ell(c_sys, base)
+    np.testing.assert_allclose(bias.sum(), lk.fisher_bias(c_sys, base), rtol=1e-12)
+    assert information[:2].sum() == 0 and bias[:2].sum() == 0
+
+
+def test_fraction_point_shift_is_the_likelihoods_own(base):
+    """The shift equals r_68 of the two spectra fitted one by one, on fine grids."""
+    c_res = base.n_ell.copy()
+    c_sys = 2e-3 * base.c_gw_r1 * (base.ell / 50.0)
+    sigmas = np.array([0.1, 0.3, 1.0])
+    shift = lk.fraction_point_shift(c_res, c_sys, base, sigmas)
+    r0 = lk.fit_r(c_res, base, n=200_001).r_fraction
+    direct = [lk.fit_r(c_res + s**2 * c_sys, base, n=200_001).r_fraction - r0 for s in sigmas]
+    np.testing.assert_allclose(shift, direct, rtol=2e-3)
+    assert np.all(np.diff(shift) > 0)
+
+
+def test_fraction_point_shift_is_quadratic_at_small_sigma_and_beyond_the_fisher_shift(base):
+    """Near r = 0 the 68 % point moves more than the peak (the likelihood is one-sided):
+    quadratic in sigma at small sigma, with a ratio to the Fisher shift above 1."""
+    c_sys = 1e-2 * base.c_lens
+    sigmas = np.array([1e-3, 2e-3])
+    shift = lk.fraction_point_shift(base.n_ell, c_sys, base, sigmas)
+    exponent = np.log(shift[1] / shift[0]) / np.log(2.0)
+    assert exponent == pytest.approx(2.0, abs=0.02)
+    assert shift[0] / (lk.fisher_bias(c_sys, base) * sigmas[0] ** 2) > 1.2
+
+
+def test_fraction_point_shift_tends_to_the_fisher_shift_when_sigma_r_is_large(base):
+    """Far from the r >= 0 edge (r_in = 30 sigma_r) and for a bias much smaller than
+    sigma_r, the whole likelihood moves: the 68 % point shifts like the peak."""
+    r_in = 30 * base.fisher_sigma_r()
+    c_res = base.c_mod(r_in) - base.c_lens
+    c_sys = 1e-3 * base.c_gw_r1
+    sigma = np.array([0.1])
+    shift = lk.fraction_point_shift(c_res, c_sys, base, sigma)[0]
+    fisher = lk.fisher_bias(c_sys, base, r=r_in) * sigma[0] ** 2
+    assert shift == pytest.approx(fisher, rel=0.05)
