@@ -18,7 +18,8 @@ TARGET = "results/inputs/hwp_power.csv"
 
 
 def snakemake(workdir, *arguments):
-    """Snakemake as the pages write it (no --nolock: the lock is what is tested)."""
+    """Snakemake as the pages write it (no --nolock: the lock is what is tested). Targets
+    come before --configfile, which takes every file that follows it."""
     return subprocess.run(
         [sys.executable, "-m", "snakemake", "--cores", "1", *arguments],
         cwd=workdir,
@@ -35,7 +36,7 @@ def test_unlock_and_rerun_incomplete_after_a_hard_kill(repo, tmp_path):
     workdir = make_workdir(repo, tmp_path / "work")
     config = ("--configfile", str(repo / "tests/configs/tiny.yaml"))
     running = subprocess.Popen(
-        [sys.executable, "-m", "snakemake", "--cores", "1", *config, TARGET],
+        [sys.executable, "-m", "snakemake", "--cores", "1", TARGET, *config],
         cwd=workdir,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
@@ -53,13 +54,13 @@ def test_unlock_and_rerun_incomplete_after_a_hard_kill(repo, tmp_path):
         running.wait()
     assert any((workdir / ".snakemake/locks").iterdir()), "a hard kill leaves the lock"
 
-    locked = snakemake(workdir, *config, TARGET)
+    locked = snakemake(workdir, TARGET, *config)
     assert locked.returncode != 0
     assert "Directory cannot be locked" in locked.stdout + locked.stderr
 
     unlocked = snakemake(workdir, *config, "--unlock")
     assert unlocked.returncode == 0, unlocked.stderr[-3000:]
-    rerun = snakemake(workdir, *config, "--rerun-incomplete", TARGET)
+    rerun = snakemake(workdir, TARGET, "--rerun-incomplete", *config)
     assert rerun.returncode == 0, rerun.stderr[-3000:]
     assert (workdir / TARGET).stat().st_size > 0
     assert not any(incomplete.iterdir()) if incomplete.is_dir() else True
@@ -71,7 +72,7 @@ def test_supplied_hwp_curves_are_used(repo, tmp_path):
     telescopes' does not move."""
     workdir = make_workdir(repo, tmp_path / "work")
     config = ("--configfile", str(repo / "tests/configs/tiny.yaml"))
-    shipped = snakemake(workdir, *config, TARGET)
+    shipped = snakemake(workdir, TARGET, *config)
     assert shipped.returncode == 0, shipped.stderr[-3000:]
     before = pd.read_csv(workdir / TARGET, comment="#").set_index("channel")
 
@@ -79,13 +80,13 @@ def test_supplied_hwp_curves_are_used(repo, tmp_path):
     header = next(i for i, line in enumerate(lines) if line.startswith("freq_ghz"))
     rows = [line.split(",") for line in lines[header + 1 :] if line.strip()]
     mine = [lines[header]] + [
-        ",".join([f, str(2 * float(a_c)), a_i, t_c, t_i]) for f, a_c, a_i, t_c, t_i in rows
-    ]  # the capacitive axis absorbs twice as much (a + t <= 1 still holds)
+        ",".join([f, str(0.5 * float(a_c)), a_i, t_c, t_i]) for f, a_c, a_i, t_c, t_i in rows
+    ]  # the capacitive axis absorbs half as much (a + t <= 1 still holds)
     (workdir / "my_mft_hwp_curves.csv").write_text("\n".join(mine) + "\n")
     (workdir / "my_hwp.yaml").write_text(
         "optics:\n  telescopes:\n    MFT:\n      hwp_curves_csv: my_mft_hwp_curves.csv\n"
     )
-    supplied = snakemake(workdir, *config, "--configfile", "my_hwp.yaml", TARGET)
+    supplied = snakemake(workdir, TARGET, *config, "my_hwp.yaml")  # merged in order
     assert supplied.returncode == 0, supplied.stderr[-3000:]
     after = pd.read_csv(workdir / TARGET, comment="#").set_index("channel")
 
@@ -94,6 +95,6 @@ def test_supplied_hwp_curves_are_used(repo, tmp_path):
     others = [c for c in before.index if not c.startswith("M")]
     assert mft, before.index
     for channel in mft:
-        assert after.loc[channel, a2] != pytest.approx(before.loc[channel, a2], rel=1e-3)
+        assert after.loc[channel, a2] != pytest.approx(before.loc[channel, a2], rel=1e-3, abs=0)
     for channel in others:
-        assert after.loc[channel, a2] == pytest.approx(before.loc[channel, a2], rel=1e-12)
+        assert after.loc[channel, a2] == pytest.approx(before.loc[channel, a2], rel=1e-12, abs=0)
