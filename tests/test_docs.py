@@ -217,7 +217,7 @@ def test_version_has_one_source():
     assert re.fullmatch(r"0\.\d+\.\d+", version), version
     citation = yaml.safe_load((REPO / "CITATION.cff").read_text())
     assert str(citation["version"]) == version
-    assert citation["license"] == pyproject["project"]["license"] == "GPL-3.0-or-later"
+    assert citation["license"] == pyproject["project"]["license"]["text"] == "GPL-3.0-or-later"
     assert "arXiv:2407.15294" in (REPO / "CITATION.cff").read_text()
     changelog = (REPO / "CHANGELOG.md").read_text()
     releases = re.findall(r"^## \[(\d+\.\d+\.\d+)\]", changelog, re.MULTILINE)
