@@ -106,7 +106,16 @@ def test_report_builds_with_every_figure(tiny_local_run, repo):
     assert built.returncode == 0, built.stderr[-3000:]
     import zipfile
 
-    names = zipfile.ZipFile(workdir / "report.zip").namelist()
+    report = zipfile.ZipFile(workdir / "report.zip")
+    names = report.namelist()
     for figure in (workdir / "results/figures").glob("*.png"):
         assert any(name.endswith(figure.name) for name in names), figure.name
     assert any(name.endswith("delta_r.csv") for name in names)
+    # the description and the captions render cleanly: docutils writes each warning or
+    # error (e.g. an undefined |substitution|) into the HTML as a "System Message"
+    pages = [name for name in names if name.endswith((".html", ".js"))]
+    assert pages, names
+    for name in pages:
+        text = report.read(name).decode("utf-8", errors="replace")
+        for marker in ("System Message:", "system-message", "docutils-error"):
+            assert marker not in text, (name, marker, text[text.find(marker) - 300 :][:900])

@@ -1,6 +1,7 @@
 """Command line: ``python -m hwp_tes_systematics <command>``.
 
 config-reference                      print the configuration reference (Markdown)
+effect-catalog                        print the diagnosis's effect catalog (Markdown)
 diagnose RECORDING.h5 --sky SKY.fits [--config FILE] --out DIR
                                       locate, name, fit and report what the
                                       simulation left out of a recording
@@ -63,6 +64,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     commands = parser.add_subparsers(dest="command", required=True)
     commands.add_parser("config-reference", help="print the configuration reference (Markdown)")
+    commands.add_parser(
+        "effect-catalog", help="print the diagnosis's effect catalog (Markdown), from the code"
+    )
     diagnose = commands.add_parser(
         "diagnose", help="find, name and fit what the simulation left out of a recording"
     )
@@ -95,6 +99,11 @@ def main(argv: list[str] | None = None) -> int:
 
     if arguments.command == "config-reference":
         sys.stdout.write(config_reference_markdown())
+        return 0
+    if arguments.command == "effect-catalog":
+        from .diagnose.catalog import effect_catalog_markdown
+
+        sys.stdout.write(effect_catalog_markdown())
         return 0
 
     from .io import setup_logging
