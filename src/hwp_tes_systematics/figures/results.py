@@ -193,11 +193,12 @@ def plot_requirement(
         axis.axvline(crossing, color="C0", linestyle=":", linewidth=1.5)
         axis.text(
             crossing,
-            budget,
-            f"  sigma_g1 < {crossing:.2g} K^-1\n  (budget crossing)",
+            budget * 0.7,
+            f"sigma_g1 < {crossing:.2g} K^-1  \n(budget crossing)  ",
             color="C0",
             va="top",
-            ha="left",
+            ha="right",
+            fontsize="small",
         )
     else:
         mark_requirement(axis, requirement, budget, "C3", "top")
