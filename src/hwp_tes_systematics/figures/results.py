@@ -138,7 +138,7 @@ def plot_requirement(
     keep = (sigma > 0) & (mean > 0) & np.isfinite(mean)
     sigma, mean, std = sigma[keep], mean[keep], std[keep]
 
-    figure, axis = subplots(figsize=(7.0, 4.8))
+    figure, axis = subplots(figsize=(7.5, 6.4))
     exponent_text = f"{exponent:.3f}"
     if exponent_sigma is not None and np.isfinite(exponent_sigma):
         exponent_text += f" +- {exponent_sigma:.3f}"
@@ -155,7 +155,8 @@ def plot_requirement(
     span = [crossing if show_crossing else requirement, *sigma]
     if systematic_only is not None:
         span += [systematic_only[4], *systematic_only[0]]
-    x = np.logspace(np.log10(np.min(span)) - 0.3, np.log10(np.max(span)) + 0.3, 200)
+    # room on the right for the requirements' labels, written right of their lines
+    x = np.logspace(np.log10(np.min(span)) - 0.3, np.log10(np.max(span)) + 0.7, 200)
     label = "paper's estimator: " if systematic_only is not None else ""
     axis.plot(
         x, k * x**2, "--", color="C0", label=f"{label}quadratic fit k sigma^2, k = {k:.3g} K^2"
@@ -233,7 +234,8 @@ def plot_requirement(
             bbox={"facecolor": "white", "edgecolor": "C3", "alpha": 0.8},
         )
     axis.grid(alpha=0.3, which="both")
-    axis.legend(fontsize="x-small", loc="upper left")
+    # below the axes: inside, it would cover the points and the requirements' labels
+    axis.legend(fontsize="x-small", loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=2)
     if invalid_reason is not None:
         axis.text(
             0.98,
