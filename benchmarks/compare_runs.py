@@ -7,7 +7,7 @@ Each argument is NAME=PATH, PATH a ``requirement.json`` or a folder holding one 
 or in ``results/``). Prints a Markdown table: the likelihood model and whether it
 describes the data (``consistency``, with the failing bins), sigma_r, the systematic's
 own power in both delta r conventions (the 68 %-point shift, the paper's, and the
-Fisher peak shift) with their scatter over seeds, the paper's estimator where its mean
+Fisher peak shift) with their error (bootstrap over seeds) and the seeds' scatter, the paper's estimator where its mean
 crosses the budget, and where the information on r and the bias come from.
 """
 
@@ -43,9 +43,11 @@ def row(name: str, result: dict) -> str:
         f"{'yes' if headline['consistent'] else 'NO'} ({failing}) | "
         f"{headline['sigma_r_fisher']:.3g} | "
         f"**{headline['requirement_sigma_g1_per_k']:.2g}** +- "
-        f"{headline['std_over_seeds_per_k']:.1g} | "
+        f"{headline.get('error_per_k', float('nan')):.1g} "
+        f"(seeds {headline['std_over_seeds_per_k']:.1g}) | "
         f"{headline['fisher_peak_shift_requirement_sigma_g1_per_k']:.2g} +- "
-        f"{headline['fisher_peak_shift_std_over_seeds_per_k']:.1g} | {crossing:.2g} | "
+        f"{headline.get('fisher_peak_shift_error_per_k', float('nan')):.1g} "
+        f"(seeds {headline['fisher_peak_shift_std_over_seeds_per_k']:.1g}) | {crossing:.2g} | "
         f"{fraction(bins, 'information_fraction', 2, 4):.2f} | "
         f"{fraction(bins, 'bias_fraction', 21, 80):.2f} |"
     )

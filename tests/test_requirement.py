@@ -207,3 +207,13 @@ def test_budget_crossing_over_seeds():
     assert crossing["std_over_seeds_per_k"] == pytest.approx(np.std(per_seed, ddof=1))
     assert crossing["sigma_g1_per_k"] == pytest.approx(rq.DELTA_R_BUDGET / (1e-5 * 7 / 3))
     assert crossing["n_seeds_crossing"] == 3
+
+
+def test_bootstrap_error_is_the_error_of_the_mean():
+    from hwp_tes_systematics.requirement import bootstrap_error
+
+    values = np.random.default_rng(3).normal(10.0, 2.0, size=400)
+    error = bootstrap_error(values, np.mean)
+    assert error == pytest.approx(2.0 / np.sqrt(400), rel=0.15)
+    assert bootstrap_error(np.full(20, 3.0), np.mean) == 0.0
+    assert np.isnan(bootstrap_error(np.ones(1), np.mean))

@@ -422,6 +422,23 @@ def paper_estimator(table, config, extension) -> tuple[pd.DataFrame, dict]:
     return table, regime
 
 
+BOOTSTRAP_RESAMPLES = 2000  # resamplings of the seeds for the error of a requirement
+BOOTSTRAP_SEED = 26  # fixed: the error is reproducible bit for bit
+
+
+def bootstrap_error(per_seed: np.ndarray, statistic) -> float:
+    """Standard deviation over BOOTSTRAP_RESAMPLES resamplings (with replacement) of the
+    rows of ``per_seed`` (one per seed) of ``statistic(rows)``: the statistical error of
+    a requirement computed from the mean over seeds (not the seeds' scatter)."""
+    per_seed = np.asarray(per_seed, dtype=float)
+    if len(per_seed) < 2:
+        return float("nan")
+    rng = np.random.default_rng(BOOTSTRAP_SEED)
+    draws = rng.integers(0, len(per_seed), size=(BOOTSTRAP_RESAMPLES, len(per_seed)))
+    values = np.array([statistic(per_seed[rows]) for rows in draws])
+    return float(np.nanstd(values, ddof=1))
+
+
 def fraction_point_estimator(likelihoods: list[dict], budget: float) -> dict:
     """The systematic-only requirement in the paper's convention: the sigma_g1 at which
     the mean over seeds of the 68 %-point shift (rule likelihood,
@@ -446,6 +463,9 @@ def fraction_point_estimator(likelihoods: list[dict], budget: float) -> dict:
         "requirement_std_over_seeds_per_k": float(np.std(finite, ddof=1))
         if len(finite) > 1
         else float("nan"),
+        "requirement_error_per_k": bootstrap_error(
+            per_seed, lambda rows: budget_crossing(sigma, rows.mean(axis=0), budget)
+        ),
         "sigma_g1_per_k": sigma.tolist(),
         "mean_delta_r": mean.tolist(),
         "std_delta_r": np.nan_to_num(per_seed.std(axis=0, ddof=1), nan=0.0).tolist()
@@ -487,6 +507,11 @@ def systematic_only_estimator(likelihoods: list[dict], budget: float, sigma_r: f
         "k_per_k2": k_mean,
         "k_per_seed": k_seeds.tolist(),
         "requirement_sigma_g1_per_k": requirement_sigma(k_mean, budget),
+        "requirement_error_per_k": bootstrap_error(
+            k_seeds, lambda rows: requirement_sigma(rows.mean(), budget)
+        )
+        if k_mean > 0
+        else float("nan"),
         "requirement_per_seed_per_k": per_seed,
         "requirement_std_over_seeds_per_k": float(np.std(per_seed, ddof=1))
         if len(per_seed) > 1
