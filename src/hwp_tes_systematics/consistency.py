@@ -94,7 +94,7 @@ def check_model(
         t_sem = float(
             np.sqrt(np.sum((lens_weight * data_transfer_sem[where]) ** 2)) / lens_weight.sum()
         )
-        lens_b = float(np.sum(modes * c_lens[where]) / modes.sum())
+        lens_b = float(lens_weight.sum() / modes.sum())
         model_bb = t_model * lens_b + float(np.sum(modes * noise[where]) / modes.sum())
         per_seed = residual[:, where] @ modes / modes.sum()
         residual_mean = float(per_seed.mean())

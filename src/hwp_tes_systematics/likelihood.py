@@ -221,11 +221,14 @@ class BBModel:
             lmax=self.lmax,
         )
 
+    def fisher_terms(self, r: float = 0.0) -> np.ndarray:
+        """F_ell = (2l+1) f_sky / 2 (C_GW / C_mod(r))^2 for lmin <= ell <= lmax."""
+        ratio = self.c_gw_r1[self.mask] / self.c_mod(r)[self.mask]
+        return (2 * self.ell_used + 1) * self.f_sky / 2.0 * ratio**2
+
     def fisher_sigma_r(self, r: float = 0.0) -> float:
         """Fisher width of eq. (2): [sum (2l+1) f_sky / 2 (C_GW / C_mod(r))^2]^(-1/2)."""
-        ell = self.ell_used
-        ratio = self.c_gw_r1[self.mask] / self.c_mod(r)[self.mask]
-        fisher = np.sum((2 * ell + 1) * self.f_sky / 2.0 * ratio**2)
+        fisher = np.sum(self.fisher_terms(r))
         if fisher <= 0:
             raise ValueError("no tensor signal in the multipole range: sigma_r is infinite")
         return float(fisher**-0.5)
@@ -234,12 +237,15 @@ class BBModel:
 def fisher_bias(c_sys, model: BBModel, r: float = 0.0) -> float:
     """delta r of eq. (3): the first-order shift of the maximum of L when ``c_sys``
     [K_CMB^2] (on ``model.ell``) is added to C_obs = C_mod(r); signed, linear in c_sys."""
+    return float(np.sum(_bias_terms(c_sys, model, r)) / np.sum(model.fisher_terms(r)))
+
+
+def _bias_terms(c_sys, model: BBModel, r: float) -> np.ndarray:
+    """The numerator terms of eq. (3), (2l+1) f_sky / 2 C_GW C_sys / C_mod(r)^2, for
+    lmin <= ell <= lmax (``c_sys`` [K_CMB^2] on ``model.ell``)."""
     c_sys = _as_spectrum("c_sys", c_sys, model.ell.size)[model.mask]
-    ell = model.ell_used
-    c_gw = model.c_gw_r1[model.mask]
-    c_mod = model.c_mod(r)[model.mask]
-    weight = (2 * ell + 1) * model.f_sky / 2.0
-    return float(np.sum(weight * c_gw * c_sys / c_mod**2) / np.sum(weight * (c_gw / c_mod) ** 2))
+    weight = (2 * model.ell_used + 1) * model.f_sky / 2.0
+    return weight * model.c_gw_r1[model.mask] * c_sys / model.c_mod(r)[model.mask] ** 2
 
 
 def _checked_c_obs(c_obs, model: BBModel) -> np.ndarray:
@@ -529,17 +535,27 @@ def sky_transfer_bb(noise: pd.DataFrame, lmax: int, source: str = "") -> np.ndar
     return noise["sky_transfer_bb"].to_numpy()[: lmax + 1]
 
 
-def model_from_noise_csv(
-    noise_csv: str, lmin: int, lmax: int, analysis: str = "paper_recipe"
+def analysis_transfer(noise: pd.DataFrame, lmax: int, analysis: str, source: str = ""):
+    """The T_ell (ell = 0..lmax) that ``analysis`` multiplies C_lens and C_GW by: the
+    measured sky transfer for ``transfer_in_model`` (1 below ell = 2, clipped at 0: a
+    spectrum is not negative), None (no transfer) for the others."""
+    if check_analysis(analysis) != "transfer_in_model":
+        return None
+    transfer = sky_transfer_bb(noise, lmax, source).copy()
+    transfer[:2] = 1.0
+    return np.clip(transfer, 0.0, None)
+
+
+def model_from_noise_table(
+    noise: pd.DataFrame, lmin: int, lmax: int, analysis: str = "paper_recipe", source: str = ""
 ) -> BBModel:
-    """The likelihood's BB model of ``analysis`` (:data:`ANALYSES`): N_ell and C_FGres as
-    measured (noise model), C_lens and C_GW times the measured T_ell for
-    ``transfer_in_model``."""
-    noise = pd.read_csv(noise_csv)
+    """The likelihood's BB model of ``analysis`` (:data:`ANALYSES`) from the noise model
+    table: N_ell and C_FGres as measured, C_lens and C_GW times
+    :func:`analysis_transfer` when it is not None."""
     if lmax > noise["ell"].iloc[-1]:
         raise ValueError(
             f"likelihood.lmax = {lmax} exceeds the spectra's lmax "
-            f"{noise['ell'].iloc[-1]} ({noise_csv})"
+            f"{noise['ell'].iloc[-1]} ({source or 'noise model'})"
         )
     model = BBModel.from_ptep(
         f_sky=float(noise["fsky_eff"].iloc[0]),
@@ -548,32 +564,31 @@ def model_from_noise_csv(
         n_ell=noise["n_ell_bb_k2"].to_numpy()[: lmax + 1],
         c_fg_res=noise["c_fg_res_bb_k2"].to_numpy()[: lmax + 1],
     )
-    if check_analysis(analysis) == "transfer_in_model":
-        transfer = sky_transfer_bb(noise, lmax, noise_csv).copy()
-        transfer[:2] = 1.0
-        model = model.with_transfer(np.clip(transfer, 0.0, None))
-    return model
+    transfer = analysis_transfer(noise, lmax, analysis, source)
+    return model if transfer is None else model.with_transfer(transfer)
+
+
+def model_from_noise_csv(
+    noise_csv: str, lmin: int, lmax: int, analysis: str = "paper_recipe"
+) -> BBModel:
+    """:func:`model_from_noise_table` of the noise model CSV ``noise_csv``."""
+    return model_from_noise_table(pd.read_csv(noise_csv), lmin, lmax, analysis, noise_csv)
 
 
 # ================================================= where the information and bias come from
 def fisher_information_per_ell(model: BBModel, r: float = 0.0) -> np.ndarray:
-    """F_ell = (2 ell + 1) f_sky / 2 (C_GW / C_mod(r))^2 on ``model.ell`` (0 outside
-    lmin..lmax): sum F_ell = 1 / sigma_r^2 (eq. 2)."""
+    """F_ell (:meth:`BBModel.fisher_terms`) on ``model.ell``, 0 outside lmin..lmax:
+    sum F_ell = 1 / sigma_r^2 (eq. 2)."""
     out = np.zeros(model.ell.size)
-    ratio = model.c_gw_r1[model.mask] / model.c_mod(r)[model.mask]
-    out[model.mask] = (2 * model.ell_used + 1) * model.f_sky / 2.0 * ratio**2
+    out[model.mask] = model.fisher_terms(r)
     return out
 
 
 def fisher_bias_per_ell(c_sys, model: BBModel, r: float = 0.0) -> np.ndarray:
-    """The terms of eq. (3) per ell: w C_GW C_sys / C_mod^2 / sum F (their sum is
-    :func:`fisher_bias`), on ``model.ell``."""
-    c_sys = _as_spectrum("c_sys", c_sys, model.ell.size)
+    """The terms of eq. (3) per ell over sum F_ell (their sum is :func:`fisher_bias`), on
+    ``model.ell``, 0 outside lmin..lmax."""
     out = np.zeros(model.ell.size)
-    c_mod = model.c_mod(r)[model.mask]
-    weight = (2 * model.ell_used + 1) * model.f_sky / 2.0
-    terms = weight * model.c_gw_r1[model.mask] * c_sys[model.mask] / c_mod**2
-    out[model.mask] = terms / fisher_information_per_ell(model, r).sum()
+    out[model.mask] = _bias_terms(c_sys, model, r) / np.sum(model.fisher_terms(r))
     return out
 
 

@@ -49,9 +49,10 @@ from ..ilc_residuals import systematic_bb
 from ..io import atomic_path, write_csv
 from ..likelihood import (
     ANALYSES,
+    analysis_transfer,
     fisher_bias_per_ell,
     fisher_information_per_ell,
-    model_from_noise_csv,
+    model_from_noise_table,
     residual_bb,
     sky_transfer_bb,
 )
@@ -96,12 +97,13 @@ def run(
     budget = config["requirement"]["delta_r_budget"]
     settings = config["likelihood"]
     analysis = settings["model"]
-    model = model_from_noise_csv(noise_csv, settings["lmin"], settings["lmax"], analysis)
+    noise = pd.read_csv(noise_csv)
+    model = model_from_noise_table(noise, settings["lmin"], settings["lmax"], analysis, noise_csv)
     if extension is not None:
         extension = dict(extension)
         extension["model"] = model
     check, distribution = model_check(
-        config, model, noise_csv, nosys_spectra_csvs, systematic_csvs, fig_ell_distribution
+        config, model, noise, nosys_spectra_csvs, systematic_csvs, fig_ell_distribution
     )
     table = delta_r_table(likelihoods)
     grid_summary = summarise(table)
@@ -141,10 +143,10 @@ def run(
             "requirement_sigma_g1_per_k"
         ],
         "fisher_peak_shift_error_per_k": systematic_only["requirement_error_per_k"],
-        "paper_estimator_budget_crossing_per_k": crossing["sigma_g1_per_k"],
         "fisher_peak_shift_std_over_seeds_per_k": systematic_only[
             "requirement_std_over_seeds_per_k"
         ],
+        "paper_estimator_budget_crossing_per_k": crossing["sigma_g1_per_k"],
         "sigma_r_fisher": model.fisher_sigma_r(0.0),
         "note": "consistent: the likelihood model describes the data (consistency)"
         if check["consistent"]
@@ -276,25 +278,22 @@ def run(
 def model_check(
     config: dict,
     model,
-    noise_csv: str,
+    noise: pd.DataFrame,
     nosys_spectra_csvs: list[str],
     systematic_csvs: list[str],
     fig_ell_distribution: str,
 ) -> tuple[dict, dict]:
     """(:func:`consistency.check_model` of the analysis, the information and the bias
-    per bin), and their figure. The bias is that of the mean over seeds of the
-    systematic's BB at sigma_g1 = 1."""
+    per bin), and their figure. ``noise``: the noise model table. The bias is that of
+    the mean over seeds of the systematic's BB at sigma_g1 = 1."""
     settings = config["likelihood"]
     analysis, lmax = settings["model"], settings["lmax"]
-    noise = pd.read_csv(noise_csv)
-    data_transfer = sky_transfer_bb(noise, lmax, noise_csv)
+    data_transfer = sky_transfer_bb(noise, lmax)
     data_sem = noise["sky_transfer_bb_sem"].to_numpy()[: lmax + 1]
-    base = model_from_noise_csv(noise_csv, settings["lmin"], lmax, "paper_recipe")
-    model_transfer = (
-        model.c_gw_r1 / np.where(base.c_gw_r1 > 0, base.c_gw_r1, 1.0)
-        if analysis == "transfer_in_model"
-        else np.ones(lmax + 1)
-    )
+    base = model_from_noise_table(noise, settings["lmin"], lmax, "paper_recipe")
+    model_transfer = analysis_transfer(noise, lmax, analysis)
+    if model_transfer is None:
+        model_transfer = np.ones(lmax + 1)
     residuals = np.array(
         [residual_bb(pd.read_csv(path), analysis, lmax, path) for path in nosys_spectra_csvs]
     )
