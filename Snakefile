@@ -12,7 +12,15 @@ report: "workflow/report/workflow.rst"
 
 
 from hwp_tes_systematics import paths
-from hwp_tes_systematics.config import check_config, selected_channels
+from hwp_tes_systematics.config import (
+    analysis_variant,
+    check_config,
+    fixed_pass_baselines,
+    fixed_pass_nsides,
+    fixed_pass_variants,
+    map_variant,
+    selected_channels,
+)
 from hwp_tes_systematics.systematics import case_names
 
 check_config(config, source="Snakemake config")
@@ -25,6 +33,7 @@ wildcard_constraints:
     channel="[LMH][1-4]-[0-9]{3}",
     seed=r"\d+",
     case=r"nosys|sigma[0-9.]+e[-+]?[0-9]+",
+    variant=r"nside[0-9]+_(nobaselines|baselines[0-9.e+-]+s)",
 
 
 include: "workflow/rules/hwp_power.smk"

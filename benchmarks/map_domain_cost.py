@@ -21,6 +21,7 @@ per job by the workflow (``results/benchmarks/``).
 from __future__ import annotations
 
 import argparse
+import resource
 import time
 
 import healpy as hp
@@ -36,9 +37,20 @@ CHANNELS = {"M1-140": (True, 10), "L1-040": (False, 12)}  # (systematics, channe
 YEAR_DAYS = 365.25
 
 
-def measure(name, carries_systematics, nside, rate_hz, days, calibration_every=1, filter_lmax=None):
+def measure(
+    name,
+    carries_systematics,
+    nside,
+    rate_hz,
+    days,
+    calibration_every=1,
+    filter_lmax=None,
+    extra_variants=(),
+):
     """(seconds of the fixed pass of ``days``, seconds per seed); the filter's T_ell and
-    S_ell measured up to ``filter_lmax`` (simulation.filter_lmax; None: the full band)."""
+    S_ell measured up to ``filter_lmax`` (simulation.filter_lmax; None: the full band);
+    ``extra_variants``: (nside, baseline length) map-makers binned in the same pass
+    (simulation.fixed_pass_nsides x fixed_pass_baseline_lengths_s), ``nside`` the scan's."""
     channel = load_channel(name)
     plan = MissionPlan("2032-04-01T00:00:00", days * 86400.0, 86400.0, rate_hz)
     settings = PairMapSettings(
@@ -57,7 +69,7 @@ def measure(name, carries_systematics, nside, rate_hz, days, calibration_every=1
     lmax = 3 * nside - 1
     alm = map_domain.transfer_cmb_alm(lmax, 0.0, 1, channel.fwhm_arcmin)
     started = time.perf_counter()
-    fixed = map_domain.fixed_pass(
+    fixed = map_domain.fixed_passes(
         simulator,
         settings,
         foreground,
@@ -66,7 +78,8 @@ def measure(name, carries_systematics, nside, rate_hz, days, calibration_every=1
         lmax,
         calibration_every,
         measure_lmax=filter_lmax,
-    )
+        extra_variants=extra_variants,
+    )[(nside, settings.baseline_length_s)]
     fixed_s = time.perf_counter() - started
     started = time.perf_counter()
     cmb_alm, band = map_domain.band_limited_seed_cmb(lmax, 0.0, 1, 0, channel.fwhm_arcmin)
@@ -155,7 +168,22 @@ def main() -> None:
         help="simulation.filter_lmax: the seeds' filter band and, without --seeds-only, the "
         "band to which the fixed pass measures T_ell and S_ell (default: 3 nside - 1)",
     )
+    parser.add_argument(
+        "--also-nsides",
+        type=int,
+        nargs="*",
+        default=[],
+        help="further resolutions binned in the same pass (simulation.fixed_pass_nsides)",
+    )
+    parser.add_argument(
+        "--also-without-baselines",
+        action="store_true",
+        help="also bin without baselines in the same pass (fixed_pass_baseline_lengths_s)",
+    )
     arguments = parser.parse_args()
+    baselines = [60.0, None] if arguments.also_without_baselines else [60.0]
+    extra = [(n, b) for n in [arguments.nside, *arguments.also_nsides] for b in baselines]
+    extra = [variant for variant in extra if variant != (arguments.nside, 60.0)]
     if arguments.seeds_only:
         seed_costs(arguments.nside, arguments.filter_lmax)
         return
@@ -164,7 +192,7 @@ def main() -> None:
     total_core_s = 0.0
     print(
         f"nside {arguments.nside}, {arguments.rate:g} Hz, {arguments.seeds} seeds, one year, "
-        f"calibration every {arguments.calibration_every} days"
+        f"calibration every {arguments.calibration_every} days, further map-makers {extra}"
     )
     print(
         "| channel | fixed pass [s per day] | once per pass [s] | one year [min] | one seed [s] "
@@ -175,12 +203,9 @@ def main() -> None:
         # two durations: the slope is the cost per day, the intercept the once-per-pass part
         # (solving the maps, the transfer and noise-shaping spectra)
         point = (name, carries, arguments.nside, arguments.rate)
-        short_s, per_seed = measure(
-            *point, arguments.days, arguments.calibration_every, arguments.filter_lmax
-        )
-        long_s, _ = measure(
-            *point, 2 * arguments.days, arguments.calibration_every, arguments.filter_lmax
-        )
+        settings = (arguments.calibration_every, arguments.filter_lmax, extra)
+        short_s, per_seed = measure(*point, arguments.days, *settings)
+        long_s, _ = measure(*point, 2 * arguments.days, *settings)
         per_day = (long_s - short_s) / arguments.days
         once_s = short_s - per_day * arguments.days
         year_s = per_day * YEAR_DAYS + once_s
@@ -191,7 +216,9 @@ def main() -> None:
         )
     print(
         f"fixed passes + seeds: {total_core_s / 3600:.2f} core-hours, "
-        f"{total_core_s / 3600 / arguments.cores:.2f} h on {arguments.cores} cores"
+        f"{total_core_s / 3600 / arguments.cores:.2f} h on {arguments.cores} cores; "
+        f"peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.1f} GiB "
+        "(the process, its largest pass)"
     )
 
 

@@ -4,9 +4,12 @@ different noise draws).
 
     snakemake --cores 2 results/requirement.json --configfile over.yaml          # in TOD/
     snakemake --cores 2 results/requirement.json --configfile over.yaml md.yaml  # in MD/
-    python benchmarks/map_domain_validation.py --tod TOD --map-domain MD
+    python benchmarks/map_domain_validation.py --tod TOD --map-domain MD \
+        --configfile config/config.yaml over.yaml md.yaml
 
-(md.yaml: ``simulation: {realizations: map_domain}``.) Printed, as Markdown:
+(md.yaml: ``simulation: {realizations: map_domain}``; ``--configfile``: the map-domain
+run's configuration, whose seeds' maps are made again from its fixed passes, as its
+map_domain_alms jobs made them in memory.) Printed, as Markdown:
 
 1. per channel, the Q/U rms over the observed pixels of the noise (nosys minus the CMB
    and foreground references, averaged over seeds) and of the templates of detector 0;
@@ -31,6 +34,8 @@ import healpy as hp
 import numpy as np
 import pandas as pd
 
+from hwp_tes_systematics.config import analysis_variant, load_config
+from hwp_tes_systematics.map_domain import ChannelSeeds
 from hwp_tes_systematics.maps_file import read_channel_maps
 
 ELL_BANDS = ((2, 12), (12, 40), (40, 80), (80, 129))
@@ -40,13 +45,26 @@ def qu_rms(maps: np.ndarray, seen: np.ndarray) -> float:
     return float(np.sqrt(np.mean(maps[1:, seen] ** 2)))
 
 
-def channel_rows(run: Path) -> dict[str, tuple[float, float]]:
+def seed_maps(folder: Path, config: dict | None):
+    """Each seed's maps of a channel: its maps files (TOD path), or made from its fixed
+    pass (map-domain path, ``config`` given)."""
+    if config is None:
+        return [read_channel_maps(path) for path in sorted(folder.glob("seed*.h5"))]
+    fixed_h5 = folder / f"fixed_pass_{analysis_variant(config)}.h5"
+    if not fixed_h5.exists():
+        return []
+    channel_seeds = ChannelSeeds(config, fixed_h5)
+    return [channel_seeds.maps(seed) for seed in range(config["simulation"]["seeds"])]
+
+
+def channel_rows(run: Path, config: dict | None = None) -> dict[str, tuple[float, float]]:
     """{channel: (noise Q/U rms, template detector-0 Q/U rms)} averaged over seeds."""
     rows = {}
     for folder in sorted((run / "results" / "maps").iterdir()):
+        if not folder.is_dir():
+            continue
         noise, template = [], []
-        for path in sorted(folder.glob("seed*.h5")):
-            data = read_channel_maps(path)
+        for data in seed_maps(folder, config):
             seen = data["nosys"][0] != hp.UNSEEN
             residual = data["nosys"] - data["cmb_reference"] - data["foreground_reference"]
             noise.append(qu_rms(residual, seen))
@@ -93,10 +111,15 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--tod", type=Path, required=True, help="run folder, TOD path")
     parser.add_argument("--map-domain", type=Path, required=True, help="run folder, map domain")
+    parser.add_argument(
+        "--configfile", nargs="+", required=True, help="the map-domain run's configuration files"
+    )
     arguments = parser.parse_args()
     runs = {"tod": arguments.tod, "map_domain": arguments.map_domain}
 
-    channels = {name: channel_rows(run) for name, run in runs.items()}
+    md_config = load_config(*arguments.configfile)
+    configs = {"tod": None, "map_domain": md_config}
+    channels = {name: channel_rows(run, configs.get(name)) for name, run in runs.items()}
     print(
         "| channel | noise Q/U rms tod [K] | map domain | ratio | template Q/U rms tod "
         "[K^2] | map domain | ratio |"

@@ -47,6 +47,7 @@ def benchmarks(repo, monkeypatch):
         "common",
         "template_vs_duration",
         "map_level_cost",
+        "run_cost",
     ):
         sys.modules.pop(name, None)
 
@@ -71,6 +72,28 @@ def test_timeline_reads_jobs_and_core_use(benchmarks, tmp_path):
     log.write_text("no jobs here\n")
     with pytest.raises(ValueError, match="no finished jobs"):
         timeline.parse_jobs(log)
+
+
+def test_run_cost_sums_rules_and_checks_targets(benchmarks, tmp_path, monkeypatch, capsys):
+    import run_cost
+
+    (tmp_path / ".snakemake" / "log").mkdir(parents=True)
+    (tmp_path / ".snakemake" / "log" / "run.snakemake.log").write_text(LOG)
+    bench = tmp_path / "results" / "benchmarks" / "pair_maps"
+    bench.mkdir(parents=True)
+    (bench / "M1-140_seed0.tsv").write_text("s\tmax_rss\n10\t2048\n")
+    (bench / "M1-140_seed1.tsv").write_text("s\tmax_rss\n20\t3072\n")
+    (tmp_path / "results" / "payload.bin").write_bytes(b"0" * 1000)
+    arguments = [str(tmp_path), "--wall-hours", "0.001", "--job-memory-gb", "2.5"]
+    monkeypatch.setattr(sys, "argv", ["run_cost.py", *arguments, "--scale-seeds", "10"])
+    run_cost.main()
+    out = capsys.readouterr().out
+    assert "| pair_maps | 2 | 0.01 | 0.3 | 3.0 |" in out  # 30 s, longest 20 s, 3072 MB
+    assert "| component_separation | 1 | 0.01 | 0.2 | - |" in out  # 10 s on 2 threads
+    assert "target wall time [h] <= 0.001: 0.01 (MISSED)" in out
+    assert "target peak job memory [GB] <= 2.5: 3.00 (MISSED)" in out
+    # one component_separation job: one seed; x 10 seeds for both rules' 50 core-seconds
+    assert "with 10 seeds: ~0.1 core-hours" in out
 
 
 def test_template_vs_duration_merges_parallel_runs(benchmarks, tmp_path, monkeypatch):

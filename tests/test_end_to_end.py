@@ -119,3 +119,35 @@ def test_report_builds_with_every_figure(tiny_local_run, repo):
         text = report.read(name).decode("utf-8", errors="replace")
         for marker in ("System Message:", "system-message", "docutils-error"):
             assert marker not in text, (name, marker, text[text.find(marker) - 300 :][:900])
+
+
+def numbers(value, path=""):
+    """{path: number} of every float and int in a JSON document."""
+    if isinstance(value, dict):
+        return {k: v for key in value for k, v in numbers(value[key], f"{path}/{key}").items()}
+    if isinstance(value, list):
+        return {
+            k: v for i, item in enumerate(value) for k, v in numbers(item, f"{path}[{i}]").items()
+        }
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        return {path: float(value)}
+    return {}
+
+
+def test_tiny_requirement_unchanged(tiny_local_run, repo):
+    """The tiny run's requirement.json, every number, against the one committed in
+    tests/data (made at the commit that moved the seeds' maps to a_lm and added the
+    fixed pass's map-makers: those changes left it identical). A change that moves a
+    number must say so and replace the file (python -m pytest ... then copy the run's
+    results/requirement.json)."""
+    workdir, result = tiny_local_run
+    assert result.returncode == 0, result.stderr[-3000:]
+    produced = numbers(json.loads((workdir / "results/requirement.json").read_text()))
+    expected = numbers(json.loads((repo / "tests/data/tiny_requirement.json").read_text()))
+    assert set(produced) == set(expected)
+    moved = {
+        key: (expected[key], produced[key])
+        for key in expected
+        if not np.isclose(produced[key], expected[key], rtol=1e-6, atol=0, equal_nan=True)
+    }
+    assert not moved, moved

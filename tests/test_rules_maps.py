@@ -54,11 +54,20 @@ def test_pair_maps_are_reproducible_and_independent_of_job_order(repo, tmp_path)
     assert np.isfinite(seed0["condition"][seen]).all()
 
 
-def test_map_domain_maps_have_the_tod_format_and_reproduce(repo, tmp_path, tiny_local_run):
-    """simulation.realizations = map_domain: the fixed pass and the per-channel seed job
-    write maps files with the TOD path's datasets, shapes and attributes, bit for bit the
-    same when rerun (other job order, other core count), and different seeds differ."""
+def test_map_domain_alms_reproduce_and_equal_the_maps_path(repo, tmp_path, tiny_local_run):
+    """simulation.realizations = map_domain: the fixed pass, the analysis mask and the
+    per-channel seed job write each seed's a_lm, bit for bit the same when rerun (other job
+    order, other core count), different between seeds; the HILC of seed 0 from them
+    equals, to round-off, the HILC of the same seed's maps written to files (the path the
+    seeds' maps took before they were kept in memory)."""
     import shutil
+
+    import pandas as pd
+
+    from hwp_tes_systematics.config import deep_merge, load_config
+    from hwp_tes_systematics.ilc_residuals import SeedMaps
+    from hwp_tes_systematics.map_domain import ChannelSeeds
+    from hwp_tes_systematics.maps_file import write_channel_maps
 
     tod_workdir, tod_result = tiny_local_run
     assert tod_result.returncode == 0, tod_result.stderr[-3000:]
@@ -66,34 +75,62 @@ def test_map_domain_maps_have_the_tod_format_and_reproduce(repo, tmp_path, tiny_
     override.write_text("simulation:\n  realizations: map_domain\n")
     configs = ("--configfile", str(repo / "tests/configs/tiny.yaml"), str(override))
     targets = [
-        "results/maps/M1-140/seed1.h5",
-        "results/maps/M1-140/seed0.h5",
-        "results/maps/L1-040/seed0.h5",
+        "results/alms/M1-140/seed1.h5",
+        "results/alms/M1-140/seed0.h5",
+        "results/alms/L1-040/seed0.h5",
+        "results/spectra/seed0/nosys.csv",
     ]
     workdir = make_workdir(repo, tmp_path / "run")
     for inputs in ("results/inputs", "results/sky"):  # the upstream stages, already run
         shutil.copytree(tod_workdir / inputs, workdir / inputs)
     result = snakemake(workdir, *targets, extra=(*configs, "--cores", "2"))
     assert result.returncode == 0, result.stderr[-3000:]
-    first = {target: read_maps(workdir / target) for target in targets}
-    # the M1-140 fixed pass and its seeds again, alone, on one core, seeds in reverse order
+    alm_files = targets[:3]
+    first = {target: read_maps(workdir / target) for target in alm_files}
+    # the M1-140 fixed pass and its seeds again, alone, on one core
     shutil.rmtree(workdir / "results/maps/M1-140")
-    result = snakemake(workdir, *targets[1::-1], extra=(*configs, "--cores", "1"))
+    shutil.rmtree(workdir / "results/alms/M1-140")
+    result = snakemake(workdir, *alm_files[1::-1], extra=(*configs, "--cores", "1"))
     assert result.returncode == 0, result.stderr[-3000:]
-    for target in targets:
-        fast, fast_attrs = first[target]
+    for target in alm_files:
         again, _ = read_maps(workdir / target)
-        full, full_attrs = read_maps(tod_workdir / target)
-        assert set(fast) == set(full), target
-        for name in full:
-            assert fast[name].shape == full[name].shape, (target, name)
-            np.testing.assert_array_equal(fast[name], again[name], err_msg=f"{target}:{name}")
-        assert set(full_attrs) <= set(fast_attrs)
-        assert fast_attrs["realization"] == "map_domain"
-    seed1, seed0 = first[targets[0]][0], first[targets[1]][0]
-    seen = seed0["nosys"][0] != -1.6375e30
-    assert not np.allclose(seed0["nosys"][:, seen], seed1["nosys"][:, seen])
+        for name, values in first[target][0].items():
+            np.testing.assert_array_equal(values, again[name], err_msg=f"{target}:{name}")
+    seed1, seed0 = first[alm_files[0]][0], first[alm_files[1]][0]
+    assert not np.allclose(seed0["alm_nosys"], seed1["alm_nosys"])
+    np.testing.assert_array_equal(
+        seed0["alm_foreground_reference"], seed1["alm_foreground_reference"]
+    )
+
+    # the same seed through maps files: the HILC's residual spectra agree to round-off
+    config = deep_merge(
+        load_config(repo / "config/config.yaml", repo / "tests/configs/tiny.yaml"),
+        {"simulation": {"realizations": "map_domain"}},
+    )
+    map_paths = {}
+    for name in ("L1-040", "M1-140"):
+        fixed_h5 = workdir / f"results/maps/{name}/fixed_pass_nside16_baselines60s.h5"
+        maps = ChannelSeeds(config, fixed_h5).maps(0)
+        fixed = read_maps(fixed_h5)[0]
+        map_paths[name] = str(tmp_path / f"{name}_seed0.h5")
+        write_channel_maps(map_paths[name], maps, fixed["hits"], fixed["condition"], maps["attrs"])
+    from_maps = SeedMaps.load(config, 0, map_paths).residual_spectra(0.1)
+    from_alms = SeedMaps.from_alm_files(
+        config,
+        0,
+        {name: str(workdir / f"results/alms/{name}/seed0.h5") for name in map_paths},
+        str(workdir / "results/alms/analysis_mask.h5"),
+    ).residual_spectra(0.1)
+    for column in ("bb_residual_k2", "bb_noise_residual_k2", "bb_cmb_input_k2"):
+        np.testing.assert_allclose(from_alms[column], from_maps[column], rtol=1e-9, atol=0)
+    written = pd.read_csv(workdir / "results/spectra/seed0/nosys.csv")
+    nosys_from_maps = SeedMaps.load(config, 0, map_paths).residual_spectra(0.0)
+    np.testing.assert_allclose(
+        written["bb_residual_k2"], nosys_from_maps["bb_residual_k2"], rtol=1e-9, atol=0
+    )
     # the TOD path's CMB realization of the same seed, through the filter's transfer
-    full0, _ = read_maps(tod_workdir / targets[1])
-    correlation = np.corrcoef(seed0["cmb_reference"][0, seen], full0["cmb_reference"][0, seen])
+    maps0 = read_maps(map_paths["M1-140"])[0]
+    full0, _ = read_maps(tod_workdir / "results/maps/M1-140/seed0.h5")
+    seen = maps0["nosys"][0] != -1.6375e30
+    correlation = np.corrcoef(maps0["cmb_reference"][0, seen], full0["cmb_reference"][0, seen])
     assert correlation[0, 1] > 0.5

@@ -150,6 +150,7 @@ def check_config(config: dict, source: str = "configuration") -> None:
             f"{source}: instrument.systematics_channels {outside} are not among "
             f"instrument.channels {channels}"
         )
+    _check_fixed_pass_variants(config, source)
     spectra_lmax = config["component_separation"]["lmax"] or 2 * config["maps"]["nside"]
     if config["likelihood"]["lmax"] > spectra_lmax:
         raise ConfigError(
@@ -160,6 +161,62 @@ def check_config(config: dict, source: str = "configuration") -> None:
         raise ConfigError(
             f"{source}: tes.tbath_k = {config['tes']['tbath_k']} must be below "
             f"tes.tc_k = {config['tes']['tc_k']} (a TES needs a bath colder than Tc)"
+        )
+
+
+def fixed_pass_nsides(config: dict) -> list[int]:
+    """The resolutions the fixed TOD pass bins (simulation.fixed_pass_nsides or maps.nside)."""
+    return list(config["simulation"]["fixed_pass_nsides"] or [config["maps"]["nside"]])
+
+
+def fixed_pass_baselines(config: dict) -> list[float | None]:
+    """The baseline lengths [s] the fixed pass bins (None: no baselines)."""
+    lengths = config["simulation"]["fixed_pass_baseline_lengths_s"]
+    return list(lengths) if lengths is not None else [config["maps"]["baseline_length_s"]]
+
+
+def scan_nside(config: dict) -> int:
+    """The resolution of the sky a TOD scans: the highest the fixed pass bins."""
+    return max(fixed_pass_nsides(config))
+
+
+def map_variant(nside: int, baseline_length_s: float | None) -> str:
+    """The name of one map-maker of the fixed pass, e.g. nside64_baselines60s."""
+    if baseline_length_s is None:
+        return f"nside{nside}_nobaselines"
+    return f"nside{nside}_baselines{baseline_length_s:g}s"
+
+
+def fixed_pass_variants(config: dict) -> list[tuple[int, float | None]]:
+    """(nside, baseline length) of every map-maker of the fixed pass; the scan
+    resolution's first baseline length first (the pass's primary binning)."""
+    nsides = sorted(fixed_pass_nsides(config), reverse=True)
+    return [(n, b) for n in nsides for b in fixed_pass_baselines(config)]
+
+
+def analysis_variant(config: dict) -> str:
+    """The fixed-pass map-maker the analysis reads: maps.nside and maps.baseline_length_s."""
+    return map_variant(config["maps"]["nside"], config["maps"]["baseline_length_s"])
+
+
+def _check_fixed_pass_variants(config: dict, source: str) -> None:
+    simulation, maps = config["simulation"], config["maps"]
+    given = [k for k in ("fixed_pass_nsides", "fixed_pass_baseline_lengths_s") if simulation[k]]
+    if given and simulation["realizations"] != "map_domain":
+        raise ConfigError(
+            f"{source}: simulation.{given[0]} bins several map-makers in the map-domain fixed "
+            "pass; it needs simulation.realizations: map_domain"
+        )
+    if maps["nside"] not in fixed_pass_nsides(config):
+        raise ConfigError(
+            f"{source}: maps.nside = {maps['nside']} is not among simulation.fixed_pass_nsides "
+            f"{simulation['fixed_pass_nsides']} (the resolutions the fixed pass bins)"
+        )
+    if maps["baseline_length_s"] not in fixed_pass_baselines(config):
+        raise ConfigError(
+            f"{source}: maps.baseline_length_s = {maps['baseline_length_s']} is not among "
+            f"simulation.fixed_pass_baseline_lengths_s "
+            f"{simulation['fixed_pass_baseline_lengths_s']}"
         )
 
 

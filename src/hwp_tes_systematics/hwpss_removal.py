@@ -50,3 +50,14 @@ def remove_hwp_harmonics(
     for row, row_coefficients in zip(rows, coefficients.T):
         row -= row_coefficients @ templates
     return tod
+
+
+def offset_residual(hwp_angle_rad: np.ndarray, harmonics=(2,)) -> np.ndarray:
+    """u = 1 - P 1 (n,): a constant after the harmonic fit without offset. The fit with
+    offset is the fit without it followed by the projection out of u,
+
+        d - P_offset d = (d - P d) - c u,   c = <u, d> / <u, u>,
+
+    so one pass of the fit without offset (and of any linear filter after it, applied
+    to u too) gives both (:func:`tod_maps.filter_both_offsets`)."""
+    return remove_hwp_harmonics(np.ones(np.size(hwp_angle_rad)), hwp_angle_rad, harmonics)

@@ -28,22 +28,29 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import h5py
 import healpy as hp
 import numpy as np
 import pandas as pd
 
 from . import config as cfg
 from . import hilc, map_domain, spectra
+from .io import atomic_path
 from .maps_file import read_channel_maps
 from .systematics import unit_g1_draws
 
 N_TEMPLATE_TERMS = 3  # s^2, s h, h^2
 SPECTRA = ("tt", "ee", "bb", "te", "eb", "tb")  # hp.alm2cl order
+# the a_lm a channel contributes to a realization's HILC (ChannelAlms), at the common beam
+ALM_KINDS = ("nosys", "cmb_reference", "foreground_reference", "cmb_input")
+TERM_KINDS = tuple(f"x{j}" for j in range(N_TEMPLATE_TERMS))  # c_j(A) sum_k z_k T^j_k
 
 
-def analysis_mask(channel_maps: list[dict], settings: dict) -> np.ndarray:
-    """Apodized common mask: observed in every channel, |b| >= cut."""
-    binary = spectra.common_mask([m["nosys"] for m in channel_maps], settings["galactic_cut_deg"])
+def analysis_mask(observed: list[np.ndarray], settings: dict) -> np.ndarray:
+    """Apodized common mask: observed in every channel (``observed``: one (npix,) bool or
+    (3, npix) map per channel, UNSEEN where unobserved), |b| >= cut."""
+    maps = [np.where(o, 0.0, hp.UNSEEN) if o.dtype == bool else o for o in observed]
+    binary = spectra.common_mask(maps, settings["galactic_cut_deg"])
     if binary.sum() == 0:
         raise ValueError(
             "the common mask is empty: no pixel is observed by every channel outside the "
@@ -53,14 +60,177 @@ def analysis_mask(channel_maps: list[dict], settings: dict) -> np.ndarray:
     return spectra.apodized_mask(binary, settings["mask_apodization_deg"])
 
 
+@dataclass(frozen=True)
+class HarmonicSettings:
+    """What every channel's a_lm share: the band, the common beam, the map2alm iterations."""
+
+    lmax: int
+    common_fwhm_arcmin: float
+    map2alm_iter: int
+
+    @classmethod
+    def from_config(cls, config: dict) -> HarmonicSettings:
+        settings = config["component_separation"]
+        fwhms = [cfg.channel(config, name).fwhm_arcmin for name in cfg.selected_channels(config)]
+        lmax = settings["lmax"] if settings["lmax"] is not None else 2 * config["maps"]["nside"]
+        return cls(
+            lmax=lmax,
+            common_fwhm_arcmin=settings["common_fwhm_arcmin"] or max(fwhms),
+            map2alm_iter=settings["map2alm_iter"],
+        )
+
+    def alm(self, maps: np.ndarray, fwhm_arcmin: float, mask: np.ndarray) -> np.ndarray:
+        """(3, nalm) a_lm of one (3, npix) map, masked, brought to the common beam."""
+        return hilc.channel_alms(
+            [maps], [fwhm_arcmin], mask, self.lmax, self.common_fwhm_arcmin, self.map2alm_iter
+        )[0]
+
+
+@dataclass
+class ChannelAlms:
+    """One channel's share of a realization's HILC, as a_lm (3, nalm) at the common beam
+    on the common mask: ``alms`` holds ALM_KINDS (the no-systematics map, the CMB and
+    foreground references through the filters, the unfiltered input CMB) and, on a
+    systematics channel, TERM_KINDS: X^j = c_j(A_2) sum_k z_k T^j_k with c = (1, 2 A_2,
+    A_2^2) and the unit g1 draws z_k, so that sum_k z_k T_k = X^0 + X^1 + X^2. Made from
+    a maps file (:meth:`from_maps`), or from a seed's maps in memory and stored
+    (:func:`write_channel_alms`): the map-domain path never writes a seed's maps."""
+
+    name: str
+    alms: dict[str, np.ndarray]
+    detectors: list[str]
+    a2_k_cmb: float
+    unit_draws: np.ndarray
+
+    @classmethod
+    def from_maps(
+        cls,
+        config: dict,
+        seed: int,
+        name: str,
+        data: dict,
+        mask: np.ndarray,
+        harmonic: HarmonicSettings,
+    ) -> ChannelAlms:
+        """From a channel's maps (:func:`maps_file.read_channel_maps` layout: nosys,
+        template_terms, cmb_reference, foreground_reference, attrs)."""
+        fwhm = cfg.channel(config, name).fwhm_arcmin
+        detectors = [str(d) for d in data["attrs"]["detectors"]]
+        a2_k = float(data["attrs"]["a2_k_cmb"])
+        draws = _unit_draws(config, name, seed, detectors)
+        unseen = data["nosys"] == hp.UNSEEN
+        alms = {"nosys": harmonic.alm(data["nosys"], fwhm, mask)}
+        for kind in ("cmb_reference", "foreground_reference"):
+            alms[kind] = harmonic.alm(np.where(unseen, hp.UNSEEN, data[kind]), fwhm, mask)
+        alms["cmb_input"] = harmonic.alm(
+            np.where(unseen, hp.UNSEEN, _input_cmb_map(config, seed, fwhm, unseen.shape[-1])),
+            fwhm,
+            mask,
+        )
+        if np.any(draws):
+            seen = ~unseen[0]
+            for kind, coefficient in zip(TERM_KINDS, (1.0, 2.0 * a2_k, a2_k**2), strict=True):
+                term = np.full_like(data["nosys"], hp.UNSEEN)
+                summed = np.tensordot(draws, data["template_terms"][int(kind[1:])], axes=1)
+                term[:, seen] = coefficient * summed[:, seen]
+                alms[kind] = harmonic.alm(term, fwhm, mask)
+        return cls(name, alms, detectors, a2_k, draws)
+
+    def term(self, kind: str) -> np.ndarray:
+        """The a_lm of ``kind``; zeros for a term of a channel without systematics."""
+        if kind in self.alms:
+            return self.alms[kind]
+        return np.zeros_like(self.alms["nosys"])
+
+
+def _unit_draws(config: dict, name: str, seed: int, detectors: list[str]) -> np.ndarray:
+    """The unit g1 draws z_k of a channel's detectors (zeros outside the systematics channels)."""
+    if name not in config["instrument"]["systematics_channels"]:
+        return np.zeros(len(detectors))
+    per = config["requirement"]["g1_per"]
+    return np.asarray(unit_g1_draws(config["master_seed"], name, seed, detectors, per), float)
+
+
+def _input_cmb_map(config: dict, seed: int, fwhm_arcmin: float, npix: int) -> np.ndarray:
+    """(3, npix) the seed's unfiltered CMB at a channel's beam: the draw of
+    :func:`map_domain.band_limited_seed_cmb` (the one every path simulates)."""
+    nside = hp.npix2nside(npix)
+    alm, band = map_domain.band_limited_seed_cmb(
+        3 * nside - 1, config["simulation"]["cmb_r"], config["master_seed"], seed, fwhm_arcmin
+    )
+    return hp.alm2map(alm, nside, lmax=band, pixwin=False)
+
+
+def write_channel_alms(path, channel: ChannelAlms, attributes: dict) -> None:
+    """One channel's :class:`ChannelAlms` of one seed as HDF5 (``alm_<kind>`` datasets)."""
+    with atomic_path(path) as temporary, h5py.File(temporary, "w") as out:
+        for kind, alm in channel.alms.items():
+            out.create_dataset(f"alm_{kind}", data=alm)
+        out.create_dataset("unit_draws", data=channel.unit_draws)
+        out.attrs.update(attributes)
+        out.attrs.update(
+            {"channel": channel.name, "detectors": channel.detectors, "a2_k_cmb": channel.a2_k_cmb}
+        )
+
+
+def read_channel_alms(path, harmonic: HarmonicSettings, mask_sum: float) -> ChannelAlms:
+    """A file of :func:`write_channel_alms`, checked against the analysis it joins."""
+    with h5py.File(path) as stored:
+        attributes = dict(stored.attrs)
+        alms = {name[4:]: stored[name][()] for name in stored if name.startswith("alm_")}
+        draws = stored["unit_draws"][()]
+    expected = {
+        "lmax": harmonic.lmax,
+        "common_fwhm_arcmin": harmonic.common_fwhm_arcmin,
+        "map2alm_iter": harmonic.map2alm_iter,
+        "mask_sum": mask_sum,
+    }
+    for key, value in expected.items():
+        if key not in attributes or not np.isclose(attributes[key], value, rtol=1e-12):
+            raise ValueError(
+                f"{path}: made with {key} = {attributes.get(key)}, the analysis has {value} "
+                "(rerun its map_domain_alms rule)"
+            )
+    detectors = [str(d) for d in attributes["detectors"]]
+    return ChannelAlms(
+        str(attributes["channel"]), alms, detectors, float(attributes["a2_k_cmb"]), draws
+    )
+
+
+def alms_attributes(seed: int, harmonic: HarmonicSettings, mask: np.ndarray) -> dict:
+    """What a channel a_lm file records of the analysis it was made for."""
+    return {
+        "seed": seed,
+        "lmax": harmonic.lmax,
+        "common_fwhm_arcmin": harmonic.common_fwhm_arcmin,
+        "map2alm_iter": harmonic.map2alm_iter,
+        "mask_sum": float(mask.sum()),
+        "units": "K_CMB",
+    }
+
+
+def write_mask(path, mask: np.ndarray, settings: dict) -> None:
+    """The analysis mask (npix,) as HDF5, with the settings that made it."""
+    with atomic_path(path) as temporary, h5py.File(temporary, "w") as out:
+        out.create_dataset("mask", data=mask)
+        out.attrs.update(
+            {key: settings[key] for key in ("galactic_cut_deg", "mask_apodization_deg")}
+        )
+
+
+def read_mask(path) -> np.ndarray:
+    with h5py.File(path) as stored:
+        return stored["mask"][()]
+
+
 @dataclass
 class SeedMaps:
-    """The channel maps of one realization and everything the HILC needs to combine them."""
+    """Every channel's a_lm of one realization (:class:`ChannelAlms`) and everything the
+    HILC needs to combine them."""
 
     config: dict
     seed: int
     names: list[str]
-    channel_maps: list[dict] = field(repr=False)
     mask: np.ndarray = field(repr=False)
     fwhms_arcmin: list[float]
     common_fwhm_arcmin: float
@@ -68,45 +238,71 @@ class SeedMaps:
     bins: list[tuple[int, int]]
     fractions: dict
     unit_draws: list[np.ndarray]
+    channel_alms: dict[str, np.ndarray] = field(repr=False)  # kind -> (n_ch, 3, nalm)
     map2alm_iter: int = hilc.MAP2ALM_ITER
-    _alms: dict = field(default_factory=dict, repr=False)  # kind -> a_lm, computed once
 
     @classmethod
     def load(cls, config: dict, seed: int, map_paths: dict[str, str]) -> SeedMaps:
+        """From the channels' maps files (the TOD path's pair_maps): the mask from every
+        channel's observed pixels, then each channel's a_lm (one channel's maps in
+        memory at a time)."""
+        observed = [
+            ~hilc.unseen_pixels(read_channel_maps(path, ("nosys",))["nosys"])
+            for path in map_paths.values()
+        ]
+        mask = analysis_mask(observed, config["component_separation"])
+        harmonic = HarmonicSettings.from_config(config)
+        channels = [
+            ChannelAlms.from_maps(config, seed, name, read_channel_maps(path), mask, harmonic)
+            for name, path in map_paths.items()
+        ]
+        return cls.combine(config, seed, channels, mask, harmonic)
+
+    @classmethod
+    def from_alm_files(
+        cls, config: dict, seed: int, alm_paths: dict[str, str], mask_path: str
+    ) -> SeedMaps:
+        """From the channels' a_lm files (the map-domain path's map_domain_alms) and the
+        analysis mask they were made on."""
+        mask = read_mask(mask_path)
+        harmonic = HarmonicSettings.from_config(config)
+        channels = [read_channel_alms(p, harmonic, float(mask.sum())) for p in alm_paths.values()]
+        for name, channel in zip(alm_paths, channels, strict=True):
+            if channel.name != name:
+                raise ValueError(f"{alm_paths[name]}: holds channel {channel.name}, not {name}")
+        return cls.combine(config, seed, channels, mask, harmonic)
+
+    @classmethod
+    def from_files(cls, config: dict, seed: int, paths: dict[str, str], mask_path=None):
+        """:meth:`from_alm_files` with a mask, :meth:`load` (maps files) without."""
+        if mask_path is None:
+            return cls.load(config, seed, paths)
+        return cls.from_alm_files(config, seed, paths, mask_path)
+
+    @classmethod
+    def combine(cls, config, seed, channels: list[ChannelAlms], mask, harmonic) -> SeedMaps:
         settings = config["component_separation"]
-        names = list(map_paths)
-        channel_maps = [read_channel_maps(map_paths[name]) for name in names]
-        lmax = settings["lmax"] if settings["lmax"] is not None else 2 * config["maps"]["nside"]
-        mask = analysis_mask(channel_maps, settings)
-        fwhms = [cfg.channel(config, name).fwhm_arcmin for name in names]
         fractions = spectra.fsky_weights(mask)
         bins = hilc.merge_bins_for_modes(
-            hilc.multipole_bins(settings["lmin"], lmax, settings["bin_width"]),
+            hilc.multipole_bins(settings["lmin"], harmonic.lmax, settings["bin_width"]),
             fractions["fsky"],
-            len(names),
+            len(channels),
             settings["min_modes_per_channel"],
         )
-        systematics = set(config["instrument"]["systematics_channels"])
-        per = config["requirement"]["g1_per"]
-        draws = [
-            unit_g1_draws(config["master_seed"], name, seed, data["attrs"]["detectors"], per)
-            if name in systematics
-            else np.zeros(len(data["attrs"]["detectors"]))
-            for name, data in zip(names, channel_maps, strict=True)
-        ]
+        kinds = (*ALM_KINDS, *TERM_KINDS)
         return cls(
             config=config,
             seed=seed,
-            names=names,
-            channel_maps=channel_maps,
+            names=[c.name for c in channels],
             mask=mask,
-            fwhms_arcmin=fwhms,
-            common_fwhm_arcmin=settings["common_fwhm_arcmin"] or max(fwhms),
-            lmax=lmax,
+            fwhms_arcmin=[cfg.channel(config, c.name).fwhm_arcmin for c in channels],
+            common_fwhm_arcmin=harmonic.common_fwhm_arcmin,
+            lmax=harmonic.lmax,
             bins=bins,
             fractions=fractions,
-            unit_draws=draws,
-            map2alm_iter=settings["map2alm_iter"],
+            unit_draws=[c.unit_draws for c in channels],
+            channel_alms={kind: np.array([c.term(kind) for c in channels]) for kind in kinds},
+            map2alm_iter=harmonic.map2alm_iter,
         )
 
     def alms(self, maps: list[np.ndarray]) -> np.ndarray:
@@ -120,65 +316,15 @@ class SeedMaps:
             self.map2alm_iter,
         )
 
-    def reference_alms(self, kind: str) -> np.ndarray:
-        """a_lm of the "cmb_reference" or "foreground_reference" maps (computed once)."""
-        return self._cached_alms(
-            kind, lambda data, draws, c: np.where(data["nosys"] == hp.UNSEEN, hp.UNSEEN, data[kind])
-        )
-
-    def input_cmb_alms(self) -> np.ndarray:
-        """a_lm of the seed's input CMB, unfiltered, per channel: the draw of
-        :func:`map_domain.band_limited_seed_cmb` (the one every path simulates) at the
-        channel's beam, on the channel's observed pixels, masked and at the common beam
-        like every other map (computed once)."""
-        simulation = self.config["simulation"]
-
-        def input_map(data, draws, c):
-            nside = hp.npix2nside(data["nosys"].shape[-1])
-            alm, band = map_domain.band_limited_seed_cmb(
-                3 * nside - 1,
-                simulation["cmb_r"],
-                self.config["master_seed"],
-                self.seed,
-                self.fwhms_arcmin[c],
-            )
-            cmb = hp.alm2map(alm, nside, lmax=band, pixwin=False)
-            return np.where(data["nosys"] == hp.UNSEEN, hp.UNSEEN, cmb)
-
-        return self._cached_alms("cmb_input", input_map)
-
     def data_alms(self, sigma_g1_per_k: float) -> np.ndarray:
         """a_lm of m_nosys + sigma sum_k z_k T_k for every channel, by linearity of the
-        masked, beam-matched transform: a(m_nosys) + sigma a(sum_k z_k T_k), both computed
-        once per realization (equal to transforming each case's maps, to round-off)."""
-        nosys = self._cached_alms("nosys", lambda data, draws, c: data["nosys"])
+        masked, beam-matched transform: a(m_nosys) + sigma sum_j X^j (equal to
+        transforming each case's maps, to round-off)."""
+        nosys = self.channel_alms["nosys"]
         if sigma_g1_per_k == 0.0:
             return nosys
-        return nosys + sigma_g1_per_k * self._cached_alms("contamination", _contamination)
-
-    def _cached_alms(self, kind: str, map_of) -> np.ndarray:
-        """(n_channels, 3, nalm) a_lm of ``map_of(channel maps, g1 draws, channel index)``
-        per channel, at the common beam (computed once; a channel whose ``map_of`` is None
-        gets zeros)."""
-        if kind not in self._alms:
-            alms = np.zeros((len(self.names), 3, hp.Alm.getsize(self.lmax)), dtype=complex)
-            for c, (data, draws) in enumerate(zip(self.channel_maps, self.unit_draws, strict=True)):
-                maps = map_of(data, draws, c)
-                if maps is not None:
-                    alms[c] = self.alms_of_channel(c, maps)
-            self._alms[kind] = alms
-        return self._alms[kind]
-
-    def alms_of_channel(self, c: int, maps: np.ndarray) -> np.ndarray:
-        """(3, nalm) a_lm of one (3, npix) map of channel ``c``, masked, at the common beam."""
-        return hilc.channel_alms(
-            [maps],
-            [self.fwhms_arcmin[c]],
-            self.mask,
-            self.lmax,
-            self.common_fwhm_arcmin,
-            self.map2alm_iter,
-        )[0]
+        contamination = sum(self.channel_alms[kind] for kind in TERM_KINDS)
+        return nosys + sigma_g1_per_k * contamination
 
     def residual(self, sigma_g1_per_k: float) -> dict[str, np.ndarray]:
         """The paper's HILC at sigma: weights recomputed on the contaminated maps.
@@ -190,9 +336,9 @@ class SeedMaps:
         residual against the unfiltered input is residual_alm + cmb_filter_loss_alm)."""
         data = self.data_alms(sigma_g1_per_k)
         _, weights = hilc.harmonic_ilc(data, self.bins, self.lmax)
-        cmb = self.reference_alms("cmb_reference")
-        cmb_input = self.input_cmb_alms()
-        foreground = self.reference_alms("foreground_reference")
+        cmb = self.channel_alms["cmb_reference"]
+        cmb_input = self.channel_alms["cmb_input"]
+        foreground = self.channel_alms["foreground_reference"]
 
         def combined(alms):
             return hilc.apply_ilc(alms, weights, self.bins, self.lmax)
@@ -208,19 +354,12 @@ class SeedMaps:
     def systematic_term_alms(self, weights: np.ndarray) -> np.ndarray:
         """X_j (3 terms, 3 T/E/B, nalm) at sigma = 1 [K_CMB K]: the template terms of every
         channel, times c_j(A_c) = (1, 2 A_c, A_c^2) and the g1 draws, through ``weights``."""
-        nalm = hp.Alm.getsize(self.lmax)
-        terms = np.zeros((N_TEMPLATE_TERMS, len(self.names), 3, nalm), dtype=complex)
-        for c, (data, draws) in enumerate(zip(self.channel_maps, self.unit_draws, strict=True)):
-            if not np.any(draws):
-                continue
-            a2_k = float(data["attrs"]["a2_k_cmb"])
-            seen = data["nosys"][0] != hp.UNSEEN
-            for j, coefficient in enumerate((1.0, 2.0 * a2_k, a2_k**2)):
-                contamination = np.full_like(data["nosys"], hp.UNSEEN)
-                summed = np.tensordot(draws, data["template_terms"][j], axes=1)
-                contamination[:, seen] = coefficient * summed[:, seen]
-                terms[j, c] = self.alms_of_channel(c, contamination)
-        return np.array([hilc.apply_ilc(t, weights, self.bins, self.lmax) for t in terms])
+        return np.array(
+            [
+                hilc.apply_ilc(self.channel_alms[kind], weights, self.bins, self.lmax)
+                for kind in TERM_KINDS
+            ]
+        )
 
     def residual_spectra(self, sigma_g1_per_k: float) -> pd.DataFrame:
         """:func:`residual_spectra_table` of the paper's residual at sigma."""
@@ -243,16 +382,6 @@ class SeedMaps:
             self.fractions,
             self.common_fwhm_arcmin,
         )
-
-
-def _contamination(data: dict, unit_draws: np.ndarray, channel_index: int) -> np.ndarray | None:
-    """sum_k z_k T_k (3, npix) at sigma = 1 [K_CMB K], UNSEEN where the channel is
-    unobserved; None for a channel without systematics (all z_k = 0)."""
-    if not np.any(unit_draws):
-        return None
-    seen = data["nosys"][0] != hp.UNSEEN
-    summed = np.tensordot(np.asarray(unit_draws, dtype=float), data["templates"], axes=1)
-    return np.where(seen, summed, hp.UNSEEN)
 
 
 def unit_beam_spectra(alm, alm2, lmax: int, w2: float, common_fwhm_arcmin: float) -> np.ndarray:

@@ -47,11 +47,13 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from pathlib import Path
 
 import h5py
 import healpy as hp
 import numpy as np
 
+from . import config as cfg
 from . import seeding
 from .io import atomic_path
 from .mapmaking import PixelMoments, solve_maps, symmetric_matrices
@@ -59,6 +61,7 @@ from .sky import cmb as sky_cmb
 from .tod_maps import (
     TEMPLATE_TERMS,
     Calibration,
+    ExtraBinning,
     accumulate,
     split_solved_maps,
     templates_from_terms,
@@ -205,18 +208,63 @@ def fixed_pass(
     calibration_every_chunks: int = 1,
     measure_lmax: int | None = None,
 ) -> FixedMaps:
-    """The seed-independent TOD pass of one channel (see the module docstring): no CMB, no
-    noise; ``transfer_alm`` (beam-smoothed, band ``lmax``) is scanned alone to measure
-    T_ell, and the noise reference realization gives S_ell, both on every
-    ``calibration_every_chunks``-th chunk (:class:`tod_maps.Calibration`), up to
-    ``measure_lmax`` (default ``lmax``): the seeds apply them up to
-    ``simulation.filter_lmax`` only, so measuring beyond it (full-band spherical
-    transforms, most of a pass's fixed cost at nside 512) buys nothing."""
+    """The seed-independent TOD pass of one channel (see the module docstring), binned at
+    ``settings.nside`` with ``settings.baseline_length_s``: :func:`fixed_passes` with
+    that one map-maker."""
+    primary = (settings.nside, settings.baseline_length_s)
+    return fixed_passes(
+        simulator,
+        settings,
+        foreground_iqu_k,
+        transfer_alm,
+        carries_systematics,
+        lmax,
+        calibration_every_chunks,
+        measure_lmax,
+    )[primary]
+
+
+def fixed_passes(
+    simulator,
+    settings,
+    foreground_iqu_k: np.ndarray,
+    transfer_alm: np.ndarray,
+    carries_systematics: bool,
+    lmax: int,
+    calibration_every_chunks: int = 1,
+    measure_lmax: int | None = None,
+    extra_variants=(),
+) -> dict[tuple[int, float | None], FixedMaps]:
+    """{(nside, baseline length): FixedMaps} of the seed-independent TOD pass of one
+    channel (see the module docstring): no CMB, no noise; the sky (``foreground_iqu_k``,
+    and ``transfer_alm``, beam-smoothed, band ``lmax``, scanned alone to measure T_ell)
+    scanned at ``settings.nside``, and the noise reference realization giving S_ell, both
+    on every ``calibration_every_chunks``-th chunk (:class:`tod_maps.Calibration`). The
+    TODs are binned at (settings.nside, settings.baseline_length_s) and at every
+    (nside, baseline length) of ``extra_variants`` in the same pass
+    (:class:`tod_maps.ExtraBinning`): the binning is cheap beside the TOD. T_ell and
+    S_ell are measured up to ``measure_lmax`` (default ``lmax``; at most 3 nside - 1 of
+    each variant): the seeds apply them up to ``simulation.filter_lmax`` only, so
+    measuring beyond it (full-band spherical transforms, most of a pass's fixed cost at
+    nside 512) buys nothing."""
     measure_lmax = lmax if measure_lmax is None else measure_lmax
     if not 0 < measure_lmax <= lmax:
         raise ValueError(f"measure_lmax = {measure_lmax} must be in 1..lmax = {lmax}")
+    primary = (settings.nside, settings.baseline_length_s)
+    extra_variants = [tuple(v) for v in extra_variants if tuple(v) != primary]
+    if any(nside > settings.nside for nside, _ in extra_variants):
+        raise ValueError(
+            f"fixed pass variants {extra_variants}: the sky is scanned at nside "
+            f"{settings.nside}, so no variant may be finer"
+        )
     transfer_input = hp.alm2map(transfer_alm, settings.nside, lmax=lmax, pixwin=False)
-    moments = PixelMoments(settings.nside, simulator.n_detectors) if carries_systematics else None
+    n_det = simulator.n_detectors
+    nsides = {settings.nside} | {nside for nside, _ in extra_variants}
+    moments_of = {n: PixelMoments(n, n_det) if carries_systematics else None for n in nsides}
+    extras = [
+        ExtraBinning(nside, baseline, moments=moments_of[nside])
+        for nside, baseline in extra_variants
+    ]
     noiseless = dataclasses.replace(settings, noise_scale=0.0)
     calibration = Calibration(
         settings.nside, (transfer_input,), NOISE_REFERENCE_SEED, calibration_every_chunks
@@ -227,16 +275,58 @@ def fixed_pass(
         foreground_iqu_k,
         references_iqu_k=(foreground_iqu_k,),
         template_terms=carries_systematics,
-        moments=moments,
+        moments=moments_of[settings.nside],
         calibration=calibration,
+        extra_binnings=tuple(extras),
     )
+    binned = [(primary, equations, calibration.equations, moments_of[settings.nside])]
+    binned += [
+        ((e.nside, e.baseline_length_s), e.equations, e.calibration_equations, e.moments)
+        for e in extras
+    ]
+    results = {}
+    for (nside, baseline), variant_equations, calibration_equations, moments in binned:
+        band = min(lmax, 3 * nside - 1)
+        if nside == settings.nside:
+            reference = transfer_input
+        else:
+            reference = hp.alm2map(
+                hp.resize_alm(transfer_alm, lmax, lmax, band, band), nside, lmax=band, pixwin=False
+            )
+        results[(nside, baseline)] = _solve_fixed_pass(
+            simulator,
+            settings,
+            variant_equations,
+            calibration_equations,
+            moments,
+            reference,
+            carries_systematics,
+            min(measure_lmax, band),
+        )
+        log.info("fixed pass variant nside %d, baselines %s: solved", nside, baseline)
+    return results
+
+
+def _solve_fixed_pass(
+    simulator,
+    settings,
+    equations,
+    calibration_equations,
+    moments,
+    transfer_input,
+    carries_systematics: bool,
+    measure_lmax: int,
+) -> FixedMaps:
+    """FixedMaps of one map-maker's accumulated equations: the maps solved, T_ell and
+    S_ell measured up to ``measure_lmax`` against the reference CMB ``transfer_input``
+    at the map-maker's resolution."""
     maps, condition, good = solve_maps(equations, settings.max_condition_number)
     solved = split_solved_maps(
         maps, simulator.n_detectors, settings.a2_k_cmb, template_terms=carries_systematics
     )
     (foreground_reference,) = solved["references"]
     calibration_maps, _, calibrated = solve_maps(
-        calibration.equations, settings.max_condition_number
+        calibration_equations, settings.max_condition_number
     )
     transfer_output, noise_filtered, noise_unfiltered = calibration_maps
     return FixedMaps(
@@ -371,15 +461,84 @@ def realize_seed(
     }
 
 
-def write_fixed_maps(path, fixed: FixedMaps, attributes: dict) -> None:
-    """The fixed pass of one channel as HDF5 (datasets named as FixedMaps' fields)."""
+class ChannelSeeds:
+    """The seeds of one channel made from its fixed pass file: :meth:`maps` of a seed as
+    the TOD path's maps file holds them (nosys, template_terms, templates, cmb_reference,
+    foreground_reference, attrs), each seed's CMB the draw of
+    :func:`band_limited_seed_cmb` and its noise the stream ("map-domain noise", channel,
+    seed, detector); the filter's action applied up to ``simulation.filter_lmax`` (at
+    most the map's band 3 nside - 1). The operators are computed once, on the first seed."""
+
+    def __init__(self, config: dict, fixed_h5):
+        self.config = config
+        self.fixed, self.attributes = read_fixed_maps(fixed_h5)
+        self.name = str(self.attributes["channel"])
+        self.fwhm_arcmin = cfg.channel(config, self.name).fwhm_arcmin
+        self.lmax = 3 * int(self.attributes["nside"]) - 1
+        measured = self.fixed.transfer.shape[1] - 1
+        self.filter_lmax = min(config["simulation"]["filter_lmax"] or self.lmax, self.lmax)
+        if measured < self.filter_lmax:
+            raise ValueError(
+                f"{fixed_h5}: the fixed pass measured the filter up to ell = {measured}, but "
+                f"simulation.filter_lmax asks for {self.filter_lmax}: rerun its fixed_pass rule"
+            )
+        self._operators = None
+
+    def maps(self, seed: int) -> dict:
+        simulation, master_seed = self.config["simulation"], self.config["master_seed"]
+        if self._operators is None:
+            self._operators = SeedOperators(self.fixed, simulation["noise_scale"], self.filter_lmax)
+        cmb_alm, band = band_limited_seed_cmb(
+            self.lmax, simulation["cmb_r"], master_seed, seed, self.fwhm_arcmin
+        )
+        detectors = list(self.attributes["detectors"])
+
+        def rng_of_detector(k):
+            return seeding.rng(master_seed, "map-domain noise", self.name, seed, detectors[k])
+
+        maps = realize_seed(
+            self.fixed,
+            cmb_alm,
+            band,
+            float(self.attributes["a2_k_cmb"]),
+            simulation["noise_scale"],
+            rng_of_detector,
+            self._operators,
+        )
+        maps["attrs"] = {**self.attributes, "seed": seed, "realization": "map_domain"}
+        return maps
+
+
+def write_fixed_maps(path, fixed: FixedMaps, attributes: dict, moments_in=None) -> None:
+    """The fixed pass of one channel as HDF5 (datasets named as FixedMaps' fields). A
+    channel without systematics stores no template terms (all zero) and no moments;
+    ``moments_in``: the file name, in the same folder, that holds the HWPSS moments (the
+    map-makers of one resolution share them: at nside 512 they are 0.9 GB a channel)."""
+    skipped = set() if fixed.carries_systematics else {"template_terms", "moments"}
+    if moments_in is not None:
+        skipped.add("moments")
     with atomic_path(path) as temporary, h5py.File(temporary, "w") as out:
         for field in dataclasses.fields(FixedMaps):
             value = getattr(fixed, field.name)
-            if isinstance(value, np.ndarray):
+            if isinstance(value, np.ndarray) and field.name not in skipped:
                 out.create_dataset(field.name, data=value)
         out.attrs.update(attributes)
         out.attrs["carries_systematics"] = fixed.carries_systematics
+        if moments_in is not None:
+            out.attrs["moments_in"] = str(moments_in)
+
+
+def read_fixed_field(path, name: str) -> np.ndarray:
+    """One dataset of a fixed pass file (e.g. ``good``), without reading the rest."""
+    with h5py.File(path) as stored:
+        return stored[name][()]
+
+
+def moments_file(path) -> Path | None:
+    """The file that holds the HWPSS moments of a fixed pass file, if another one."""
+    with h5py.File(path) as stored:
+        name = stored.attrs.get("moments_in")
+    return None if name is None else Path(path).parent / str(name)
 
 
 def read_fixed_maps(path) -> tuple[FixedMaps, dict]:
@@ -392,4 +551,11 @@ def read_fixed_maps(path) -> tuple[FixedMaps, dict]:
             if field.name in stored
         }
     carries = bool(attributes.pop("carries_systematics"))
+    shared = attributes.pop("moments_in", None)
+    if carries and shared is not None:
+        arrays["moments"] = read_fixed_field(Path(path).parent / str(shared), "moments")
+    if not carries:
+        n_det = len(attributes["detectors"])
+        arrays["template_terms"] = np.zeros((len(TEMPLATE_TERMS), n_det, *arrays["nosys"].shape))
+        arrays["moments"] = np.zeros(0)
     return FixedMaps(**arrays, carries_systematics=carries), attributes

@@ -66,9 +66,10 @@ def write_channel_maps(path, maps: dict, hits, condition, attributes: dict) -> N
         out.attrs.update(attributes)
 
 
-def read_channel_maps(path) -> dict:
-    """All datasets of a maps file, and its attributes under "attrs"."""
+def read_channel_maps(path, names=None) -> dict:
+    """The datasets ``names`` (default: all) of a maps file, and its attributes under
+    "attrs"."""
     with h5py.File(path) as maps:
-        data = {name: maps[name][()] for name in maps}
+        data = {name: maps[name][()] for name in (maps if names is None else names)}
         data["attrs"] = dict(maps.attrs)
     return data

@@ -17,8 +17,12 @@ FOREGROUND_MAP = f"{RESULTS}/sky/foreground_{{channel}}.fits"
 
 # Stage: per-(channel, seed) TOD -> notch -> binned maps and g1 templates
 PAIR_MAPS = f"{RESULTS}/maps/{{channel}}/seed{{seed}}.h5"
-# simulation.realizations = map_domain: the seed-independent TOD pass of a channel
-FIXED_PASS = f"{RESULTS}/maps/{{channel}}/fixed_pass.h5"
+# simulation.realizations = map_domain: the seed-independent TOD pass of a channel, one file
+# per map-maker binned in it (variant: config.map_variant, e.g. nside64_baselines60s)
+FIXED_PASS = f"{RESULTS}/maps/{{channel}}/fixed_pass_{{variant}}.h5"
+# ... the common mask of the analysis, and each seed's a_lm of a channel (its maps stay in memory)
+ANALYSIS_MASK = f"{RESULTS}/alms/analysis_mask.h5"
+CHANNEL_ALMS = f"{RESULTS}/alms/{{channel}}/seed{{seed}}.h5"
 
 # Stage: TOD figures and an example recording in litebird_sim's HDF5 format
 TOD_SAMPLE = f"{RESULTS}/tod/{{channel}}_sample.h5"

@@ -362,10 +362,13 @@ def delta_r_table(likelihoods: list[dict]) -> pd.DataFrame:
     return pd.DataFrame(rows).sort_values(["sigma_g1", "seed"], ignore_index=True)
 
 
-def extra_delta_r(config, seed, sigmas, map_paths, nosys_spectra_csv, model) -> list[dict]:
-    """The paper's delta r of one seed at sigmas outside the grid, from the maps: the HILC
-    at each sigma, its residual spectrum, and r with the no-systematics r on one grid."""
-    seed_maps = SeedMaps.load(config, seed, map_paths)
+def extra_delta_r(
+    config, seed, sigmas, map_paths, nosys_spectra_csv, model, mask_path=None
+) -> list[dict]:
+    """The paper's delta r of one seed at sigmas outside the grid, from the channels' maps
+    (or a_lm files on ``mask_path``, :meth:`SeedMaps.from_files`): the HILC at each sigma,
+    its residual spectrum, and r with the no-systematics r on one grid."""
+    seed_maps = SeedMaps.from_files(config, seed, map_paths, mask_path)
     lmax = model.lmax
     analysis = config["likelihood"]["model"]
     nosys = residual_bb(pd.read_csv(nosys_spectra_csv), analysis, lmax, nosys_spectra_csv)
@@ -414,6 +417,7 @@ def paper_estimator(table, config, extension) -> tuple[pd.DataFrame, dict]:
                 paths,
                 extension["nosys_spectra"][seed],
                 extension["model"],
+                extension.get("mask"),
             )
         for row in rows:
             row["delta_r_systematic_only"] = np.nan

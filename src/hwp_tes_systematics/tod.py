@@ -275,6 +275,26 @@ class PairSimulator:
             first_sample, pixels, cos_2alpha, sin_2alpha, hwp_angle, galactic, observation
         )
 
+    def pixels_at(self, pointing: ChunkPointing, nside: int, samples=slice(None)) -> np.ndarray:
+        """(n_det, n) RING pixels of the ``samples`` of a chunk at another resolution, from
+        the same directions (``pointing.pixels`` at the simulator's own nside)."""
+        if nside == self.nside:
+            return pointing.pixels[:, samples]
+        healpix = ducc0.healpix.Healpix_Base(nside, "RING")
+        directions = 1 if self.shares_direction else self.n_detectors
+        pixels = np.stack(
+            [
+                healpix.ang2pix(
+                    np.ascontiguousarray(pointing.galactic_rad[d, samples, :2]),
+                    nthreads=self.threads,
+                )
+                for d in range(directions)
+            ]
+        )
+        if self.shares_direction:
+            return np.broadcast_to(pixels, (self.n_detectors, pixels.shape[1]))
+        return pixels
+
     def scan_sky(self, pointing: ChunkPointing, sky_iqu_k: np.ndarray, out=None) -> np.ndarray:
         """I + rho (Q cos 2 alpha + U sin 2 alpha) at the nearest pixel [K_CMB], (n_det, n),
         written to ``out`` if given."""

@@ -27,7 +27,7 @@ from tqdm import tqdm
 
 from .baselines import baseline_samples, remove_baselines
 from .demodulation import DemodulatedEquations, demodulate
-from .hwpss_removal import remove_hwp_harmonics
+from .hwpss_removal import offset_residual, remove_hwp_harmonics
 from .mapmaking import NormalEquations, PixelMoments
 from .notch import apply_notch, chunk_span
 from .timing import StageClock
@@ -115,6 +115,37 @@ class Calibration:
         return chunk % self.every_chunks == 0
 
 
+@dataclass
+class ExtraBinning:
+    """Another map-maker fed by the same TODs in the same pass (the map-domain fixed pass's
+    variants, :func:`map_domain.fixed_passes`): its HEALPix resolution (pixels from the
+    pointing's directions; the sky is scanned at the primary resolution) and baseline
+    length (None: none, and the HWP-harmonic fit without a constant, as the primary path
+    would run it), with its own normal equations, HWPSS moments (one object may be shared
+    by the binnings of one resolution) and calibration equations, filled by
+    :func:`accumulate` as the primary ones."""
+
+    nside: int
+    baseline_length_s: float | None
+    moments: PixelMoments | None = None
+    equations: NormalEquations | None = None
+    calibration_equations: NormalEquations | None = None
+
+
+def filter_both_offsets(unfiltered, pointing, simulator, settings) -> dict[bool, np.ndarray]:
+    """{offset: HWP-harmonic removal (with a constant if offset) then notch} of a chunk's
+    TOD stack (rows, n_det, n), both from one filtering: the fit without a constant, then
+    the constant projected out through the same filter (:func:`hwpss_removal.offset_residual`;
+    equal to filtering twice, to round-off). ``unfiltered`` is overwritten."""
+    u = offset_residual(pointing.hwp_angle_rad, settings.removed_hwp_harmonics)
+    coefficients = (unfiltered @ u) / (u @ u)  # (rows, n_det): c = <u, d> / <u, u>
+    stack = np.concatenate([unfiltered, np.broadcast_to(u, (1, *unfiltered.shape[1:]))])
+    notched = notch_with_margins(stack, pointing, simulator, settings, overwrite=True, offset=False)
+    without, filtered_u = notched[:-1], notched[-1]
+    with_offset = without - coefficients[..., None] * filtered_u
+    return {False: without, True: with_offset}
+
+
 def chunk_tods(
     simulator: PairSimulator,
     settings: PairMapSettings,
@@ -160,16 +191,17 @@ def filter_tod(
     return remove_baselines(notched[..., inner], baseline_samples_of(settings))
 
 
-def notch_with_margins(tod, pointing, simulator, settings, overwrite: bool = False):
-    """HWP-harmonic template removal, then the notch (none when
-    ``settings.notch_width_divisor`` is None), on the whole chunk with its margins."""
+def notch_with_margins(tod, pointing, simulator, settings, overwrite: bool = False, offset=None):
+    """HWP-harmonic template removal (with a constant when baselines are removed, or as
+    ``offset`` says), then the notch (none when ``settings.notch_width_divisor`` is
+    None), on the whole chunk with its margins."""
     f_hwp_hz = simulator.channel.hwp_frequency_hz
     cleaned = remove_hwp_harmonics(
         tod,
         pointing.hwp_angle_rad,
         settings.removed_hwp_harmonics,
         overwrite=overwrite,
-        offset=settings.baseline_length_s is not None,
+        offset=settings.baseline_length_s is not None if offset is None else offset,
     )
     if settings.notch_width_divisor is None:
         return cleaned
@@ -205,6 +237,7 @@ def accumulate(
     moments: PixelMoments | None = None,
     calibration: Calibration | None = None,
     demodulated: DemodulatedEquations | None = None,
+    extra_binnings: tuple[ExtraBinning, ...] = (),
 ) -> NormalEquations:
     """Normal equations of the filtered TOD (F = notch after HWP-harmonic removal).
 
@@ -224,15 +257,25 @@ def accumulate(
     and a low-pass (:mod:`demodulation`; baselines, if any, removed from its intensity
     stream only: the low-pass already removes offsets from Q and U): the same TODs, with
     another map-maker.
+    ``extra_binnings``: further map-makers (:class:`ExtraBinning`) binned from the same
+    TODs, at other resolutions and baseline lengths; their equations are created here.
     """
     clock = clock or StageClock()
     if demodulated is not None and calibration is not None:
         raise ValueError("accumulate: demodulated maps of calibration TODs are not supported")
+    if demodulated is not None and extra_binnings:
+        raise ValueError("accumulate: demodulated maps with extra binnings are not supported")
     n_det = simulator.n_detectors
     linear = g1_per_k is None
     n_terms = len(TEMPLATE_TERMS) if linear and template_terms else 0
     n_binned = 1 + n_terms + len(references_iqu_k)  # rows of the stack binned in ``equations``
     equations = NormalEquations(settings.nside, 1 + n_terms * n_det + len(references_iqu_k))
+    for extra in extra_binnings:
+        extra.equations = NormalEquations(extra.nside, equations.n_tods)
+        if calibration is not None:
+            extra.calibration_equations = NormalEquations(extra.nside, calibration.equations.n_tods)
+    primary_offset = settings.baseline_length_s is not None
+    offsets = {primary_offset} | {e.baseline_length_s is not None for e in extra_binnings}
     weights = detector_weights(simulator)
     peak_rss_mb = 0.0
     for chunk, pointing, inner, signal, hwpss in chunk_tods(simulator, settings, sky_iqu_k, clock):
@@ -240,10 +283,21 @@ def accumulate(
         scanned = list(references_iqu_k)
         if calibrating:
             scanned += list(calibration.references_iqu_k)
-        if moments is not None:
+        pixels_of = {settings.nside: pointing.pixels[:, inner]}
+        for extra in extra_binnings:
+            if extra.nside not in pixels_of:
+                with clock("pixels"):
+                    pixels_of[extra.nside] = simulator.pixels_at(pointing, extra.nside, inner)
+        added = set()
+        for target, nside in [(moments, settings.nside)] + [
+            (extra.moments, extra.nside) for extra in extra_binnings
+        ]:
+            if target is None or id(target) in added:
+                continue
+            added.add(id(target))
             with clock("HWPSS moments"):
-                moments.add(
-                    pointing.pixels[:, inner],
+                target.add(
+                    pixels_of[nside],
                     pointing.cos_2alpha[:, inner],
                     pointing.sin_2alpha[:, inner],
                     weights,
@@ -274,7 +328,15 @@ def accumulate(
                 )
                 unfiltered_noise = unfiltered[-1][:, inner].copy()
         with clock("2f removal + notch"):
-            notched = notch_with_margins(unfiltered, pointing, simulator, settings, overwrite=True)
+            if len(offsets) == 1:
+                notched_of = {
+                    primary_offset: notch_with_margins(
+                        unfiltered, pointing, simulator, settings, overwrite=True
+                    )
+                }
+            else:
+                notched_of = filter_both_offsets(unfiltered, pointing, simulator, settings)
+            notched = notched_of[primary_offset]
             del unfiltered
         if demodulated is not None:
             with clock("demodulation"):
@@ -286,16 +348,33 @@ def accumulate(
                     settings.threads,
                 )[..., inner]
                 remove_baselines(streams[0], baseline_samples_of(settings))
-        filtered = remove_baselines(notched[..., inner], baseline_samples_of(settings))
-        del notched
         # a term's TOD is binned once per detector, with that detector's samples only
-        tods = [filtered[0]]
-        owners = [None]
-        for term in range(1, 1 + n_terms):
-            tods += [filtered[term]] * n_det
-            owners += list(range(n_det))
-        tods += list(filtered[1 + n_terms : n_binned])
+        rows = _rows_of(n_terms, n_det, equations.n_tods)
+        owners = [None] + [k for _ in range(n_terms) for k in range(n_det)]
         owners += [None] * len(references_iqu_k)
+        for extra in extra_binnings:
+            offset = extra.baseline_length_s is not None
+            extra_filtered = notched_of[offset][..., inner]
+            if offset:  # a copy: the baselines are removed in place
+                samples = baseline_samples(extra.baseline_length_s, settings.plan.sampling_rate_hz)
+                extra_filtered = remove_baselines(extra_filtered.copy(), samples)
+            extra_args = (
+                pixels_of[extra.nside],
+                pointing.cos_2alpha[:, inner],
+                pointing.sin_2alpha[:, inner],
+                weights,
+                simulator.pol_efficiency,
+            )
+            with clock("binning"):
+                extra.equations.add(*extra_args, [extra_filtered[r] for r in rows], owners)
+                if calibrating:
+                    extra.calibration_equations.add(
+                        *extra_args, [*extra_filtered[n_binned:], unfiltered_noise]
+                    )
+            del extra_filtered
+        filtered = remove_baselines(notched[..., inner], baseline_samples_of(settings))
+        del notched, notched_of
+        tods = [filtered[row] for row in rows]
         binning_args = (
             pointing.pixels[:, inner],
             pointing.cos_2alpha[:, inner],
@@ -317,7 +396,7 @@ def accumulate(
                     pointing.hwp_angle_rad[inner],
                     weights,
                     simulator.pol_efficiency,
-                    [streams[:, row] for row in _rows_of(n_terms, n_det, len(tods))],
+                    [streams[:, row] for row in rows],
                     owners,
                 )
             del streams

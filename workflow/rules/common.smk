@@ -23,6 +23,47 @@ def simulation_config():
     return {key: config[key] for key in keys}
 
 
+def pass_config():
+    """simulation_config() as the foregrounds and the fixed passes see it: the sky's
+    resolution is the scan's and the map-makers are the pass's list, so that running the
+    analysis at another of them (maps.nside, maps.baseline_length_s) reruns neither."""
+    passed = simulation_config()
+    primary_nside, primary_baseline = fixed_pass_variants(config)[0]
+    passed["maps"] = {
+        **config["maps"],
+        "nside": primary_nside,
+        "baseline_length_s": primary_baseline,
+    }
+    passed["simulation"] = {
+        **config["simulation"],
+        "fixed_pass_nsides": fixed_pass_nsides(config),
+        "fixed_pass_baseline_lengths_s": fixed_pass_baselines(config),
+    }
+    return passed
+
+
+# the map-makers of a fixed pass, and the one the analysis reads
+VARIANTS = [map_variant(*variant) for variant in fixed_pass_variants(config)]
+ANALYSIS_VARIANT = analysis_variant(config)
+
+
+def analysis_fixed_pass(channel="{channel}"):
+    """The fixed pass file the analysis reads (of ``channel``, or its wildcard)."""
+    return paths.FIXED_PASS.format(channel=channel, variant=ANALYSIS_VARIANT)
+
+
+def analysis_fixed_pass_files(channel="{channel}"):
+    """The analysis's fixed pass file and the one of its resolution that holds the HWPSS
+    moments (the same file when the analysis's map-maker is the resolution's first)."""
+    nside = config["maps"]["nside"]
+    holder = next(b for n, b in fixed_pass_variants(config) if n == nside)
+    files = [analysis_fixed_pass(channel)]
+    files.append(
+        paths.FIXED_PASS.format(channel=channel, variant=map_variant(nside, holder))
+    )
+    return sorted(set(files), key=files.index)
+
+
 def pair_maps_mem_mb(wildcards, attempt):
     """Memory of one (channel, seed) job: one chunk of TOD and pointing, plus the maps."""
     samples = 31.0 * min(
@@ -34,11 +75,30 @@ def pair_maps_mem_mb(wildcards, attempt):
     return int(1500 + chunk_mb + maps_mb) * attempt
 
 
+def fixed_pass_mem_mb(wildcards, attempt):
+    """Memory of one fixed pass: a chunk in flight (x 2 with both baseline settings) and,
+    per map-maker, its equations (~16 maps), moments and calibration (~40 doubles per
+    pixel in all), solved at the end (x 2)."""
+    samples = 31.0 * min(
+        config["simulation"]["chunk_duration_s"],
+        config["simulation"]["duration_days"] * 86400.0,
+    )
+    chunk_mb = (
+        2 * samples * 8 * 40 * len(set(b is None for b in fixed_pass_baselines(config)))
+    )
+    pixels = sum(12 * nside**2 for nside, _ in fixed_pass_variants(config))
+    return int(1500 + chunk_mb / 2**20 + 2 * pixels * 40 * 8 / 2**20) * attempt
+
+
 def component_separation_mem_mb(wildcards, attempt):
-    """Memory of one seed's HILC: every channel's maps held at once (~60 doubles per pixel
-    per channel: > 22 GB measured for 22 channels at nside 512, map_level_cost.py)."""
-    maps_mb = len(CHANNELS) * 12 * config["maps"]["nside"] ** 2 * 60 * 8 / 2**20
-    return int(1000 + maps_mb) * attempt
+    """Memory of one seed's HILC: one channel's maps at a time (~60 doubles per pixel, TOD
+    path; none on the map-domain path, which reads a_lm) and every channel's a_lm (7 kinds
+    of 3 complex a_lm up to the analysis lmax)."""
+    nside = config["maps"]["nside"]
+    lmax = config["component_separation"]["lmax"] or 2 * nside
+    maps_mb = 0 if MAP_DOMAIN else 12 * nside**2 * 60 * 8 / 2**20
+    alms_mb = len(CHANNELS) * 7 * 3 * (lmax + 1) ** 2 / 2 * 16 * 3 / 2**20  # x3: copies
+    return int(1000 + maps_mb + alms_mb) * attempt
 
 
 CASES = case_names(config["requirement"]["sigma_g1_per_k"])
@@ -59,11 +119,19 @@ def analysis_config():
     }
 
 
+# what a seed's HILC reads of each channel: its maps file (TOD path) or its a_lm on the
+# analysis mask (map-domain path, whose seeds' maps never reach the disk)
+MAP_DOMAIN = config["simulation"]["realizations"] == "map_domain"
+CHANNEL_OF_SEED = paths.CHANNEL_ALMS if MAP_DOMAIN else paths.PAIR_MAPS
+MASK_INPUT = {"mask": paths.ANALYSIS_MASK} if MAP_DOMAIN else {}
+
+
 def all_channel_maps():
-    """{seed: {channel: maps file}} for every realization (the requirement's grid extension)."""
+    """{seed: {channel: maps or a_lm file}} for every realization (the requirement's grid
+    extension)."""
     return {
         seed: {
-            channel: paths.PAIR_MAPS.format(channel=channel, seed=seed)
+            channel: CHANNEL_OF_SEED.format(channel=channel, seed=seed)
             for channel in CHANNELS
         }
         for seed in SEEDS
@@ -71,10 +139,14 @@ def all_channel_maps():
 
 
 def channel_maps_of_seed(wildcards):
-    """{channel: maps file} of realization ``seed`` for all channels."""
+    """{channel: maps or a_lm file} of realization ``seed`` for all channels, and the
+    analysis mask on the map-domain path."""
     return {
-        channel: paths.PAIR_MAPS.format(channel=channel, seed=wildcards.seed)
-        for channel in CHANNELS
+        **{
+            channel: CHANNEL_OF_SEED.format(channel=channel, seed=wildcards.seed)
+            for channel in CHANNELS
+        },
+        **MASK_INPUT,
     }
 
 

@@ -7,6 +7,7 @@ rule requirement:
     (per multipole bin); where in ell the information and the bias come from; the
     paper's Figs. 7 and 8. No wildcards."""
     input:
+        **MASK_INPUT,
         likelihoods=expand(paths.LIKELIHOOD, seed=SEEDS),
         nosys_spectra=expand(paths.RESIDUAL_SPECTRA, seed=SEEDS, case="nosys"),
         systematic=expand(paths.SYSTEMATIC_SPECTRA, seed=SEEDS),

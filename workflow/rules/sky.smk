@@ -9,7 +9,7 @@ rule foreground_maps:
     benchmark:
         paths.benchmark("foreground_maps")
     params:
-        config=simulation_config(),
+        config=pass_config(),
         channels=CHANNELS,
     script:
         "../scripts/foreground_maps.py"

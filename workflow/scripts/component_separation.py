@@ -8,7 +8,8 @@ component_separation.run(
     snakemake.params.config,
     seed=int(snakemake.wildcards.seed),
     cases=list(snakemake.params.cases),
-    map_paths=dict(snakemake.input.items()),
+    map_paths={name: path for name, path in snakemake.input.items() if name != "mask"},
     out_h5s=list(snakemake.output.hilc),
     systematic_csv=snakemake.output.systematic,
+    mask_path=snakemake.input.get("mask"),
 )

@@ -9,6 +9,6 @@ map_domain_maps.run_fixed_pass(
     channel_name=snakemake.wildcards.channel,
     kw_csv=snakemake.input.kw_conversion,
     foreground_fits=snakemake.input.foreground,
-    out_h5=snakemake.output.fixed,
+    out_h5s=dict(zip(snakemake.params.variants, snakemake.output.fixed, strict=True)),
     threads=snakemake.threads,
 )

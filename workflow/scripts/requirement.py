@@ -20,5 +20,6 @@ requirement.run(
     extension={
         "map_paths": snakemake.params.map_paths,
         "nosys_spectra": dict(zip(seeds, snakemake.input.nosys_spectra, strict=True)),
+        "mask": snakemake.input.get("mask"),
     },
 )

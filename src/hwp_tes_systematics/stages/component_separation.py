@@ -4,7 +4,7 @@ For each case ``nosys`` or ``sigma<value>`` the residual of :class:`ilc_residual
 (the paper's HILC, weights recomputed on the contaminated maps) and its foreground part
 are written as a_lm, with the weights and the mask, one file per case; the systematic's
 spectra through the no-systematics weights (the systematic-only estimator) go to a CSV.
-The maps, the mask and the references' a_lm are read and computed once for all of them.
+Each channel's a_lm are computed (or read, on the map-domain path) once for all of them.
 """
 
 from __future__ import annotations
@@ -29,14 +29,16 @@ def run(
     map_paths: dict[str, str],
     out_h5s: list[str],
     systematic_csv: str,
+    mask_path: str | None = None,
 ) -> None:
     """HILC of (seed, case) for each case, written to ``out_h5s[i]`` for ``cases[i]``; the
-    systematic-only spectra (sigma_g1 = 1, no-systematics weights) to ``systematic_csv``."""
+    systematic-only spectra (sigma_g1 = 1, no-systematics weights) to ``systematic_csv``.
+    ``map_paths``: {channel: maps file}, or {channel: a_lm file} made on ``mask_path``."""
     if len(cases) != len(out_h5s):
         raise ValueError(f"component_separation: {len(cases)} cases but {len(out_h5s)} outputs")
     if NOSYS not in cases:
         raise ValueError(f"component_separation: the cases {cases} lack {NOSYS!r}")
-    seed_maps = SeedMaps.load(config, seed, map_paths)
+    seed_maps = SeedMaps.from_files(config, seed, map_paths, mask_path)
     nosys_weights = None
     for case, out_h5 in zip(cases, out_h5s, strict=True):
         result = write_case(config, seed_maps, case, out_h5)

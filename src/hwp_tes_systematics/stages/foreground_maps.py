@@ -16,7 +16,7 @@ log = logging.getLogger(__name__)
 
 
 def run(config: dict, channel_names: list[str], out_paths: list[str]) -> None:
-    nside = config["maps"]["nside"]
+    nside = cfg.scan_nside(config)  # the resolution the TODs scan
     local_data = config["simulation"]["pysm_local_data"]
     source = sky.foreground_source(local_data)
     for name, path in zip(channel_names, out_paths, strict=True):

@@ -1,17 +1,20 @@
 """Stages of the map-domain path (``simulation.realizations: map_domain``): the fixed TOD
-pass of one channel, then the maps file of each seed from it (:mod:`map_domain`)."""
+pass of one channel, the analysis mask from all of them, then each seed's a_lm of the
+channel (:mod:`map_domain`, :class:`ilc_residuals.ChannelAlms`)."""
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
+from pathlib import Path
 
 import pandas as pd
 
 from .. import config as cfg
-from .. import map_domain, seeding, sky
+from .. import ilc_residuals, map_domain, sky
 from ..io import use_threads
-from ..maps_file import maps_attributes, write_channel_maps
+from ..maps_file import maps_attributes
 from ..tod import PairSimulator
 from ..tod_maps import PairMapSettings
 
@@ -19,32 +22,51 @@ log = logging.getLogger(__name__)
 
 
 def run_fixed_pass(
-    config: dict, channel_name: str, kw_csv: str, foreground_fits: str, out_h5: str, threads=1
+    config: dict,
+    channel_name: str,
+    kw_csv: str,
+    foreground_fits: str,
+    out_h5s: dict[str, str],
+    threads=1,
 ):
-    """Simulate the seed-independent TOD of one channel once and write its fixed maps."""
+    """Simulate the seed-independent TOD of one channel once and write its fixed maps, one
+    file per map-maker of the pass (``out_h5s``: {:func:`config.map_variant` name: path},
+    every one of :func:`config.fixed_pass_variants`)."""
     started = time.perf_counter()
     use_threads(threads)
     channel = cfg.channel(config, channel_name)
     carries_systematics = channel_name in config["instrument"]["systematics_channels"]
     kw = pd.read_csv(kw_csv).set_index("channel")
     a2_k_cmb = float(kw.loc[channel_name, "a2_k_cmb"]) if carries_systematics else 0.0
-    settings = PairMapSettings.from_config(
-        config, channel, map_domain.NOISE_REFERENCE_SEED, a2_k_cmb, threads
+    variants = cfg.fixed_pass_variants(config)
+    names = [cfg.map_variant(*variant) for variant in variants]
+    if sorted(names) != sorted(out_h5s):
+        raise ValueError(
+            f"fixed pass of {channel_name}: outputs {sorted(out_h5s)}, variants {names}"
+        )
+    (scan_nside, primary_baseline), extra_variants = variants[0], variants[1:]
+    settings = dataclasses.replace(
+        PairMapSettings.from_config(
+            config, channel, map_domain.NOISE_REFERENCE_SEED, a2_k_cmb, threads
+        ),
+        nside=scan_nside,
+        baseline_length_s=primary_baseline,
     )
-    simulator = PairSimulator.from_config(config, channel, settings.plan, settings.nside, threads)
-    foreground = sky.read_sky_map(foreground_fits, nside=settings.nside)
-    lmax = 3 * settings.nside - 1
+    simulator = PairSimulator.from_config(config, channel, settings.plan, scan_nside, threads)
+    foreground = sky.read_sky_map(foreground_fits, nside=scan_nside)
+    lmax = 3 * scan_nside - 1
     transfer_alm = map_domain.transfer_cmb_alm(
         lmax, config["simulation"]["cmb_r"], config["master_seed"], channel.fwhm_arcmin
     )
     log.info(
-        "%s fixed pass: A_2 = %.4g K_CMB, systematics %s, %d chunks",
+        "%s fixed pass: A_2 = %.4g K_CMB, systematics %s, %d chunks, map-makers %s",
         channel_name,
         a2_k_cmb,
         carries_systematics,
         len(settings.plan.chunks()),
+        ", ".join(names),
     )
-    fixed = map_domain.fixed_pass(
+    passes = map_domain.fixed_passes(
         simulator,
         settings,
         foreground,
@@ -52,67 +74,68 @@ def run_fixed_pass(
         carries_systematics,
         lmax,
         config["simulation"]["calibration_every_chunks"],
-        measure_lmax=config["simulation"]["filter_lmax"],  # null: the full band
+        measure_lmax=config["simulation"]["filter_lmax"] or lmax,  # null: the full band
+        extra_variants=extra_variants,
     )
-    attributes = maps_attributes(settings, simulator, fixed.good.mean())
-    attributes["foreground_source"] = sky.read_sky_header(foreground_fits).get(
-        "FGSOURCE", "unknown"
-    )
-    del attributes["seed"]
-    map_domain.write_fixed_maps(out_h5, fixed, attributes)
+    source = sky.read_sky_header(foreground_fits).get("FGSOURCE", "unknown")
+    holders = {}  # the map-maker of each resolution whose file holds its HWPSS moments
+    for nside, baseline in variants:
+        holders.setdefault(nside, baseline)
+    for (nside, baseline), fixed in passes.items():
+        variant_settings = dataclasses.replace(settings, nside=nside, baseline_length_s=baseline)
+        attributes = maps_attributes(variant_settings, simulator, fixed.good.mean())
+        attributes["foreground_source"] = source
+        attributes["scan_nside"] = scan_nside
+        del attributes["seed"]
+        out_h5 = out_h5s[cfg.map_variant(nside, baseline)]
+        holder = Path(out_h5s[cfg.map_variant(nside, holders[nside])]).name
+        shared = None if holder == Path(out_h5).name else holder
+        map_domain.write_fixed_maps(out_h5, fixed, attributes, moments_in=shared)
+        log.info(
+            "%s fixed pass %s: wrote %s (observed %.0f %%; CMB transfer T_BB at ell 2-20, "
+            "20-60, 60-128: %.2f, %.2f, %.2f)",
+            channel_name,
+            cfg.map_variant(nside, baseline),
+            out_h5,
+            100 * fixed.good.mean(),
+            fixed.transfer[2, 2:20].mean(),
+            fixed.transfer[2, 20:60].mean(),
+            fixed.transfer[2, 60:129].mean(),
+        )
+    log.info("%s fixed pass: %.1f s", channel_name, time.perf_counter() - started)
+
+
+def run_mask(config: dict, fixed_h5s: list[str], out_h5: str) -> None:
+    """The analysis mask from every channel's fixed pass (the pixels a seed observes are
+    the fixed pass's ``good`` ones): what the seeds' a_lm are computed on."""
+    observed = [map_domain.read_fixed_field(path, "good") for path in fixed_h5s]
+    mask = ilc_residuals.analysis_mask(observed, config["component_separation"])
+    ilc_residuals.write_mask(out_h5, mask, config["component_separation"])
     log.info(
-        "%s fixed pass: wrote %s in %.1f s (observed %.0f %%; CMB transfer T_BB at ell "
-        "2-20, 20-60, 60-128: %.2f, %.2f, %.2f)",
-        channel_name,
-        out_h5,
-        time.perf_counter() - started,
-        100 * fixed.good.mean(),
-        fixed.transfer[2, 2:20].mean(),
-        fixed.transfer[2, 20:60].mean(),
-        fixed.transfer[2, 60:129].mean(),
+        "analysis mask of %d channels: f_sky %.3f, wrote %s", len(observed), mask.mean(), out_h5
     )
 
 
-def run_seeds(config: dict, channel_name: str, seeds, fixed_h5: str, out_h5s) -> None:
-    """Write the maps file of each (channel, seed) from the channel's fixed pass: one job
-    per channel (a seed costs ~1 s of map products at nside 64, less than starting a job)."""
+def run_seeds(config: dict, channel_name: str, seeds, fixed_h5: str, mask_h5: str, out_h5s) -> None:
+    """Write each seed's a_lm of one channel (:class:`ilc_residuals.ChannelAlms`) from the
+    channel's fixed pass: the seed's maps are made in memory
+    (:class:`map_domain.ChannelSeeds`) and reduced to the a_lm the HILC combines, so no
+    seed's maps reach the disk (at nside 512 they would take ~0.8 GB per channel and
+    seed). One job per channel: the seeds share the fixed pass's operators."""
     started = time.perf_counter()
-    fixed, attributes = map_domain.read_fixed_maps(fixed_h5)
-    channel = cfg.channel(config, channel_name)
-    lmax = 3 * int(attributes["nside"]) - 1
-    master_seed = config["master_seed"]
-    detectors = list(attributes["detectors"])
-    filter_lmax = config["simulation"]["filter_lmax"]
-    if filter_lmax is not None and filter_lmax > lmax:
+    channel_seeds = map_domain.ChannelSeeds(config, fixed_h5)
+    mask = ilc_residuals.read_mask(mask_h5)
+    if mask.size != channel_seeds.fixed.good.size:
         raise ValueError(
-            f"simulation.filter_lmax = {filter_lmax} exceeds the map's band 3 nside - 1 = {lmax}"
+            f"{mask_h5}: {mask.size} pixels, but the fixed pass {fixed_h5} has "
+            f"{channel_seeds.fixed.good.size}"
         )
-    filter_lmax = lmax if filter_lmax is None else filter_lmax
-    measured = fixed.transfer.shape[1] - 1
-    if measured < filter_lmax:
-        raise ValueError(
-            f"{fixed_h5}: the fixed pass measured the filter up to ell = {measured}, but "
-            f"simulation.filter_lmax asks for {filter_lmax}: rerun its fixed_pass rule"
-        )
-    operators = map_domain.SeedOperators(fixed, config["simulation"]["noise_scale"], filter_lmax)
+    harmonic = ilc_residuals.HarmonicSettings.from_config(config)
     for seed, out_h5 in zip(seeds, out_h5s, strict=True):
-        cmb_alm, cmb_band = map_domain.band_limited_seed_cmb(
-            lmax, config["simulation"]["cmb_r"], master_seed, seed, channel.fwhm_arcmin
+        maps = channel_seeds.maps(seed)
+        alms = ilc_residuals.ChannelAlms.from_maps(config, seed, channel_name, maps, mask, harmonic)
+        ilc_residuals.write_channel_alms(
+            out_h5, alms, ilc_residuals.alms_attributes(seed, harmonic, mask)
         )
-
-        def rng_of_detector(k, seed=seed):
-            return seeding.rng(master_seed, "map-domain noise", channel_name, seed, detectors[k])
-
-        maps = map_domain.realize_seed(
-            fixed,
-            cmb_alm,
-            cmb_band,
-            float(attributes["a2_k_cmb"]),
-            config["simulation"]["noise_scale"],
-            rng_of_detector,
-            operators,
-        )
-        seed_attributes = {**attributes, "seed": seed, "realization": "map_domain"}
-        write_channel_maps(out_h5, maps, fixed.hits, fixed.condition, seed_attributes)
         log.info("%s seed %d: wrote %s", channel_name, seed, out_h5)
     log.info("%s: %d seeds in %.1f s", channel_name, len(out_h5s), time.perf_counter() - started)

@@ -89,8 +89,8 @@ def run(
     systematic_csvs: list[str],
     extension: dict | None = None,
 ) -> None:
-    """``extension``: {"map_paths": {seed: {channel: maps}}, "nosys_spectra": {seed: csv}}
-    to extend the paper estimator's grid (None: no extension)."""
+    """``extension``: {"map_paths": {seed: {channel: maps or a_lm file}}, "nosys_spectra":
+    {seed: csv}, "mask": the a_lm files' analysis mask or None} to extend the paper estimator's grid (None: no extension)."""
     likelihoods = sorted(
         (json.loads(Path(path).read_text()) for path in likelihood_jsons), key=lambda r: r["seed"]
     )

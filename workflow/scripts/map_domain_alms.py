@@ -1,4 +1,4 @@
-"""Rule map_domain_maps: every seed's maps file of one channel from its fixed pass."""
+"""Rule map_domain_alms: every seed's a_lm of one channel from its fixed pass."""
 
 from hwp_tes_systematics.io import setup_logging
 from hwp_tes_systematics.stages import map_domain_maps
@@ -9,5 +9,6 @@ map_domain_maps.run_seeds(
     channel_name=snakemake.wildcards.channel,
     seeds=snakemake.params.seeds,
     fixed_h5=snakemake.input.fixed,
-    out_h5s=snakemake.output.maps,
+    mask_h5=snakemake.input.mask,
+    out_h5s=snakemake.output.alms,
 )

@@ -1,0 +1,228 @@
+"""The requirement and the nonlinearity template versus the map resolution, with and
+without baselines, from one set of fixed passes (issue 27).
+
+    python benchmarks/resolution_study.py --run --out docs/resolution \
+        --configfile config/one_year.yaml
+    python benchmarks/resolution_study.py --out docs/resolution \
+        --configfile config/one_year.yaml          # only gather what the runs left
+
+For each map-maker (nside in ``--nsides``, 60 s baselines or none), the workflow's
+configuration is ``--configfile`` + ``config/nside<N>.yaml`` (+ ``config/no_baselines.yaml``):
+the overlays share one fixed TOD pass per channel (simulation.fixed_pass_*), so the first
+run makes the passes and each other only its seeds' a_lm and the analysis. ``--run``
+runs them one after another in this folder (``snakemake --cores N results/requirement.json``)
+and copies each run's small outputs (requirement.json, delta_r.csv, noise_model.csv,
+residual_bb_means.csv, Fig. 8) to ``--out``/<variant>/, with its wall time.
+
+Then, per map-maker: the requirement in both conventions (the 68 %-point shift, the
+paper's, and the Fisher peak shift) with their bootstrap errors, sigma_r, whether the
+model describes the data, the paper estimator's crossing; and per channel of
+``--channels`` the total template of detector 0 (sum of the three terms of d^2 at the
+channel's A_2, each seed's maps made again from the fixed pass as the map_domain_alms job
+makes them) as BB pseudo-spectra on its observed pixels in ell 2-12, 13-40, 41-128,
+mean over ``--template-seeds`` seeds. Why it moves: per resolution, the pixel size, the
+time a detector takes to cross a pixel (spin rate x sin(spin-boresight angle), PTEP
+scanning) and the HWP turns in that time, and the crossings per observed pixel (hits
+over samples per crossing, from the fixed pass). Writes ``resolution_study.json``,
+``resolution_study.csv`` and ``resolution_study.png``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import subprocess
+import time
+from pathlib import Path
+
+import healpy as hp
+import numpy as np
+import pandas as pd
+
+from hwp_tes_systematics import config as cfg
+from hwp_tes_systematics.map_domain import ChannelSeeds, read_fixed_field
+from hwp_tes_systematics.spectra import pseudo_spectra
+
+BANDS = ((2, 12), (13, 40), (41, 128))
+SPIN_RATE_HZ = 3.0 / 3600  # PTEP: 3 spin rotations per hour (litebird_sim's scanning_parameters)
+SPIN_BORESIGHT_DEG = 50.0  # PTEP: angle between the spin axis and the boresight (MFT/HFT)
+PAPER_REQUIREMENT = 2e-3  # K^-1, Micheli et al. 2024
+KEPT = ("requirement.json", "delta_r.csv", "spectra/noise_model.csv")
+KEPT += ("spectra/residual_bb_means.csv", "figures/fig8_requirement.png")
+
+
+def variant_configs(base: list[str], nside: int, baseline: float | None) -> list[str]:
+    files = [*base, f"config/nside{nside}.yaml"]
+    return files + (["config/no_baselines.yaml"] if baseline is None else [])
+
+
+def run_variant(files: list[str], cores: int, out: Path) -> float:
+    """Run the workflow for one map-maker; copy its small outputs to ``out``; wall [s]."""
+    started = time.perf_counter()
+    command = ["snakemake", "--cores", str(cores), "results/requirement.json"]
+    subprocess.run([*command, "--configfile", "config/config.yaml", *files], check=True)
+    wall_s = time.perf_counter() - started
+    out.mkdir(parents=True, exist_ok=True)
+    for name in KEPT:
+        shutil.copy(Path("results") / name, out / Path(name).name)
+    (out / "run.json").write_text(json.dumps({"configfiles": files, "wall_s": wall_s}, indent=1))
+    return wall_s
+
+
+def requirement_row(folder: Path) -> dict:
+    result = json.loads((folder / "requirement.json").read_text())
+    headline = result["headline"]
+    return {
+        "consistent": headline["consistent"],
+        "sigma_r": headline["sigma_r_fisher"],
+        "requirement_68_per_k": headline["requirement_sigma_g1_per_k"],
+        "requirement_68_error_per_k": headline["error_per_k"],
+        "requirement_fisher_per_k": headline["fisher_peak_shift_requirement_sigma_g1_per_k"],
+        "requirement_fisher_error_per_k": headline["fisher_peak_shift_error_per_k"],
+        "paper_estimator_crossing_per_k": headline["paper_estimator_budget_crossing_per_k"],
+    }
+
+
+def template_bands(config: dict, fixed_h5: Path, seeds: int) -> list[float]:
+    """Mean over seeds of detector 0's total template BB [K_CMB^2 K^2] per BANDS."""
+    channel_seeds = ChannelSeeds(config, fixed_h5)
+    good = channel_seeds.fixed.good
+    lmax = BANDS[-1][1]
+    spectra = []
+    for seed in range(seeds):
+        template = np.where(good, channel_seeds.maps(seed)["templates"][0], 0.0)
+        alm = hp.map2alm(template, lmax=lmax, iter=0)
+        spectra.append(pseudo_spectra(alm, lmax, good.mean())[2])
+    mean = np.mean(spectra, axis=0)
+    return [float(mean[first : last + 1].mean()) for first, last in BANDS]
+
+
+def crossing_numbers(fixed_h5: Path, nside: int, hwp_hz: float, rate_hz: float) -> dict:
+    """Pixel size, crossing time, HWP turns per crossing, crossings per observed pixel."""
+    pixel_rad = hp.nside2resol(nside)
+    speed_rad_s = 2 * np.pi * SPIN_RATE_HZ * np.sin(np.radians(SPIN_BORESIGHT_DEG))
+    crossing_s = pixel_rad / speed_rad_s
+    hits = read_fixed_field(fixed_h5, "hits")
+    observed = hits[hits > 0]
+    return {
+        "pixel_arcmin": float(np.degrees(pixel_rad) * 60),
+        "crossing_s": float(crossing_s),
+        "hwp_turns_per_crossing": float(crossing_s * hwp_hz),
+        "crossings_per_pixel": float(np.mean(observed) / (2 * crossing_s * rate_hz)),
+    }
+
+
+def plot(table: pd.DataFrame, channels: list[str], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, (left, right) = plt.subplots(1, 2, figsize=(12, 4.8))
+    styles = {True: "-", False: "--"}
+    for baselines, group in table.groupby("baselines"):
+        group = group.sort_values("nside")
+        label = "60 s baselines" if baselines else "no baselines"
+        for channel, marker in zip(channels, "os^v", strict=False):
+            for (first, last), colour in zip(BANDS[::2], ("C0", "C3"), strict=True):
+                column = f"template_bb_{channel}_ell{first}_{last}"
+                if column in group:
+                    left.plot(
+                        group["nside"],
+                        group[column],
+                        styles[baselines],
+                        marker=marker,
+                        color=colour,
+                        label=f"{channel}, ell {first}-{last}, {label}",
+                    )
+        right.errorbar(
+            group["nside"],
+            group["requirement_68_per_k"],
+            group["requirement_68_error_per_k"],
+            fmt=styles[baselines] + "o",
+            color="C0",
+            capsize=3,
+            label=f"68 % point (paper's delta r), {label}",
+        )
+        right.errorbar(
+            group["nside"],
+            group["requirement_fisher_per_k"],
+            group["requirement_fisher_error_per_k"],
+            fmt=styles[baselines] + "s",
+            color="C2",
+            capsize=3,
+            label=f"Fisher peak shift, {label}",
+        )
+    right.axhline(PAPER_REQUIREMENT, color="k", lw=1, ls=":", label="Micheli et al. 2024")
+    for axis in (left, right):
+        axis.set_xscale("log", base=2)
+        axis.set_yscale("log")
+        axis.set_xlabel("nside")
+        axis.set_xticks(sorted(table["nside"].unique()))
+        axis.get_xaxis().set_major_formatter(matplotlib.ticker.ScalarFormatter())
+    left.set_ylabel("template BB of detector 0 [K_CMB^2 K^2]")
+    left.set_title("nonlinearity template (binned map-maker)")
+    right.set_ylabel("requirement on sigma_g1 [K^-1]")
+    right.set_title("requirement (transfer in the model)")
+    for axis in (left, right):
+        axis.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2)
+    figure.tight_layout()
+    figure.savefig(path, dpi=120, bbox_inches="tight")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--configfile", nargs="+", default=["config/one_year.yaml"])
+    parser.add_argument("--nsides", type=int, nargs="+", default=[512, 256, 128, 64])
+    parser.add_argument("--baselines", choices=("both", "with", "without"), default="both")
+    parser.add_argument("--channels", nargs="+", default=["M1-140", "H3-402"])
+    parser.add_argument("--template-seeds", type=int, default=2)
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--cores", type=int, default=2)
+    parser.add_argument("--run", action="store_true", help="run the workflow for each")
+    arguments = parser.parse_args()
+    baselines = {"both": [60.0, None], "with": [60.0], "without": [None]}[arguments.baselines]
+    rows = []
+    for nside in arguments.nsides:
+        for baseline in baselines:
+            files = variant_configs(arguments.configfile, nside, baseline)
+            config = cfg.load_config("config/config.yaml", *files)
+            variant = cfg.analysis_variant(config)
+            folder = arguments.out / variant
+            if arguments.run:
+                wall_s = run_variant(files, arguments.cores, folder)
+                print(f"{variant}: {wall_s / 60:.1f} min", flush=True)
+            if not (folder / "requirement.json").exists():
+                print(f"{variant}: no results in {folder} (run with --run)")
+                continue
+            row = {"variant": variant, "nside": nside, "baselines": baseline is not None}
+            row.update(requirement_row(folder))
+            for channel in arguments.channels:
+                fixed_h5 = Path(f"results/maps/{channel}/fixed_pass_{variant}.h5")
+                if not fixed_h5.exists():
+                    continue
+                bands = template_bands(config, fixed_h5, arguments.template_seeds)
+                for (first, last), value in zip(BANDS, bands, strict=True):
+                    row[f"template_bb_{channel}_ell{first}_{last}"] = value
+                hwp_hz = cfg.channel(config, channel).hwp_frequency_hz
+                rate_hz = config["simulation"]["sampling_rate_hz"]
+                for key, value in crossing_numbers(fixed_h5, nside, hwp_hz, rate_hz).items():
+                    row[f"{key}_{channel}"] = value
+            rows.append(row)
+    if not rows:
+        raise SystemExit("no map-maker has results: nothing to gather")
+    table = pd.DataFrame(rows)
+    arguments.out.mkdir(parents=True, exist_ok=True)
+    table.to_csv(arguments.out / "resolution_study.csv", index=False)
+    (arguments.out / "resolution_study.json").write_text(
+        json.dumps({"configfiles": arguments.configfile, "rows": rows}, indent=1)
+    )
+    plot(table, arguments.channels, arguments.out / "resolution_study.png")
+    columns = ["variant", "consistent", "sigma_r", "requirement_68_per_k"]
+    columns += ["requirement_fisher_per_k", "paper_estimator_crossing_per_k"]
+    print(table[columns].to_markdown(index=False, floatfmt=".3g"))
+
+
+if __name__ == "__main__":
+    main()

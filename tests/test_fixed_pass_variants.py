@@ -1,0 +1,159 @@
+"""Several map-makers in one fixed TOD pass (map_domain.fixed_passes, simulation.fixed_pass_*).
+
+One M1-140 pair, six hours at 19 Hz, the sky scanned at nside 32: the pass also bins at
+nside 16 and without baselines. Each variant must be what a pass of its own gives: the
+no-baseline map-maker that of a separate pass without baselines (the HWP-harmonic fit
+without a constant), the primary one that of a separate pass with baselines (both to
+round-off: one filtering gives both fits, hwpss_removal.offset_residual), and the nside-16
+normal equations the sums of their nside-32 children (the same samples, coarser pixels).
+"""
+
+import dataclasses
+
+import healpy as hp
+import numpy as np
+import pytest
+
+from hwp_tes_systematics import map_domain, sky
+from hwp_tes_systematics.hwpss_removal import offset_residual, remove_hwp_harmonics
+from hwp_tes_systematics.instrument import load_channel
+from hwp_tes_systematics.tod import MissionPlan, PairSimulator
+from hwp_tes_systematics.tod_maps import PairMapSettings
+
+pytestmark = pytest.mark.slow
+
+SCAN_NSIDE, COARSE_NSIDE = 32, 16
+LMAX = 3 * SCAN_NSIDE - 1
+A2_K_CMB = 0.264  # M1-140, default optics
+VARIANTS = [(COARSE_NSIDE, 60.0), (SCAN_NSIDE, None), (COARSE_NSIDE, None)]
+FIELDS = ("nosys", "template_terms", "foreground_reference", "matrix", "moments", "hits")
+
+
+@pytest.fixture(scope="module")
+def passes():
+    """({variant: FixedMaps} of one pass, {variant: FixedMaps} of separate passes)."""
+    channel = load_channel("M1-140")
+    plan = MissionPlan("2032-04-01T00:00:00", 6 * 3600.0, 3 * 3600.0, 19.0)
+    settings = PairMapSettings(
+        master_seed=7,
+        seed=map_domain.NOISE_REFERENCE_SEED,
+        nside=SCAN_NSIDE,
+        plan=plan,
+        a2_k_cmb=A2_K_CMB,
+        notch_width_divisor=100.0,
+        notch_margin_s=1200.0,
+        max_condition_number=100.0,
+        noise_scale=0.0,
+        baseline_length_s=60.0,
+    )
+    simulator = PairSimulator(channel, plan, SCAN_NSIDE, noise_model="keshner")
+    cls = np.zeros((4, LMAX + 1))
+    cls[:3, 2:] = 1e-9 * (np.arange(2, LMAX + 1) / 10.0) ** -2.5
+    foreground = hp.alm2map(sky.gaussian_alm(cls, LMAX, np.random.default_rng(3)), SCAN_NSIDE)
+    foreground[0] += 3e-3  # an intensity offset as large as the dipole
+    transfer_alm = map_domain.transfer_cmb_alm(LMAX, 0.0, 7, channel.fwhm_arcmin)
+    arguments = (simulator, settings, foreground, transfer_alm, True, LMAX)
+    together = map_domain.fixed_passes(*arguments, extra_variants=VARIANTS)
+    no_baselines = dataclasses.replace(settings, baseline_length_s=None)
+    separate = {
+        (SCAN_NSIDE, 60.0): map_domain.fixed_pass(*arguments),
+        (SCAN_NSIDE, None): map_domain.fixed_pass(simulator, no_baselines, *arguments[2:]),
+    }
+    return together, separate
+
+
+def assert_same(fixed, reference, label, rtol=1e-9):
+    for name in FIELDS:
+        value, expected = getattr(fixed, name), getattr(reference, name)
+        scale = np.abs(expected[np.abs(expected) < 1e20]).max()
+        np.testing.assert_allclose(value, expected, rtol=0, atol=rtol * scale, err_msg=name)
+    np.testing.assert_array_equal(fixed.good, reference.good, err_msg=f"{label}: good")
+    for name in ("transfer", "noise_shaping"):
+        np.testing.assert_allclose(
+            getattr(fixed, name), getattr(reference, name), rtol=1e-6, err_msg=name
+        )
+
+
+def test_offset_fit_is_the_fit_without_offset_then_the_constant_projected_out():
+    rng = np.random.default_rng(1)
+    angle = np.cumsum(np.full(5000, 0.37))
+    tod = rng.normal(size=(3, 5000)) + 2.0 + np.cos(2 * angle)
+    u = offset_residual(angle, (2, 4))
+    joint = remove_hwp_harmonics(tod, angle, (2, 4), offset=True)
+    split = remove_hwp_harmonics(tod, angle, (2, 4)) - np.outer(tod @ u / (u @ u), u)
+    np.testing.assert_allclose(split, joint, rtol=0, atol=1e-12)
+
+
+def test_every_variant_is_there(passes):
+    together, _ = passes
+    assert set(together) == {(SCAN_NSIDE, 60.0), *VARIANTS}
+    for (nside, _), fixed in together.items():
+        assert fixed.nosys.shape == (3, hp.nside2npix(nside))
+        assert fixed.moments.shape[1] == hp.nside2npix(nside)
+
+
+def test_baseline_variants_equal_their_own_passes(passes):
+    together, separate = passes
+    for variant, reference in separate.items():
+        assert_same(together[variant], reference, str(variant))
+    # and the two map-makers do differ (the no-baseline one keeps the offsets)
+    seen = together[(SCAN_NSIDE, None)].good & together[(SCAN_NSIDE, 60.0)].good
+    with_b, without = (together[(SCAN_NSIDE, b)].nosys[0, seen] for b in (60.0, None))
+    assert np.abs(with_b - without).max() > 1e-4
+
+
+@pytest.mark.parametrize("baseline", [60.0, None])
+def test_coarse_variant_bins_the_same_samples_in_coarser_pixels(passes, baseline):
+    """The nside-16 matrix, hits and HWPSS moments are the sums over the four nside-32
+    children; its no-systematics map solves the summed equations of the children."""
+    together, _ = passes
+    fine, coarse = together[(SCAN_NSIDE, baseline)], together[(COARSE_NSIDE, baseline)]
+    parent = hp.nest2ring(
+        COARSE_NSIDE, hp.ring2nest(SCAN_NSIDE, np.arange(hp.nside2npix(SCAN_NSIDE))) // 4
+    )
+
+    def children_sum(values):  # pixels on the last axis
+        total = np.zeros((*values.shape[:-1], hp.nside2npix(COARSE_NSIDE)))
+        np.add.at(total, (..., parent), values)
+        return total
+
+    np.testing.assert_array_equal(children_sum(fine.hits), coarse.hits)
+    scale = np.abs(coarse.matrix).max()  # sums of cosines: round-off relative to the largest
+    np.testing.assert_allclose(children_sum(fine.matrix), coarse.matrix, rtol=0, atol=1e-13 * scale)
+    summed_moments = np.moveaxis(children_sum(np.moveaxis(fine.moments, 1, -1)), -1, 1)
+    np.testing.assert_allclose(summed_moments, coarse.moments, rtol=0, atol=1e-13 * scale)
+    # rhs of each fine pixel is M m; where every observed child is solved, the parent's
+    # map is M_parent^-1 sum rhs
+    observed_children_solved = children_sum((fine.hits > 0) & ~fine.good) == 0
+    check = observed_children_solved & coarse.good
+    assert check.sum() > 100
+    fine_rhs = np.zeros((3, fine.good.size))
+    good = np.flatnonzero(fine.good)
+    fine_rhs[:, good] = np.einsum("pij,jp->ip", fine.matrices(good), fine.nosys[:, good])
+    coarse_rhs = children_sum(fine_rhs)[:, check]
+    solved = np.linalg.solve(coarse.matrices(np.flatnonzero(check)), coarse_rhs.T[..., None])
+    np.testing.assert_allclose(solved[..., 0].T, coarse.nosys[:, check], rtol=1e-8, atol=1e-12)
+
+
+def test_map_makers_of_one_resolution_share_one_copy_of_the_moments(passes, tmp_path):
+    together, _ = passes
+    holder, sharer = together[(SCAN_NSIDE, 60.0)], together[(SCAN_NSIDE, None)]
+    attributes = {"detectors": ["a", "b"], "nside": SCAN_NSIDE}
+    map_domain.write_fixed_maps(tmp_path / "holder.h5", holder, attributes)
+    map_domain.write_fixed_maps(tmp_path / "sharer.h5", sharer, attributes, moments_in="holder.h5")
+    assert (tmp_path / "sharer.h5").stat().st_size < 0.6 * (tmp_path / "holder.h5").stat().st_size
+    assert map_domain.moments_file(tmp_path / "sharer.h5") == tmp_path / "holder.h5"
+    read, _ = map_domain.read_fixed_maps(tmp_path / "sharer.h5")
+    np.testing.assert_array_equal(read.moments, sharer.moments)
+    np.testing.assert_array_equal(read.nosys, sharer.nosys)
+    # a channel without systematics stores neither (zero) template terms nor moments
+    plain = dataclasses.replace(
+        sharer,
+        carries_systematics=False,
+        moments=np.zeros(0),
+        template_terms=0 * sharer.template_terms,
+    )
+    map_domain.write_fixed_maps(tmp_path / "plain.h5", plain, attributes)
+    read, _ = map_domain.read_fixed_maps(tmp_path / "plain.h5")
+    np.testing.assert_array_equal(read.template_terms, plain.template_terms)
+    assert read.moments.size == 0
