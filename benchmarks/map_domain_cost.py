@@ -28,6 +28,8 @@ import healpy as hp
 import numpy as np
 
 from hwp_tes_systematics import map_domain
+from hwp_tes_systematics.config import deep_merge, default_config_path, load_config
+from hwp_tes_systematics.ilc_residuals import ChannelAlms, HarmonicSettings
 from hwp_tes_systematics.instrument import load_channel
 from hwp_tes_systematics.mapmaking import MATRIX_ENTRIES
 from hwp_tes_systematics.tod import MissionPlan, PairSimulator
@@ -120,7 +122,9 @@ def synthetic_full_sky(nside: int, carries_systematics: bool, samples_per_pixel:
     )
 
 
-def seed_costs(nside: int, filter_lmax: int | None, seeds: int = 2) -> None:
+def seed_costs(
+    nside: int, filter_lmax: int | None, seeds: int = 2, analysis_lmax=None, map2alm_iter=3
+) -> None:
     """Prints what the ``map_domain_maps`` job of a one-year channel costs at ``nside``:
     the shared operators (noise factors, M^-1, H_k: once per channel) and each seed (CMB
     draw to the beam's band limit and map products, the noise shaped up to
@@ -128,9 +132,26 @@ def seed_costs(nside: int, filter_lmax: int | None, seeds: int = 2) -> None:
     full-sky fixed pass."""
     lmax = 3 * nside - 1
     filter_lmax = lmax if filter_lmax is None else filter_lmax
-    print(f"nside {nside}, lmax {lmax}, noise shaped to ell {filter_lmax}, full sky, one thread")
-    print("| channel kind | shared operators, once per channel [s] | one seed [s] |")
-    print("|---|---|---|")
+    analysis_lmax = analysis_lmax or 2 * nside
+    config = deep_merge(
+        load_config(default_config_path()),
+        {
+            "maps": {"nside": nside},
+            "component_separation": {"lmax": analysis_lmax, "map2alm_iter": map2alm_iter},
+            "likelihood": {"lmax": min(128, analysis_lmax)},
+        },
+    )
+    harmonic = HarmonicSettings.from_config(config)
+    mask = np.ones(hp.nside2npix(nside))
+    print(
+        f"nside {nside}, lmax {lmax}, noise shaped to ell {filter_lmax}, full sky, one thread; "
+        f"a_lm to {analysis_lmax} with {map2alm_iter} Jacobi iterations"
+    )
+    print(
+        "| channel kind | shared operators, once per channel [s] | one seed [s] | of which its "
+        "a_lm (map_domain_alms) [s] |"
+    )
+    print("|---|---|---|---|")
     for name, (carries, _) in CHANNELS.items():
         fixed = synthetic_full_sky(nside, carries)
         fwhm = load_channel(name).fwhm_arcmin
@@ -138,14 +159,19 @@ def seed_costs(nside: int, filter_lmax: int | None, seeds: int = 2) -> None:
         operators = map_domain.SeedOperators(fixed, 1.0, filter_lmax)
         factors_s = time.perf_counter() - started
         started = time.perf_counter()
+        reduce_s = 0.0
         for seed in range(seeds):
             cmb_alm, band = map_domain.band_limited_seed_cmb(lmax, 0.0, 1, seed, fwhm)
-            map_domain.realize_seed(
+            maps = map_domain.realize_seed(
                 fixed, cmb_alm, band, 0.264, 1.0, np.random.default_rng, operators
             )
+            reduced = time.perf_counter()
+            maps["attrs"] = {"detectors": ["a", "b"][: 2 if carries else 1], "a2_k_cmb": 0.264}
+            ChannelAlms.from_maps(config, seed, name, maps, mask, harmonic)
+            reduce_s += time.perf_counter() - reduced
         per_seed = (time.perf_counter() - started) / seeds
         kind = "with systematics" if carries else "without"
-        print(f"| {name} ({kind}) | {factors_s:.1f} | {per_seed:.1f} |")
+        print(f"| {name} ({kind}) | {factors_s:.1f} | {per_seed:.1f} | {reduce_s / seeds:.1f} |")
 
 
 def main() -> None:
@@ -169,6 +195,10 @@ def main() -> None:
         "band to which the fixed pass measures T_ell and S_ell (default: 3 nside - 1)",
     )
     parser.add_argument(
+        "--analysis-lmax", type=int, help="component_separation.lmax (default 2 nside)"
+    )
+    parser.add_argument("--map2alm-iter", type=int, default=3, help="component_separation")
+    parser.add_argument(
         "--also-nsides",
         type=int,
         nargs="*",
@@ -185,7 +215,12 @@ def main() -> None:
     extra = [(n, b) for n in [arguments.nside, *arguments.also_nsides] for b in baselines]
     extra = [variant for variant in extra if variant != (arguments.nside, 60.0)]
     if arguments.seeds_only:
-        seed_costs(arguments.nside, arguments.filter_lmax)
+        seed_costs(
+            arguments.nside,
+            arguments.filter_lmax,
+            analysis_lmax=arguments.analysis_lmax,
+            map2alm_iter=arguments.map2alm_iter,
+        )
         return
     for name, (carries, _) in CHANNELS.items():  # compile the kernels of both kinds
         measure(name, carries, arguments.nside, arguments.rate, 0.05, 1, arguments.filter_lmax)

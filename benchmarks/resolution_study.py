@@ -1,14 +1,14 @@
 """The requirement and the nonlinearity template versus the map resolution, with and
 without baselines, from one set of fixed passes (issue 27).
 
-    python benchmarks/resolution_study.py --run --out docs/resolution \
-        --configfile config/one_year.yaml
-    python benchmarks/resolution_study.py --out docs/resolution \
-        --configfile config/one_year.yaml          # only gather what the runs left
+    python benchmarks/resolution_study.py --run --out docs/resolution
+    python benchmarks/resolution_study.py --out docs/resolution   # only gather the runs
 
 For each map-maker (nside in ``--nsides``, 60 s baselines or none), the workflow's
-configuration is ``--configfile`` + ``config/nside<N>.yaml`` (+ ``config/no_baselines.yaml``):
-the overlays share one fixed TOD pass per channel (simulation.fixed_pass_*), so the first
+configuration is ``--configfile`` (default config/one_year.yaml config/resolution_study.yaml)
++ ``config/nside<N>.yaml`` (+ ``config/no_baselines.yaml``): with
+config/resolution_study.yaml they share one fixed TOD pass per channel
+(simulation.fixed_pass_*), so the first
 run makes the passes and each other only its seeds' a_lm and the analysis. ``--run``
 runs them one after another in this folder (``snakemake --cores N results/requirement.json``)
 and copies each run's small outputs (requirement.json, delta_r.csv, noise_model.csv,
@@ -68,6 +68,17 @@ def run_variant(files: list[str], cores: int, out: Path) -> float:
         shutil.copy(Path("results") / name, out / Path(name).name)
     (out / "run.json").write_text(json.dumps({"configfiles": files, "wall_s": wall_s}, indent=1))
     return wall_s
+
+
+REQUIREMENT_KEYS = (
+    "consistent",
+    "sigma_r",
+    "requirement_68_per_k",
+    "requirement_68_error_per_k",
+    "requirement_fisher_per_k",
+    "requirement_fisher_error_per_k",
+    "paper_estimator_crossing_per_k",
+)
 
 
 def requirement_row(folder: Path) -> dict:
@@ -173,7 +184,11 @@ def plot(table: pd.DataFrame, channels: list[str], path: Path) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--configfile", nargs="+", default=["config/one_year.yaml"])
+    parser.add_argument(
+        "--configfile",
+        nargs="+",
+        default=["config/one_year.yaml", "config/resolution_study.yaml"],
+    )
     parser.add_argument("--nsides", type=int, nargs="+", default=[512, 256, 128, 64])
     parser.add_argument("--baselines", choices=("both", "with", "without"), default="both")
     parser.add_argument("--channels", nargs="+", default=["M1-140", "H3-402"])
@@ -193,11 +208,12 @@ def main() -> None:
             if arguments.run:
                 wall_s = run_variant(files, arguments.cores, folder)
                 print(f"{variant}: {wall_s / 60:.1f} min", flush=True)
-            if not (folder / "requirement.json").exists():
-                print(f"{variant}: no results in {folder} (run with --run)")
-                continue
             row = {"variant": variant, "nside": nside, "baselines": baseline is not None}
-            row.update(requirement_row(folder))
+            if (folder / "requirement.json").exists():
+                row.update(requirement_row(folder))
+            else:
+                print(f"{variant}: no analysis in {folder} (run with --run): templates only")
+                row.update(dict.fromkeys(REQUIREMENT_KEYS, np.nan))
             for channel in arguments.channels:
                 fixed_h5 = Path(f"results/maps/{channel}/fixed_pass_{variant}.h5")
                 if not fixed_h5.exists():
@@ -209,7 +225,9 @@ def main() -> None:
                 rate_hz = config["simulation"]["sampling_rate_hz"]
                 for key, value in crossing_numbers(fixed_h5, nside, hwp_hz, rate_hz).items():
                     row[f"{key}_{channel}"] = value
-            rows.append(row)
+            measured = not np.isnan(row["sigma_r"]) or any(k.startswith("template") for k in row)
+            if measured:
+                rows.append(row)
     if not rows:
         raise SystemExit("no map-maker has results: nothing to gather")
     table = pd.DataFrame(rows)
@@ -219,8 +237,8 @@ def main() -> None:
         json.dumps({"configfiles": arguments.configfile, "rows": rows}, indent=1)
     )
     plot(table, arguments.channels, arguments.out / "resolution_study.png")
-    columns = ["variant", "consistent", "sigma_r", "requirement_68_per_k"]
-    columns += ["requirement_fisher_per_k", "paper_estimator_crossing_per_k"]
+    columns = ["variant", "sigma_r", "requirement_68_per_k", "requirement_fisher_per_k"]
+    columns += [c for c in table.columns if c.startswith(("template_bb", "hwp_turns", "crossings"))]
     print(table[columns].to_markdown(index=False, floatfmt=".3g"))
 
 

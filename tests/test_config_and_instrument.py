@@ -137,6 +137,46 @@ def test_no_baselines_overlay_merges_after_one_year(repo, monkeypatch):
     assert overlaid == base
 
 
+def test_resolution_overlays_share_one_fixed_pass(repo, monkeypatch):
+    """config/nside<N>.yaml after one_year.yaml and resolution_study.yaml (with or without
+    no_baselines.yaml): each analyses its own map-maker of the same fixed pass, whose
+    configuration they share;
+    an analysis map-maker outside the pass, or the pass's lists on the TOD path, are
+    errors naming the key."""
+    from hwp_tes_systematics.config import (
+        ConfigError,
+        analysis_variant,
+        deep_merge,
+        fixed_pass_variants,
+    )
+
+    monkeypatch.chdir(repo)
+    passes, variants = set(), set()
+    for nside in (64, 128, 256, 512):
+        for extra in ([], ["config/no_baselines.yaml"]):
+            files = ["config/config.yaml", "config/one_year.yaml", "config/resolution_study.yaml"]
+            files.append(f"config/nside{nside}.yaml")
+            config = load_config(*files, *extra)
+            passes.add(str(fixed_pass_variants(config)))
+            variants.add(analysis_variant(config))
+    assert len(passes) == 1 and len(variants) == 8
+    assert fixed_pass_variants(config)[0] == (512, 60.0)  # the scan's resolution first
+    config = load_config("config/config.yaml", "config/one_year.yaml", "config/nside512.yaml")
+    assert fixed_pass_variants(config) == [(512, 60.0)]  # alone: its own pass
+    config = load_config(
+        "config/config.yaml",
+        "config/one_year.yaml",
+        "config/resolution_study.yaml",
+        "config/nside128.yaml",
+    )
+    with pytest.raises(ConfigError, match="maps.nside = 32 is not among"):
+        check_config(deep_merge(config, {"maps": {"nside": 32}}))
+    with pytest.raises(ConfigError, match="maps.baseline_length_s = 30.0 is not among"):
+        check_config(deep_merge(config, {"maps": {"baseline_length_s": 30.0}}))
+    with pytest.raises(ConfigError, match="needs simulation.realizations: map_domain"):
+        check_config(deep_merge(config, {"simulation": {"realizations": "tod"}}))
+
+
 def test_channels_without_systematics_can_be_sampled_slower(repo, monkeypatch):
     """simulation.sampling_rate_without_systematics_hz applies to the channels outside
     instrument.systematics_channels only; null leaves every channel at sampling_rate_hz."""

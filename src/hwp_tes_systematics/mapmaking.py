@@ -23,43 +23,83 @@ MATRIX_ENTRIES = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
 
 class NormalEquations:
-    """Accumulates sum a^T w a (per pixel) and sum a^T w d for several TODs."""
+    """Accumulates sum a^T w a (per pixel) and sum a^T w d for several TODs.
+
+    Stored pixel-major (``pixel_matrix`` (npix, 6), ``pixel_rhs`` (npix, n_tods, 3)), so
+    that a sample touches one pixel's numbers for every TOD at once: at nside 512 the
+    maps no longer fit the caches and a TOD-major layout cost a cache miss per TOD and
+    Stokes parameter. ``matrix`` (6, npix) and ``rhs`` (n_tods, 3, npix) are views of
+    them. Each number receives the same additions in the same order as one TOD at a
+    time would give it, so the result does not depend on the layout."""
 
     def __init__(self, nside: int, n_tods: int):
         self.nside = nside
         self.npix = hp.nside2npix(nside)
         self.n_tods = n_tods
-        self.matrix = np.zeros((6, self.npix))
-        self.rhs = np.zeros((n_tods, 3, self.npix))
+        self.pixel_matrix = np.zeros((self.npix, 6))
+        self.pixel_rhs = np.zeros((self.npix, n_tods, 3))
         self.hits = np.zeros(self.npix, dtype=np.int64)
 
+    @property
+    def matrix(self) -> np.ndarray:
+        """(6, npix) view, MATRIX_ENTRIES order."""
+        return self.pixel_matrix.T
+
+    @property
+    def rhs(self) -> np.ndarray:
+        """(n_tods, 3, npix) view."""
+        return np.moveaxis(self.pixel_rhs, 0, 2)
+
     def add(
-        self, pixels, cos_2alpha, sin_2alpha, weights, pol_efficiency, tods, tod_detectors=None
+        self,
+        pixels,
+        cos_2alpha,
+        sin_2alpha,
+        weights,
+        pol_efficiency,
+        tods,
+        tod_detectors=None,
+        rows=None,
     ) -> None:
         """Add samples: pixels, angles (n_det, n); weights, pol_efficiency (n_det,);
-        tods: a sequence of n_tods arrays (n_det, n). ``tod_detectors[i]``, if given and
-        not None, is the only detector whose samples TOD i has (the others are zero)."""
-        if len(tods) != self.n_tods:
-            raise ValueError(f"expected {self.n_tods} TODs, got {len(tods)}")
+        tods: a sequence of n_tods arrays (n_det, n), or with ``rows`` an array
+        (n_rows, n_det, n) of which TOD i is row ``rows[i]`` (no copy: a row may be binned
+        for several TODs). ``tod_detectors[i]``, if given and not None, is the only
+        detector whose samples TOD i has (the others are zero)."""
+        if rows is None:
+            rows = np.arange(len(tods))
+            stacked = np.empty((len(tods), *np.shape(pixels)))
+            for index, tod in enumerate(tods):
+                stacked[index] = tod
+            tods = stacked
+        rows = np.asarray(rows, dtype=np.int64)
+        if rows.size != self.n_tods:
+            raise ValueError(f"expected {self.n_tods} TODs, got {rows.size}")
         if tod_detectors is None:
             tod_detectors = [None] * self.n_tods
-        weights = np.ascontiguousarray(weights, dtype=np.float64)
-        pol_efficiency = np.ascontiguousarray(pol_efficiency, dtype=np.float64)
-        _add_matrix(pixels, cos_2alpha, sin_2alpha, weights, pol_efficiency, self.matrix, self.hits)
-        for index, tod in enumerate(tods):
-            owner = -1 if tod_detectors[index] is None else int(tod_detectors[index])
-            _add_rhs(
-                pixels, cos_2alpha, sin_2alpha, weights, pol_efficiency, tod, owner, self.rhs[index]
-            )
+        owners = np.array([-1 if k is None else int(k) for k in tod_detectors], dtype=np.int64)
+        _add_samples(
+            pixels,
+            cos_2alpha,
+            sin_2alpha,
+            np.ascontiguousarray(weights, dtype=np.float64),
+            np.ascontiguousarray(pol_efficiency, dtype=np.float64),
+            tods,
+            rows,
+            owners,
+            self.pixel_matrix,
+            self.pixel_rhs,
+            self.hits,
+        )
 
     def full_matrix(self) -> np.ndarray:
         """(npix, 3, 3) symmetric matrices."""
-        return symmetric_matrices(self.matrix.T)
+        return symmetric_matrices(self.pixel_matrix)
 
     def merge(self, other: NormalEquations) -> None:
         """Add another accumulation (e.g. from another process or time range)."""
-        self.matrix += other.matrix
-        self.rhs += other.rhs
+        self.pixel_matrix += other.pixel_matrix
+        self.pixel_rhs += other.pixel_rhs
         self.hits += other.hits
 
 
@@ -89,9 +129,13 @@ def solve_maps(equations: NormalEquations, max_condition_number: float):
 
 
 @numba.njit(cache=True, nogil=True)
-def _add_matrix(pixels, cos_2alpha, sin_2alpha, weights, rho, matrix, hits):
-    """matrix[:, p] += w [1, a1, a2, a1 a1, a1 a2, a2 a2], a = rho (cos, sin) 2 alpha;
-    one pass over the samples in time order (MATRIX_ENTRIES order)."""
+def _add_samples(
+    pixels, cos_2alpha, sin_2alpha, weights, rho, tods, rows, owners, matrix, rhs, hits
+):
+    """matrix[p] += w [1, a1, a2, a1 a1, a1 a2, a2 a2] and rhs[p, i] += w d_i [1, a1, a2]
+    for every TOD i, d_i = tods[rows[i]] (the detectors' samples only where ``owners[i]``
+    is -1 or the detector), a = rho (cos, sin) 2 alpha; one pass over the samples,
+    detector by detector in time order (MATRIX_ENTRIES order)."""
     for det in range(pixels.shape[0]):
         w = weights[det]
         for t in range(pixels.shape[1]):
@@ -99,27 +143,19 @@ def _add_matrix(pixels, cos_2alpha, sin_2alpha, weights, rho, matrix, hits):
             a1 = rho[det] * cos_2alpha[det, t]
             a2 = rho[det] * sin_2alpha[det, t]
             hits[p] += 1
-            matrix[0, p] += w
-            matrix[1, p] += w * a1
-            matrix[2, p] += w * a2
-            matrix[3, p] += w * a1 * a1
-            matrix[4, p] += w * a1 * a2
-            matrix[5, p] += w * a2 * a2
-
-
-@numba.njit(cache=True, nogil=True)
-def _add_rhs(pixels, cos_2alpha, sin_2alpha, weights, rho, tod, owner, rhs):
-    """rhs[:, p] += w d [1, a1, a2] for every detector (or only ``owner`` if >= 0)."""
-    for det in range(pixels.shape[0]):
-        if owner >= 0 and det != owner:
-            continue
-        w = weights[det]
-        for t in range(pixels.shape[1]):
-            p = pixels[det, t]
-            x = w * tod[det, t]
-            rhs[0, p] += x
-            rhs[1, p] += x * rho[det] * cos_2alpha[det, t]
-            rhs[2, p] += x * rho[det] * sin_2alpha[det, t]
+            matrix[p, 0] += w
+            matrix[p, 1] += w * a1
+            matrix[p, 2] += w * a2
+            matrix[p, 3] += w * a1 * a1
+            matrix[p, 4] += w * a1 * a2
+            matrix[p, 5] += w * a2 * a2
+            for i in range(rows.shape[0]):
+                if owners[i] >= 0 and owners[i] != det:
+                    continue
+                x = w * tods[rows[i], det, t]
+                rhs[p, i, 0] += x
+                rhs[p, i, 1] += x * rho[det] * cos_2alpha[det, t]
+                rhs[p, i, 2] += x * rho[det] * sin_2alpha[det, t]
 
 
 # the weights y_t of the per-detector moment matrices sum_t w_k y_t a^T a (PixelMoments)

@@ -366,7 +366,7 @@ def accumulate(
                 simulator.pol_efficiency,
             )
             with clock("binning"):
-                extra.equations.add(*extra_args, [extra_filtered[r] for r in rows], owners)
+                extra.equations.add(*extra_args, extra_filtered, owners, rows=rows)
                 if calibrating:
                     extra.calibration_equations.add(
                         *extra_args, [*extra_filtered[n_binned:], unfiltered_noise]
@@ -374,7 +374,6 @@ def accumulate(
             del extra_filtered
         filtered = remove_baselines(notched[..., inner], baseline_samples_of(settings))
         del notched, notched_of
-        tods = [filtered[row] for row in rows]
         binning_args = (
             pointing.pixels[:, inner],
             pointing.cos_2alpha[:, inner],
@@ -383,7 +382,7 @@ def accumulate(
             simulator.pol_efficiency,
         )
         with clock("binning"):
-            equations.add(*binning_args, tods, owners)
+            equations.add(*binning_args, filtered, owners, rows=rows)
             if calibrating:
                 calibration.equations.add(*binning_args, [*filtered[n_binned:], unfiltered_noise])
         if demodulated is not None:
@@ -400,7 +399,7 @@ def accumulate(
                     owners,
                 )
             del streams
-        del filtered, tods
+        del filtered
         unfiltered_noise = None
         rss_mb = psutil.Process().memory_info().rss / 2**20
         peak_rss_mb = max(peak_rss_mb, rss_mb)
