@@ -96,6 +96,12 @@ class NormalEquations:
         """(npix, 3, 3) symmetric matrices."""
         return symmetric_matrices(self.pixel_matrix)
 
+    def reorder(self, source: np.ndarray) -> None:
+        """Pixel p takes the numbers of pixel ``source[p]`` (a change of ordering)."""
+        self.pixel_matrix = self.pixel_matrix[source]
+        self.pixel_rhs = self.pixel_rhs[source]
+        self.hits = self.hits[source]
+
     def merge(self, other: NormalEquations) -> None:
         """Add another accumulation (e.g. from another process or time range)."""
         self.pixel_matrix += other.pixel_matrix
@@ -177,6 +183,10 @@ class PixelMoments:
         self.nside = nside
         self.npix = hp.nside2npix(nside)
         self.values = np.zeros((n_det, self.npix, len(MOMENT_WEIGHTS), 6))
+
+    def reorder(self, source: np.ndarray) -> None:
+        """Pixel p takes the numbers of pixel ``source[p]`` (a change of ordering)."""
+        self.values = self.values[:, source]
 
     def add(self, pixels, cos_2alpha, sin_2alpha, weights, pol_efficiency, hwpss) -> None:
         """Add samples: pixels, angles, hwpss (n_det, n); weights, pol_efficiency (n_det,)."""

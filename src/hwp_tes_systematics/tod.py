@@ -275,12 +275,14 @@ class PairSimulator:
             first_sample, pixels, cos_2alpha, sin_2alpha, hwp_angle, galactic, observation
         )
 
-    def pixels_at(self, pointing: ChunkPointing, nside: int, samples=slice(None)) -> np.ndarray:
-        """(n_det, n) RING pixels of the ``samples`` of a chunk at another resolution, from
-        the same directions (``pointing.pixels`` at the simulator's own nside)."""
-        if nside == self.nside:
+    def pixels_at(
+        self, pointing: ChunkPointing, nside: int, samples=slice(None), nest: bool = False
+    ) -> np.ndarray:
+        """(n_det, n) RING (or NESTED) pixels of the ``samples`` of a chunk at any
+        resolution, from the same directions (``pointing.pixels``: RING, own nside)."""
+        if nside == self.nside and not nest:
             return pointing.pixels[:, samples]
-        healpix = ducc0.healpix.Healpix_Base(nside, "RING")
+        healpix = ducc0.healpix.Healpix_Base(nside, "NEST" if nest else "RING")
         directions = 1 if self.shares_direction else self.n_detectors
         pixels = np.stack(
             [

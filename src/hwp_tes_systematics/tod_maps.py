@@ -283,11 +283,16 @@ def accumulate(
         scanned = list(references_iqu_k)
         if calibrating:
             scanned += list(calibration.references_iqu_k)
-        pixels_of = {settings.nside: pointing.pixels[:, inner]}
+        # NESTED pixels for the accumulations (neighbours on the sky are neighbours in
+        # memory: fewer cache misses at high nside), those of a coarser resolution by a
+        # shift; converted to RING at the end (:func:`_nest_to_ring`)
+        with clock("pixels"):
+            nest = simulator.pixels_at(pointing, settings.nside, inner, nest=True)
+        pixels_of = {settings.nside: nest}
         for extra in extra_binnings:
             if extra.nside not in pixels_of:
-                with clock("pixels"):
-                    pixels_of[extra.nside] = simulator.pixels_at(pointing, extra.nside, inner)
+                shift = 2 * ((settings.nside // extra.nside).bit_length() - 1)
+                pixels_of[extra.nside] = nest >> shift
         added = set()
         for target, nside in [(moments, settings.nside)] + [
             (extra.moments, extra.nside) for extra in extra_binnings
@@ -375,7 +380,7 @@ def accumulate(
         filtered = remove_baselines(notched[..., inner], baseline_samples_of(settings))
         del notched, notched_of
         binning_args = (
-            pointing.pixels[:, inner],
+            pixels_of[settings.nside],
             pointing.cos_2alpha[:, inner],
             pointing.sin_2alpha[:, inner],
             weights,
@@ -387,9 +392,9 @@ def accumulate(
                 calibration.equations.add(*binning_args, [*filtered[n_binned:], unfiltered_noise])
         if demodulated is not None:
             with clock("binning"):
-                pixels, cos_2alpha, sin_2alpha = binning_args[:3]
+                cos_2alpha, sin_2alpha = binning_args[1:3]
                 demodulated.add(
-                    pixels,
+                    pointing.pixels[:, inner],
                     cos_2alpha,
                     sin_2alpha,
                     pointing.hwp_angle_rad[inner],
@@ -405,6 +410,7 @@ def accumulate(
         peak_rss_mb = max(peak_rss_mb, rss_mb)
         if on_chunk is not None:
             on_chunk(inner.stop - inner.start, rss_mb)
+    _nest_to_ring(equations, moments, calibration, extra_binnings)
     log.info(
         "%s seed %d: peak RSS during chunks %.0f MB; time per stage: %s",
         simulator.channel.name,
@@ -413,6 +419,20 @@ def accumulate(
         clock.summary(settings.plan.n_samples * n_det),
     )
     return equations
+
+
+def _nest_to_ring(equations, moments, calibration, extra_binnings) -> None:
+    """Reorder every accumulation of :func:`accumulate` from NESTED to RING pixels (each
+    pixel's numbers unchanged: the same additions in the same order)."""
+    targets = [equations, moments] + [calibration.equations if calibration else None]
+    for extra in extra_binnings:
+        targets += [extra.equations, extra.moments, extra.calibration_equations]
+    done = set()
+    for target in targets:
+        if target is None or id(target) in done:
+            continue
+        done.add(id(target))
+        target.reorder(hp.ring2nest(target.nside, np.arange(target.npix)))
 
 
 def _rows_of(n_terms: int, n_det: int, n_tods: int) -> list[int]:
