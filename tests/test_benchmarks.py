@@ -48,6 +48,7 @@ def benchmarks(repo, monkeypatch):
         "template_vs_duration",
         "map_level_cost",
         "run_cost",
+        "resolution_study",
     ):
         sys.modules.pop(name, None)
 
@@ -94,6 +95,23 @@ def test_run_cost_sums_rules_and_checks_targets(benchmarks, tmp_path, monkeypatc
     assert "target peak job memory [GB] <= 2.5: 3.00 (MISSED)" in out
     # one component_separation job: one seed; x 10 seeds for both rules' 50 core-seconds
     assert "with 10 seeds: ~0.1 core-hours" in out
+
+
+def test_resolution_study_crossing_numbers(benchmarks, tmp_path):
+    """A pixel of nside 512 (6.9') is crossed in ~0.5 s at the PTEP scan speed (3 spins an
+    hour, 50 deg from the spin axis: 13.8' per second), a third of an MFT HWP turn (39
+    rpm); the crossings per pixel are the hits per detector over the samples per crossing."""
+    import h5py
+    import resolution_study
+
+    path = tmp_path / "fixed.h5"
+    with h5py.File(path, "w") as out:
+        out["hits"] = np.array([0, 95, 190])  # both detectors: 71.25 samples each on average
+    numbers = resolution_study.crossing_numbers(path, 512, 39 / 60, 19.0)
+    assert numbers["pixel_arcmin"] == pytest.approx(6.87, abs=0.01)
+    assert numbers["crossing_s"] == pytest.approx(0.498, abs=0.002)
+    assert numbers["hwp_turns_per_crossing"] == pytest.approx(0.324, abs=0.002)
+    assert numbers["crossings_per_pixel"] == pytest.approx(71.25 / (19 * 0.498), rel=1e-2)
 
 
 def test_template_vs_duration_merges_parallel_runs(benchmarks, tmp_path, monkeypatch):

@@ -1,15 +1,16 @@
 rule foreground_maps:
-    """Band-integrated (pysm3), beam-smoothed foreground I, Q, U maps of every channel, K_CMB,
-    Galactic; pysm3 d0s0 data if configured, otherwise the embedded offline templates
-    (flagged in the FITS header). No wildcards."""
+    """Band-integrated (pysm3), beam-smoothed foreground I, Q, U maps of one channel, K_CMB,
+    Galactic, at the resolution the TODs scan; pysm3 d0s0 data if configured, otherwise the
+    embedded offline templates (flagged in the FITS header). One job per channel, so that a
+    channel's fixed pass starts as soon as its map exists (~30 s each at nside 512).
+    Wildcards: channel."""
     output:
-        maps=expand(paths.FOREGROUND_MAP, channel=CHANNELS),
+        maps=paths.FOREGROUND_MAP,
     log:
-        paths.log("foreground_maps"),
+        paths.log("foreground_maps", "{channel}"),
     benchmark:
-        paths.benchmark("foreground_maps")
+        paths.benchmark("foreground_maps", "{channel}")
     params:
         config=pass_config(),
-        channels=CHANNELS,
     script:
         "../scripts/foreground_maps.py"
