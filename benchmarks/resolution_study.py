@@ -166,9 +166,14 @@ def plot(table: pd.DataFrame, channels: list[str], path: Path) -> None:
             label=f"Fisher peak shift, {label}",
         )
     right.axhline(PAPER_REQUIREMENT, color="k", lw=1, ls=":", label="Micheli et al. 2024")
+    if not np.isfinite(table["requirement_68_per_k"].to_numpy(float)).any():
+        right.text(0.5, 0.6, "analyses not yet run", transform=right.transAxes, ha="center")
+        right.set_ylim(1e-4, 1e-1)
+    nsides = sorted(table["nside"].unique())
     for axis in (left, right):
         axis.set_xscale("log", base=2)
         axis.set_yscale("log")
+        axis.set_xlim(nsides[0] / 1.4, nsides[-1] * 1.4)
         axis.set_xlabel("nside")
         axis.set_xticks(sorted(table["nside"].unique()))
         axis.get_xaxis().set_major_formatter(matplotlib.ticker.ScalarFormatter())
@@ -196,7 +201,14 @@ def main() -> None:
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--cores", type=int, default=2)
     parser.add_argument("--run", action="store_true", help="run the workflow for each")
+    parser.add_argument(
+        "--replot", action="store_true", help="only redraw the figure from the CSV in --out"
+    )
     arguments = parser.parse_args()
+    if arguments.replot:
+        table = pd.read_csv(arguments.out / "resolution_study.csv")
+        plot(table, arguments.channels, arguments.out / "resolution_study.png")
+        return
     baselines = {"both": [60.0, None], "with": [60.0], "without": [None]}[arguments.baselines]
     rows = []
     for nside in arguments.nsides:
