@@ -26,7 +26,7 @@ def test_whole_workflow_on_tiny_config(tiny_local_run):
         "hwp_power",
         "kw_conversion",
         "tes_response",
-        "foreground_maps/M1-140",
+        "foreground_maps",
         "tod_figures",
         "notch_effect",
         "noise_model",

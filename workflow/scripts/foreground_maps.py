@@ -1,7 +1,7 @@
-"""Rule foreground_maps: the FITS map of one channel."""
+"""Rule foreground_maps: one FITS map per channel."""
 
 from hwp_tes_systematics.io import setup_logging
 from hwp_tes_systematics.stages import foreground_maps
 
 setup_logging(snakemake.log[0])
-foreground_maps.run(snakemake.params.config, [snakemake.wildcards.channel], [snakemake.output.maps])
+foreground_maps.run(snakemake.params.config, snakemake.params.channels, snakemake.output.maps)

@@ -1,8 +1,7 @@
 """Stage: beam-smoothed, band-integrated foreground maps of every channel (FITS, K_CMB).
 
-The foregrounds do not change between realizations, so they are made once per channel
-and read by every job of that channel (the workflow runs one job per channel, so that
-each channel's TOD starts as soon as its map exists; ``run`` takes any list).
+The foregrounds do not change between realizations, so they are made once, in one
+process (pysm3 compiles its kernels once), and read by every (channel, seed) job.
 """
 
 from __future__ import annotations
