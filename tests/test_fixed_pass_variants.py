@@ -14,7 +14,7 @@ import healpy as hp
 import numpy as np
 import pytest
 
-from hwp_tes_systematics import map_domain, sky
+from hwp_tes_systematics import map_domain, sky, tod_maps
 from hwp_tes_systematics.hwpss_removal import offset_residual, remove_hwp_harmonics
 from hwp_tes_systematics.instrument import load_channel
 from hwp_tes_systematics.tod import MissionPlan, PairSimulator
@@ -54,12 +54,17 @@ def passes():
     transfer_alm = map_domain.transfer_cmb_alm(LMAX, 0.0, 7, channel.fwhm_arcmin)
     arguments = (simulator, settings, foreground, transfer_alm, True, LMAX)
     together = map_domain.fixed_passes(*arguments, extra_variants=VARIANTS)
+    tod_maps.NESTED_FROM_NSIDE, ring_from = 1, tod_maps.NESTED_FROM_NSIDE
+    try:  # the same accumulated in NESTED order (what nside >= 256 does)
+        nested = map_domain.fixed_passes(*arguments, extra_variants=VARIANTS)
+    finally:
+        tod_maps.NESTED_FROM_NSIDE = ring_from
     no_baselines = dataclasses.replace(settings, baseline_length_s=None)
     separate = {
         (SCAN_NSIDE, 60.0): map_domain.fixed_pass(*arguments),
         (SCAN_NSIDE, None): map_domain.fixed_pass(simulator, no_baselines, *arguments[2:]),
     }
-    return together, separate
+    return together, separate, nested
 
 
 def assert_same(fixed, reference, label, rtol=1e-9):
@@ -84,8 +89,18 @@ def test_offset_fit_is_the_fit_without_offset_then_the_constant_projected_out():
     np.testing.assert_allclose(split, joint, rtol=0, atol=1e-12)
 
 
+def test_nested_accumulation_gives_the_same_maps_bit_for_bit(passes):
+    """Accumulating in NESTED pixels and reordering to RING at the end changes no number."""
+    together, _, nested = passes
+    for variant, fixed in together.items():
+        for name in (*FIELDS, "condition", "good", "transfer", "noise_shaping"):
+            np.testing.assert_array_equal(
+                getattr(nested[variant], name), getattr(fixed, name), err_msg=f"{variant} {name}"
+            )
+
+
 def test_every_variant_is_there(passes):
-    together, _ = passes
+    together, *_ = passes
     assert set(together) == {(SCAN_NSIDE, 60.0), *VARIANTS}
     for (nside, _), fixed in together.items():
         assert fixed.nosys.shape == (3, hp.nside2npix(nside))
@@ -93,7 +108,7 @@ def test_every_variant_is_there(passes):
 
 
 def test_baseline_variants_equal_their_own_passes(passes):
-    together, separate = passes
+    together, separate, _ = passes
     for variant, reference in separate.items():
         assert_same(together[variant], reference, str(variant))
     # and the two map-makers do differ (the no-baseline one keeps the offsets)
@@ -106,7 +121,7 @@ def test_baseline_variants_equal_their_own_passes(passes):
 def test_coarse_variant_bins_the_same_samples_in_coarser_pixels(passes, baseline):
     """The nside-16 matrix, hits and HWPSS moments are the sums over the four nside-32
     children; its no-systematics map solves the summed equations of the children."""
-    together, _ = passes
+    together, *_ = passes
     fine, coarse = together[(SCAN_NSIDE, baseline)], together[(COARSE_NSIDE, baseline)]
     parent = hp.nest2ring(
         COARSE_NSIDE, hp.ring2nest(SCAN_NSIDE, np.arange(hp.nside2npix(SCAN_NSIDE))) // 4
@@ -136,7 +151,7 @@ def test_coarse_variant_bins_the_same_samples_in_coarser_pixels(passes, baseline
 
 
 def test_map_makers_of_one_resolution_share_one_copy_of_the_moments(passes, tmp_path):
-    together, _ = passes
+    together, *_ = passes
     holder, sharer = together[(SCAN_NSIDE, 60.0)], together[(SCAN_NSIDE, None)]
     attributes = {"detectors": ["a", "b"], "nside": SCAN_NSIDE}
     map_domain.write_fixed_maps(tmp_path / "holder.h5", holder, attributes)
