@@ -19,6 +19,7 @@ from hwp_tes_systematics.config import (
     fixed_pass_nsides,
     fixed_pass_variants,
     map_variant,
+    moments_variant,
     selected_channels,
 )
 from hwp_tes_systematics.systematics import case_names

@@ -48,6 +48,10 @@ BANDS = ((2, 12), (13, 40), (41, 128))
 SPIN_RATE_HZ = 3.0 / 3600  # PTEP: 3 spin rotations per hour (litebird_sim's scanning_parameters)
 SPIN_BORESIGHT_DEG = 50.0  # PTEP: angle between the spin axis and the boresight (MFT/HFT)
 PAPER_REQUIREMENT = 2e-3  # K^-1, Micheli et al. 2024
+CONVENTIONS = (  # (column key, marker, colour, label) of the two delta r conventions
+    ("68", "o", "C0", "68 % point (paper's delta r)"),
+    ("fisher", "s", "C2", "Fisher peak shift"),
+)
 KEPT = ("requirement.json", "delta_r.csv", "spectra/noise_model.csv")
 KEPT += ("spectra/residual_bb_means.csv", "figures/fig8_requirement.png")
 
@@ -147,24 +151,16 @@ def plot(table: pd.DataFrame, channels: list[str], path: Path) -> None:
                         color=colour,
                         label=f"{channel}, ell {first}-{last}, {label}",
                     )
-        right.errorbar(
-            group["nside"],
-            group["requirement_68_per_k"],
-            group["requirement_68_error_per_k"],
-            fmt=styles[baselines] + "o",
-            color="C0",
-            capsize=3,
-            label=f"68 % point (paper's delta r), {label}",
-        )
-        right.errorbar(
-            group["nside"],
-            group["requirement_fisher_per_k"],
-            group["requirement_fisher_error_per_k"],
-            fmt=styles[baselines] + "s",
-            color="C2",
-            capsize=3,
-            label=f"Fisher peak shift, {label}",
-        )
+        for key, marker, colour, convention in CONVENTIONS:
+            right.errorbar(
+                group["nside"],
+                group[f"requirement_{key}_per_k"],
+                group[f"requirement_{key}_error_per_k"],
+                fmt=styles[baselines] + marker,
+                color=colour,
+                capsize=3,
+                label=f"{convention}, {label}",
+            )
     right.axhline(PAPER_REQUIREMENT, color="k", lw=1, ls=":", label="Micheli et al. 2024")
     if not np.isfinite(table["requirement_68_per_k"].to_numpy(float)).any():
         right.text(0.5, 0.6, "analyses not yet run", transform=right.transAxes, ha="center")

@@ -194,6 +194,12 @@ def fixed_pass_variants(config: dict) -> list[tuple[int, float | None]]:
     return [(n, b) for n in nsides for b in fixed_pass_baselines(config)]
 
 
+def moments_variant(config: dict, nside: int) -> str:
+    """The map-maker of a resolution whose fixed pass file holds that resolution's HWPSS
+    moments (its first in :func:`fixed_pass_variants`; the others point to it)."""
+    return map_variant(nside, next(b for n, b in fixed_pass_variants(config) if n == nside))
+
+
 def analysis_variant(config: dict) -> str:
     """The fixed-pass map-maker the analysis reads: maps.nside and maps.baseline_length_s."""
     return map_variant(config["maps"]["nside"], config["maps"]["baseline_length_s"])

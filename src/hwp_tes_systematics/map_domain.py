@@ -551,9 +551,10 @@ def read_fixed_maps(path) -> tuple[FixedMaps, dict]:
             if field.name in stored
         }
     carries = bool(attributes.pop("carries_systematics"))
-    shared = attributes.pop("moments_in", None)
-    if carries and shared is not None:
-        arrays["moments"] = read_fixed_field(Path(path).parent / str(shared), "moments")
+    holder = moments_file(path)
+    attributes.pop("moments_in", None)
+    if carries and holder is not None:
+        arrays["moments"] = read_fixed_field(holder, "moments")
     if not carries:
         n_det = len(attributes["detectors"])
         arrays["template_terms"] = np.zeros((len(TEMPLATE_TERMS), n_det, *arrays["nosys"].shape))

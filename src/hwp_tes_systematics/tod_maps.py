@@ -283,6 +283,7 @@ def accumulate(
     offsets = {primary_offset} | {e.baseline_length_s is not None for e in extra_binnings}
     weights = detector_weights(simulator)
     peak_rss_mb = 0.0
+    unfiltered_noise = None  # the calibration noise before the filter, on its chunks
     for chunk, pointing, inner, signal, hwpss in chunk_tods(simulator, settings, sky_iqu_k, clock):
         calibrating = calibration is not None and calibration.includes(chunk)
         scanned = list(references_iqu_k)
@@ -367,46 +368,48 @@ def accumulate(
         rows = _rows_of(n_terms, n_det, equations.n_tods)
         owners = [None] + [k for _ in range(n_terms) for k in range(n_det)]
         owners += [None] * len(references_iqu_k)
+
+        angles = (
+            pointing.cos_2alpha[:, inner],
+            pointing.sin_2alpha[:, inner],
+            weights,
+            simulator.pol_efficiency,
+        )
         for extra in extra_binnings:
             offset = extra.baseline_length_s is not None
             extra_filtered = notched_of[offset][..., inner]
             if offset:  # a copy: the baselines are removed in place
                 samples = baseline_samples(extra.baseline_length_s, settings.plan.sampling_rate_hz)
                 extra_filtered = remove_baselines(extra_filtered.copy(), samples)
-            extra_args = (
-                pixels_of[extra.nside],
-                pointing.cos_2alpha[:, inner],
-                pointing.sin_2alpha[:, inner],
-                weights,
-                simulator.pol_efficiency,
-            )
             with clock("binning"):
-                extra.equations.add(*extra_args, extra_filtered, owners, rows=rows)
-                if calibrating:
-                    extra.calibration_equations.add(
-                        *extra_args, [*extra_filtered[n_binned:], unfiltered_noise]
-                    )
+                _bin_chunk(
+                    extra.equations,
+                    extra.calibration_equations if calibrating else None,
+                    pixels_of[extra.nside],
+                    angles,
+                    extra_filtered,
+                    (rows, owners, n_binned),
+                    unfiltered_noise,
+                )
             del extra_filtered
         filtered = remove_baselines(notched[..., inner], baseline_samples_of(settings))
         del notched, notched_of
-        binning_args = (
-            pixels_of[settings.nside],
-            pointing.cos_2alpha[:, inner],
-            pointing.sin_2alpha[:, inner],
-            weights,
-            simulator.pol_efficiency,
-        )
         with clock("binning"):
-            equations.add(*binning_args, filtered, owners, rows=rows)
-            if calibrating:
-                calibration.equations.add(*binning_args, [*filtered[n_binned:], unfiltered_noise])
+            _bin_chunk(
+                equations,
+                calibration.equations if calibrating else None,
+                pixels_of[settings.nside],
+                angles,
+                filtered,
+                (rows, owners, n_binned),
+                unfiltered_noise,
+            )
         if demodulated is not None:
             with clock("binning"):
-                cos_2alpha, sin_2alpha = binning_args[1:3]
                 demodulated.add(
                     pointing.pixels[:, inner],
-                    cos_2alpha,
-                    sin_2alpha,
+                    pointing.cos_2alpha[:, inner],
+                    pointing.sin_2alpha[:, inner],
                     pointing.hwp_angle_rad[inner],
                     weights,
                     simulator.pol_efficiency,
@@ -430,6 +433,18 @@ def accumulate(
         clock.summary(settings.plan.n_samples * n_det),
     )
     return equations
+
+
+def _bin_chunk(target, calibration_target, pixels, angles, filtered, binned, noise):
+    """Bin a chunk's filtered TOD stack at ``pixels`` into ``target`` and, when
+    ``calibration_target`` is given, the stack's rows after its ``n_binned`` first (the
+    calibration TODs) with the unfiltered ``noise`` into it. ``binned``: (rows, owners,
+    n_binned), TOD i of ``target`` being row ``rows[i]`` (detector ``owners[i]`` only
+    unless None); ``angles``: (cos 2 alpha, sin 2 alpha, weights, pol_efficiency)."""
+    rows, owners, n_binned = binned
+    target.add(pixels, *angles, filtered, owners, rows=rows)
+    if calibration_target is not None:
+        calibration_target.add(pixels, *angles, [*filtered[n_binned:], noise])
 
 
 def _nest_to_ring(equations, moments, calibration, extra_binnings) -> None:

@@ -52,25 +52,28 @@ def analysis_fixed_pass(channel="{channel}"):
     return paths.FIXED_PASS.format(channel=channel, variant=ANALYSIS_VARIANT)
 
 
-def analysis_fixed_pass_files(channel="{channel}"):
-    """The analysis's fixed pass file and the one of its resolution that holds the HWPSS
-    moments (the same file when the analysis's map-maker is the resolution's first)."""
-    nside = config["maps"]["nside"]
-    holder = next(b for n, b in fixed_pass_variants(config) if n == nside)
-    files = [analysis_fixed_pass(channel)]
-    files.append(
-        paths.FIXED_PASS.format(channel=channel, variant=map_variant(nside, holder))
+def shared_moments_file(channel="{channel}"):
+    """[the fixed pass file that holds the HWPSS moments of the analysis's resolution], or
+    [] when the analysis's own file holds them."""
+    holder = paths.FIXED_PASS.format(
+        channel=channel, variant=moments_variant(config, config["maps"]["nside"])
     )
-    return sorted(set(files), key=files.index)
+    return [] if holder == analysis_fixed_pass(channel) else [holder]
+
+
+def chunk_samples():
+    """Samples of one detector in a chunk, at the PTEP rate (31 Hz, an upper bound)."""
+    return 31.0 * min(
+        config["simulation"]["chunk_duration_s"],
+        config["simulation"]["duration_days"] * 86400.0,
+    )
 
 
 def pair_maps_mem_mb(wildcards, attempt):
     """Memory of one (channel, seed) job: one chunk of TOD and pointing, plus the maps."""
-    samples = 31.0 * min(
-        config["simulation"]["chunk_duration_s"],
-        config["simulation"]["duration_days"] * 86400.0,
-    )
-    chunk_mb = 2 * samples * 8 * 40 / 2**20  # ~40 doubles per detector-sample in flight
+    chunk_mb = (
+        2 * chunk_samples() * 8 * 40 / 2**20
+    )  # ~40 doubles per detector-sample in flight
     maps_mb = 12 * config["maps"]["nside"] ** 2 * 8 * 20 / 2**20
     return int(1500 + chunk_mb + maps_mb) * attempt
 
@@ -79,13 +82,8 @@ def fixed_pass_mem_mb(wildcards, attempt):
     """Memory of one fixed pass: a chunk in flight (x 2 with both baseline settings) and,
     per map-maker, its equations (~16 maps), moments and calibration (~40 doubles per
     pixel in all), solved at the end (x 2)."""
-    samples = 31.0 * min(
-        config["simulation"]["chunk_duration_s"],
-        config["simulation"]["duration_days"] * 86400.0,
-    )
-    chunk_mb = (
-        2 * samples * 8 * 40 * len(set(b is None for b in fixed_pass_baselines(config)))
-    )
+    offsets = len(set(b is None for b in fixed_pass_baselines(config)))
+    chunk_mb = 2 * chunk_samples() * 8 * 40 * offsets
     pixels = sum(12 * nside**2 for nside, _ in fixed_pass_variants(config))
     return int(1500 + chunk_mb / 2**20 + 2 * pixels * 40 * 8 / 2**20) * attempt
 

@@ -71,7 +71,7 @@ else:
         Wildcards: channel."""
         input:
             fixed=analysis_fixed_pass(),
-            shared_moments=analysis_fixed_pass_files()[1:],
+            shared_moments=shared_moments_file(),
             mask=paths.ANALYSIS_MASK,
         output:
             alms=expand(paths.CHANNEL_ALMS, seed=SEEDS, allow_missing=True),

@@ -78,9 +78,6 @@ def run_fixed_pass(
         extra_variants=extra_variants,
     )
     source = sky.read_sky_header(foreground_fits).get("FGSOURCE", "unknown")
-    holders = {}  # the map-maker of each resolution whose file holds its HWPSS moments
-    for nside, baseline in variants:
-        holders.setdefault(nside, baseline)
     for (nside, baseline), fixed in passes.items():
         variant_settings = dataclasses.replace(settings, nside=nside, baseline_length_s=baseline)
         attributes = maps_attributes(variant_settings, simulator, fixed.good.mean())
@@ -88,7 +85,7 @@ def run_fixed_pass(
         attributes["scan_nside"] = scan_nside
         del attributes["seed"]
         out_h5 = out_h5s[cfg.map_variant(nside, baseline)]
-        holder = Path(out_h5s[cfg.map_variant(nside, holders[nside])]).name
+        holder = Path(out_h5s[cfg.moments_variant(config, nside)]).name
         shared = None if holder == Path(out_h5).name else holder
         map_domain.write_fixed_maps(out_h5, fixed, attributes, moments_in=shared)
         log.info(
