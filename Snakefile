@@ -22,7 +22,7 @@ from hwp_tes_systematics.config import (
     moments_variant,
     selected_channels,
 )
-from hwp_tes_systematics.systematics import case_names
+from hwp_tes_systematics.analysis.systematics import case_names
 
 check_config(config, source="Snakemake config")
 

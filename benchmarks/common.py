@@ -8,11 +8,11 @@ import time
 import numpy as np
 
 from hwp_tes_systematics import sky
-from hwp_tes_systematics.instrument import load_channel
+from hwp_tes_systematics.instrument.channels import load_channel
 from hwp_tes_systematics.io import use_threads
+from hwp_tes_systematics.simulation.tod import MissionPlan, PairSimulator
+from hwp_tes_systematics.simulation.tod_maps import PairMapSettings, accumulate
 from hwp_tes_systematics.timing import StageClock
-from hwp_tes_systematics.tod import MissionPlan, PairSimulator
-from hwp_tes_systematics.tod_maps import PairMapSettings, accumulate
 
 MASTER_SEED, SEED = 1, 0
 START_TDB = "2032-04-01T00:00:00"

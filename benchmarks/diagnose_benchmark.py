@@ -12,7 +12,7 @@ detector-samples per second and the peak resident memory. Target: a one-day reco
 
 Rates (``--rates``): recordings of a pair (``--channel``, default M1-140), each with RANDOM
 nominal errors (their spreads times ``--error-scale``, default 1)
-(tests/test_diagnose_support.nominal_errors: A_2 ~3 %, 2f phase ~1 deg, gain ~1 %,
+(hwp_tes_systematics.diagnose.testbed.nominal_errors: A_2 ~3 %, 2f phase ~1 deg, gain ~1 %,
 polarisation angle ~0.5 deg, offsets, noise level ~10 %, knee ~30 %, the supplied sky
 rescaled ~5 % plus a residual map) and its own noise seed: ``--clean`` clean ones (false
 alarms: ``mismatch_found``), each catalog effect at three amplitudes from barely
@@ -257,8 +257,7 @@ def _tally(counts: dict, key: str, **increments) -> None:
 def rates(arguments) -> dict:
     """Many recordings with random nominal errors: the counts behind the rates (module
     docstring), printed as they come and returned (``--out`` writes them as JSON)."""
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
-    import test_diagnose_support as support
+    from hwp_tes_systematics.diagnose import testbed as support
 
     hours, n_seeds = arguments.hours, arguments.seeds
     started = time.perf_counter()

@@ -27,13 +27,13 @@ import time
 import healpy as hp
 import numpy as np
 
-from hwp_tes_systematics import map_domain
+from hwp_tes_systematics.analysis.ilc_residuals import ChannelAlms, HarmonicSettings
 from hwp_tes_systematics.config import deep_merge, default_config_path, load_config
-from hwp_tes_systematics.ilc_residuals import ChannelAlms, HarmonicSettings
-from hwp_tes_systematics.instrument import load_channel
-from hwp_tes_systematics.mapmaking import MATRIX_ENTRIES
-from hwp_tes_systematics.tod import MissionPlan, PairSimulator
-from hwp_tes_systematics.tod_maps import PairMapSettings
+from hwp_tes_systematics.instrument.channels import load_channel
+from hwp_tes_systematics.simulation import map_domain
+from hwp_tes_systematics.simulation.mapmaking import MATRIX_ENTRIES
+from hwp_tes_systematics.simulation.tod import MissionPlan, PairSimulator
+from hwp_tes_systematics.simulation.tod_maps import PairMapSettings
 
 CHANNELS = {"M1-140": (True, 10), "L1-040": (False, 12)}  # (systematics, channels like it)
 YEAR_DAYS = 365.25

@@ -35,8 +35,8 @@ import numpy as np
 import pandas as pd
 
 from hwp_tes_systematics.config import analysis_variant, load_config
-from hwp_tes_systematics.map_domain import ChannelSeeds
-from hwp_tes_systematics.maps_file import read_channel_maps
+from hwp_tes_systematics.simulation.map_domain import ChannelSeeds
+from hwp_tes_systematics.simulation.maps_file import read_channel_maps
 
 ELL_BANDS = ((2, 12), (12, 40), (40, 80), (80, 129))
 

@@ -28,11 +28,11 @@ import healpy as hp
 import numpy as np
 
 from hwp_tes_systematics import config as cfg
+from hwp_tes_systematics.analysis.ilc_residuals import SeedMaps
+from hwp_tes_systematics.analysis.systematics import case_names
 from hwp_tes_systematics.config import deep_merge, load_config
-from hwp_tes_systematics.ilc_residuals import SeedMaps
-from hwp_tes_systematics.maps_file import write_channel_maps
-from hwp_tes_systematics.systematics import case_names
-from hwp_tes_systematics.tod_maps import templates_from_terms
+from hwp_tes_systematics.simulation.maps_file import write_channel_maps
+from hwp_tes_systematics.simulation.tod_maps import templates_from_terms
 
 
 def synthetic_maps(config: dict, folder: Path) -> dict[str, str]:

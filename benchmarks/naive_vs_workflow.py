@@ -28,13 +28,13 @@ import numpy as np
 from common import MASTER_SEED, SEED, pair_setup, peak_rss_mb, timed_accumulate
 
 from hwp_tes_systematics import seeding
-from hwp_tes_systematics.instrument import load_channel
-from hwp_tes_systematics.mapmaking import solve_maps
-from hwp_tes_systematics.notch import chunk_span
-from hwp_tes_systematics.systematics import maps_for_sigma, unit_g1_draws
+from hwp_tes_systematics.analysis.systematics import maps_for_sigma, unit_g1_draws
+from hwp_tes_systematics.instrument.channels import load_channel
+from hwp_tes_systematics.simulation.mapmaking import solve_maps
+from hwp_tes_systematics.simulation.notch import chunk_span
+from hwp_tes_systematics.simulation.tod import NOISE_MODELS
+from hwp_tes_systematics.simulation.tod_maps import filter_tod, split_solved_maps
 from hwp_tes_systematics.timing import StageClock
-from hwp_tes_systematics.tod import NOISE_MODELS
-from hwp_tes_systematics.tod_maps import filter_tod, split_solved_maps
 
 
 def setup(arguments, duration_s):

@@ -41,8 +41,8 @@ import numpy as np
 import pandas as pd
 
 from hwp_tes_systematics import config as cfg
-from hwp_tes_systematics.map_domain import ChannelSeeds, read_fixed_field
-from hwp_tes_systematics.spectra import pseudo_spectra
+from hwp_tes_systematics.analysis.spectra import pseudo_spectra
+from hwp_tes_systematics.simulation.map_domain import ChannelSeeds, read_fixed_field
 
 BANDS = ((2, 12), (13, 40), (41, 128))
 SPIN_RATE_HZ = 3.0 / 3600  # PTEP: 3 spin rotations per hour (litebird_sim's scanning_parameters)

@@ -21,12 +21,16 @@ import time
 import healpy as hp
 import numpy as np
 
-from hwp_tes_systematics import map_domain
-from hwp_tes_systematics.channel_inputs import channel_a2_k_cmb, channel_sky
 from hwp_tes_systematics.config import default_config_path, load_config
-from hwp_tes_systematics.instrument import load_channel
-from hwp_tes_systematics.tod import MissionPlan, PairSimulator
-from hwp_tes_systematics.tod_maps import TEMPLATE_TERMS, PairMapSettings, templates_from_terms
+from hwp_tes_systematics.instrument.channel_inputs import channel_a2_k_cmb, channel_sky
+from hwp_tes_systematics.instrument.channels import load_channel
+from hwp_tes_systematics.simulation import map_domain
+from hwp_tes_systematics.simulation.tod import MissionPlan, PairSimulator
+from hwp_tes_systematics.simulation.tod_maps import (
+    TEMPLATE_TERMS,
+    PairMapSettings,
+    templates_from_terms,
+)
 
 NSIDE = 64
 LMAX = 3 * NSIDE - 1

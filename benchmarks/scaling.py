@@ -45,7 +45,7 @@ def measure(channel, days, nside, threads):
 
 def paper_grid_detector_samples(seeds: int = 100) -> float:
     """Detector-samples of the paper's grid: 22 channels x seeds x one year x 2 detectors."""
-    from hwp_tes_systematics.instrument import all_channel_names, load_channel
+    from hwp_tes_systematics.instrument.channels import all_channel_names, load_channel
 
     per_seed = sum(
         load_channel(name).sampling_rate_hz * YEAR_DAYS * 86400.0 * 2

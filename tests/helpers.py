@@ -1,5 +1,7 @@
-"""Helpers for the rule-level tests: a copy of the workflow in a temp dir, and a runner."""
+"""Helpers of the tests: a copy of the workflow in a temp dir, the Snakemake runner and the
+command-line runner."""
 
+import functools
 import shutil
 import subprocess
 import sys
@@ -26,3 +28,55 @@ def snakemake(workdir, *targets, extra=()):
         capture_output=True,
         text=True,
     )
+
+
+def run_cli(cwd, *arguments) -> subprocess.CompletedProcess:
+    """``python -m hwp_tes_systematics ARGUMENTS`` run in the folder ``cwd``."""
+    return subprocess.run(
+        [sys.executable, "-m", "hwp_tes_systematics", *map(str, arguments)],
+        cwd=cwd,
+        check=False,
+        capture_output=True,
+        text=True,
+    )
+
+
+@functools.cache
+def m1_140_a2_k() -> float:
+    """M1-140's nominal HWPSS amplitude A_2 [K_CMB] from the default configuration's optics."""
+    from hwp_tes_systematics.config import default_config_path, load_config
+    from hwp_tes_systematics.instrument.channel_inputs import channel_a2_k_cmb
+
+    return channel_a2_k_cmb(load_config(default_config_path()), "M1-140")
+
+
+def m1_140_pair(duration_s, chunk_s, nside, rate_hz=None, noise_model="toast"):
+    """The M1-140 detector pair's simulator from 2032-04-01 over ``duration_s`` in chunks of
+    ``chunk_s`` at ``rate_hz`` (default the instrument model's) and ``nside``."""
+    from hwp_tes_systematics.instrument import load_channel
+    from hwp_tes_systematics.simulation.tod import MissionPlan, PairSimulator
+
+    channel = load_channel("M1-140")
+    plan = MissionPlan(
+        "2032-04-01T00:00:00", duration_s, chunk_s, rate_hz or channel.sampling_rate_hz
+    )
+    return PairSimulator(channel, plan, nside, noise_model=noise_model)
+
+
+def pipeline_settings(simulator, **changes):
+    """The map-making settings of config/one_year.yaml for ``simulator`` (the paper's notch
+    with 1200 s margins, 60 s baselines, M1-140's A_2), with ``changes``."""
+    from hwp_tes_systematics.simulation.tod_maps import PairMapSettings
+
+    values = {
+        "master_seed": 7,
+        "seed": 0,
+        "nside": simulator.nside,
+        "plan": simulator.plan,
+        "a2_k_cmb": m1_140_a2_k(),
+        "notch_width_divisor": 100.0,
+        "notch_margin_s": 1200.0,
+        "max_condition_number": 100.0,
+        "baseline_length_s": 60.0,
+    }
+    return PairMapSettings(**(values | changes))

@@ -3,13 +3,12 @@
 import healpy as hp
 import numpy as np
 import pytest
+from helpers import m1_140_pair
 
-from hwp_tes_systematics.baselines import baseline_samples, remove_baselines
-from hwp_tes_systematics.instrument import load_channel
-from hwp_tes_systematics.mapmaking import NormalEquations, solve_maps
-from hwp_tes_systematics.notch import chunk_span
-from hwp_tes_systematics.tod import MissionPlan, PairSimulator
-from hwp_tes_systematics.tod_maps import PairMapSettings, detector_weights, filter_tod
+from hwp_tes_systematics.simulation.baselines import baseline_samples, remove_baselines
+from hwp_tes_systematics.simulation.mapmaking import NormalEquations, solve_maps
+from hwp_tes_systematics.simulation.notch import chunk_span
+from hwp_tes_systematics.simulation.tod_maps import PairMapSettings, detector_weights, filter_tod
 
 NSIDE = 16
 OFFSETS_K = np.array([1.0, -0.5])  # a different offset in each detector of the pair
@@ -30,9 +29,7 @@ def test_remove_baselines_is_linear_and_exact_on_constants():
 
 @pytest.fixture(scope="module")
 def pair():
-    channel = load_channel("M1-140")
-    plan = MissionPlan("2032-04-01T00:00:00", 3600.0, 3600.0, channel.sampling_rate_hz)
-    return PairSimulator(channel, plan, NSIDE)
+    return m1_140_pair(3600.0, 3600.0, NSIDE)
 
 
 def binned_maps(simulator, tod_of_pointing, baseline_length_s, notch=True):
@@ -70,6 +67,7 @@ def binned_maps(simulator, tod_of_pointing, baseline_length_s, notch=True):
     return maps[0], good
 
 
+@pytest.mark.slow
 def test_offsets_leave_no_polarisation(pair):
     """A pure per-detector offset: Q/U < 1e-8 of it with baselines; the paper-literal
     path (no baselines) leaks it at the per-cent level in a one-hour map."""
@@ -84,6 +82,7 @@ def test_offsets_leave_no_polarisation(pair):
     assert np.abs(literal[1:, good]).max() > 1e-3 * np.abs(OFFSETS_K).max()
 
 
+@pytest.mark.slow
 def test_polarised_sky_survives_baselines(pair):
     """A noise-free polarised sky (no notch): Q/U after 1-minute baselines equal the input
     to 1e-3 of its amplitude."""

@@ -150,9 +150,9 @@ def test_naive_litebird_sim_path_equals_workflow_maps(benchmarks):
     import naive_vs_workflow as bench
     from common import timed_accumulate
 
-    from hwp_tes_systematics.mapmaking import solve_maps
-    from hwp_tes_systematics.systematics import maps_for_sigma
-    from hwp_tes_systematics.tod_maps import split_solved_maps
+    from hwp_tes_systematics.analysis.systematics import maps_for_sigma
+    from hwp_tes_systematics.simulation.mapmaking import solve_maps
+    from hwp_tes_systematics.simulation.tod_maps import split_solved_maps
 
     arguments = Namespace(channel="M1-140", nside=16, threads=1, noise="keshner")
     simulator, settings, sky_map, draws = bench.setup(arguments, 900.0)

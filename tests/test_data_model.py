@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from hwp_tes_systematics import data_model
+from hwp_tes_systematics.simulation import data_model
 
 
 def test_hwpss_with_a_phase_is_add_2f_at_a_shifted_offset():

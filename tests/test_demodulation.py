@@ -5,13 +5,16 @@ the offset leakage of the binned solve absent."""
 import healpy as hp
 import numpy as np
 import pytest
+from helpers import m1_140_pair
 
-from hwp_tes_systematics.demodulation import DemodulatedEquations, demodulate, lowpass_transfer
-from hwp_tes_systematics.instrument import load_channel
-from hwp_tes_systematics.mapmaking import NormalEquations, solve_maps
-from hwp_tes_systematics.notch import chunk_span
-from hwp_tes_systematics.tod import MissionPlan, PairSimulator
-from hwp_tes_systematics.tod_maps import (
+from hwp_tes_systematics.simulation.demodulation import (
+    DemodulatedEquations,
+    demodulate,
+    lowpass_transfer,
+)
+from hwp_tes_systematics.simulation.mapmaking import NormalEquations, solve_maps
+from hwp_tes_systematics.simulation.notch import chunk_span
+from hwp_tes_systematics.simulation.tod_maps import (
     PairMapSettings,
     accumulate,
     detector_weights,
@@ -44,9 +47,7 @@ def test_demodulated_streams_of_a_modulated_signal():
 
 @pytest.fixture(scope="module")
 def pair():
-    channel = load_channel("M1-140")
-    plan = MissionPlan("2032-04-01T00:00:00", 3 * 3600.0, 3 * 3600.0, channel.sampling_rate_hz)
-    return PairSimulator(channel, plan, NSIDE)
+    return m1_140_pair(3 * 3600.0, 3 * 3600.0, NSIDE)
 
 
 def demodulated_map(pair, sky):
@@ -79,6 +80,7 @@ def demodulated_map(pair, sky):
     return equations.solve()[0], equations.hits > 0, binned_maps[0], good
 
 
+@pytest.mark.slow
 def test_demodulation_recovers_a_noise_free_polarised_sky(pair):
     """A uniform polarised sky comes back exactly (the algebra of the module docstring);
     a smooth one (20 deg FWHM) within 4 % rms of its Q/U (measured 1.6 %: the TOD of
@@ -100,6 +102,7 @@ def test_demodulation_recovers_a_noise_free_polarised_sky(pair):
     np.testing.assert_allclose(binned[1:, good], smooth[1:, good], atol=1e-12)
 
 
+@pytest.mark.slow
 def test_demodulation_removes_the_offset_leakage_of_the_binned_solve(pair):
     """On the paper-literal path (no baselines) the h^2 term of the nonlinearity
     (a per-detector DC term A_2^2 / 2 and a 4f line) leaks into the binned Q/U through

@@ -9,7 +9,8 @@ target rate is far below 5 %; the test allows at most 1 in 20 recordings of 30 m
 from __future__ import annotations
 
 import pytest
-from test_diagnose_support import names, recorded, run
+
+from hwp_tes_systematics.diagnose.testbed import names, recorded, run
 
 pytestmark = pytest.mark.slow
 

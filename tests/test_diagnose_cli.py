@@ -4,27 +4,20 @@ Run from a temporary folder, not the repository: the embedded default configurat
 its HWP curve tables come with the package."""
 
 import json
-import subprocess
-import sys
 
 import pytest
-from test_diagnose_support import A2_K, CHANNEL, MASTER_SEED, sky_map
+from helpers import run_cli
 
 from hwp_tes_systematics import sky
 from hwp_tes_systematics.diagnose import simulate_recording, write_recording
+from hwp_tes_systematics.diagnose.testbed import A2_K, CHANNEL, MASTER_SEED, sky_map
 
 pytestmark = pytest.mark.slow
 
 
 def cli(cwd, *arguments):
     """``python -m hwp_tes_systematics diagnose ARGUMENTS`` run in the folder ``cwd``."""
-    return subprocess.run(
-        [sys.executable, "-m", "hwp_tes_systematics", "diagnose", *map(str, arguments)],
-        cwd=cwd,
-        check=False,
-        capture_output=True,
-        text=True,
-    )
+    return run_cli(cwd, "diagnose", *arguments)
 
 
 def test_cli_finds_an_untold_nonlinearity(tmp_path):

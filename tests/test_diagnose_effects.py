@@ -15,7 +15,17 @@ import math
 
 import numpy as np
 import pytest
-from test_diagnose_support import A2_K, KELVIN_PER_WATT, P0_W, names, parameter, recorded, run
+
+from hwp_tes_systematics.diagnose.testbed import (
+    A2_K,
+    KELVIN_PER_WATT,
+    P0_W,
+    adjustment,
+    names,
+    parameter,
+    recorded,
+    run,
+)
 
 pytestmark = pytest.mark.slow
 
@@ -54,11 +64,6 @@ GLITCHES = [
     (1, 2000.0, 6e-3, 0.2),
     (1, 3500.0, 2.5e-3, 0.1),
 ]
-
-
-def adjustment(result, detector: int, name: str) -> dict:
-    det = result["recording"]["detectors"][detector]
-    return result["nominal_adjustments"][det][name]
 
 
 def check_parameters(result, effect, truths):
@@ -206,7 +211,7 @@ def test_harmonics_and_glitches_both_found(tmp_path):
 
 def test_electrothermal_tes_is_diagnosed_as_nonlinearity(tmp_path):
     """A recording whose nonlinearity comes from the TES model, not from a polynomial."""
-    from hwp_tes_systematics import tes
+    from hwp_tes_systematics.instrument import tes
 
     recording, _ = recorded(
         tmp_path,

@@ -7,7 +7,6 @@ import shutil
 import h5py
 import numpy as np
 import pytest
-from test_diagnose_support import A2_K, CHANNEL, MASTER_SEED, names, recorded, run, sky_map
 
 from hwp_tes_systematics.diagnose import (
     RecordingError,
@@ -17,6 +16,15 @@ from hwp_tes_systematics.diagnose import (
     write_recording,
 )
 from hwp_tes_systematics.diagnose.model import SkyMapError
+from hwp_tes_systematics.diagnose.testbed import (
+    A2_K,
+    CHANNEL,
+    MASTER_SEED,
+    names,
+    recorded,
+    run,
+    sky_map,
+)
 
 pytestmark = pytest.mark.slow
 

@@ -15,8 +15,11 @@ import math
 
 import numpy as np
 import pytest
-from test_diagnose_support import (
+
+from hwp_tes_systematics.diagnose import diagnose
+from hwp_tes_systematics.diagnose.testbed import (
     A2_K,
+    adjustment,
     names,
     nominal_errors,
     parameter,
@@ -24,17 +27,11 @@ from test_diagnose_support import (
     supplied_sky,
 )
 
-from hwp_tes_systematics.diagnose import diagnose
-
 pytestmark = pytest.mark.slow
 
 
 def run_with(recording, errors, **kwargs):
     return diagnose(recording, supplied_sky(errors), A2_K, figures=False, **kwargs)
-
-
-def adjustment(result, detector: int, name: str) -> dict:
-    return result["nominal_adjustments"][result["recording"]["detectors"][detector]][name]
 
 
 def within(entry, truth, n_sigma=3.0, floor=0.0):

@@ -13,18 +13,16 @@ import dataclasses
 import healpy as hp
 import numpy as np
 import pytest
+from helpers import m1_140_pair, pipeline_settings
 
-from hwp_tes_systematics import map_domain, sky, tod_maps
-from hwp_tes_systematics.hwpss_removal import offset_residual, remove_hwp_harmonics
-from hwp_tes_systematics.instrument import load_channel
-from hwp_tes_systematics.tod import MissionPlan, PairSimulator
-from hwp_tes_systematics.tod_maps import PairMapSettings
+from hwp_tes_systematics import sky
+from hwp_tes_systematics.simulation import map_domain, tod_maps
+from hwp_tes_systematics.simulation.hwpss_removal import offset_residual, remove_hwp_harmonics
 
 pytestmark = pytest.mark.slow
 
 SCAN_NSIDE, COARSE_NSIDE = 32, 16
 LMAX = 3 * SCAN_NSIDE - 1
-A2_K_CMB = 0.264  # M1-140, default optics
 VARIANTS = [(COARSE_NSIDE, 60.0), (SCAN_NSIDE, None), (COARSE_NSIDE, None)]
 FIELDS = ("nosys", "template_terms", "foreground_reference", "matrix", "moments", "hits")
 
@@ -32,21 +30,9 @@ FIELDS = ("nosys", "template_terms", "foreground_reference", "matrix", "moments"
 @pytest.fixture(scope="module")
 def passes():
     """({variant: FixedMaps} of one pass, {variant: FixedMaps} of separate passes)."""
-    channel = load_channel("M1-140")
-    plan = MissionPlan("2032-04-01T00:00:00", 6 * 3600.0, 3 * 3600.0, 19.0)
-    settings = PairMapSettings(
-        master_seed=7,
-        seed=map_domain.NOISE_REFERENCE_SEED,
-        nside=SCAN_NSIDE,
-        plan=plan,
-        a2_k_cmb=A2_K_CMB,
-        notch_width_divisor=100.0,
-        notch_margin_s=1200.0,
-        max_condition_number=100.0,
-        noise_scale=0.0,
-        baseline_length_s=60.0,
-    )
-    simulator = PairSimulator(channel, plan, SCAN_NSIDE, noise_model="keshner")
+    simulator = m1_140_pair(6 * 3600.0, 3 * 3600.0, SCAN_NSIDE, 19.0, noise_model="keshner")
+    channel = simulator.channel
+    settings = pipeline_settings(simulator, seed=map_domain.NOISE_REFERENCE_SEED, noise_scale=0.0)
     cls = np.zeros((4, LMAX + 1))
     cls[:3, 2:] = 1e-9 * (np.arange(2, LMAX + 1) / 10.0) ** -2.5
     foreground = hp.alm2map(sky.gaussian_alm(cls, LMAX, np.random.default_rng(3)), SCAN_NSIDE)

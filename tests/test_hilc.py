@@ -6,7 +6,7 @@ import healpy as hp
 import numpy as np
 import pytest
 
-from hwp_tes_systematics import hilc, spectra
+from hwp_tes_systematics.analysis import hilc, spectra
 
 LMAX = 95  # nside 32
 
@@ -331,7 +331,7 @@ def test_map_level_pipeline_with_beams_mask_and_unseen():
 
 
 def test_low_ell_bins_are_merged_until_enough_modes():
-    from hwp_tes_systematics.hilc import merge_bins_for_modes, multipole_bins
+    from hwp_tes_systematics.analysis.hilc import merge_bins_for_modes, multipole_bins
 
     bins = multipole_bins(2, 128, 10)
     merged = merge_bins_for_modes(bins, fsky=0.1, n_channels=22, min_modes_per_channel=10)

@@ -5,7 +5,8 @@ import pandas as pd
 import pytest
 from scipy.constants import k
 
-from hwp_tes_systematics.hwp_power import (
+from hwp_tes_systematics.instrument.channels import Channel
+from hwp_tes_systematics.instrument.hwp_power import (
     HwpCurveError,
     HwpCurves,
     OpticalElement,
@@ -14,7 +15,6 @@ from hwp_tes_systematics.hwp_power import (
     hwp_power_for_channel,
     read_hwp_curves,
 )
-from hwp_tes_systematics.instrument import Channel
 
 HEADER = (
     "freq_ghz,absorption_capacitive,absorption_inductive,transmission_capacitive,"

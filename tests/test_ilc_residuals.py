@@ -6,14 +6,15 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from hwp_tes_systematics import hilc, requirement, sky
+from hwp_tes_systematics import sky
+from hwp_tes_systematics.analysis import hilc, requirement
+from hwp_tes_systematics.analysis.ilc_residuals import SeedMaps, systematic_bb, unit_beam_spectra
+from hwp_tes_systematics.analysis.likelihood import BBModel, fisher_bias, fit_r
+from hwp_tes_systematics.analysis.systematics import case_names, maps_for_sigma
 from hwp_tes_systematics.config import deep_merge, load_config
-from hwp_tes_systematics.ilc_residuals import SeedMaps, systematic_bb, unit_beam_spectra
-from hwp_tes_systematics.likelihood import BBModel, fisher_bias, fit_r
-from hwp_tes_systematics.maps_file import read_channel_maps
+from hwp_tes_systematics.simulation.maps_file import read_channel_maps
+from hwp_tes_systematics.simulation.tod_maps import templates_from_terms
 from hwp_tes_systematics.stages import component_separation
-from hwp_tes_systematics.systematics import case_names, maps_for_sigma
-from hwp_tes_systematics.tod_maps import templates_from_terms
 
 NSIDE = 16
 CHANNELS = {"L1-040": 0.0, "M1-140": 0.26}  # channel: A_2 [K_CMB]

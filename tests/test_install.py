@@ -11,6 +11,8 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
+from helpers import run_cli
 
 from hwp_tes_systematics.config import (
     data_path,
@@ -19,22 +21,11 @@ from hwp_tes_systematics.config import (
     resolve_path,
     telescope_optics,
 )
-from hwp_tes_systematics.hwp_power import read_hwp_curves
+from hwp_tes_systematics.instrument.hwp_power import read_hwp_curves
 
 # Files of config/ that the package ships, under the same relative paths below data/.
 SHIPPED = ["config/config.yaml", "config/hwp/mft_hwp_curves.csv", "config/hwp/hft_hwp_curves.csv"]
 PACKAGE_DATA = Path("src/hwp_tes_systematics/data")
-
-
-def run_cli(cwd: Path, *arguments) -> subprocess.CompletedProcess:
-    """``python -m hwp_tes_systematics ARGUMENTS`` run in the folder ``cwd``."""
-    return subprocess.run(
-        [sys.executable, "-m", "hwp_tes_systematics", *map(str, arguments)],
-        cwd=cwd,
-        check=False,
-        capture_output=True,
-        text=True,
-    )
 
 
 def test_package_data_are_symlinks_to_the_repository_config(repo):
@@ -88,6 +79,7 @@ def test_cli_help_from_another_folder(tmp_path):
     assert "embedded default" in result.stdout
 
 
+@pytest.mark.slow
 def test_cli_merges_config_over_the_shipped_default_from_another_folder(tmp_path):
     """From a folder without config/, the default is found and --config merged over it."""
     (tmp_path / "cold_tc.yaml").write_text("tes:\n  tc_k: 0.05\n")

@@ -4,9 +4,9 @@ Fisher, delta r ~ sigma^2 on synthetic residual spectra, grids, bad inputs, Fig.
 import numpy as np
 import pytest
 
-from hwp_tes_systematics import likelihood as lk
+from hwp_tes_systematics.analysis import likelihood as lk
+from hwp_tes_systematics.analysis.requirement import fit_power_law, fit_quadratic
 from hwp_tes_systematics.figures.results import plot_likelihoods, sigma_label
-from hwp_tes_systematics.requirement import fit_power_law, fit_quadratic
 
 LMAX = 200
 F_SKY = 0.5

@@ -11,39 +11,28 @@ import dataclasses
 import healpy as hp
 import numpy as np
 import pytest
+from helpers import m1_140_a2_k, m1_140_pair, pipeline_settings
 
-from hwp_tes_systematics import map_domain, seeding, sky
-from hwp_tes_systematics.instrument import load_channel
-from hwp_tes_systematics.map_domain import shaped_noise_map
-from hwp_tes_systematics.mapmaking import solve_maps
-from hwp_tes_systematics.tod import MissionPlan, PairSimulator
-from hwp_tes_systematics.tod_maps import PairMapSettings, accumulate, split_solved_maps
+from hwp_tes_systematics import seeding, sky
+from hwp_tes_systematics.instrument.channels import load_channel
+from hwp_tes_systematics.simulation import map_domain
+from hwp_tes_systematics.simulation.map_domain import shaped_noise_map
+from hwp_tes_systematics.simulation.mapmaking import solve_maps
+from hwp_tes_systematics.simulation.tod import MissionPlan, PairSimulator
+from hwp_tes_systematics.simulation.tod_maps import PairMapSettings, accumulate, split_solved_maps
 
 NSIDE = 32
 LMAX = 3 * NSIDE - 1
 MASTER_SEED = 7
-A2_K_CMB = 0.264  # M1-140, default optics
+A2_K_CMB = m1_140_a2_k()
 NOISE_SCALE = 0.2
 SEEDS = (0, 1, 2)
 
 
 def fixed_pass_inputs():
     """(simulator, settings, foreground) of the M1-140 pair, one day at 19 Hz."""
-    channel = load_channel("M1-140")
-    plan = MissionPlan("2032-04-01T00:00:00", 86400.0, 86400.0, 19.0)
-    settings = PairMapSettings(
-        master_seed=MASTER_SEED,
-        seed=0,
-        nside=NSIDE,
-        plan=plan,
-        a2_k_cmb=A2_K_CMB,
-        notch_width_divisor=100.0,
-        notch_margin_s=1200.0,
-        max_condition_number=100.0,
-        noise_scale=NOISE_SCALE,
-        baseline_length_s=60.0,
-    )
-    simulator = PairSimulator(channel, plan, NSIDE, noise_model="keshner")
+    simulator = m1_140_pair(86400.0, 86400.0, NSIDE, 19.0, noise_model="keshner")
+    settings = pipeline_settings(simulator, master_seed=MASTER_SEED, noise_scale=NOISE_SCALE)
     # a smooth, bright "foreground": large-scale intensity and polarisation [K_CMB]
     rng = np.random.default_rng(3)
     cls = np.zeros((4, LMAX + 1))
@@ -112,6 +101,7 @@ def rms(maps, good):
     return float(np.sqrt(np.mean(maps[1:, good] ** 2)))
 
 
+@pytest.mark.slow
 def test_fixed_pass_is_the_full_path_without_cmb_and_noise(setup):
     """Linearity: the noiseless full path minus its CMB reference is the fixed nosys map."""
     fixed, full, _ = setup
@@ -128,6 +118,7 @@ def test_fixed_pass_is_the_full_path_without_cmb_and_noise(setup):
     np.testing.assert_array_equal(noiseless["template_terms"][2], fixed.template_terms[2])
 
 
+@pytest.mark.slow
 def test_cmb_part_of_the_sh_term_is_the_hwpss_moment_product(setup):
     """bin F(h CMB) = M^-1 H_k CMB up to the filter's action at 2 and 6 f_HWP: measured
     7.6 % rms at 6 h, nside 64, 13.5 % at 1 day, nside 32; asserted < 20 %."""
@@ -143,6 +134,7 @@ def test_cmb_part_of_the_sh_term_is_the_hwpss_moment_product(setup):
             assert error < 0.20, (seed, k, error)
 
 
+@pytest.mark.slow
 def test_seed_part_of_the_s2_term_is_negligible(setup):
     """The neglected 2 s_f x + x^2 is below 3 % of the modelled 2 A_2 h x (measured 2.0 %)."""
     fixed, full, _ = setup
@@ -155,6 +147,7 @@ def test_seed_part_of_the_s2_term_is_negligible(setup):
             assert s2_part < 0.03 * sh_part, (seed, k, s2_part / sh_part)
 
 
+@pytest.mark.slow
 def test_noise_of_template_and_map_match_the_full_path(setup):
     """The noise of the template's s h term and of the map (white with the exact per-pixel
     covariance, times the filter's measured shaping), averaged over the seeds: Q/U rms
@@ -206,6 +199,7 @@ def test_noise_of_template_and_map_match_the_full_path(setup):
         assert np.all(np.abs(ratio - 1) < 0.20), (first, last, ratio)
 
 
+@pytest.mark.slow
 def test_fixed_maps_round_trip_through_hdf5(setup, tmp_path):
     fixed, _, _ = setup
     path = tmp_path / "fixed.h5"
@@ -216,10 +210,11 @@ def test_fixed_maps_round_trip_through_hdf5(setup, tmp_path):
         np.testing.assert_array_equal(getattr(read, field.name), getattr(fixed, field.name))
 
 
+@pytest.mark.slow
 def test_calibration_tods_only_on_their_chunks():
     """The calibration TODs (filter transfer and noise shaping) are binned into their own
     normal equations on every n-th chunk only; the maps get every chunk."""
-    from hwp_tes_systematics.tod_maps import Calibration
+    from hwp_tes_systematics.simulation.tod_maps import Calibration
 
     channel = load_channel("M1-140")
     plan = MissionPlan("2032-04-01T00:00:00", 3 * 1800.0, 1800.0, 19.0)
@@ -250,6 +245,7 @@ def test_calibration_tods_only_on_their_chunks():
         Calibration(8, (), 0, every_chunks=0)
 
 
+@pytest.mark.slow
 def test_shared_seed_operators_give_the_same_seeds(setup):
     """One SeedOperators per channel (the job's eigendecompositions and M^-1, computed
     once) gives the seeds bit for bit as fresh ones per seed; its noise draws have the
@@ -363,6 +359,7 @@ def test_beamed_cmb_synthesised_to_the_beam_band_limit():
     assert np.all(error < 1e-4 * rms), error  # the same multipoles dropped, unfiltered
 
 
+@pytest.mark.slow
 def test_fixed_pass_measures_the_filter_to_the_band_it_is_applied_to(setup):
     """measure_lmax (simulation.filter_lmax): T_ell measured only up to it is the full-band
     measurement's first multipoles (to the transforms' quadrature iterations), S_ell is

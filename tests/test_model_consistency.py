@@ -4,8 +4,8 @@ delta r convention (the 68 %-point shift) for the systematic's own power."""
 import numpy as np
 import pytest
 
-from hwp_tes_systematics import consistency
-from hwp_tes_systematics import likelihood as lk
+from hwp_tes_systematics.analysis import consistency
+from hwp_tes_systematics.analysis import likelihood as lk
 from hwp_tes_systematics.stages.residual_spectra import measured_transfer
 
 LMAX = 128

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from hwp_tes_systematics.nonlinearity import apply_nonlinearity
-from hwp_tes_systematics.spectral import amplitude_spectrum, line_amplitude
+from hwp_tes_systematics.instrument.nonlinearity import apply_nonlinearity
+from hwp_tes_systematics.simulation.spectral import amplitude_spectrum, line_amplitude
 
 SAMPLING_RATE_HZ = 31.0
 F_HWP_HZ = 39.0 / 60.0

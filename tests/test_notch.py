@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from hwp_tes_systematics.notch import (
+from hwp_tes_systematics.simulation.notch import (
     apply_notch,
     filter_chunk_with_margins,
     margin_samples,

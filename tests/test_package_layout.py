@@ -1,4 +1,5 @@
-"""The package's shape: stage modules are leaves (imported by their scripts only)."""
+"""The package's shape: its layers (a lower one never imports a higher one), stage
+modules as leaves (imported by their scripts only), the moved modules' old names."""
 
 import ast
 from pathlib import Path
@@ -28,3 +29,69 @@ def test_no_module_imports_a_stage():
             if name.startswith("hwp_tes_systematics.stages.") and name.count(".") >= 2:
                 offenders.append(f"{path.relative_to(PACKAGE)} imports {name}")
     assert not offenders, "\n".join(offenders)
+
+
+# The package's layers, lowest first: a module imports only from its own layer or lower
+# ones. Subpackages and top-level modules are named by their first component.
+LAYERS = (
+    ("io", "paths", "seeding", "timing", "_moved"),  # infrastructure
+    ("instrument", "sky", "config"),  # the instrument and its inputs
+    ("simulation",),  # TOD, filters, map-making, the map-domain path
+    ("figures",),  # plotting helpers and the stages' figures (arrays in, PNG out)
+    ("analysis", "diagnose"),  # maps -> requirement; recordings -> diagnosis
+    ("stages", "cli", "__main__", "__init__"),  # the workflow's stages and the command line
+)
+SIBLINGS_APART = (("analysis", "diagnose"),)  # neither imports the other
+
+
+def layer_of(module: str) -> tuple[int, str]:
+    """(layer index, group) of an absolute package module name."""
+    group = module.split(".")[1]
+    for index, layer in enumerate(LAYERS):
+        if group in layer:
+            return index, group
+    raise AssertionError(f"{module}: in no layer of tests/test_package_layout.py LAYERS")
+
+
+def package_imports():
+    """(importing module's group and layer, imported module's group and layer) pairs."""
+    for path in PACKAGE.rglob("*.py"):
+        me = ".".join(path.relative_to(PACKAGE.parent).with_suffix("").parts)
+        for name in imported_modules(path):
+            if name.startswith("hwp_tes_systematics.") and not name.endswith("__version__"):
+                yield path.relative_to(PACKAGE), layer_of(me), layer_of(name), name
+
+
+def test_no_layer_imports_a_higher_one():
+    offenders = [
+        f"{path} (layer {mine[0]}) imports {name} (layer {theirs[0]})"
+        for path, mine, theirs, name in package_imports()
+        if theirs[0] > mine[0]
+    ]
+    assert not offenders, "\n".join(offenders)
+
+
+def test_analysis_and_diagnosis_stay_apart():
+    offenders = [
+        f"{path} imports {name}"
+        for path, mine, theirs, name in package_imports()
+        for pair in SIBLINGS_APART
+        if mine[1] != theirs[1] and {mine[1], theirs[1]} == set(pair)
+    ]
+    assert not offenders, "\n".join(offenders)
+
+
+def test_the_moved_modules_keep_their_old_names():
+    """``import hwp_tes_systematics.tod`` still works: the same module, with a warning."""
+    import importlib
+    import sys
+
+    import pytest
+
+    from hwp_tes_systematics._moved import MOVED
+
+    for old, new in MOVED.items():
+        sys.modules.pop(f"hwp_tes_systematics.{old}", None)  # an earlier import's alias
+        with pytest.warns(DeprecationWarning, match=f"moved to hwp_tes_systematics.{new}"):
+            module = importlib.import_module(f"hwp_tes_systematics.{old}")
+        assert module is importlib.import_module(f"hwp_tes_systematics.{new}")

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.constants import h, k
 
-from hwp_tes_systematics.radiometry import (
+from hwp_tes_systematics.instrument.radiometry import (
     T_CMB_K,
     band_power_w,
     dpower_dtemperature_w_per_k,

@@ -5,7 +5,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from hwp_tes_systematics import requirement as rq
+from hwp_tes_systematics.analysis import requirement as rq
 from hwp_tes_systematics.figures.results import plot_requirement
 
 SIGMAS = np.logspace(-4, -1, 4)  # the paper's sigma_g1 grid [1/K]
@@ -210,7 +210,7 @@ def test_budget_crossing_over_seeds():
 
 
 def test_bootstrap_error_is_the_error_of_the_mean():
-    from hwp_tes_systematics.requirement import bootstrap_error
+    from hwp_tes_systematics.analysis.requirement import bootstrap_error
 
     values = np.random.default_rng(3).normal(10.0, 2.0, size=400)
     error = bootstrap_error(values, np.mean)

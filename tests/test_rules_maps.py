@@ -64,10 +64,10 @@ def test_map_domain_alms_reproduce_and_equal_the_maps_path(repo, tmp_path, tiny_
 
     import pandas as pd
 
+    from hwp_tes_systematics.analysis.ilc_residuals import SeedMaps
     from hwp_tes_systematics.config import deep_merge, load_config
-    from hwp_tes_systematics.ilc_residuals import SeedMaps
-    from hwp_tes_systematics.map_domain import ChannelSeeds
-    from hwp_tes_systematics.maps_file import write_channel_maps
+    from hwp_tes_systematics.simulation.map_domain import ChannelSeeds
+    from hwp_tes_systematics.simulation.maps_file import write_channel_maps
 
     tod_workdir, tod_result = tiny_local_run
     assert tod_result.returncode == 0, tod_result.stderr[-3000:]

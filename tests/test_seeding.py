@@ -29,7 +29,7 @@ def test_integer_seed_is_stable():
 
 
 def test_g1_draws_per_detector_or_per_pair():
-    from hwp_tes_systematics.systematics import unit_g1_draws
+    from hwp_tes_systematics.analysis.systematics import unit_g1_draws
 
     detectors = ["det_a", "det_b"]
     per_detector = unit_g1_draws(7, "M1-140", 0, detectors, "detector")

@@ -10,8 +10,8 @@ from scipy.constants import h as H_PLANCK
 from scipy.constants import k as K_BOLTZMANN
 
 from hwp_tes_systematics import seeding, sky
-from hwp_tes_systematics.instrument import Channel
-from hwp_tes_systematics.radiometry import top_hat_bandpass
+from hwp_tes_systematics.instrument.channels import Channel
+from hwp_tes_systematics.instrument.radiometry import top_hat_bandpass
 
 T_CMB_ASTROPY_K = 2.7255  # the T_CMB of pysm3's (astropy's) K_CMB equivalencies
 MASTER = 20240601
@@ -155,6 +155,7 @@ def test_gaussian_alm_deterministic_and_nested_in_lmax():
 
 
 # -------------------------------------------------------------------- CMB maps
+@pytest.mark.slow
 def test_cmb_map_seeds_and_channel_independence():
     nside, lmax = 16, 47
     first = sky.cmb_map(nside, lmax, 0.0, MASTER, 3)
@@ -193,6 +194,7 @@ def test_cmb_map_seeds_and_channel_independence():
 
 
 # ------------------------------------------------------------------ foregrounds
+@pytest.mark.slow
 def test_offline_dust_follows_mbb_in_k_cmb():
     nside = 8
     dust = {
@@ -208,6 +210,7 @@ def test_offline_dust_follows_mbb_in_k_cmb():
     assert np.all(p353 > 10 * p100)
 
 
+@pytest.mark.slow
 def test_offline_synchrotron_is_power_law_in_rj():
     nside = 8
     sync = {
@@ -316,6 +319,7 @@ def test_pysm_local_data_missing_files_raise_clear_error(tmp_path, monkeypatch, 
         sky.foreground_source()
 
 
+@pytest.mark.slow
 def test_pysm_local_data_templates_are_used(tmp_path, no_download):
     """Fake d0/s0 template files (constant maps) go through pysm3.Sky and its d0 SED."""
     folder = tmp_path / "pysm_2"

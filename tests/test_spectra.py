@@ -4,7 +4,7 @@ import healpy as hp
 import numpy as np
 import pytest
 
-from hwp_tes_systematics import hilc, spectra
+from hwp_tes_systematics.analysis import hilc, spectra
 
 
 def latitude_deg(nside):

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from hwp_tes_systematics.figures.tes import plot_response_curve
-from hwp_tes_systematics.tes import (
+from hwp_tes_systematics.instrument.tes import (
     TesParameters,
     bias_voltage_for_resistance,
     nonlinearity_coefficients,

@@ -3,11 +3,10 @@
 import healpy as hp
 import numpy as np
 import pytest
+from helpers import m1_140_pair
 
-from hwp_tes_systematics.instrument import load_channel
-from hwp_tes_systematics.mapmaking import NormalEquations, solve_maps
-from hwp_tes_systematics.tod import MissionPlan, PairSimulator
-from hwp_tes_systematics.tod_maps import (
+from hwp_tes_systematics.simulation.mapmaking import NormalEquations, solve_maps
+from hwp_tes_systematics.simulation.tod_maps import (
     PairMapSettings,
     accumulate,
     detector_weights,
@@ -19,9 +18,7 @@ NSIDE = 16
 
 @pytest.fixture(scope="module")
 def simulator():
-    channel = load_channel("M1-140")
-    plan = MissionPlan("2032-04-01T00:00:00", 3600.0, 1800.0, channel.sampling_rate_hz)
-    return PairSimulator(channel, plan, NSIDE)
+    return m1_140_pair(3600.0, 1800.0, NSIDE)
 
 
 def settings_for(simulator, seed=0, a2_k_cmb=0.3):
@@ -41,6 +38,7 @@ def random_sky(seed=0):
     return np.random.default_rng(seed).normal(size=(3, hp.nside2npix(NSIDE))) * 1e-4
 
 
+@pytest.mark.slow
 def test_scan_matches_litebird_sim_scan_map(simulator):
     import litebird_sim as lbs
 
@@ -57,6 +55,7 @@ def test_scan_matches_litebird_sim_scan_map(simulator):
     np.testing.assert_allclose(ours, observation.tod, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_binned_qu_equal_input_with_hwp(simulator):
     """litebird_sim #498 (binned Q/U a factor 2 off with a HWP) must not happen here."""
     import litebird_sim as lbs
@@ -84,6 +83,7 @@ def test_binned_qu_equal_input_with_hwp(simulator):
     assert np.median(condition[good]) == pytest.approx(2.0, rel=0.05)
 
 
+@pytest.mark.slow
 def test_maps_are_linear_in_g1(simulator):
     """m_nosys + sum_k g1_k T_k equals the map of a TOD with g1 injected, to 1e-10."""
     settings = settings_for(simulator)
@@ -98,6 +98,7 @@ def test_maps_are_linear_in_g1(simulator):
     assert np.abs(templates[0][:, good]).max() > 0  # the templates are not empty
 
 
+@pytest.mark.slow
 def test_chunks_join_up(simulator):
     whole = simulator.pointing(0, 4000)
     part = simulator.pointing(2500, 1000)
@@ -108,6 +109,7 @@ def test_chunks_join_up(simulator):
     np.testing.assert_allclose(part.cos_2alpha, whole.cos_2alpha[:, 2500:3500], atol=1e-5)
 
 
+@pytest.mark.slow
 def test_same_seed_identical_other_seed_different(simulator):
     sky = random_sky(3)
     first = solve_maps(accumulate(simulator, settings_for(simulator, seed=4), sky), 100.0)[0]
@@ -118,11 +120,12 @@ def test_same_seed_identical_other_seed_different(simulator):
     assert not np.allclose(first[0][:, seen], other[0][:, seen])
 
 
+@pytest.mark.slow
 def test_without_a_notch_the_4f_harmonic_template_removes_the_line(simulator):
     """config/keep_sky.yaml: no notch (notch.width_divisor null), the 4 f_HWP line
     g1 A_2^2 / 2 cos(4 chi) removed as an HWP harmonic template: the line goes, the sky
     passes untouched (no filter at all without templates)."""
-    from hwp_tes_systematics.tod_maps import notch_with_margins
+    from hwp_tes_systematics.simulation.tod_maps import notch_with_margins
 
     settings = settings_for(simulator)
     settings.notch_width_divisor = None

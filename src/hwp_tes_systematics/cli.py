@@ -36,9 +36,9 @@ def run_diagnose(
     ``a2_k`` (``--a2``) overrides the instrument model's A_2; a channel the model does not
     know (a lab detector) needs it (see :func:`.diagnose.recording.nominal_a2`).
     """
-    from .channel_inputs import channel_a2_k_cmb
+    from .diagnose import diagnose
     from .diagnose.recording import nominal_a2, read_recording
-    from .diagnose.report import diagnose
+    from .instrument.channel_inputs import channel_a2_k_cmb
 
     config = load_config(*config_paths)
     recording = read_recording(recording_path)

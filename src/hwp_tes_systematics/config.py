@@ -23,7 +23,7 @@ import jsonschema
 import yaml
 
 from . import instrument
-from .hwp_power import HwpCurves, OpticalElement, read_hwp_curves
+from .instrument.hwp_power import HwpCurves, OpticalElement, read_hwp_curves
 
 SCHEMA_RESOURCE = "config.schema.yaml"
 DEFAULT_CONFIG_RESOURCE = "config/config.yaml"  # under data/, as in the repository

@@ -11,9 +11,9 @@ evidence), :mod:`.noise` (noise estimate, Whittle), :mod:`.linalg` (whitened lea
 squares), :mod:`.locate` (lines, HWP-angle harmonics, transients, drifts, sky),
 :mod:`.fit` (stepwise selection with the BIC), :mod:`.unexplained` (what no effect
 explains), :mod:`.evidence` (measurements for the evidence texts), :mod:`.pipeline`
-(``diagnose``) and :mod:`.report` (diagnosis.json, diagnosis.md, figures).
-Imports go one way: recording/model -> effects -> locate -> nominal/fit/unexplained ->
-pipeline -> report (no cycle).
+(``diagnose``), :mod:`.report` (diagnosis.json, diagnosis.md) and :mod:`.figures` (its
+PNGs). Imports go one way: recording/model -> effects -> locate -> nominal/fit/unexplained
+-> pipeline -> report -> figures (no cycle).
 """
 
 from .effects import CATALOG, catalog_table

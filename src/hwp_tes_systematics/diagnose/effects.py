@@ -122,7 +122,7 @@ import numpy as np
 import scipy.fft
 import scipy.optimize
 
-from ..nonlinearity import apply_nonlinearity
+from ..instrument.nonlinearity import apply_nonlinearity
 from .model import Context, per_detector
 
 HWPSS_HARMONICS = (1, 3, 4, 5, 6)  # n = 2 is the nominal 2f adjustment

@@ -11,7 +11,7 @@ recorded pointing rotated from ecliptic to Galactic coordinates with
 polarisation efficiency and D the orbital + solar dipole that litebird_sim computes
 (``add_dipole_to_observations``, ``TOTAL_FROM_LIN_T``) from the start time and the
 recorded pointing, with the spacecraft orbit tabulated exactly as
-:class:`~hwp_tes_systematics.tod.PairSimulator` tabulates it (from one day before the
+:class:`~hwp_tes_systematics.simulation.tod.PairSimulator` tabulates it (from one day before the
 start, every hour), so that the dipole of a simulated recording is reproduced to
 ~1e-12 K. Scan, polarisation angle, HWPSS (``add_2f``), rotation, orbit and scanning
 rates come from :mod:`data_model`, the module the simulation (``tod.py``) builds its
@@ -30,8 +30,8 @@ from functools import cached_property
 
 import numpy as np
 
-from .. import data_model
-from ..data_model import cache_litebird_sim_kernels, orbit_table
+from ..simulation import data_model
+from ..simulation.data_model import cache_litebird_sim_kernels, orbit_table
 
 
 def _spin_rate_hz() -> float:

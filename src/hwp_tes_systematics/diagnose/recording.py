@@ -25,7 +25,7 @@ is an error (an Inf in an already flagged sample is masked like a NaN). A file (
 detector) without any valid sample is an error. Every error is a :class:`RecordingError`
 (a ValueError) whose message names the file and the problem.
 
-:func:`simulate_recording` makes a recording with :class:`~hwp_tes_systematics.tod.PairSimulator`
+:func:`simulate_recording` makes a recording with :class:`~hwp_tes_systematics.simulation.tod.PairSimulator`
 (sky + dipole + HWPSS + noise) and injects effects of the catalog through the same
 forward models (:mod:`.effects`), or a TES nonlinearity through the electrothermal model
 (``tes_electrothermal``): optical power P = P0 + d / C [W], current I = I(P) from
@@ -49,8 +49,9 @@ from pathlib import Path
 import astropy.time
 import numpy as np
 
-from .. import data_model, seeding
+from .. import seeding
 from ..io import atomic_path
+from ..simulation import data_model
 from .effects import CATALOG, RESPONSE_STAGE, SIGNAL_EFFECTS, GlitchEvent, get_effect
 from .model import Context, per_detector
 
@@ -311,7 +312,7 @@ def _read_recording(path: Path) -> Recording:
 
 def known_channels() -> set[str]:
     """Channel names of the instrument model (litebird_sim's PTEP IMO)."""
-    from ..instrument import channel_names_by_telescope
+    from ..instrument.channels import channel_names_by_telescope
 
     return {name for names in channel_names_by_telescope().values() for name in names}
 
@@ -426,8 +427,8 @@ def write_recording(path, recording: Recording) -> Path:
 @functools.lru_cache(maxsize=4)
 def _simulated_base(channel_name: str, hours: float, start_time_tdb: str, nside: int):
     """PairSimulator, pointing and dipole of a recording (noise-free pieces), cached."""
-    from ..instrument import load_channel
-    from ..tod import MissionPlan, PairSimulator
+    from ..instrument.channels import load_channel
+    from ..simulation.tod import MissionPlan, PairSimulator
 
     channel = load_channel(channel_name)
     duration_s = hours * 3600.0
@@ -446,7 +447,7 @@ def _electrothermal(tod: np.ndarray, params: dict) -> np.ndarray:
     """d_rec = C [I(P0 + d / C) - I(P0)] / S0 through the electrothermal TES model."""
     from scipy.interpolate import CubicSpline
 
-    from .. import tes
+    from ..instrument import tes
 
     p0_w = float(params["p0_w"])
     kelvin_per_watt = float(params["kelvin_per_watt"])

@@ -1,7 +1,7 @@
 """The diagnosis report: ``diagnosis.json``, ``diagnosis.md`` (in words) and the figures.
 
-The pipeline that computes the result is :mod:`.pipeline` (``diagnose``, also reachable
-here for compatibility); this module only writes what it found.
+The pipeline that computes the result is :mod:`.pipeline` (``diagnose``); this module
+only writes what it found.
 """
 
 from __future__ import annotations
@@ -11,14 +11,6 @@ from pathlib import Path
 
 from ..io import atomic_path
 from .effects import format_temperature
-
-
-def __getattr__(name):
-    if name == "diagnose":  # the pipeline imports this module: no cycle at import time
-        from .pipeline import diagnose
-
-        return diagnose
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def write_outputs(
@@ -31,9 +23,9 @@ def write_outputs(
         temporary.write_text(json.dumps(result, indent=2) + "\n")
     figure_files = {}
     if figures:
-        from ..figures import diagnose as fig
+        from .figures import diagnosis_figures
 
-        figure_files = fig.diagnosis_figures(
+        figure_files = diagnosis_figures(
             out_dir, ctx, residual, residual_after, mismatch, noise_models, result
         )
     with atomic_path(out_dir / "diagnosis.md") as temporary:

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..tes import (
+from ..instrument.tes import (
     TesParameters,
     optical_power_for_resistance,
     responsivity_a_per_w,

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..notch import notch_edges_hz, notch_transfer
-from ..spectral import amplitude_spectrum
+from ..simulation.notch import notch_edges_hz, notch_transfer
+from ..simulation.spectral import amplitude_spectrum
 from . import save_figure, subplots
 
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from ..radiometry import channel_bandpass
+from ..instrument.radiometry import channel_bandpass
 from .cmb import cmb_map
 from .foregrounds import foreground_map, foreground_source
 

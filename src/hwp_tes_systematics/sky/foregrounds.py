@@ -49,7 +49,7 @@ from pathlib import Path
 import healpy as hp
 import numpy as np
 
-from ..radiometry import Bandpass
+from ..instrument.radiometry import Bandpass
 from .cmb import _check_fwhm, _check_nside, smooth_alm
 from .conventions import MAP_UNIT, N_STOKES
 from .templates import COMPONENTS, DUST_FREQ_REF_GHZ, SYNC_FREQ_REF_GHZ, offline_templates

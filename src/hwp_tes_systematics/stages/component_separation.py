@@ -14,10 +14,10 @@ import logging
 import h5py
 import numpy as np
 
-from ..ilc_residuals import SeedMaps
+from ..analysis.ilc_residuals import SeedMaps
+from ..analysis.systematics import NOSYS, sigma_of_case
 from ..io import atomic_path, write_csv
 from ..sky import map_metadata
-from ..systematics import NOSYS, sigma_of_case
 
 log = logging.getLogger(__name__)
 

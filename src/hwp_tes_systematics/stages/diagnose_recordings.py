@@ -12,9 +12,14 @@ import logging
 
 from .. import config as cfg
 from .. import sky
-from ..channel_inputs import channel_a2_k_cmb, channel_conversion, channel_sky, tes_for_channel
+from ..diagnose import diagnose
 from ..diagnose.recording import read_recording, simulate_recording, write_recording
-from ..diagnose.report import diagnose
+from ..instrument.channel_inputs import (
+    channel_a2_k_cmb,
+    channel_conversion,
+    channel_sky,
+    tes_for_channel,
+)
 
 log = logging.getLogger(__name__)
 

@@ -10,7 +10,7 @@ import logging
 
 from .. import config as cfg
 from .. import sky
-from ..radiometry import channel_bandpass
+from ..instrument.radiometry import channel_bandpass
 
 log = logging.getLogger(__name__)
 

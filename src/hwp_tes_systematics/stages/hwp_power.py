@@ -8,7 +8,7 @@ import pandas as pd
 
 from .. import config as cfg
 from ..figures import hwp as hwp_figures
-from ..hwp_power import hwp_power_for_channel
+from ..instrument.hwp_power import hwp_power_for_channel
 from ..io import write_csv
 
 log = logging.getLogger(__name__)

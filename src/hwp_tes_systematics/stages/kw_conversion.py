@@ -7,7 +7,7 @@ import logging
 import pandas as pd
 
 from .. import config as cfg
-from ..channel_inputs import conversion_row
+from ..instrument.channel_inputs import conversion_row
 from ..io import write_csv
 
 log = logging.getLogger(__name__)

@@ -21,16 +21,16 @@ import logging
 import numpy as np
 import pandas as pd
 
-from ..ilc_residuals import systematic_bb
-from ..io import atomic_path
-from ..likelihood import (
+from ..analysis.ilc_residuals import systematic_bb
+from ..analysis.likelihood import (
     fisher_bias,
     fit_r_common_grid,
     fraction_point_shift,
     model_from_noise_csv,
     residual_bb,
 )
-from ..systematics import NOSYS, sigma_of_case
+from ..analysis.systematics import NOSYS, sigma_of_case
+from ..io import atomic_path
 
 log = logging.getLogger(__name__)
 

@@ -12,11 +12,13 @@ from pathlib import Path
 import pandas as pd
 
 from .. import config as cfg
-from .. import ilc_residuals, map_domain, sky
+from .. import sky
+from ..analysis import ilc_residuals
 from ..io import use_threads
-from ..maps_file import maps_attributes
-from ..tod import PairSimulator
-from ..tod_maps import PairMapSettings
+from ..simulation import map_domain
+from ..simulation.maps_file import maps_attributes
+from ..simulation.tod import PairSimulator
+from ..simulation.tod_maps import PairMapSettings
 
 log = logging.getLogger(__name__)
 

@@ -18,10 +18,10 @@ from .. import config as cfg
 from .. import seeding, sky
 from ..figures.tod import plot_notch_effect
 from ..io import write_csv
-from ..mapmaking import NormalEquations, solve_maps
-from ..notch import chunk_span
-from ..tod import PairSimulator
-from ..tod_maps import PairMapSettings, detector_weights, filter_tod
+from ..simulation.mapmaking import NormalEquations, solve_maps
+from ..simulation.notch import chunk_span
+from ..simulation.tod import PairSimulator
+from ..simulation.tod_maps import PairMapSettings, detector_weights, filter_tod
 
 log = logging.getLogger(__name__)
 

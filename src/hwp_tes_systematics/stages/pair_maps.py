@@ -15,10 +15,10 @@ import time
 from .. import config as cfg
 from .. import sky
 from ..io import use_threads
-from ..mapmaking import NormalEquations, solve_maps
-from ..maps_file import maps_attributes, write_channel_maps
-from ..tod import PairSimulator
-from ..tod_maps import PairMapSettings, accumulate, split_solved_maps
+from ..simulation.mapmaking import NormalEquations, solve_maps
+from ..simulation.maps_file import maps_attributes, write_channel_maps
+from ..simulation.tod import PairSimulator
+from ..simulation.tod_maps import PairMapSettings, accumulate, split_solved_maps
 
 log = logging.getLogger(__name__)
 

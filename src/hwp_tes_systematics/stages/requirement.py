@@ -38,16 +38,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .. import consistency
-from ..figures.results import (
-    plot_a2_scaling,
-    plot_ell_distribution,
-    plot_likelihoods,
-    plot_requirement,
-)
-from ..ilc_residuals import systematic_bb
-from ..io import atomic_path, write_csv
-from ..likelihood import (
+from ..analysis import consistency
+from ..analysis.ilc_residuals import systematic_bb
+from ..analysis.likelihood import (
     ANALYSES,
     analysis_transfer,
     fisher_bias_per_ell,
@@ -56,7 +49,7 @@ from ..likelihood import (
     residual_bb,
     sky_transfer_bb,
 )
-from ..requirement import (
+from ..analysis.requirement import (
     budget_crossing_over_seeds,
     delta_r_table,
     fit_power_law,
@@ -66,6 +59,13 @@ from ..requirement import (
     summarise,
     systematic_only_estimator,
 )
+from ..figures.results import (
+    plot_a2_scaling,
+    plot_ell_distribution,
+    plot_likelihoods,
+    plot_requirement,
+)
+from ..io import atomic_path, write_csv
 
 log = logging.getLogger(__name__)
 

@@ -18,10 +18,10 @@ import numpy as np
 import pandas as pd
 
 from .. import sky
+from ..analysis.ilc_residuals import residual_spectra_table
+from ..analysis.systematics import NOSYS, sigma_of_case
 from ..figures.results import plot_residual_spectra
-from ..ilc_residuals import residual_spectra_table
 from ..io import write_csv
-from ..systematics import NOSYS, sigma_of_case
 
 log = logging.getLogger(__name__)
 

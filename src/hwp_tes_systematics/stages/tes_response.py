@@ -6,14 +6,14 @@ import logging
 
 import pandas as pd
 
-from ..channel_inputs import tes_for_channel
 from ..figures.tes import plot_response_curve
-from ..io import write_csv
-from ..tes import (
+from ..instrument.channel_inputs import tes_for_channel
+from ..instrument.tes import (
     nonlinearity_coefficients,
     optical_power_for_resistance,
     solve_operating_point,
 )
+from ..io import write_csv
 
 log = logging.getLogger(__name__)
 

@@ -8,10 +8,10 @@ import numpy as np
 import pandas as pd
 
 from .. import config as cfg
-from ..channel_inputs import channel_sky
 from ..figures import tod as tod_figures
-from ..nonlinearity import apply_nonlinearity
-from ..tod import MissionPlan, PairSimulator
+from ..instrument.channel_inputs import channel_sky
+from ..instrument.nonlinearity import apply_nonlinearity
+from ..simulation.tod import MissionPlan, PairSimulator
 
 log = logging.getLogger(__name__)
 
@@ -72,7 +72,7 @@ def run(config: dict, kw_csv: str, fig_chunk: str, fig_spectra: str, fig_notch: 
 
 
 def _first_channel_by_telescope(config: dict) -> dict:
-    from ..instrument import channel_names_by_telescope
+    from ..instrument.channels import channel_names_by_telescope
 
     by_telescope = channel_names_by_telescope(
         config["instrument"]["imo_location"], config["instrument"]["imo_release"]

@@ -60,7 +60,7 @@ import numpy as np
 import pandas as pd
 from scipy.special import erfinv
 
-from . import sky
+from .. import sky
 
 log = logging.getLogger(__name__)
 

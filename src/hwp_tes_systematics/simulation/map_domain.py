@@ -53,11 +53,11 @@ import h5py
 import healpy as hp
 import numpy as np
 
-from . import config as cfg
-from . import seeding
-from .io import atomic_path
+from .. import config as cfg
+from .. import seeding
+from ..io import atomic_path
+from ..sky import cmb as sky_cmb
 from .mapmaking import PixelMoments, solve_maps, symmetric_matrices
-from .sky import cmb as sky_cmb
 from .tod_maps import (
     TEMPLATE_TERMS,
     Calibration,

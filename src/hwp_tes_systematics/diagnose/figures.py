@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..spectral import amplitude_spectrum
-from . import save_figure, subplots
+from ..figures import save_figure, subplots
+from ..simulation.spectral import amplitude_spectrum
 
 MAX_POINTS = 20000
 
@@ -122,7 +122,7 @@ def diagnosis_figures(
     out_dir, ctx, residual, residual_after, mismatch, noise_models, result
 ) -> dict:
     """All figures; returns {title: file name}."""
-    from ..diagnose.locate import hwp_profile, sky_residual
+    from .locate import hwp_profile, sky_residual
 
     files = {}
     plot_residual_spectrum(

@@ -25,12 +25,12 @@ import numpy as np
 import psutil
 from tqdm import tqdm
 
+from ..timing import StageClock
 from .baselines import baseline_samples, remove_baselines
 from .demodulation import DemodulatedEquations, demodulate
 from .hwpss_removal import offset_residual, remove_hwp_harmonics
 from .mapmaking import NormalEquations, PixelMoments
 from .notch import apply_notch, chunk_span
-from .timing import StageClock
 from .tod import MissionPlan, PairSimulator
 
 log = logging.getLogger(__name__)

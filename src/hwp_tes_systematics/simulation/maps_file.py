@@ -14,8 +14,8 @@ from __future__ import annotations
 import h5py
 import numpy as np
 
-from . import sky
-from .io import atomic_path
+from .. import sky
+from ..io import atomic_path
 from .tod_maps import TEMPLATE_TERMS
 
 MODEL = (

@@ -1,10 +1,14 @@
-"""Shared helpers of the diagnosis tests (no tests here).
+"""Recordings with a known truth, for the diagnosis tests and the rates benchmark
+(``benchmarks/diagnose_benchmark.py``).
 
-Recordings: one MFT pair (M1-140), nside 32 CMB sky, A_2 = 0.264 K (the study's M1-140
-value), simulated with litebird_sim through ``simulate_recording``, written to HDF5 and
-read back with ``read_recording`` before ``diagnose`` sees them. The noise seed of every
-recording differs from any other; the diagnosis never sees it (its nominal model has no
-noise).
+Recordings: one detector pair (M1-140 unless told), nside 32 CMB sky, the channel's
+nominal A_2, P_0 and K/W computed from the default configuration (:func:`nominal`),
+simulated with litebird_sim through ``simulate_recording``, written to HDF5 and read back
+with ``read_recording`` before ``diagnose`` sees them. :func:`nominal_errors` draws the
+ways a real recording differs from its nominal model (A_2, 2f phase, gain, polarisation
+angle, offsets, noise, sky), :func:`recorded_with_errors` puts them in a recording. The
+noise seed of every recording differs from any other; the diagnosis never sees it (its
+nominal model has no noise).
 """
 
 from __future__ import annotations
@@ -13,20 +17,34 @@ import functools
 
 import numpy as np
 
-from hwp_tes_systematics import sky
-from hwp_tes_systematics.diagnose import (
-    diagnose,
-    read_recording,
-    simulate_recording,
-    write_recording,
-)
+from .. import sky
+from ..config import default_config_path, load_config
+from ..instrument.channel_inputs import channel_conversion
+from .pipeline import diagnose
+from .recording import read_recording, simulate_recording, write_recording
 
 CHANNEL = "M1-140"
 NSIDE = 32
-A2_K = 0.264  # M1-140 HWPSS amplitude [K_CMB] (results/inputs/kw_conversion.csv)
 MASTER_SEED = 20240617
-P0_W = 4.088479789e-13  # M1-140 nominal optical load [W] (results/inputs/tes_response.csv)
-KELVIN_PER_WATT = 5.644925449e12  # M1-140 K/W conversion (results/inputs/kw_conversion.csv)
+
+
+@functools.lru_cache(maxsize=8)
+def nominal(channel: str = CHANNEL) -> dict:
+    """The channel's nominal values from the default configuration's optics (as the
+    workflow's kw_conversion stage computes them): ``a2_k`` the HWPSS amplitude A_2
+    [K_CMB], ``p0_w`` the optical load [W], ``kelvin_per_watt`` [K_CMB / W]."""
+    row = channel_conversion(load_config(default_config_path()), channel)
+    return {
+        "a2_k": row["a2_k_cmb"],
+        "p0_w": row["p_nominal_w"],
+        "kelvin_per_watt": row["kelvin_per_watt"],
+    }
+
+
+_M1_140 = nominal()
+A2_K = _M1_140["a2_k"]  # M1-140's HWPSS amplitude A_2 [K_CMB]
+P0_W = _M1_140["p0_w"]  # M1-140's nominal optical load [W]
+KELVIN_PER_WATT = _M1_140["kelvin_per_watt"]  # M1-140's K/W conversion [K_CMB / W]
 
 
 @functools.lru_cache(maxsize=1)
@@ -60,6 +78,11 @@ def parameter(result: dict, effect: str, name: str, detector: int) -> dict:
             ):
                 return entry
     raise KeyError(f"{effect}.{name}[{detector}] not in {[e['name'] for e in result['effects']]}")
+
+
+def adjustment(result: dict, detector: int, name: str) -> dict:
+    """The {value, sigma, ...} of the nominal-model adjustment ``name`` of ``detector``."""
+    return result["nominal_adjustments"][result["recording"]["detectors"][detector]][name]
 
 
 def names(result: dict) -> list[str]:
@@ -136,7 +159,7 @@ def recorded_with_errors(
     The recording is simulated with the true A_2, phase, gain, noise and polarisation
     angles; the file carries the nominal polarisation angles and the detector offsets.
     """
-    from hwp_tes_systematics.diagnose.recording import _simulated_base
+    from .recording import _simulated_base
 
     simulator = _simulated_base(channel, float(hours), "2032-04-01T00:00:00", NSIDE)[0]
     detectors = [{"net_ukrts": d.net_ukrts, "fknee_mhz": d.fknee_mhz} for d in simulator.detectors]

@@ -27,9 +27,10 @@ import astropy.time
 import ducc0
 import numpy as np
 
-from . import data_model, seeding
+from .. import seeding
+from ..instrument.channels import Channel, open_imo
+from . import data_model
 from .data_model import cache_litebird_sim_kernels, ecliptic_to_galactic, orbit_table
-from .instrument import Channel, open_imo
 
 log = logging.getLogger(__name__)
 

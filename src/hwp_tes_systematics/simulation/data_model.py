@@ -56,7 +56,7 @@ def scanning_rates_hz(imo_location: str | None = None, release: str = "vPTEP"):
     (PTEP: 0.05 rpm, one turn per 192.348 min)."""
     import litebird_sim as lbs
 
-    from .instrument import open_imo
+    from ..instrument.channels import open_imo
 
     strategy = lbs.SpinningScanningStrategy.from_imo(
         open_imo(imo_location), f"/releases/{release}/satellite/scanning_parameters"

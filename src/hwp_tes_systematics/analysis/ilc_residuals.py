@@ -33,10 +33,11 @@ import healpy as hp
 import numpy as np
 import pandas as pd
 
-from . import config as cfg
-from . import hilc, map_domain, spectra
-from .io import atomic_path
-from .maps_file import read_channel_maps
+from .. import config as cfg
+from ..io import atomic_path
+from ..simulation import map_domain
+from ..simulation.maps_file import read_channel_maps
+from . import hilc, spectra
 from .systematics import unit_g1_draws
 
 N_TEMPLATE_TERMS = 3  # s^2, s h, h^2

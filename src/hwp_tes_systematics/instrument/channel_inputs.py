@@ -10,8 +10,8 @@ from dataclasses import replace
 
 import numpy as np
 
-from . import config as cfg
-from . import sky
+from .. import config as cfg
+from .. import sky
 from .hwp_power import hwp_power_for_channel, sky_to_detector_efficiency
 from .radiometry import dpower_dtemperature_w_per_k, kelvin_per_watt
 from .tes import TesParameters, tes_parameters_for_channel

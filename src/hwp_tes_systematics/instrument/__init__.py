@@ -1,0 +1,39 @@
+"""The instrument and its inputs: LiteBIRD channels and detectors (PTEP model), the HWP's
+optical power and A_2, band-integrated radiometry (K/W), the TES response and its
+nonlinearity, and a channel's inputs computed from the configuration.
+
+The channel model (:mod:`.channels`) is re-exported here: ``from hwp_tes_systematics.instrument
+import load_channel``.
+"""
+
+from .channels import (
+    MAX_PAIR_NON_ORTHOGONALITY_DEG,
+    PAIR_SEARCH_DETECTORS,
+    TELESCOPES,
+    Channel,
+    InstrumentModelError,
+    all_channel_names,
+    channel_names_by_telescope,
+    check_channel_names,
+    load_channel,
+    most_orthogonal_pair,
+    open_imo,
+    pixel_of,
+    telescope_of,
+)
+
+__all__ = [
+    "MAX_PAIR_NON_ORTHOGONALITY_DEG",
+    "PAIR_SEARCH_DETECTORS",
+    "TELESCOPES",
+    "Channel",
+    "InstrumentModelError",
+    "all_channel_names",
+    "channel_names_by_telescope",
+    "check_channel_names",
+    "load_channel",
+    "most_orthogonal_pair",
+    "open_imo",
+    "pixel_of",
+    "telescope_of",
+]
