@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import pytest
 
-from hwp_tes_systematics.diagnose.testbed import names, recorded, run
+from hwp_tes_systematics.diagnose.testbed import recorded, run
 
 pytestmark = pytest.mark.slow
 
@@ -20,7 +20,7 @@ N_SEEDS = 20
 def test_clean_recording_reports_no_mismatch(tmp_path):
     recording, _ = recorded(tmp_path, [], noise_seed=1, hours=1.0)
     result = run(recording, out_dir=tmp_path / "out")
-    assert not result["mismatch_found"], names(result)
+    assert not result["mismatch_found"], result.effect_names
     assert result["effects"] == []
     assert result["chi2_after"] == result["chi2_before"]
     # the residual is consistent with the configured noise
@@ -36,6 +36,6 @@ def test_false_alarm_rate_over_clean_seeds(tmp_path):
         recording, _ = recorded(tmp_path, [], noise_seed=seed, hours=0.5, name=f"clean{seed}.h5")
         result = run(recording)
         if result["mismatch_found"]:
-            alarms.append((seed, names(result)))
+            alarms.append((seed, result.effect_names))
     print(f"false alarms: {len(alarms)} / {N_SEEDS}: {alarms}")
     assert len(alarms) <= 1, alarms

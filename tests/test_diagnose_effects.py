@@ -20,9 +20,6 @@ from hwp_tes_systematics.diagnose.testbed import (
     A2_K,
     KELVIN_PER_WATT,
     P0_W,
-    adjustment,
-    names,
-    parameter,
     recorded,
     run,
 )
@@ -69,7 +66,7 @@ GLITCHES = [
 def check_parameters(result, effect, truths):
     for param, truth in truths.items():
         for k, value in enumerate(truth):
-            entry = parameter(result, effect, param, k)
+            entry = result.parameter(effect, param, k)
             pull = (entry["value"] - value) / entry["sigma"]
             assert abs(pull) < 3, (
                 f"{effect}.{param}[{k}] = {entry['value']:.4g} +- {entry['sigma']:.2g}, truth {value:.4g}"
@@ -81,8 +78,8 @@ def test_single_effect_found(tmp_path, effect, injected, truths, seed):
     recording, _ = recorded(tmp_path, [(effect, injected)], noise_seed=seed, hours=1.0)
     result = run(recording)
     assert result["mismatch_found"]
-    assert names(result)[0] == effect, names(result)
-    assert names(result) == [effect], f"spurious effects: {names(result)}"
+    assert result.effect_names[0] == effect, result.effect_names
+    assert result.effect_names == [effect], f"spurious effects: {result.effect_names}"
     check_parameters(result, effect, truths)
     assert result["unexplained"] == [], result["unexplained"]
     # the evidence is measured on the recording (the effect's own text), not its signature
@@ -94,7 +91,7 @@ def test_single_effect_found(tmp_path, effect, injected, truths, seed):
         # found line by line: the injected lines, and no other
         assert sorted(top["members"]) == [f"hwpss_harmonic_{n}" for n in (1, 3, 4)], top
         for k in range(2):
-            a2 = adjustment(result, k, "hwpss_2f_amplitude")
+            a2 = result.adjustment(k, "hwpss_2f_amplitude")
             assert abs(a2["value"] - (A2_K + 50e-6)) < 3 * a2["sigma"] + 1e-9, a2
     assert result["chi2_after"] < result["chi2_before"]
     # the fit leaves chi^2 consistent with noise: chi^2 / dof ~ 1
@@ -106,7 +103,7 @@ def test_glitches_found(tmp_path):
         tmp_path, [("glitches", {"events": GLITCHES})], noise_seed=108, hours=1.0
     )
     result = run(recording)
-    assert names(result) == ["glitches"]
+    assert result.effect_names == ["glitches"]
     fitted = [p for p in result["effects"][0]["parameters"].values()]
     for detector, time_s, amplitude, _tau in GLITCHES:
         name = result["recording"]["detectors"][detector]
@@ -130,12 +127,12 @@ def test_noise_level_is_an_adjustment(tmp_path):
         hours=1.0,
     )
     result = run(recording)
-    assert not result["mismatch_found"], (names(result), result["unexplained"])
+    assert not result["mismatch_found"], (result.effect_names, result["unexplained"])
     for k in range(2):
-        net = adjustment(result, k, "noise_net")
+        net = result.adjustment(k, "noise_net")
         assert abs(net["value"] - 64.8) < 3 * net["sigma"], net
         assert net["nominal"] != pytest.approx(64.8)
-        fknee = adjustment(result, k, "noise_fknee")
+        fknee = result.adjustment(k, "noise_fknee")
         assert abs(fknee["value"] - 60.0) < 3 * fknee["sigma"], fknee
 
 
@@ -150,15 +147,15 @@ def test_time_constant_is_a_2f_phase_adjustment(tmp_path):
         tmp_path, [("detector_time_constant", {"tau": taus})], noise_seed=102, hours=1.0
     )
     result = run(recording)
-    assert not result["mismatch_found"], (names(result), result["unexplained"])
+    assert not result["mismatch_found"], (result.effect_names, result["unexplained"])
     f_hwp = result["recording"]["f_hwp_hz"]
     for k, tau in enumerate(taus):
-        phase = adjustment(result, k, "hwpss_2f_phase")
+        phase = result.adjustment(k, "hwpss_2f_phase")
         equivalent = phase["equivalent_time_constant_s"]
         sigma_tau = math.radians(phase["sigma"]) / (2 * math.pi * 2 * f_hwp)
         assert abs(equivalent - tau) < 3 * sigma_tau + 1e-6, (equivalent, tau, sigma_tau)
         # the amplitude loss 1/sqrt(1 + (2 pi 2 f_HWP tau)^2) is in the 2f amplitude
-        a2 = adjustment(result, k, "hwpss_2f_amplitude")
+        a2 = result.adjustment(k, "hwpss_2f_amplitude")
         expected = A2_K / math.sqrt(1 + (2 * math.pi * 2 * f_hwp * tau) ** 2)
         assert abs(a2["value"] - expected) < 3 * a2["sigma"] + 1e-9
 
@@ -172,13 +169,13 @@ def test_crosstalk_is_absorbed_by_adjustments(tmp_path):
     xs = [0.01, 0.005]
     recording, _ = recorded(tmp_path, [("crosstalk", {"x": xs})], noise_seed=107, hours=1.0)
     result = run(recording)
-    assert not result["mismatch_found"], (names(result), result["unexplained"])
+    assert not result["mismatch_found"], (result.effect_names, result["unexplained"])
     theta = recording.pol_angles_rad
     for k, x in enumerate(xs):
-        a2 = adjustment(result, k, "hwpss_2f_amplitude")
+        a2 = result.adjustment(k, "hwpss_2f_amplitude")
         expected = A2_K * abs(1 + x * np.exp(2j * (theta[k] - theta[1 - k])))
         assert abs(a2["value"] - expected) < 3 * a2["sigma"] + 1e-9, (a2, expected)
-        gain = adjustment(result, k, "gain")
+        gain = result.adjustment(k, "gain")
         assert abs(gain["value"] - (1 + x)) < 3 * gain["sigma"], gain
 
 
@@ -188,11 +185,11 @@ def test_nonlinearity_and_gain_drift_both_found(tmp_path):
     effects = [("gain_drift", {"g1": drifts}), ("tes_nonlinearity", {"g1": -0.04})]
     recording, _ = recorded(tmp_path, effects, noise_seed=110)
     result = run(recording)
-    assert sorted(names(result)) == ["gain_drift", "tes_nonlinearity"]
+    assert sorted(result.effect_names) == ["gain_drift", "tes_nonlinearity"]
     for k in range(2):
-        g1 = parameter(result, "tes_nonlinearity", "g1", k)
+        g1 = result.parameter("tes_nonlinearity", "g1", k)
         assert abs(g1["value"] + 0.04) < 3 * g1["sigma"]
-        gain = parameter(result, "gain_drift", "g1", k)
+        gain = result.parameter("gain_drift", "g1", k)
         assert abs(gain["value"] - drifts[k]) < 3 * gain["sigma"]
 
 
@@ -203,9 +200,9 @@ def test_harmonics_and_glitches_both_found(tmp_path):
     ]
     recording, _ = recorded(tmp_path, effects, noise_seed=111, hours=1.0)
     result = run(recording)
-    assert sorted(names(result)) == ["glitches", "hwpss_harmonics"]
+    assert sorted(result.effect_names) == ["glitches", "hwpss_harmonics"]
     for k in range(2):
-        c4 = parameter(result, "hwpss_harmonics", "c4", k)
+        c4 = result.parameter("hwpss_harmonics", "c4", k)
         assert abs(c4["value"] - 30e-6) < 3 * c4["sigma"]
 
 
@@ -221,13 +218,13 @@ def test_electrothermal_tes_is_diagnosed_as_nonlinearity(tmp_path):
     )
     result = run(recording)
     # its cubic term is strong enough to pay for g2: the nested extension is kept
-    assert names(result)[0] == "tes_nonlinearity_cubic"
+    assert result.effect_names[0] == "tes_nonlinearity_cubic"
     params = tes.tes_parameters_for_channel(P0_W)
     half_range_w = 1.05 * A2_K / KELVIN_PER_WATT
     expected = tes.nonlinearity_coefficients(params, P0_W, KELVIN_PER_WATT, half_range_w)
     for k in range(2):
-        g1 = parameter(result, "tes_nonlinearity_cubic", "g1", k)
-        g2 = parameter(result, "tes_nonlinearity_cubic", "g2", k)
+        g1 = result.parameter("tes_nonlinearity_cubic", "g1", k)
+        g2 = result.parameter("tes_nonlinearity_cubic", "g2", k)
         assert g1["value"] == pytest.approx(expected["g1_per_k"], rel=0.10, abs=3 * g1["sigma"])
         assert g2["value"] == pytest.approx(expected["g2_per_k2"], rel=0.10, abs=3 * g2["sigma"])
         assert np.sign(g1["value"]) == np.sign(expected["g1_per_k"])

@@ -20,7 +20,6 @@ from hwp_tes_systematics.diagnose.testbed import (
     A2_K,
     CHANNEL,
     MASTER_SEED,
-    names,
     recorded,
     run,
     sky_map,
@@ -86,7 +85,7 @@ def test_nan_stretch_is_masked_not_propagated(clean_file, tmp_path):
     assert read.flags.sum() == 3500
     assert np.all(np.isfinite(read.tod))
     result = run(read)
-    assert not result["mismatch_found"], names(result)
+    assert not result["mismatch_found"], result.effect_names
     assert np.isfinite(result["chi2_before"])
 
 
@@ -256,6 +255,6 @@ def test_lab_detector_needs_a2_and_uses_its_own_metadata(clean_file, tmp_path):
         nominal_a2(recording, None, lambda channel: 1.0)
     assert nominal_a2(recording, A2_K, lambda channel: 1.0) == A2_K
     result = diagnose(recording, sky_map(), A2_K, figures=False)
-    assert not result["mismatch_found"], (names(result), result["unexplained"])
+    assert not result["mismatch_found"], (result.effect_names, result["unexplained"])
     net = result["nominal_adjustments"]["lab0"]["noise_net"]
     assert net["value"] == pytest.approx(54.0, rel=0.05)  # the simulated M1-140 NET

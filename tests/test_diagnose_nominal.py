@@ -19,10 +19,7 @@ import pytest
 from hwp_tes_systematics.diagnose import diagnose
 from hwp_tes_systematics.diagnose.testbed import (
     A2_K,
-    adjustment,
-    names,
     nominal_errors,
-    parameter,
     recorded_with_errors,
     supplied_sky,
 )
@@ -43,20 +40,20 @@ def test_clean_recording_with_nominal_errors(tmp_path, seed):
     errors = nominal_errors(np.random.default_rng(seed))
     recording, _ = recorded_with_errors(tmp_path, [], 3000 + seed, errors, hours=1.0)
     result = run_with(recording, errors)
-    assert not result["mismatch_found"], (names(result), result["unexplained"])
+    assert not result["mismatch_found"], (result.effect_names, result["unexplained"])
     assert result["effects"] == [] and result["unexplained"] == []
     for k in range(2):
         a2_true = A2_K * (1 + errors["a2_relative"][k]) * (1 + errors["gain"][k])
-        assert within(adjustment(result, k, "hwpss_2f_amplitude"), a2_true, floor=1e-9)
+        assert within(result.adjustment(k, "hwpss_2f_amplitude"), a2_true, floor=1e-9)
         # the 2f phase includes twice the polarisation-angle error
         phase_true = errors["phase_deg"][k] + 2 * errors["pol_angle_deg"][k]
-        assert within(adjustment(result, k, "hwpss_2f_phase"), phase_true, floor=1e-6)
-        assert within(adjustment(result, k, "gain"), 1 + errors["gain"][k])
-        assert within(adjustment(result, k, "offset"), errors["offset_k"][k])
-        net = adjustment(result, k, "noise_net")
+        assert within(result.adjustment(k, "hwpss_2f_phase"), phase_true, floor=1e-6)
+        assert within(result.adjustment(k, "gain"), 1 + errors["gain"][k])
+        assert within(result.adjustment(k, "offset"), errors["offset_k"][k])
+        net = result.adjustment(k, "noise_net")
         assert within(net, net["nominal"] * errors["net_factor"][k])
         # the supplied map was scaled by s: the sky in the recording is 1/s of it
-        sky_scale = adjustment(result, k, "sky_scale_intensity")
+        sky_scale = result.adjustment(k, "sky_scale_intensity")
         assert within(sky_scale, 1 / errors["sky_scale"], n_sigma=4)
 
 
@@ -68,10 +65,10 @@ def test_nonlinearity_found_despite_nominal_errors(tmp_path, seed):
         tmp_path, [("tes_nonlinearity", {"g1": g1})], 3100 + seed, errors, hours=1.0
     )
     result = run_with(recording, errors)
-    assert names(result) == ["tes_nonlinearity"], (names(result), result["unexplained"])
+    assert result.effect_names == ["tes_nonlinearity"], (result.effect_names, result["unexplained"])
     assert result["unexplained"] == []
     for k in range(2):
-        entry = parameter(result, "tes_nonlinearity", "g1", k)
+        entry = result.parameter("tes_nonlinearity", "g1", k)
         # the recorder applies the gain error to the incoming signal, before the TES
         # response, and the adjusted nominal model carries the same gain: g1 itself
         assert within(entry, g1), entry
@@ -86,7 +83,7 @@ def test_weak_nonlinearity_names_the_4f_harmonic_as_its_look_alike(tmp_path):
         tmp_path, [("tes_nonlinearity", {"g1": -1e-3})], 3124, errors, hours=1.0
     )
     result = run_with(recording, errors)
-    assert names(result) == ["tes_nonlinearity"], names(result)
+    assert result.effect_names == ["tes_nonlinearity"], result.effect_names
     top = result["effects"][0]
     assert top["look_alikes"] == ["hwpss_harmonics"], top["look_alikes"]
     assert "below detection" in top["evidence"], top["evidence"]
@@ -112,9 +109,11 @@ def test_nonlinearity_with_4f_hwpss(tmp_path, seed, noise_seed):
     effects = [("hwpss_harmonics", {"c4": 60e-6, "s4": -30e-6}), ("tes_nonlinearity", {"g1": g1})]
     recording, _ = recorded_with_errors(tmp_path, effects, noise_seed, errors, hours=1.0)
     result = run_with(recording, errors)
-    assert sorted(names(result)) == ["hwpss_harmonics", "tes_nonlinearity"], names(result)
+    assert sorted(result.effect_names) == ["hwpss_harmonics", "tes_nonlinearity"], (
+        result.effect_names
+    )
     for k in range(2):
-        entry = parameter(result, "tes_nonlinearity", "g1", k)
+        entry = result.parameter("tes_nonlinearity", "g1", k)
         assert within(entry, g1), entry
 
 
@@ -134,13 +133,13 @@ def test_nonlinearity_with_a_time_constant(tmp_path):
     effects = [("tes_nonlinearity", {"g1": g1}), ("detector_time_constant", {"tau": tau})]
     recording, _ = recorded_with_errors(tmp_path, effects, 10_041, errors, hours=2.0)
     result = run_with(recording, errors)
-    assert names(result) == ["tes_nonlinearity"], names(result)
+    assert result.effect_names == ["tes_nonlinearity"], result.effect_names
     f_hwp = result["recording"]["f_hwp_hz"]
     lag_deg = math.degrees(math.atan(2 * math.pi * 2 * f_hwp * tau))
     for k in range(2):
-        assert within(parameter(result, "tes_nonlinearity", "g1", k), g1)
+        assert within(result.parameter("tes_nonlinearity", "g1", k), g1)
         phase_true = errors["phase_deg"][k] + 2 * errors["pol_angle_deg"][k] + lag_deg
-        assert within(adjustment(result, k, "hwpss_2f_phase"), phase_true, floor=1e-6)
+        assert within(result.adjustment(k, "hwpss_2f_phase"), phase_true, floor=1e-6)
 
 
 def test_4f_line_out_of_phase_with_a_nonlinearity_is_a_harmonic(tmp_path):
@@ -153,12 +152,12 @@ def test_4f_line_out_of_phase_with_a_nonlinearity_is_a_harmonic(tmp_path):
     line = ("hwpss_harmonics", {"c4": 15e-6, "s4": 15e-6})
     recording, _ = recorded_with_errors(tmp_path, [line], 10_505, errors, channel="L1-040")
     result = run_with(recording, errors)
-    assert names(result) == ["hwpss_harmonics"], names(result)
+    assert result.effect_names == ["hwpss_harmonics"], result.effect_names
     assert result["effects"][0]["members"] == ["hwpss_harmonic_4"]
     assert result["unexplained"] == [], result["unexplained"]
     for k in range(2):
         for name in ("c4", "s4"):
-            assert within(parameter(result, "hwpss_harmonics", name, k), 15e-6)
+            assert within(result.parameter("hwpss_harmonics", name, k), 15e-6)
 
 
 def test_two_hwpss_lines_are_one_family_not_a_nonlinearity(tmp_path):
@@ -173,7 +172,7 @@ def test_two_hwpss_lines_are_one_family_not_a_nonlinearity(tmp_path):
     lines = ("hwpss_harmonics", {"c4": 30e-6, "s1": 40e-6})
     recording, _ = recorded_with_errors(tmp_path, [lines], 10_111, errors, hours=1.0)
     result = run_with(recording, errors)
-    assert names(result) == ["hwpss_harmonics"], names(result)
+    assert result.effect_names == ["hwpss_harmonics"], result.effect_names
     top = result["effects"][0]
     assert sorted(top["members"]) == ["hwpss_harmonic_1", "hwpss_harmonic_4"], top
     assert "tes_nonlinearity" in top["look_alikes"], top["look_alikes"]
@@ -190,7 +189,10 @@ def test_slow_periodic_a2_modulation(tmp_path):
     modulation = ("hwpss_sine_modulation", {"relative": 0.01, "period_s": 5400.0, "phase_rad": 0.4})
     recording, _ = recorded_with_errors(tmp_path, [modulation], 3141, errors, hours=2.0)
     result = run_with(recording, errors)
-    assert names(result) == ["hwpss_slow_modulation"], (names(result), result["unexplained"])
+    assert result.effect_names == ["hwpss_slow_modulation"], (
+        result.effect_names,
+        result["unexplained"],
+    )
     assert result["unexplained"] == []
     assert abs(result["chi2_after"] / result["dof"] - 1) < 5 * math.sqrt(2 / result["dof"])
 
@@ -202,7 +204,7 @@ def test_pickup_line_outside_the_catalog_is_unexplained(tmp_path):
     recording, _ = recorded_with_errors(tmp_path, [pickup], 3151, errors, hours=1.0)
     result = run_with(recording, errors)
     assert result["mismatch_found"]
-    assert result["effects"] == [], names(result)
+    assert result["effects"] == [], result.effect_names
     lines = [u for u in result["unexplained"] if u["kind"] == "line"]
     assert lines and abs(lines[0]["freq_hz"] - 1.7) < 1e-3, result["unexplained"]
     assert lines[0]["identification"] == "unidentified"
@@ -226,7 +228,7 @@ def test_spin_modulated_harmonic_leaves_its_sidebands_unexplained(tmp_path):
     wobble = ("hwpss_spin_modulation", {"harmonic": 3, "amplitude_k": 40e-6, "depth": 1.0})
     recording, _ = recorded_with_errors(tmp_path, [wobble], 3161, errors, hours=1.0)
     result = run_with(recording, errors)
-    assert "hwpss_harmonics" in names(result), names(result)
+    assert "hwpss_harmonics" in result.effect_names, result.effect_names
     labels = {u["identification"] for u in result["unexplained"] if u["kind"] == "line"}
     assert {"3 f_HWP - f_spin", "3 f_HWP + f_spin"} <= labels, result["unexplained"]
 
@@ -269,10 +271,10 @@ def test_litebird_sim_gain_drift_is_a_gain_drift(tmp_path):
     assert abs(truths[0] - truths[1]) > 0.2 * max(truths)  # the drawn slopes differ
     result = run_with(recording, errors)
     top = result["effects"][0]
-    assert top["name"] == "gain_drift", names(result)
+    assert top["name"] == "gain_drift", result.effect_names
     assert "hwp_temperature_drift" not in top["look_alikes"], top["look_alikes"]
     for k in range(2):
-        assert within(parameter(result, "gain_drift", "g1", k), truths[k])
+        assert within(result.parameter("gain_drift", "g1", k), truths[k])
 
 
 def test_hwp_temperature_drift_is_one_relative_drift_for_all_detectors(tmp_path):
@@ -286,7 +288,7 @@ def test_hwp_temperature_drift_is_one_relative_drift_for_all_detectors(tmp_path)
     )
     result = run_with(recording, errors)
     top = result["effects"][0]
-    assert top["name"] == "hwp_temperature_drift", names(result)
+    assert top["name"] == "hwp_temperature_drift", result.effect_names
     assert within(top["parameters"]["r1[common]"], 3e-5 / A2_K)
     assert "gain_drift" in top["look_alikes"], top["look_alikes"]
     assert "NOT told apart from gain_drift" in top["evidence"], top["evidence"]
@@ -303,7 +305,7 @@ def test_common_mode_gain_drift_is_told_by_the_dipole(tmp_path):
         tmp_path, [("gain_drift", {"g1": 1e-2})], 13_108, errors, hours=6.0
     )
     result = run_with(recording, errors)
-    assert names(result) == ["gain_drift"], names(result)
+    assert result.effect_names == ["gain_drift"], result.effect_names
     top = result["effects"][0]
     assert within(top["parameters"]["g1[common]"], 1e-2)
     assert any("swapped" in step["note"] for step in result["steps"]), result["steps"]

@@ -8,28 +8,32 @@ selected effects and S_f = P(f) n f_s v / 2 the expected periodogram of the nois
     chi^2 = sum_k sum_f [ 2 |R_f - M_f|^2 / S_f + 2 ln(S_f / S_f,nom) ],
 
 over the modes f != 0, f_Nyquist (the DC mode is left out: an offset is a nuisance).
-With the configured noise (S = S_nom) this is the ordinary chi^2 of the whitened Fourier
-coefficients, two real degrees of freedom per mode; ``noise_mismatch`` replaces S_nom by
-a fitted S and pays the log-determinant term. N_eff = the number of real Fourier
+With the noise weights S the ordinary chi^2 of the whitened Fourier coefficients, two real
+degrees of freedom per mode (the noise is a nominal adjustment, fitted before the effects
+and refitted on the residual of the best fit by :mod:`.pipeline`; the fit takes it as
+given: ``with_noise``). N_eff = the number of real Fourier
 degrees of freedom used (2 per mode per detector) is the sample size of the
 
     BIC = chi^2 + k ln N_eff,
 
 k the number of fitted parameters (per detector: each effect's parameters; per glitch:
-amplitude, time and tail; per detector for the noise: w, f_knee, alpha).
+amplitude, time and tail).
 
-Fitting a set of effects. Linear effects (templates T_j, :mod:`.effects`): weighted
+Fitting a set of effects. Each effect says how it is fitted by its ``kind``: "linear"
+(templates), "nonlinear" (one parameter with a model of its own: the time constant),
+"events" (a detector and a per-event fit: glitches); the fit names no effect.
+Linear effects (templates T_j, :mod:`.effects`): weighted
 linear least squares in the whitened Fourier domain, a = G^-1 b with
 G_ij = sum_f 2 Re(T_i* T_j) / S_f, b_i = sum_f 2 Re(T_i* R_f) / S_f (columns scaled to
 unit diagonal, pseudo-inverse of the normalised G, eigenvalues below 1e-12 dropped);
-covariance G^-1. The detector time constant tau: ``scipy.optimize.least_squares`` on the
-whitened residual with the linear parameters profiled out (variable projection),
-started from the linearised solution (template -d d_nom/dt); covariance of (tau, a) from
-the Jacobian, F = J^T J. Glitches: detected in the whitened residual of the other
-effects by a robust (MAD) threshold and fitted per event (:func:`.effects.fit_glitch`);
+covariance G^-1. A nonlinear effect (the detector time constant tau):
+``scipy.optimize.least_squares`` on the whitened residual with the linear parameters
+profiled out (variable projection), started from the linearised solution (its
+``linearised_f``: for tau the template -d d_nom/dt); covariance of (tau, a) from the
+Jacobian, F = J^T J. Events (glitches): detected in the whitened residual of the other
+effects by a robust (MAD) threshold and fitted per event (:mod:`.effects.glitches`);
 an event is kept if its own Delta chi^2 = (A/sigma_A)^2 exceeds its BIC penalty 3 ln N_eff.
-Noise: Whittle maximum likelihood on the residual periodogram (:func:`.noise.whittle_fit`,
-line bins excluded from the fit). The nonlinearity acts on the total signal: when other
+The nonlinearity acts on the total signal: when other
 signal effects are selected with it, its templates (d^2, and d^3 for the cubic term) are recomputed on
 d = d_nom + (their fitted model) (the full forward model to second order, e.g. a gain
 drift modulating the 4f line), unless that cross term is below Delta chi^2 = 0.01; in
@@ -37,7 +41,7 @@ later passes they are rebuilt only when the fitted model moved enough since the 
 build for the same term, 2 g1 d_nom (change of the model), to reach Delta chi^2 = 0.01
 (a one-day pair: 125 -> 99 s, the same selection and chi^2). With nonlinear pieces, the
 pieces are fitted in turn (backfitting, up to four passes, until chi^2 changes by less
-than 0.05). Speed-up: the nonlinear tau fit is skipped when even
+than 0.05). Speed-up: the nonlinear fit is skipped when even
 its linearised template, fitted beside the linear effects, gains less than half of its
 BIC penalty plus |threshold| (a large tau, where the linearisation fails, gains a lot).
 
@@ -58,19 +62,9 @@ selected linear signal effect is swapped for an unselected one when that lowers 
 moment: an HWP temperature drift taken before the refitted 1/f noise lets a gain drift's
 dipole drift show).
 
-The noise model is decided after the template effects (all but noise_mismatch): the
-Whittle fit of the white + 1/f noise to the final residual is kept if it lowers the BIC
-of the modes AWAY from the lines (n f_HWP +- m f_spin) by more than |threshold|, since a
-scaled-up noise spectrum would otherwise "explain" most of any large unmodelled line
-(and the leakage of non-stationary lines over the circular FFT). If it is kept, the
-template selection is run again with the fitted noise weights, and the noise decision
-is checked once more on that result. Delta chi^2 reported for the noise is the one off
-the lines.
-
 Uncertainties: linear parameters from G^-1 (inverse Fisher matrix of the whitened
 Fourier fit, which includes the 1/f noise correlations); tau with the linear parameters
-from the Jacobian; glitches from the local fit's Jacobian (white noise); noise
-parameters from the Whittle Fisher matrix.
+from the Jacobian; glitches from the local fit's Jacobian (white noise).
 """
 
 from __future__ import annotations
@@ -83,26 +77,15 @@ import numpy as np
 import scipy.fft
 import scipy.optimize
 
-from .effects import (
-    CATALOG,
-    RESPONSE_STAGE,
-    SIGNAL_EFFECTS,
-    Effect,
-    GlitchEvent,
-    glitch_tod,
-    single_pole,
-    single_pole_derivative,
-)
+from .effects import CATALOG, RESPONSE_STAGE, SIGNAL_EFFECTS, Effect, GlitchEvent
 from .linalg import cross, realify, share_across_detectors, solve_normal
-from .locate import find_transients
 from .model import Context
-from .noise import NoiseModel, line_exclusion_mask, periodogram_scale, whittle_fit
+from .noise import NoiseModel, periodogram_scale
 
 DELTA_BIC_THRESHOLD = -10.0
 GLITCH_THRESHOLD_SIGMA = 5.0
 BACKFIT_PASSES = 4
 CONVERGED_CHI2 = 0.05  # backfitting stops when chi^2 changes by less than this
-NOISE = "noise_mismatch"
 
 
 @dataclass
@@ -113,7 +96,6 @@ class EffectFit:
     values: dict[str, np.ndarray] = field(default_factory=dict)  # parameter -> (n_det,)
     sigmas: dict[str, np.ndarray] = field(default_factory=dict)
     events: list[GlitchEvent] = field(default_factory=list)
-    noise: list[NoiseModel] = field(default_factory=list)
     # a shared effect (``Effect.shared``): its common parameters, and the chi^2 that sharing
     # them costs against a separate fit per detector, for sharing_dof fewer parameters
     shared_values: dict[str, float] = field(default_factory=dict)
@@ -134,7 +116,6 @@ class FitResult:
     effects: dict[str, EffectFit]
     model_f: list[np.ndarray] | None = field(repr=False)  # rfft of the masked model per detector
     noise_models: list[NoiseModel] = field(repr=False)
-    chi2_off_lines: float = math.nan  # the same chi^2 over the modes away from the lines
     parts: dict | None = field(default=None, repr=False)  # effect -> per-detector rfft model
 
     prior_penalty: float = 0.0  # sum of the selected effects' Effect.prior_penalty
@@ -178,11 +159,6 @@ class FitProblem:
         self.modes = modes
         self.n_eff = int(2 * modes.sum() * self.n_det)
         self.ln_n_eff = math.log(self.n_eff)
-        resolution = fs / n
-        self.line_mask = line_exclusion_mask(
-            self.freqs, ctx.f_hwp_hz, ctx.f_spin_hz, max(3 * resolution, 2e-4)
-        )
-        self.off_lines = (modes & ~self.line_mask).astype(float)
         self.valid = np.asarray(ctx.valid, dtype=bool)
         self.valid_fraction = self.valid.mean(axis=1)
         self.scale = [periodogram_scale(n, fs, v) for v in self.valid_fraction]
@@ -216,10 +192,15 @@ class FitProblem:
                     )
             del templates
         self.d_nom_f = scipy.fft.rfft(ctx.d_nom, axis=-1, workers=workers)
-        self.tau_template_f = [
-            self._masked_one(k, -2j * np.pi * self.freqs * self.d_nom_f[k])
-            for k in range(self.n_det)
-        ]
+        # each nonlinear effect's first-order template per detector (its linearised fit)
+        self.linearised_f = {
+            name: [
+                self._masked_one(k, e.linearised_f(self.freqs, self.d_nom_f[k]))
+                for k in range(self.n_det)
+            ]
+            for name, e in effects.items()
+            if e.kind == "nonlinear"
+        }
         self._set_noise(nominal_noise)
 
     def _set_noise(self, nominal_noise) -> None:
@@ -227,7 +208,6 @@ class FitProblem:
         self.nominal_noise = list(nominal_noise)
         self.s_nom = [self.scale[k] * nominal_noise[k].psd(self.freqs) for k in range(self.n_det)]
         self.w_nom = [self.weights(s) for s in self.s_nom]
-        self.w_nom_off = [w * self.off_lines for w in self.w_nom]
         size = self.bank.shape[1]
         self.gram_nom, self.rhs_nom, self.yy_nom = [], [], []
         for k in range(self.n_det):
@@ -274,35 +254,36 @@ class FitProblem:
         ]
         return np.concatenate(idx).astype(int)
 
-    def tau_model(self, k: int, tau: float, derivative: bool = False) -> np.ndarray:
-        """rfft of valid x IFFT[D (H(tau) - 1)] (or of its derivative in tau)."""
-        if derivative:
-            spectrum = self.d_nom_f[k] * single_pole_derivative(self.freqs, tau)
-        else:
-            spectrum = self.d_nom_f[k] * (single_pole(self.freqs, tau) - 1.0)
-        return self._masked_one(k, spectrum)
+    def nonlinear_model(
+        self, effect: Effect, k: int, theta: float, derivative: bool = False
+    ) -> np.ndarray:
+        """rfft of valid x the change the nonlinear ``effect`` of parameter ``theta`` makes
+        to detector k's nominal TOD (or its derivative in theta): ``effect.change_f``."""
+        return self._masked_one(k, effect.change_f(self.freqs, self.d_nom_f[k], theta, derivative))
 
-    def chi2_of(self, k: int, model_f, s: np.ndarray) -> tuple[float, float]:
-        """Whittle chi^2 of detector k: (all used modes, only the modes away from the lines)."""
+    def nonlinear_of(self, selected) -> Effect | None:
+        """The nonlinear effect among ``selected`` (at most one is fitted at a time)."""
+        found = [self.effects[n] for n in selected if self.effects[n].kind == "nonlinear"]
+        if len(found) > 1:
+            raise ValueError(f"{[e.name for e in found]}: one nonlinear effect at a time")
+        return found[0] if found else None
+
+    def events_of(self, selected) -> Effect | None:
+        """The events effect among ``selected`` (glitches), if any."""
+        found = [self.effects[n] for n in selected if self.effects[n].kind == "events"]
+        return found[0] if found else None
+
+    def chi2_of(self, k: int, model_f) -> float:
+        """Whittle chi^2 of detector k with the problem's noise: sum_f 2 |R_f - M_f|^2 / S_f."""
         diff = self.residual_f[k] - model_f
-        power = diff.real**2 + diff.imag**2
-        if s is self.s_nom[k]:
-            w, w_off = self.w_nom[k], self.w_nom_off[k]
-            log_all = log_off = 0.0
-        else:
-            w = self.weights(s)
-            w_off = w * self.off_lines
-            ratio = np.log(np.where(self.modes, s / self.s_nom[k], 1.0))
-            log_all = 2 * float(np.sum(ratio))
-            log_off = 2 * float(ratio @ self.off_lines)
-        return 2 * float(power @ w) + log_all, 2 * float(power @ w_off) + log_off
+        return 2 * float((diff.real**2 + diff.imag**2) @ self.w_nom[k])
 
     def count_parameters(self, selected, n_events: int) -> int:
         total = 0
         for name in selected:
             effect = self.effects[name]
             if effect.kind == "events":
-                total += 3 * n_events
+                total += effect.parameters_per_event * n_events
             elif effect.shared:
                 total += len(self.units[name])
             else:
@@ -370,7 +351,7 @@ class FitProblem:
         cached = self._cache.get(selected)
         if cached is None or (keep_model and cached.model_f is None):
             kinds = {self.effects[name].kind for name in selected}
-            cached = None if keep_model else self._tau_screen(selected)
+            cached = None if keep_model else self._nonlinear_screen(selected)
             if cached is not None:
                 pass
             elif kinds <= {"linear"} and not self._composed(selected):
@@ -383,18 +364,20 @@ class FitProblem:
             self._cache[selected] = cached
         return cached
 
-    def _tau_screen(self, selected) -> FitResult | None:
-        """Skip the nonlinear tau fit when even its linearised template cannot pass.
+    def _nonlinear_screen(self, selected) -> FitResult | None:
+        """Skip the fit of a nonlinear effect when even its linearised template cannot pass.
 
-        With linear effects only besides tau, the linearised time constant (template
-        -d d_nom/dt, exact to first order in tau) is fitted beside them; if its Delta chi^2
-        is below half the BIC penalty of tau plus |threshold|, tau cannot be selected and
-        the fit without it is returned (tau reported at its linearised value). A large tau,
-        where the linearisation is poor, has a huge linearised Delta chi^2 and is fitted.
+        With linear effects only besides it, the linearised effect (for tau the template
+        -d d_nom/dt, exact to first order) is fitted beside them; if its Delta chi^2 is below
+        half its BIC penalty plus |threshold|, it cannot be selected and the fit without it
+        is returned (its parameter reported at the linearised value). A large tau, where
+        the linearisation is poor, has a huge linearised Delta chi^2 and is fitted.
         """
-        name = "detector_time_constant"
-        if name not in selected:
+        effect = self.nonlinear_of(selected)
+        if effect is None:
             return None
+        name = effect.name
+        (parameter,) = effect.parameters
         others = tuple(n for n in selected if n != name)
         if any(self.effects[n].kind != "linear" for n in others) or self._composed(selected):
             return None
@@ -402,7 +385,7 @@ class FitProblem:
         rows = self.rows(others)
         delta, taus, sigmas = 0.0, [], []
         for k in range(self.n_det):
-            lin = self.tau_template_f[k][None, :]
+            lin = self.linearised_f[name][k][None, :]
             aug = np.vstack([lin, self.bank[k][rows]]) if rows.size else lin
             gram = self.gram_nom[k][np.ix_(rows, rows)] if rows.size else np.zeros((0, 0))
             full = np.zeros((rows.size + 1, rows.size + 1))
@@ -421,7 +404,7 @@ class FitProblem:
             return None
         effects = dict(base.effects)
         effects[name] = EffectFit(
-            name, values={"tau": np.array(taus)}, sigmas={"tau": np.array(sigmas)}
+            name, values={parameter: np.array(taus)}, sigmas={parameter: np.array(sigmas)}
         )
         return FitResult(
             selected=selected,
@@ -432,7 +415,6 @@ class FitProblem:
             effects=effects,
             model_f=None,
             noise_models=base.noise_models,
-            chi2_off_lines=base.chi2_off_lines,
         )
 
     @staticmethod
@@ -473,13 +455,12 @@ class FitProblem:
         values, covariances, shared = self._share(
             selected, [a for a, _ in solved], [cov for _, cov in solved]
         )
-        chi2s, models, off = [], [], 0.0
+        chi2s, models = [], []
         for k in range(self.n_det):
             gram, rhs, a = grams[k], rhss[k], values[k]
             chi2s.append(self.yy_nom[k] - 2 * rhs @ a + a @ gram @ a)
             model = a @ self.bank[k][rows] if rows.size else np.zeros(self.freqs.size, complex)
             models.append(model)
-            off += self.chi2_of(k, model, self.s_nom[k])[1]
         parts = self._linear_parts(
             selected, [self.bank[k][rows] for k in range(self.n_det)], values
         )
@@ -494,7 +475,6 @@ class FitProblem:
             ),
             model_f=models,
             noise_models=list(self.nominal_noise),
-            chi2_off_lines=off,
             parts=parts,
         )
 
@@ -505,40 +485,45 @@ class FitProblem:
             for name, rows in self._positions(selected).items()
         }
 
-    def _fit_tau(self, k, y, bank, gram, w, start):
-        """Variable projection: tau by least_squares with the linear parameters profiled out.
+    def _fit_nonlinear(self, effect, k, y, bank, gram, w, start):
+        """Variable projection: the nonlinear ``effect``'s parameter theta by least_squares
+        with the linear parameters profiled out, from its linearised solution.
 
-        Returns (tau, sigma_tau, linear parameters, their covariance).
+        Returns (theta, sigma_theta, linear parameters, their covariance).
         """
         sw = np.sqrt(2.0 * w)
-        if start is None:  # linearised solution: template -d d_nom/dt beside the others
-            lin = self.tau_template_f[k][None, :]
+        if (
+            start is None
+        ):  # linearised solution: the effect's first-order template beside the others
+            lin = self.linearised_f[effect.name][k][None, :]
             aug = np.vstack([lin, bank]) if bank.shape[0] else lin
             a, _ = solve_normal(cross(aug, aug, w), cross(aug, y, w))
             start = float(a[0])
-        start = float(np.clip(start, 1e-7, 0.5))
+        start = float(np.clip(start, *effect.start_range))
 
         def residual(theta):
-            r = y - self.tau_model(k, theta[0])
+            r = y - self.nonlinear_model(effect, k, theta[0])
             if bank.shape[0]:
                 a, _ = solve_normal(gram, cross(bank, r, w))
                 r = r - a @ bank
             return realify(r * sw)
 
+        low, high = effect.bounds
         solution = scipy.optimize.least_squares(
-            residual, [start], bounds=([0.0], [1.0]), x_scale=[max(start, 1e-4)], method="trf"
+            residual, [start], bounds=([low], [high]), x_scale=[max(start, 1e-4)], method="trf"
         )
-        tau = float(solution.x[0])
-        r = y - self.tau_model(k, tau)
+        theta = float(solution.x[0])
+        r = y - self.nonlinear_model(effect, k, theta)
         a = solve_normal(gram, cross(bank, r, w))[0] if bank.shape[0] else np.zeros(0)
-        jacobian = self.tau_model(k, tau, derivative=True)[None, :]
+        jacobian = self.nonlinear_model(effect, k, theta, derivative=True)[None, :]
         full = np.vstack([jacobian, bank]) if bank.shape[0] else jacobian
         _, cov = solve_normal(cross(full, full, w), np.zeros(full.shape[0]))
-        return tau, math.sqrt(max(cov[0, 0], 0.0)), a, cov[1:, 1:]
+        return theta, math.sqrt(max(cov[0, 0], 0.0)), a, cov[1:, 1:]
 
-    def detect_glitches(self, k: int, r_f: np.ndarray, s: np.ndarray) -> list[GlitchEvent]:
-        """Glitches in the residual r_f (rfft) of detector k (:func:`.locate.find_transients`)."""
-        return find_transients(
+    def detect_events(self, effect, k: int, r_f: np.ndarray, s: np.ndarray) -> list:
+        """The events of ``effect`` (glitches) in the residual r_f (rfft) of detector k, kept
+        when their own significance pays their BIC penalty (``parameters_per_event`` ln N_eff)."""
+        return effect.detect(
             r_f,
             s,
             self.valid[k],
@@ -546,19 +531,19 @@ class FitProblem:
             self.scale[k],
             k,
             threshold_sigma=self.glitch_threshold_sigma,
-            min_significance=math.sqrt(3 * self.ln_n_eff),
+            min_significance=math.sqrt(effect.parameters_per_event * self.ln_n_eff),
             workers=self.workers,
         )
 
     def _fit_iterative(self, selected) -> FitResult:
-        """Backfitting of the linear, time-constant, glitch and noise parts (module docstring)."""
+        """Backfitting of the linear, nonlinear (time constant) and events (glitches) parts
+        (module docstring)."""
         ctx = self.ctx
         n_det = self.n_det
         linear = [n for n in selected if n in self.slices]
         rows = self.rows(linear)
-        has_tau = "detector_time_constant" in selected
-        has_glitch = "glitches" in selected
-        has_noise = NOISE in selected
+        nonlinear = self.nonlinear_of(selected)
+        events_effect = self.events_of(selected)
         composed = self._composed(selected)
         nl_rows = np.zeros(0, dtype=int)
         responses = []  # the response effects selected, in bank-row order
@@ -572,14 +557,10 @@ class FitProblem:
                 position += width
         others = np.ones(rows.size)  # 1 on the rows the nonlinearity acts on (not its own)
         others[nl_rows] = 0.0
-        s = list(self.s_nom)
-        noise_models = list(self.nominal_noise)
-        noise_cov = [np.zeros((3, 3))] * n_det
-        noise_fitted = [False] * n_det
-        glitch_f = [np.zeros(self.freqs.size, complex) for _ in range(n_det)]
+        events_f = [np.zeros(self.freqs.size, complex) for _ in range(n_det)]
         events: list[GlitchEvent] = []
-        tau = [None] * n_det
-        tau_sigma = [0.0] * n_det
+        theta = [None] * n_det  # the nonlinear effect's parameter per detector
+        theta_sigma = [0.0] * n_det
         values = [np.zeros(rows.size) for _ in range(n_det)]
         covariances = [np.zeros((rows.size, rows.size)) for _ in range(n_det)]
         models = [np.zeros(self.freqs.size, complex) for _ in range(n_det)]
@@ -587,39 +568,38 @@ class FitProblem:
         recomposed = [False] * n_det  # the nonlinearity rows of banks[k] were recomputed
         built_on = [None] * n_det  # the extra signal they were recomputed with (None: none)
         used_banks = list(banks)
-        tau_parts = [0.0] * n_det
-        passes = BACKFIT_PASSES if (has_glitch or has_noise or composed) else 1
+        nonlinear_parts = [0.0] * n_det
+        passes = BACKFIT_PASSES if (events_effect is not None or composed) else 1
         previous_chi2 = math.inf
         for _ in range(passes):
             updated = False  # did the nonlinearity templates change in this pass?
             for k in range(n_det):
-                w = self.weights(s[k])
+                w = self.w_nom[k]
                 bank = banks[k]
-                if not noise_fitted[k]:
-                    gram = self.gram_nom[k][np.ix_(rows, rows)]
-                    if recomposed[k]:  # else the precomputed block is exact
-                        gram[nl_rows] = cross(bank[nl_rows], bank, w)
-                        gram[:, nl_rows] = gram[nl_rows].T
-                else:
-                    gram = cross(bank, bank, w)
-                y = self.residual_f[k] - glitch_f[k]
-                if has_tau:
-                    tau[k], tau_sigma[k], a, cov = self._fit_tau(k, y, bank, gram, w, tau[k])
-                    m_tau = self.tau_model(k, tau[k])
+                gram = self.gram_nom[k][np.ix_(rows, rows)]
+                if recomposed[k]:  # else the precomputed block is exact
+                    gram[nl_rows] = cross(bank[nl_rows], bank, w)
+                    gram[:, nl_rows] = gram[nl_rows].T
+                y = self.residual_f[k] - events_f[k]
+                if nonlinear is not None:
+                    theta[k], theta_sigma[k], a, cov = self._fit_nonlinear(
+                        nonlinear, k, y, bank, gram, w, theta[k]
+                    )
+                    m_nonlinear = self.nonlinear_model(nonlinear, k, theta[k])
                 else:
                     a, cov = solve_normal(gram, cross(bank, y, w))
-                    m_tau = 0.0
+                    m_nonlinear = 0.0
                 values[k], covariances[k] = a, cov
-                used_banks[k], tau_parts[k] = bank, m_tau
-                models[k] = (a @ bank if rows.size else 0.0) + m_tau + glitch_f[k]
+                used_banks[k], nonlinear_parts[k] = bank, m_nonlinear
+                models[k] = (a @ bank if rows.size else 0.0) + m_nonlinear + events_f[k]
                 if composed:  # the nonlinearity acts on d_nom + the other fitted effects
-                    signal_f = (a * others) @ bank + m_tau  # no copy of the bank's rows
+                    signal_f = (a * others) @ bank + m_nonlinear  # no copy of the bank's rows
                     extra = scipy.fft.irfft(signal_f, n=self.n, workers=self.workers)
                     # chi^2 of the cross term 2 g1 d_nom x (extra - the extra the templates
                     # were last built with): skip the rebuild when negligible
                     change = extra if built_on[k] is None else extra - built_on[k]
                     sigma2 = (
-                        float(np.median(s[k][self.modes]))
+                        float(np.median(self.s_nom[k][self.modes]))
                         / self.scale[k]
                         * ctx.sampling_rate_hz
                         / 2
@@ -647,66 +627,40 @@ class FitProblem:
             values, covariances, shared = self._share(linear, values, covariances)
             if shared:
                 for k in range(n_det):
-                    models[k] = values[k] @ used_banks[k] + tau_parts[k] + glitch_f[k]
-            if has_glitch:
+                    models[k] = values[k] @ used_banks[k] + nonlinear_parts[k] + events_f[k]
+            if events_effect is not None:
                 events = []
                 for k in range(n_det):
-                    events += self.detect_glitches(
-                        k, self.residual_f[k] - models[k] + glitch_f[k], s[k]
+                    events += self.detect_events(
+                        events_effect,
+                        k,
+                        self.residual_f[k] - models[k] + events_f[k],
+                        self.s_nom[k],
                     )
-                glitches = self._masked_rfft(glitch_tod(ctx.times_s, n_det, events))
+                found = self._masked_rfft(events_effect.events_tod(ctx.times_s, n_det, events))
                 for k in range(n_det):
-                    models[k] = models[k] - glitch_f[k] + glitches[k]
-                    glitch_f[k] = glitches[k]
-            if has_noise:
-                for k in range(n_det):
-                    diff = self.residual_f[k] - models[k]
-                    fitted = whittle_fit(
-                        self.freqs,
-                        diff.real**2 + diff.imag**2,
-                        self.modes & ~self.line_mask,
-                        self.scale[k],
-                        noise_models[k],
-                    )
-                    noise_models[k] = fitted.model
-                    noise_cov[k] = fitted.covariance
-                    s[k] = self.scale[k] * fitted.model.psd(self.freqs)
-                    noise_fitted[k] = True
-            if not (updated or has_glitch or has_noise):
+                    models[k] = models[k] - events_f[k] + found[k]
+                    events_f[k] = found[k]
+            if not (updated or events_effect is not None):
                 break
-            total = sum(self.chi2_of(k, models[k], s[k])[0] for k in range(n_det))
+            total = sum(self.chi2_of(k, models[k]) for k in range(n_det))
             if abs(previous_chi2 - total) < CONVERGED_CHI2:
                 break
             previous_chi2 = total
-        both = [self.chi2_of(k, models[k], s[k]) for k in range(n_det)]
-        chi2s = np.array([b[0] for b in both])
+        chi2s = np.array([self.chi2_of(k, models[k]) for k in range(n_det)])
         fits = self._with_shared(self._linear_effect_fits(selected, values, covariances), shared)
-        if has_tau:
-            fits["detector_time_constant"] = EffectFit(
-                "detector_time_constant",
-                values={"tau": np.array(tau, dtype=float)},
-                sigmas={"tau": np.array(tau_sigma)},
+        parts = self._linear_parts(selected, used_banks, values)
+        if nonlinear is not None:
+            (parameter,) = nonlinear.parameters
+            fits[nonlinear.name] = EffectFit(
+                nonlinear.name,
+                values={parameter: np.array(theta, dtype=float)},
+                sigmas={parameter: np.array(theta_sigma)},
             )
-        if has_glitch:
-            fits["glitches"] = EffectFit("glitches", events=events)
-        if has_noise:
-            sig = [np.sqrt(np.clip(np.diag(c), 0, None)) for c in noise_cov]
-            net = np.array([m.net_k_sqrt_s for m in noise_models])
-            fknee = np.array([m.fknee_hz for m in noise_models])
-            fits[NOISE] = EffectFit(
-                NOISE,
-                values={
-                    "net": net,
-                    "fknee": fknee,
-                    "alpha": np.array([m.alpha for m in noise_models]),
-                },
-                sigmas={
-                    "net": net * np.array([v[0] for v in sig]),
-                    "fknee": fknee * np.array([v[1] for v in sig]),
-                    "alpha": np.array([v[2] for v in sig]),
-                },
-                noise=noise_models,
-            )
+            parts[nonlinear.name] = nonlinear_parts
+        if events_effect is not None:
+            fits[events_effect.name] = EffectFit(events_effect.name, events=events)
+            parts[events_effect.name] = events_f
         return FitResult(
             selected=selected,
             chi2=float(chi2s.sum()),
@@ -715,11 +669,8 @@ class FitProblem:
             prior_penalty=self.prior_penalty(selected),
             effects=fits,
             model_f=models,
-            noise_models=noise_models,
-            chi2_off_lines=sum(b[1] for b in both),
-            parts=self._linear_parts(selected, used_banks, values)
-            | ({"detector_time_constant": tau_parts} if has_tau else {})
-            | ({"glitches": glitch_f} if has_glitch else {}),
+            noise_models=list(self.nominal_noise),
+            parts=parts,
         )
 
     def residual_after(self, result: FitResult) -> np.ndarray:
@@ -750,7 +701,7 @@ class FitProblem:
 
 @dataclass
 class Step:
-    """One step of the selection: an effect added or removed, or the noise model switched."""
+    """One step of the selection: an effect added, removed or swapped."""
 
     step: int
     added: str | None
@@ -800,7 +751,6 @@ class Selection:
     threshold: float
     delta_chi2: dict[str, float]  # effect -> chi^2(final without it) - chi^2(final)
     delta_bic: dict[str, float]  # effect -> BIC(final) - BIC(final without it)  (< 0)
-    noise_test: dict = field(default_factory=dict)
 
     @property
     def ranked(self) -> list[str]:
@@ -825,16 +775,14 @@ def _step(steps, current, after, ln_n, candidates, added=None, removed=None, not
     )
 
 
-def _backward(problem, templates, current, extra, threshold, removed_sets, steps, keep=1):
+def _backward(problem, templates, current, threshold, removed_sets, steps, keep=1):
     """Remove the effects that the others made redundant (BIC rises by < |threshold|).
 
     Stops at ``keep`` effects (1 after a forward step; 0 when checking a start set).
     """
     ln_n = problem.ln_n_eff
     while len(templates) > keep:
-        removals = {
-            n: problem.fit(tuple(m for m in templates if m != n) + extra) for n in templates
-        }
+        removals = {n: problem.fit(tuple(m for m in templates if m != n)) for n in templates}
         costs = {n: r.bic(ln_n) - current.bic(ln_n) for n, r in removals.items()}
         weakest = min(costs, key=costs.get)
         reduced = frozenset(m for m in templates if m != weakest)
@@ -856,28 +804,27 @@ def _backward(problem, templates, current, extra, threshold, removed_sets, steps
     return templates, current
 
 
-def select_templates(problem, names, threshold, max_effects, noise: bool, steps: list, initial=()):
+def select_templates(problem, names, threshold, max_effects, steps: list, initial=()):
     """Forward selection with backward elimination of the template effects ``names``.
 
     ``initial``: effects to start from (a previous selection, checked first by the
     backward step), instead of the nominal model alone.
     """
     ln_n = problem.ln_n_eff
-    extra = (NOISE,) if noise else ()
     templates: tuple = tuple(initial)
-    current = problem.fit(templates + extra)
+    current = problem.fit(templates)
     removed_sets: set = set()
     if templates:
         _step(
             steps,
-            problem.fit(extra),
+            problem.fit(()),
             current,
             ln_n,
             {},
             note=f"noise refitted: start again from {list(templates)}",
         )
         templates, current = _backward(
-            problem, templates, current, extra, threshold, removed_sets, steps, keep=0
+            problem, templates, current, threshold, removed_sets, steps, keep=0
         )
     while len({problem.effects[n].family for n in templates}) < max_effects:
         remaining = [
@@ -887,7 +834,7 @@ def select_templates(problem, names, threshold, max_effects, noise: bool, steps:
         ]
         if not remaining:
             break
-        trials = {n: problem.fit(templates + (n,) + extra) for n in remaining}
+        trials = {n: problem.fit(templates + (n,)) for n in remaining}
         table = {
             n: {"delta_chi2": t.chi2 - current.chi2, "delta_bic": t.bic(ln_n) - current.bic(ln_n)}
             for n, t in trials.items()
@@ -899,18 +846,16 @@ def select_templates(problem, names, threshold, max_effects, noise: bool, steps:
         _step(steps, current, trials[best], ln_n, table, added=best)
         templates += (best,)
         current = trials[best]
-        templates, current = _backward(
-            problem, templates, current, extra, threshold, removed_sets, steps
-        )
-    templates, current = _swap_look_alikes(problem, names, templates, current, extra, steps)
-    return _one_family_for_a_line(problem, templates, current, extra, threshold, steps)
+        templates, current = _backward(problem, templates, current, threshold, removed_sets, steps)
+    templates, current = _swap_look_alikes(problem, names, templates, current, steps)
+    return _one_family_for_a_line(problem, templates, current, threshold, steps)
 
 
 def _swappable(effect) -> bool:
     return effect.kind == "linear" and effect.stage == "signal"
 
 
-def _swap_look_alikes(problem, names, templates, current, extra, steps):
+def _swap_look_alikes(problem, names, templates, current, steps):
     """Replace a selected effect by an unselected one when that lowers the BIC.
 
     Forward selection never revisits a choice: the effect taken first (with the noise
@@ -930,7 +875,7 @@ def _swap_look_alikes(problem, names, templates, current, extra, steps):
                     continue
                 if frozenset(kept + (candidate,)) in seen:
                     continue
-                trial = problem.fit(kept + (candidate,) + extra)
+                trial = problem.fit(kept + (candidate,))
                 gain = trial.bic(ln_n) - current.bic(ln_n)
                 if gain < 0 and (best is None or gain < best[3]):
                     best = (out, candidate, trial, gain)
@@ -952,7 +897,7 @@ def _swap_look_alikes(problem, names, templates, current, extra, steps):
         current = trial
 
 
-def _one_family_for_a_line(problem, templates, current, extra, threshold, steps):
+def _one_family_for_a_line(problem, templates, current, threshold, steps):
     """Mechanism parsimony: when a family found line by line (``Effect.reported_as``: the
     HWPSS harmonics) is among the selected effects, an effect whose lines one more member
     of that family fits as well (chi^2 within |threshold|) is replaced by it.
@@ -976,7 +921,7 @@ def _one_family_for_a_line(problem, templates, current, extra, threshold, steps)
         for name in others:
             kept = tuple(t for t in templates if t != name)
             for member in members:
-                trial = problem.fit(kept + (member,) + extra)
+                trial = problem.fit(kept + (member,))
                 if trial.chi2 - current.chi2 < -threshold and (
                     best is None or trial.chi2 < best[2].chi2
                 ):
@@ -1017,48 +962,12 @@ def stepwise(
     ln_n = problem.ln_n_eff
     names = list(problem.effects) if candidates is None else list(candidates)
     names = [n for n in names if n in problem.effects]
-    template_names = [n for n in names if n != NOISE]
     steps: list[Step] = []
     baseline = problem.fit(())
-    templates = select_templates(
-        problem, template_names, delta_bic_threshold, max_effects, False, steps, initial
-    )
-    noise_on = False
-    noise_test: dict = {}
-    if NOISE in names:
-        for _ in range(3):  # at most: on, off again (then the selection is redone and kept)
-            nominal = problem.fit(templates)
-            fitted = problem.fit(templates + (NOISE,))
-            dchi2 = fitted.chi2_off_lines - nominal.chi2_off_lines
-            dbic = dchi2 + 3 * problem.n_det * ln_n
-            noise_test = {"delta_chi2_off_lines": dchi2, "delta_bic_off_lines": dbic}
-            wanted = dbic < delta_bic_threshold
-            if wanted == noise_on:
-                break
-            current = problem.fit(templates + ((NOISE,) if noise_on else ()))
-            after = fitted if wanted else nominal
-            _step(
-                steps,
-                current,
-                after,
-                ln_n,
-                {NOISE: {"delta_chi2": dchi2, "delta_bic": dbic}},
-                added=NOISE if wanted else None,
-                removed=None if wanted else NOISE,
-                note="noise model judged on the modes away from the lines",
-            )
-            noise_on = wanted
-            # select the templates again with the new noise weights
-            templates = select_templates(
-                problem, template_names, delta_bic_threshold, max_effects, noise_on, steps
-            )
-    final = problem.fit(templates + ((NOISE,) if noise_on else ()))
+    templates = select_templates(problem, names, delta_bic_threshold, max_effects, steps, initial)
+    final = problem.fit(templates)
     delta_chi2, delta_bic = {}, {}
     for name in final.selected:
-        if name == NOISE:
-            delta_chi2[name] = -noise_test["delta_chi2_off_lines"]
-            delta_bic[name] = noise_test["delta_bic_off_lines"]
-            continue
         without = problem.fit(tuple(n for n in final.selected if n != name))
         delta_chi2[name] = without.chi2 - final.chi2
         delta_bic[name] = final.bic(ln_n) - without.bic(ln_n)
@@ -1071,5 +980,4 @@ def stepwise(
         threshold=delta_bic_threshold,
         delta_chi2=delta_chi2,
         delta_bic=delta_bic,
-        noise_test=noise_test,
     )

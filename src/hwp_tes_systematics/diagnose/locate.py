@@ -50,7 +50,7 @@ import scipy.fft
 import scipy.signal
 import scipy.stats
 
-from .effects import GlitchEvent, fit_glitch
+from .effects.glitches import GlitchEvent, find_transients
 from .linalg import whitened_lstsq
 from .model import Context
 from .noise import NoiseModel, line_exclusion_mask, periodogram_scale
@@ -367,51 +367,6 @@ def hwp_profile(residual: np.ndarray, ctx: Context, k: int, sigma_sample: float)
 
 
 # --------------------------------------------------------------------------- time
-
-
-def find_transients(
-    r_f: np.ndarray,
-    s: np.ndarray,
-    valid: np.ndarray,
-    times_s: np.ndarray,
-    scale: float,
-    detector: int,
-    threshold_sigma: float = 5.0,
-    min_significance: float = 0.0,
-    workers: int = 1,
-) -> list[GlitchEvent]:
-    """Transients in a residual given by its rfft r_f, with S_f the expected |R_f|^2 of noise.
-
-    Whitened residual z = irfft(r_f sqrt(S_white / S_f)); hits where |z| exceeds
-    ``threshold_sigma`` x 1.4826 MAD(z); hits closer than 10 samples form one group, fitted
-    at its largest residual sample by :func:`.effects.fit_glitch`; events whose
-    A / sigma_A is below ``min_significance`` are dropped.
-    """
-    n = valid.size
-    fs = 1.0 / (times_s[1] - times_s[0])
-    freqs = scipy.fft.rfftfreq(n, 1.0 / fs)
-    r_time = scipy.fft.irfft(r_f, n=n, workers=workers) * valid
-    high = freqs > 0.25 * freqs[-1]
-    s_white = float(np.median(s[high])) if high.any() else float(np.median(s[1:]))
-    whitening = np.sqrt(s_white / np.maximum(s, 1e-300))
-    whitening[0] = 0.0
-    z = scipy.fft.irfft(r_f * whitening, n=n, workers=workers)
-    zv = z[valid]
-    sigma = 1.4826 * float(np.median(np.abs(zv - np.median(zv))))
-    if not sigma > 0:
-        return []
-    hits = np.flatnonzero((np.abs(z) > threshold_sigma * sigma) & valid)
-    if hits.size == 0:
-        return []
-    groups = np.split(hits, np.flatnonzero(np.diff(hits) > 10) + 1)
-    sigma_sample = math.sqrt(s_white / scale * fs / 2)
-    events = []
-    for group in groups[:1000]:
-        peak = int(group[np.argmax(np.abs(r_time[group]))])
-        event = fit_glitch(r_time, times_s, peak, sigma_sample, detector, 1.5 / fs)
-        if event is not None and event.significance > min_significance:
-            events.append(event)
-    return events
 
 
 def drifts(

@@ -48,7 +48,7 @@ from .nominal import (
     refit_noise,
 )
 from .recording import Recording
-from .report import write_outputs
+from .report import Diagnosis, write_outputs
 from .unexplained import find_unexplained
 
 log = logging.getLogger(__name__)
@@ -174,54 +174,6 @@ def merge_members(effects: list[dict]) -> list[dict]:
     return sorted(merged.values(), key=lambda e: -e["delta_chi2"])
 
 
-def _parameters(name, fit, detector_names, sampling_rate_hz, units) -> dict:
-    out = {}
-    if name == "glitches":
-        for i, e in enumerate(sorted(fit.events, key=lambda e: (e.detector, e.time_s))):
-            det = detector_names[e.detector]
-            out[f"glitch{i}.amplitude[{det}]"] = {
-                "value": e.amplitude_k,
-                "sigma": e.sigma_amplitude_k,
-                "unit": "K",
-                "detector": det,
-                "parameter": "amplitude",
-            }
-            out[f"glitch{i}.time[{det}]"] = {
-                "value": e.time_s,
-                "sigma": 0.5 / sampling_rate_hz,  # on the sampling grid
-                "unit": "s",
-                "detector": det,
-                "parameter": "time",
-            }
-            out[f"glitch{i}.tau[{det}]"] = {
-                "value": e.tau_s,
-                "sigma": e.sigma_tau_s,
-                "unit": "s",
-                "detector": det,
-                "parameter": "tau",
-            }
-        return out
-    for param, unit in units.items():
-        for k, det in enumerate(detector_names):
-            entry = {
-                "value": float(fit.values[param][k]),
-                "sigma": float(fit.sigmas[param][k]),
-                "unit": unit,
-                "detector": det,
-                "parameter": param,
-            }
-            out[f"{param}[{det}]"] = entry
-    for param, value in fit.shared_values.items():  # a shared effect's common parameters
-        out[f"{param}[common]"] = {
-            "value": value,
-            "sigma": fit.shared_sigmas[param],
-            "unit": fit.shared_units[param],
-            "detector": "common",
-            "parameter": param,
-        }
-    return out
-
-
 def _line_table(mismatch, ctx, residual_before, residual_after, noise_models):
     rows = []
     for line in mismatch.lines:
@@ -274,14 +226,15 @@ def diagnose(
     workers: int = 1,
     figures: bool = True,
     sky_residual_nside: int | None = SKY_RESIDUAL_NSIDE,
-) -> dict:
+) -> Diagnosis:
     """Diagnose ``recording`` against its simulation (module docstring); never told the effect.
 
     ``sky_iqu``: (3, npix) I, Q, U map [K_CMB, Galactic, RING] or the path of a FITS map;
     ``a2_k``: the nominal HWPSS amplitude A_2 [K] (scalar or one per detector);
     ``nominal_noise``: the configured noise (see :func:`_nominal_noise_models`; default:
     the recording's detector metadata); ``delta_bic_threshold``: an effect is kept if it
-    lowers the BIC by more than this (default -10).
+    lowers the BIC by more than this (default -10). Returns the :class:`.report.Diagnosis`
+    (what ``diagnosis.json`` holds); with ``out_dir`` the report is also written there.
     """
     if not isinstance(recording, Recording):
         raise TypeError(f"recording: expected a Recording, got {type(recording).__name__}")
@@ -382,8 +335,8 @@ def diagnose(
             {
                 "name": name,
                 "title": effect.title,
-                "parameters": _parameters(
-                    name, fit, ctx.detector_names, ctx.sampling_rate_hz, problem.units[name]
+                "parameters": effect.reported_parameters(
+                    fit, ctx.detector_names, ctx.sampling_rate_hz, problem.units[name]
                 ),
                 "main_parameters": list(effect.main_parameters),
                 "delta_chi2": selection.delta_chi2[name],
@@ -430,7 +383,6 @@ def diagnose(
                 for m in nominal
             ],
             "estimated": [e.as_dict() for e in estimates],
-            "test_off_lines": selection.noise_test,
         },
         "locate": mismatch.as_dict(),
         "recording": {
@@ -447,7 +399,7 @@ def diagnose(
             "f_hwp_hz": ctx.f_hwp_hz,
         },
     }
-    result = _jsonable(result)
+    result = Diagnosis(_jsonable(result))
     if out_dir is not None:
         write_outputs(
             result,

@@ -1,16 +1,98 @@
-"""The diagnosis report: ``diagnosis.json``, ``diagnosis.md`` (in words) and the figures.
+"""The diagnosis's result (:class:`Diagnosis`) and its report: ``diagnosis.json``,
+``diagnosis.md`` (in words) and the figures.
 
 The pipeline that computes the result is :mod:`.pipeline` (``diagnose``); this module
-only writes what it found.
+holds and writes what it found.
 """
 
 from __future__ import annotations
 
 import json
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 
 from ..io import atomic_path
 from .effects import format_temperature
+
+
+class Diagnosis(Mapping):
+    """What :func:`.pipeline.diagnose` found in a recording, as ``diagnosis.json`` holds it.
+
+    Read it as a mapping of the JSON's keys (``result["effects"]``, ``result["unexplained"]``,
+    ``result["nominal_adjustments"]``, ...) or through the accessors below;
+    :meth:`to_json` and :meth:`to_markdown` give the text of the two report files, and
+    :meth:`read` reads a ``diagnosis.json`` back.
+    """
+
+    def __init__(self, data: Mapping):
+        self._data = dict(data)
+
+    def __getitem__(self, key: str):
+        return self._data[key]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._data)
+
+    def __len__(self) -> int:
+        return len(self._data)
+
+    def __repr__(self) -> str:
+        found = ", ".join(self.effect_names) or "no catalog effect"
+        return (
+            f"<Diagnosis of {self._data['recording']['source']}: {found}; "
+            f"{len(self._data['unexplained'])} unexplained>"
+        )
+
+    @property
+    def mismatch_found(self) -> bool:
+        """True when an effect was selected or a structure is left unexplained."""
+        return bool(self._data["mismatch_found"])
+
+    @property
+    def effect_names(self) -> list[str]:
+        """The effects found, most important first (the report's names)."""
+        return [effect["name"] for effect in self._data["effects"]]
+
+    def effect(self, name: str) -> dict:
+        """The report entry of the effect ``name`` (parameters, Delta chi^2, evidence, ...)."""
+        for effect in self._data["effects"]:
+            if effect["name"] == name:
+                return effect
+        raise KeyError(f"{name!r} was not found; the diagnosis found {self.effect_names}")
+
+    def _detector(self, detector: int | str) -> str:
+        names = self._data["recording"]["detectors"]
+        return names[detector] if isinstance(detector, int) else detector
+
+    def parameter(self, effect: str, name: str, detector: int | str) -> dict:
+        """{value, sigma, unit, ...} of parameter ``name`` of ``effect`` for ``detector``
+        (its index in the recording or its name)."""
+        wanted = self._detector(detector)
+        for entry in self.effect(effect)["parameters"].values():
+            if entry["parameter"] == name and entry["detector"] == wanted:
+                return entry
+        raise KeyError(f"{effect}.{name} has no value for detector {wanted!r}")
+
+    def adjustment(self, detector: int | str, name: str) -> dict:
+        """{value, sigma, ...} of the nominal-model adjustment ``name`` of ``detector``."""
+        return self._data["nominal_adjustments"][self._detector(detector)][name]
+
+    def to_dict(self) -> dict:
+        """The JSON content as a plain dict."""
+        return dict(self._data)
+
+    def to_json(self) -> str:
+        """The text of ``diagnosis.json``."""
+        return json.dumps(self._data, indent=2) + "\n"
+
+    def to_markdown(self, figure_files: dict | None = None) -> str:
+        """The text of ``diagnosis.md`` (:func:`markdown_report`)."""
+        return markdown_report(self._data, figure_files)
+
+    @classmethod
+    def read(cls, path) -> Diagnosis:
+        """A ``diagnosis.json`` read back."""
+        return cls(json.loads(Path(path).read_text()))
 
 
 def write_outputs(
@@ -20,7 +102,7 @@ def write_outputs(
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     with atomic_path(out_dir / "diagnosis.json") as temporary:
-        temporary.write_text(json.dumps(result, indent=2) + "\n")
+        temporary.write_text(Diagnosis(result).to_json())
     figure_files = {}
     if figures:
         from .figures import diagnosis_figures

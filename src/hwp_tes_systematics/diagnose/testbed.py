@@ -21,7 +21,8 @@ from .. import sky
 from ..config import default_config_path, load_config
 from ..instrument.channel_inputs import channel_conversion
 from .pipeline import diagnose
-from .recording import read_recording, simulate_recording, write_recording
+from .recording import read_recording, write_recording
+from .simulate import simulate_recording
 
 CHANNEL = "M1-140"
 NSIDE = 32
@@ -62,31 +63,9 @@ def recorded(tmp_path, effects, noise_seed: int, hours: float = 2.0, name: str =
     return read_recording(path), recording.injected
 
 
-def run(recording, **kwargs) -> dict:
+def run(recording, **kwargs):
+    """The diagnosis (:class:`.report.Diagnosis`) of ``recording`` against the nominal sky and A_2."""
     return diagnose(recording, sky_map(), A2_K, **kwargs)
-
-
-def parameter(result: dict, effect: str, name: str, detector: int) -> dict:
-    """The {value, sigma, unit} of ``name`` for ``detector`` (index) in the result's effect."""
-    for item in result["effects"]:
-        if item["name"] != effect:
-            continue
-        for entry in item["parameters"].values():
-            if (
-                entry["parameter"] == name
-                and entry["detector"] == result["recording"]["detectors"][detector]
-            ):
-                return entry
-    raise KeyError(f"{effect}.{name}[{detector}] not in {[e['name'] for e in result['effects']]}")
-
-
-def adjustment(result: dict, detector: int, name: str) -> dict:
-    """The {value, sigma, ...} of the nominal-model adjustment ``name`` of ``detector``."""
-    return result["nominal_adjustments"][result["recording"]["detectors"][detector]][name]
-
-
-def names(result: dict) -> list[str]:
-    return [effect["name"] for effect in result["effects"]]
 
 
 def nominal_errors(rng: np.random.Generator, n_det: int = 2, scale: float = 1.0) -> dict:
@@ -159,7 +138,7 @@ def recorded_with_errors(
     The recording is simulated with the true A_2, phase, gain, noise and polarisation
     angles; the file carries the nominal polarisation angles and the detector offsets.
     """
-    from .recording import _simulated_base
+    from .simulate import _simulated_base
 
     simulator = _simulated_base(channel, float(hours), "2032-04-01T00:00:00", NSIDE)[0]
     detectors = [{"net_ukrts": d.net_ukrts, "fknee_mhz": d.fknee_mhz} for d in simulator.detectors]

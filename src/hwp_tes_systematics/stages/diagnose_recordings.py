@@ -13,7 +13,8 @@ import logging
 from .. import config as cfg
 from .. import sky
 from ..diagnose import diagnose
-from ..diagnose.recording import read_recording, simulate_recording, write_recording
+from ..diagnose.recording import read_recording, write_recording
+from ..diagnose.simulate import simulate_recording
 from ..instrument.channel_inputs import (
     channel_a2_k_cmb,
     channel_conversion,

@@ -1,0 +1,179 @@
+"""Catalog of candidate effects: forward models of physics the nominal simulation leaves out.
+
+Every effect acts on the ADJUSTED nominal TOD of each detector k (see :mod:`.model` and
+:mod:`.nominal`: gain, 2f HWPSS amplitude and phase, polarisation angle, sky scales,
+offsets and noise are fitted on every recording as nuisance parameters, not offered as
+effects),
+
+    d_nom = (1 + g)(I(p) + D) + rho (Q cos 2a + U sin 2a) + A_2 cos(2 (chi - theta_k) - phi)
+            + ...,
+
+so an effect is only what these adjustments cannot produce: new frequencies, time
+dependence, dependence on the incoming intensity, transients.
+
+Each effect has named per-detector parameters with units; a ``shared`` effect has one set
+for all detectors, p_k = s_k r (the HWP temperature drift: one HWP), which the fit imposes
+exactly on the per-detector solutions (:func:`.linalg.share_across_detectors`) and the
+BIC counts once. ``templates(ctx)`` returns T of shape
+(n_det, n_param, n) such that, to first order, recording - d_nom = sum_j p_j T_j
+(exactly so for the effects whose ``kind`` is "linear"); ``apply(ctx, params, tod)`` is
+the full forward model used to inject the effect into a simulated recording (the SAME
+equations the diagnosis fits). Legendre polynomials P_j(x) run over the recording,
+x = 2 (t - t0) / (t_end - t0) - 1.
+
+The catalog (each effect's model in its class docstring; its parameters, signature and
+how it is told from its look-alikes in its attributes) is generated from these classes:
+``python -m hwp_tes_systematics effect-catalog`` prints it (:mod:`.catalog`; the
+documentation's effect catalog page). The effects a simulation can inject but the
+selection never offers are in :mod:`.simulate`.
+
+How each parameter is fitted: jointly with the others, by (weighted) linear least
+squares in the whitened Fourier domain for the linear effects; tau by
+``scipy.optimize.least_squares`` from the linearised solution (variable projection over
+the linear parameters); glitches by detection and a per-event nonlinear fit; the noise
+by maximising the Whittle likelihood (see :mod:`.fit` and :mod:`.noise`).
+"""
+
+from __future__ import annotations
+
+from .base import (
+    DRIFT_DEGREE,
+    GAIN_DEGREES,
+    HWPSS_HARMONICS,
+    INJECTION_HARMONICS,
+    MODULATION_MAX,
+    MODULATION_MIN,
+    MODULATION_STEP_S,
+    NONLINEARITY_HARMONICS,
+    Effect,
+    _value,
+    format_temperature,
+    modulation_degree,
+)
+from .gain import (
+    GainDrift,
+    GainDriftCommon,
+)
+from .glitches import (
+    GLITCH_TAIL_CUT,
+    Glitches,
+    GlitchEvent,
+    find_transients,
+    fit_glitch,
+    glitch_profile,
+    glitch_tod,
+)
+from .hwpss import (
+    HwpssHarmonic,
+    HwpssHarmonics,
+    HwpssIntensityCoupling,
+    HwpssSlowModulation,
+    HwpTemperatureDrift,
+    harmonic_templates,
+)
+from .nonlinearity import (
+    TesNonlinearity,
+    TesNonlinearityCubic,
+)
+from .time_constant import (
+    DetectorTimeConstant,
+    single_pole,
+    single_pole_derivative,
+)
+
+CATALOG: dict[str, Effect] = {
+    effect.name: effect
+    for effect in (
+        TesNonlinearity(),
+        TesNonlinearityCubic(),
+        DetectorTimeConstant(),
+        HwpssHarmonics(),
+        *(HwpssHarmonic(n) for n in HWPSS_HARMONICS),
+        HwpssIntensityCoupling(),
+        GainDrift(),
+        GainDriftCommon(),
+        HwpTemperatureDrift(),
+        HwpssSlowModulation(),
+        Glitches(),
+    )
+}
+
+
+# Effects on the signal, which the detector nonlinearity then acts on (they come before it).
+SIGNAL_EFFECTS = frozenset(name for name, e in CATALOG.items() if e.stage == "signal")
+RESPONSE_STAGE = frozenset(name for name, e in CATALOG.items() if e.stage == "response")
+
+
+def reported_name(name: str) -> str:
+    """The name the report gives an effect: its family's for a member (``reported_as``)."""
+    return CATALOG[name].reported_as or name if name in CATALOG else name
+
+
+def family_of(name: str) -> str:
+    """The physics a name reports (:attr:`Effect.family`); a name outside the catalog (an
+    injection-only effect) is its own family."""
+    return CATALOG[name].family if name in CATALOG else name
+
+
+def get_effect(name: str) -> Effect:
+    try:
+        return CATALOG[name]
+    except KeyError:
+        raise KeyError(f"unknown effect {name!r}; the catalog has {sorted(CATALOG)}") from None
+
+
+def catalog_table() -> list[dict]:
+    """One row per effect: name, parameters with units, signature, discrimination."""
+    return [
+        {
+            "name": e.name,
+            "title": e.title,
+            "parameters": dict(e.parameters),
+            "signature": e.signature,
+            "discrimination": e.discrimination,
+        }
+        for e in CATALOG.values()
+    ]
+
+
+__all__ = [
+    "CATALOG",
+    "DRIFT_DEGREE",
+    "GAIN_DEGREES",
+    "GLITCH_TAIL_CUT",
+    "HWPSS_HARMONICS",
+    "INJECTION_HARMONICS",
+    "MODULATION_MAX",
+    "MODULATION_MIN",
+    "MODULATION_STEP_S",
+    "NONLINEARITY_HARMONICS",
+    "RESPONSE_STAGE",
+    "SIGNAL_EFFECTS",
+    "DetectorTimeConstant",
+    "Effect",
+    "GainDrift",
+    "GainDriftCommon",
+    "GlitchEvent",
+    "Glitches",
+    "HwpTemperatureDrift",
+    "HwpssHarmonic",
+    "HwpssHarmonics",
+    "HwpssIntensityCoupling",
+    "HwpssSlowModulation",
+    "TesNonlinearity",
+    "TesNonlinearityCubic",
+    "_value",
+    "catalog_table",
+    "family_of",
+    "find_transients",
+    "fit_glitch",
+    "format_temperature",
+    "get_effect",
+    "glitch_profile",
+    "glitch_tod",
+    "harmonic_templates",
+    "modulation_degree",
+    "reported_name",
+    "single_pole",
+    "single_pole_derivative",
+]

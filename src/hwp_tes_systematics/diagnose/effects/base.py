@@ -1,0 +1,140 @@
+"""The effect interface (:class:`Effect`) and what every effect shares: the per-detector
+parameter helper, temperature formatting, the harmonic and degree choices."""
+
+from __future__ import annotations
+
+import math
+from typing import ClassVar
+
+import numpy as np
+
+from ..model import Context, per_detector
+
+HWPSS_HARMONICS = (1, 3, 4, 5, 6)  # n = 2 is the nominal 2f adjustment
+NONLINEARITY_HARMONICS = (4, 6)  # the HWPSS lines d^2 and d^3 make of a 2f HWPSS
+INJECTION_HARMONICS = (1, 2, 3, 4, 5, 6)  # a simulated recording may carry any of them
+GAIN_DEGREES = (1, 2, 3)  # g0 (a constant gain error) is the nominal gain adjustment
+DRIFT_DEGREE = 3  # hwp_temperature_drift: P1..P3
+MODULATION_STEP_S = 480.0  # hwpss_slow_modulation: one Legendre degree per 8 minutes
+MODULATION_MIN, MODULATION_MAX = 4, 24  # 24: a one-day pair stays within memory and time
+
+
+def modulation_degree(duration_s: float) -> int:
+    """D = T / 8 min, clipped to 4..24: Legendre degrees of the slow 2f modulation."""
+    size = math.ceil(duration_s / MODULATION_STEP_S)
+    return int(min(max(size, MODULATION_MIN), MODULATION_MAX))
+
+
+def format_temperature(value_k: float) -> str:
+    """A temperature in the most readable unit."""
+    magnitude = abs(value_k)
+    if magnitude >= 1e-1:
+        return f"{value_k:.4g} K"
+    if magnitude >= 1e-4:
+        return f"{value_k * 1e3:.4g} mK"
+    return f"{value_k * 1e6:.3g} uK"
+
+
+def _value(params: dict, name: str, n_detectors: int) -> np.ndarray:
+    return per_detector(params.get(name, 0.0), n_detectors, name)
+
+
+class Effect:
+    """A candidate effect: named per-detector parameters, forward model, signature, evidence.
+
+    One place per effect: its forward model (``apply``), linear templates (``templates``),
+    signature and discrimination (texts) and the evidence it states in words on the
+    measured residual (``evidence``) live in its class; the fit, the report and the
+    simulator only use these.
+    """
+
+    name: str = ""
+    title: str = ""
+    parameters: ClassVar[dict[str, str]] = {}  # parameter -> unit, one value per detector
+    main_parameters: tuple[str, ...] = ()
+    kind: str = "linear"  # "linear", "nonlinear", "events" or "noise"
+    selectable: bool = True  # False: injection only (a nominal adjustment covers it)
+    # where it acts: "signal" (on the optical signal, before the detector's response),
+    # "response" (the detector's response to the total: the nonlinearity acts on the
+    # signal effects too), "noise" or "events" (added after the response)
+    stage: str = "signal"
+    signature: str = ""
+    discrimination: str = ""
+    extends: str | None = None  # the simpler catalog effect this one nests (same physics)
+    # the report's name for it when it is one member of a family found piece by piece
+    # (each line of hwpss_harmonics): the report merges the members it keeps
+    reported_as: str | None = None
+    # True: one set of parameters for all detectors, p_k = s_k r (``shared_scale``), e.g.
+    # one HWP, so one relative drift of its emission; the BIC counts len(parameters) once
+    shared: bool = False
+    # -2 ln(prior odds) against the effect, added to its BIC (0: none; see GainDriftCommon)
+    prior_penalty: float = 0.0
+
+    def shared_scale(self, ctx: Context) -> np.ndarray:
+        """s_k of a shared effect, (n_det,): detector k's parameters are s_k times the common ones."""
+        return np.ones(ctx.n_detectors)
+
+    def shared_units(self, ctx: Context | None = None) -> dict[str, str]:
+        """Common parameter -> unit of a shared effect (default: its own parameters)."""
+        return self.param_units(ctx)
+
+    @property
+    def family(self) -> str:
+        """The physics it names: the effect it nests (``extends``) or is a member of
+        (``reported_as``), else itself."""
+        return self.extends or self.reported_as or self.name
+
+    def param_units(self, ctx: Context | None = None) -> dict[str, str]:
+        """Parameter -> unit for this recording (most effects: the fixed ``parameters``)."""
+        return dict(self.parameters)
+
+    def templates(self, ctx: Context) -> np.ndarray | None:
+        """T (n_det, n_param, n): recording - d_nom = sum_j p_j T_j to first order."""
+        return None
+
+    def apply(self, ctx: Context, params: dict, tod: np.ndarray | None = None) -> np.ndarray:
+        """The TOD ``tod`` (default d_nom) with the effect of ``params`` applied."""
+        raise NotImplementedError(f"{self.name} has no forward model on a TOD")
+
+    def _linear_apply(self, ctx, params, tod):
+        tod = ctx.d_nom if tod is None else tod
+        names = self.param_units(ctx)
+        values = np.stack([_value(params, p, ctx.n_detectors) for p in names], axis=1)
+        return tod + np.einsum("kj,kjn->kn", values, self.templates(ctx))
+
+    def reported_parameters(self, fit, detector_names, sampling_rate_hz, units) -> dict:
+        """The report's parameters of a fit (:class:`.fit.EffectFit`): "<parameter>[<detector>]"
+        -> {value, sigma, unit, detector, parameter}, and a shared effect's common ones as
+        "<parameter>[common]"."""
+        out = {}
+        for param, unit in units.items():
+            for k, det in enumerate(detector_names):
+                entry = {
+                    "value": float(fit.values[param][k]),
+                    "sigma": float(fit.sigmas[param][k]),
+                    "unit": unit,
+                    "detector": det,
+                    "parameter": param,
+                }
+                out[f"{param}[{det}]"] = entry
+        for param, value in fit.shared_values.items():  # a shared effect's common parameters
+            out[f"{param}[common]"] = {
+                "value": value,
+                "sigma": fit.shared_sigmas[param],
+                "unit": fit.shared_units[param],
+                "detector": "common",
+                "parameter": param,
+            }
+        return out
+
+    def evidence(self, ev, fit) -> str:
+        """The signature measured on the residual ``ev`` (:class:`.evidence.Evidence`), in words."""
+        return self.signature
+
+    def unresolved_look_alikes(self, ev, fit) -> list[str]:
+        """Catalog effects this fit cannot be told from because the signature that would
+        tell them apart is below detection in this recording (none by default)."""
+        return []
+
+    def __repr__(self) -> str:
+        return f"<effect {self.name}>"

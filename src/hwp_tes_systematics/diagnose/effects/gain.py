@@ -1,0 +1,119 @@
+"""Gain drifts: per detector, and common to the pair."""
+
+from __future__ import annotations
+
+import math
+from typing import ClassVar
+
+import numpy as np
+
+from .base import GAIN_DEGREES, Effect, _value
+
+
+def _one_relative_drift(fit, param: str, of: str, why: str = "") -> str:
+    """The sentence stating a shared drift's common value and what sharing it cost."""
+    return (
+        f"one relative drift for all detectors{why}: {param} = "
+        f"{fit.shared_values[param]:.3g} +- {fit.shared_sigmas[param]:.2g}{of} (sharing it "
+        f"costs chi^2 {fit.sharing_chi2:.1f} for {fit.sharing_dof} fewer parameters)"
+    )
+
+
+class GainDrift(Effect):
+    """Relative gain drift: d_obs = [1 + sum_j g_j P_j(x)] d, j = 1..3 (g0: a nominal adjustment).
+
+    The templates multiply the signal's variations, d - <d>, not its DC level: a detector's
+    DC level is mostly a readout offset that the responsivity does not scale, and a drift of
+    the DC level cannot be told from the 1/f noise anyway. (With <d> in the template, a gain
+    drift of 3e-3 on a 2 mK offset adds a 6 uK ramp that the data do not have, and loses to
+    the HWP temperature drift by ~13 in BIC on a recording with a pure gain drift.)
+    """
+
+    name = "gain_drift"
+    title = "gain error and drift"
+    parameters: ClassVar[dict[str, str]] = {f"g{j}": "1" for j in GAIN_DEGREES}
+    main_parameters = ("g1",)
+    signature = "residual proportional to the whole signal (HWPSS and dipole), drifting in time"
+    discrimination = (
+        "the detectors' relative drifts differ (one HWP drifts them alike: the HWP "
+        "temperature drift, shared, cannot follow); it multiplies the dipole and the sky too "
+        "(g(t) x dipole, at f_spin in the 1/f noise: a few %/h in 2 hours, ~1 %/h in 6)"
+    )
+
+    def templates(self, ctx):
+        d = ctx.d_nom
+        d = d - np.array([d[k][ctx.valid[k]].mean() for k in range(ctx.n_detectors)])[:, None]
+        return np.stack([ctx.legendre(j)[None, :] * d for j in GAIN_DEGREES], axis=1)
+
+    def apply(self, ctx, params, tod=None):
+        """Injection: g0 (a constant gain error) is accepted as well as g1..g3."""
+        tod = ctx.d_nom if tod is None else tod
+        gain = sum(
+            _value(params, f"g{j}", tod.shape[0])[:, None] * ctx.legendre(j)[None, :]
+            for j in (0, *GAIN_DEGREES)
+        )
+        return (1.0 + gain) * tod
+
+    def evidence(self, ev, fit) -> str:
+        """The signature measured on the residual ``ev`` (:class:`.evidence.Evidence`), in words."""
+        parts = []
+        hours = ev.ctx.duration_s / 3600
+        for k, name in enumerate(ev.ctx.detector_names):
+            dipole = ev.drift(k, "dipole_gain")
+            hwpss = ev.drift(k, "hwpss_2f_cos")
+            a2 = ev.a2[k]
+            rel = hwpss["slope_per_hour"] / a2 if a2 else math.nan
+            rel_sigma = hwpss["sigma_per_hour"] / a2 if a2 else math.nan
+            g1 = fit.values["g1"][k]
+            parts.append(
+                f"{name}: the dipole amplitude drifts by {dipole['slope_per_hour'] * 100:.3g} +- "
+                f"{dipole['sigma_per_hour'] * 100:.2g} %/h ({dipole['significance_sigma']:.1f} "
+                f"sigma) together with the 2f HWPSS ({rel * 100:.3g} +- {rel_sigma * 100:.2g} %/h): "
+                f"the whole signal scales, as a gain drift g1 P1 (= {2 * g1 / hours * 100:.3g} %/h) "
+                "predicts and an HWP temperature drift (2f only) does not"
+            )
+        if ev.ctx.n_detectors > 1 and not self.shared:
+            g1, sigma = fit.values["g1"], np.maximum(fit.sigmas["g1"], 1e-300)
+            mean = np.sum(g1 / sigma**2) / np.sum(1 / sigma**2)
+            spread = math.sqrt(float(np.sum(((g1 - mean) / sigma) ** 2)))
+            values = ", ".join(f"{v:.3g}" for v in g1)
+            parts.append(
+                f"the detectors drift differently (g1 = {values}, {spread:.1f} sigma apart): "
+                "each TES its own responsivity, where one HWP would move the 2f HWPSS of "
+                "every detector by the same relative amount"
+                if spread >= 3
+                else f"the detectors drift alike (g1 = {values}, {spread:.1f} sigma apart): "
+                "the dipole's drift, not the difference between detectors, makes it a gain"
+            )
+        return "; ".join(parts)
+
+
+class GainDriftCommon(GainDrift):
+    """A gain drift the same in every detector (a common mode, e.g. of the bath temperature).
+
+    The templates of :class:`GainDrift` with one set of g_j for all detectors (``shared``).
+    It differs from the HWP temperature drift (also one relative drift for all) only by the
+    dipole and sky drifting too, so it carries a prior penalty of 10 in BIC (odds of e^5
+    ~ 150 against it): TES responsivities drift by their own amounts (litebird_sim draws
+    a slope per detector), one HWP moves every detector's 2f HWPSS alike. It is taken when
+    the dipole's drift shows (e.g. 1e-2 in 6 hours), else the HWP temperature drift is, with
+    the gain drift named as its unresolved look-alike. Reported as ``gain_drift``.
+    """
+
+    name = "gain_drift_common"
+    title = "gain drift common to the detectors"
+    reported_as = "gain_drift"
+    shared = True
+    prior_penalty = 10.0
+    signature = (
+        "residual proportional to the whole signal (HWPSS and dipole), drifting in time by "
+        "the same relative amount in every detector"
+    )
+    discrimination = (
+        "the dipole amplitude drifts together with the 2f HWPSS (the same relative drift "
+        "in every detector, as one HWP's would be: only the dipole tells them apart)"
+    )
+
+    def evidence(self, ev, fit) -> str:
+        """The signature measured on the residual ``ev`` (:class:`.evidence.Evidence`), in words."""
+        return _one_relative_drift(fit, "g1", "") + "; " + super().evidence(ev, fit)

@@ -1,0 +1,116 @@
+"""The TES gain nonlinearity: quadratic (the paper's model) and cubic."""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import numpy as np
+
+from ...instrument.nonlinearity import apply_nonlinearity
+from .base import Effect, _value, format_temperature
+
+
+class TesNonlinearity(Effect):
+    """d_obs = d + g1 d^2 on the total signal (TES gain compression; the paper's model).
+
+    With d = A_2 cos x + D (x = 2 (chi - theta)): g1 d^2 = g1 A_2^2 / 2 (DC) +
+    g1 A_2^2 / 2 cos 2x (4 f_HWP) + 2 g1 A_2 D cos x (for D = D0 cos 2 pi f_D t: two lines
+    at 2 f_HWP +- f_D of amplitude g1 A_2 D0 each) + g1 D^2.
+    """
+
+    name = "tes_nonlinearity"
+    title = "TES gain nonlinearity"
+    parameters: ClassVar[dict[str, str]] = {"g1": "1/K"}
+    powers: ClassVar[tuple[int, ...]] = (2,)  # d_obs - d = sum_j p_j d^powers[j]
+    main_parameters = ("g1",)
+    stage = "response"
+    signature = (
+        "4 f_HWP line g1 A_2^2/2 (and a DC shift, inside the offset), 2 f_HWP +- f_spin "
+        "sidebands g1 A_2 D each"
+    )
+    discrimination = (
+        "a 4f HWPSS harmonic has no sidebands (and is fitted jointly with it: the shared 4f "
+        "line does not decide, the sidebands and d^2 do); intensity coupling has the "
+        "sidebands but no 4f line and no DC, and a free phase (a_c, a_s: two parameters where "
+        "g1 is one); the sidebands scale as A_2 I (not as I)"
+    )
+
+    def response_templates(self, signal: np.ndarray) -> np.ndarray:
+        """d^p for each power p of the model, (n_param, n) for one detector's signal d."""
+        return np.stack([signal**p for p in self.powers])
+
+    def templates(self, ctx):
+        return np.stack([ctx.d_nom**p for p in self.powers], axis=1)
+
+    def apply(self, ctx, params, tod=None):
+        tod = ctx.d_nom if tod is None else tod
+        n = tod.shape[0]
+        unknown = set(params) - set(self.parameters)
+        if unknown:
+            raise KeyError(
+                f"{self.name} has parameters {sorted(self.parameters)}, not {sorted(unknown)}"
+                + (" (a cubic term: tes_nonlinearity_cubic)" if "g2" in unknown else "")
+            )
+        return apply_nonlinearity(tod, _value(params, "g1", n), _value(params, "g2", n))
+
+    def evidence(self, ev, fit) -> str:
+        """The signature measured on the residual ``ev`` (:class:`.evidence.Evidence`), in words."""
+        parts = []
+        for k, name in enumerate(ev.ctx.detector_names):
+            g1 = fit.values["g1"][k]
+            g2 = fit.values["g2"][k] if "g2" in fit.values else 0.0
+            a2 = ev.a2[k]
+            h4 = ev.harmonic(k, 4)
+            h6 = ev.harmonic(k, 6)
+            valid = ev.ctx.valid[k]
+            d = ev.ctx.d_nom[k][valid]
+            dc_pred = g1 * float(np.mean(d**2)) + g2 * float(np.mean(d**3))
+            (lo, _lo_s, _, lo_sig, *_), (hi, _hi_s, _, hi_sig, *_) = ev.sidebands(k)
+            side_pred = abs(g1) * a2 * ev.dipole_amplitude(k)
+            text = (
+                f"{name}: 4 f_HWP line {format_temperature(h4.amplitude_k)} at {h4.significance_sigma:.1f} sigma "
+                f"(predicted g1 A_2^2/2 = {format_temperature(abs(g1) * a2**2 / 2)}); its DC shift "
+                f"{format_temperature(dc_pred)} is inside the fitted offset (a nominal adjustment: a detector's "
+                "absolute offset is never known); 2 f_HWP - f_spin and "
+                f"2 f_HWP + f_spin lines {format_temperature(lo)} and {format_temperature(hi)} at {lo_sig:.1f} and "
+                f"{hi_sig:.1f} sigma (predicted g1 A_2 D = {format_temperature(side_pred)} each)"
+            )
+            if h6 is not None and "g2" in fit.values and abs(fit.sigmas["g2"][k]) > 0:
+                text += (
+                    f"; 6 f_HWP line {format_temperature(h6.amplitude_k)} at {h6.significance_sigma:.1f} sigma "
+                    f"(g2 A_2^3/4 = {format_temperature(abs(g2) * a2**3 / 4)})"
+                )
+            parts.append(text)
+        return "; ".join(parts)
+
+    def unresolved_look_alikes(self, ev, fit) -> list[str]:
+        """A 4f HWPSS harmonic, when the sidebands g1 A_2 D that the nonlinearity predicts
+        are below 3 sigma together (both lines, all detectors): then the nonlinearity rests
+        on its 4f line alone, which a 4f harmonic in phase with twice the 2f phase makes too."""
+        snr2 = 0.0
+        for k in range(len(ev.ctx.detector_names)):
+            predicted = abs(fit.values["g1"][k]) * ev.a2[k] * ev.dipole_amplitude(k)
+            for line in ev.sidebands(k):
+                sigma = line[1]
+                snr2 += (predicted / sigma) ** 2 if sigma > 0 else 0.0
+        return ["hwpss_harmonics"] if snr2 < 9.0 else []
+
+
+class TesNonlinearityCubic(TesNonlinearity):
+    """d_obs = d + g1 d^2 + g2 d^3: the quadratic model with a cubic term.
+
+    g2 d^3 adds 3 g2 A_2^3 / 4 cos x (2 f_HWP) and g2 A_2^3 / 4 cos 3x (6 f_HWP). The
+    quadratic ``tes_nonlinearity`` is its nested special case (g2 = 0): the selection keeps
+    whichever the BIC prefers, so g2 is reported only when its lines pay for it.
+    """
+
+    name = "tes_nonlinearity_cubic"
+    title = "TES gain nonlinearity with a cubic term"
+    parameters: ClassVar[dict[str, str]] = {"g1": "1/K", "g2": "1/K^2"}
+    powers: ClassVar[tuple[int, ...]] = (2, 3)
+    extends = "tes_nonlinearity"
+    signature = TesNonlinearity.signature + ", 6 f_HWP line g2 A_2^3/4"
+    discrimination = (
+        "tes_nonlinearity is its nested special case (g2 = 0): the BIC keeps the cubic term "
+        "only when its own lines pay for g2 (the backward step drops the other)"
+    )

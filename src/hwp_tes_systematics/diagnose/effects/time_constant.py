@@ -1,0 +1,103 @@
+"""The detector time constant: a single-pole response, fitted as one nonlinear parameter."""
+
+from __future__ import annotations
+
+import math
+from typing import ClassVar
+
+import numpy as np
+import scipy.fft
+import scipy.optimize
+
+from .base import Effect, _value, format_temperature
+
+
+def single_pole(freqs_hz: np.ndarray, tau_s: float) -> np.ndarray:
+    """H(f) = 1 / (1 + 2 pi i f tau) (numpy's e^{-2 pi i f t} convention: a phase lag)."""
+    return 1.0 / (1.0 + 2j * np.pi * freqs_hz * tau_s)
+
+
+def single_pole_derivative(freqs_hz: np.ndarray, tau_s: float) -> np.ndarray:
+    """dH/dtau = -2 pi i f / (1 + 2 pi i f tau)^2."""
+    return -2j * np.pi * freqs_hz / (1.0 + 2j * np.pi * freqs_hz * tau_s) ** 2
+
+
+class DetectorTimeConstant(Effect):
+    """Single-pole detector response: d_obs = IFFT[D(f) / (1 + 2 pi i f tau)] (circular FFT).
+
+    Linearised, d_obs = d - tau dd/dt: template -d d_nom/dt (spectral derivative). For the
+    2f HWPSS the response is a phase lag atan(2 pi 2 f_HWP tau) and an amplitude factor
+    1/sqrt(1 + (2 pi 2 f_HWP tau)^2); higher harmonics lag more.
+    """
+
+    name = "detector_time_constant"
+    title = "detector time constant"
+    parameters: ClassVar[dict[str, str]] = {"tau": "s"}
+    main_parameters = ("tau",)
+    kind = "nonlinear"
+    signature = (
+        "2 f_HWP residual in quadrature with the HWPSS: phase lag atan(2 pi f tau) and "
+        "amplitude loss 1/sqrt(1 + (2 pi f tau)^2), both from one tau"
+    )
+    discrimination = (
+        "a 2f phase error (a nominal adjustment) lags the 2f line only; with only a 2f HWPSS "
+        "and a faint sky the two are the SAME signal (the adjustment reports the equivalent "
+        "tau = tan(phi) / (2 pi 2 f_HWP)); tau is selected only when the lag of the other "
+        "frequencies is seen (fitted jointly with the 2f phase)"
+    )
+
+    # the fit of its one nonlinear parameter (:meth:`.fit.FitProblem.fit`): bounds, and the
+    # range the linearised start is clipped to
+    bounds = (0.0, 1.0)  # s
+    start_range = (1e-7, 0.5)  # s
+
+    @staticmethod
+    def linearised_f(freqs_hz: np.ndarray, d_f: np.ndarray) -> np.ndarray:
+        """The first-order change of the spectrum d_f per unit tau: -2 pi i f D(f) (-dd/dt)."""
+        return -2j * np.pi * freqs_hz * d_f
+
+    @staticmethod
+    def change_f(freqs_hz: np.ndarray, d_f: np.ndarray, tau_s: float, derivative: bool = False):
+        """The change of the spectrum d_f: D (H(tau) - 1), or its derivative D dH/dtau."""
+        if derivative:
+            return d_f * single_pole_derivative(freqs_hz, tau_s)
+        return d_f * (single_pole(freqs_hz, tau_s) - 1.0)
+
+    def templates(self, ctx):
+        freqs = scipy.fft.rfftfreq(ctx.n_samples, 1.0 / ctx.sampling_rate_hz)
+        spectrum = scipy.fft.rfft(ctx.d_nom, axis=-1)
+        change = self.linearised_f(freqs, spectrum)
+        return scipy.fft.irfft(change, n=ctx.n_samples, axis=-1)[:, None, :]
+
+    def apply(self, ctx, params, tod=None):
+        tod = ctx.d_nom if tod is None else tod
+        tau = _value(params, "tau", tod.shape[0])
+        freqs = scipy.fft.rfftfreq(tod.shape[-1], 1.0 / ctx.sampling_rate_hz)
+        spectrum = scipy.fft.rfft(tod, axis=-1)
+        out = np.empty_like(tod)
+        for k in range(tod.shape[0]):
+            out[k] = scipy.fft.irfft(spectrum[k] * single_pole(freqs, tau[k]), n=tod.shape[-1])
+        return out
+
+    def evidence(self, ev, fit) -> str:
+        """The signature measured on the residual ``ev`` (:class:`.evidence.Evidence`), in words."""
+        parts = []
+        omega = 2 * np.pi * 2 * ev.f_hwp
+        for k, name in enumerate(ev.ctx.detector_names):
+            tau = fit.values["tau"][k]
+            static = ev.drift(k, "static")
+            a2 = ev.a2[k]
+            c, s = static["hwpss_2f_cos_k"], static["hwpss_2f_sin_k"]
+            s_sigma = static["hwpss_2f_sin_sigma_k"]
+            lag = math.atan2(s, a2 + c)
+            factor = math.hypot(a2 + c, s) / a2 if a2 else math.nan
+            lag_pred = math.atan(omega * tau)
+            factor_pred = 1 / math.sqrt(1 + (omega * tau) ** 2)
+            parts.append(
+                f"{name}: the 2 f_HWP HWPSS has a quadrature residual {format_temperature(s)} at "
+                f"{abs(s) / s_sigma if s_sigma else 0:.0f} sigma, i.e. it lags by "
+                f"{lag * 1e3:.3f} mrad with amplitude factor {factor:.6f}; one tau = "
+                f"{tau * 1e3:.4g} ms predicts a lag atan(2 pi 2f_HWP tau) = {lag_pred * 1e3:.3f} "
+                f"mrad and a factor 1/sqrt(1+(2 pi 2f_HWP tau)^2) = {factor_pred:.6f}"
+            )
+        return "; ".join(parts)
