@@ -22,9 +22,9 @@ import healpy as hp
 import numpy as np
 
 from hwp_tes_systematics.config import default_config_path, load_config
-from hwp_tes_systematics.instrument.channel_inputs import channel_a2_k_cmb, channel_sky
 from hwp_tes_systematics.instrument.channels import load_channel
 from hwp_tes_systematics.simulation import map_domain
+from hwp_tes_systematics.simulation.channel_inputs import channel_a2_k_cmb, channel_sky
 from hwp_tes_systematics.simulation.tod import MissionPlan, PairSimulator
 from hwp_tes_systematics.simulation.tod_maps import (
     TEMPLATE_TERMS,

@@ -45,7 +45,7 @@ def run_cli(cwd, *arguments) -> subprocess.CompletedProcess:
 def m1_140_a2_k() -> float:
     """M1-140's nominal HWPSS amplitude A_2 [K_CMB] from the default configuration's optics."""
     from hwp_tes_systematics.config import default_config_path, load_config
-    from hwp_tes_systematics.instrument.channel_inputs import channel_a2_k_cmb
+    from hwp_tes_systematics.simulation.channel_inputs import channel_a2_k_cmb
 
     return channel_a2_k_cmb(load_config(default_config_path()), "M1-140")
 

@@ -15,7 +15,7 @@ MOVED = {
     "radiometry": "instrument.radiometry",
     "tes": "instrument.tes",
     "nonlinearity": "instrument.nonlinearity",
-    "channel_inputs": "instrument.channel_inputs",
+    "channel_inputs": "simulation.channel_inputs",
     "data_model": "simulation.data_model",
     "tod": "simulation.tod",
     "notch": "simulation.notch",

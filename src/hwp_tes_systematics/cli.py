@@ -38,7 +38,7 @@ def run_diagnose(
     """
     from .diagnose import diagnose
     from .diagnose.recording import nominal_a2, read_recording
-    from .instrument.channel_inputs import channel_a2_k_cmb
+    from .simulation.channel_inputs import channel_a2_k_cmb
 
     config = load_config(*config_paths)
     recording = read_recording(recording_path)

@@ -19,7 +19,7 @@ import numpy as np
 
 from .. import sky
 from ..config import default_config_path, load_config
-from ..instrument.channel_inputs import channel_conversion
+from ..simulation.channel_inputs import channel_conversion
 from .pipeline import diagnose
 from .recording import read_recording, write_recording
 from .simulate import simulate_recording

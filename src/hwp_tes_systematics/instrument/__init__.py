@@ -1,6 +1,7 @@
 """The instrument and its inputs: LiteBIRD channels and detectors (PTEP model), the HWP's
 optical power and A_2, band-integrated radiometry (K/W), the TES response and its
-nonlinearity, and a channel's inputs computed from the configuration.
+nonlinearity (the physics; a channel's inputs computed from the configuration are in
+:mod:`..simulation.channel_inputs`).
 
 The channel model (:mod:`.channels`) is re-exported here: ``from hwp_tes_systematics.instrument
 import load_channel``.

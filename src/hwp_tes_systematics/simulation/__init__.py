@@ -1,4 +1,5 @@
-"""Simulation and map-making: the TOD of a detector pair (litebird_sim scanning, HWP,
+"""Simulation and map-making: a channel's inputs from the configuration (K/W, A_2, the
+TES, the sky: :mod:`.channel_inputs`), the TOD of a detector pair (litebird_sim scanning, HWP,
 dipole, noise; :mod:`.tod`, :mod:`.data_model`), the filters (HWP-harmonic removal, the
 4 f_HWP notch, baselines), binned map-making and HWP demodulation, the TOD path per seed
 (:mod:`.tod_maps`) and the map-domain path (:mod:`.map_domain`: one TOD pass per channel,

@@ -15,7 +15,7 @@ from .. import sky
 from ..diagnose import diagnose
 from ..diagnose.recording import read_recording, write_recording
 from ..diagnose.simulate import simulate_recording
-from ..instrument.channel_inputs import (
+from ..simulation.channel_inputs import (
     channel_a2_k_cmb,
     channel_conversion,
     channel_sky,

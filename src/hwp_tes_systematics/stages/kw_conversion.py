@@ -7,8 +7,8 @@ import logging
 import pandas as pd
 
 from .. import config as cfg
-from ..instrument.channel_inputs import conversion_row
 from ..io import write_csv
+from ..simulation.channel_inputs import conversion_row
 
 log = logging.getLogger(__name__)
 

@@ -7,13 +7,13 @@ import logging
 import pandas as pd
 
 from ..figures.tes import plot_response_curve
-from ..instrument.channel_inputs import tes_for_channel
 from ..instrument.tes import (
     nonlinearity_coefficients,
     optical_power_for_resistance,
     solve_operating_point,
 )
 from ..io import write_csv
+from ..simulation.channel_inputs import tes_for_channel
 
 log = logging.getLogger(__name__)
 

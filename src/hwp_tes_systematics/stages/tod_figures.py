@@ -9,8 +9,8 @@ import pandas as pd
 
 from .. import config as cfg
 from ..figures import tod as tod_figures
-from ..instrument.channel_inputs import channel_sky
 from ..instrument.nonlinearity import apply_nonlinearity
+from ..simulation.channel_inputs import channel_sky
 from ..simulation.tod import MissionPlan, PairSimulator
 
 log = logging.getLogger(__name__)

@@ -12,9 +12,9 @@ import numpy as np
 
 from .. import config as cfg
 from .. import sky
-from .hwp_power import hwp_power_for_channel, sky_to_detector_efficiency
-from .radiometry import dpower_dtemperature_w_per_k, kelvin_per_watt
-from .tes import TesParameters, tes_parameters_for_channel
+from ..instrument.hwp_power import hwp_power_for_channel, sky_to_detector_efficiency
+from ..instrument.radiometry import dpower_dtemperature_w_per_k, kelvin_per_watt
+from ..instrument.tes import TesParameters, tes_parameters_for_channel
 
 
 def conversion_row(config: dict, name: str, hwp: dict) -> dict:
