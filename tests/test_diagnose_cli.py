@@ -35,6 +35,39 @@ def test_cli_finds_an_untold_nonlinearity(tmp_path):
     assert diagnosis["chi2_after"] < diagnosis["chi2_before"]
     assert (tmp_path / "out/diagnosis.md").exists()
     assert (tmp_path / "out/residual_spectrum.png").stat().st_size > 10_000
+    # g1 = -0.03 against the shipped one-year requirement: said in one sentence, printed,
+    # in the report and in the JSON
+    check = diagnosis["requirement_check"]
+    assert check["effect"] == "tes_nonlinearity" and len(check["detectors"]) == 2
+    assert all(4 < d["g1_over_requirement"] < 8 for d in check["detectors"])
+    assert check["sentence"] in result.stdout
+    assert check["sentence"] in (tmp_path / "out/diagnosis.md").read_text()
+
+
+def test_cli_compares_with_a_given_requirement(tmp_path):
+    """--requirement: a run's requirement.json instead of the shipped one; a bad one stops
+    before the diagnosis, naming the file."""
+    recording = simulate_recording(
+        CHANNEL, 0.5, MASTER_SEED, 4244, sky_map(), A2_K, [("tes_nonlinearity", {"g1": -0.03})]
+    )
+    write_recording(tmp_path / "rec.h5", recording)
+    sky.write_sky_map(tmp_path / "sky.fits", sky_map())
+    (tmp_path / "requirement.json").write_text(
+        json.dumps({"headline": {"requirement_sigma_g1_per_k": 0.06}, "delta_r_budget": 1e-5})
+    )
+    result = cli(
+        tmp_path, "rec.h5", "--sky", "sky.fits", "--out", "out", "--requirement", "requirement.json"
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    check = json.loads((tmp_path / "out/diagnosis.json").read_text())["requirement_check"]
+    assert check["requirement"]["source"] == "requirement.json"
+    assert all(0.3 < d["g1_over_requirement"] < 0.7 for d in check["detectors"])
+    (tmp_path / "bad.json").write_text("{}")
+    result = cli(
+        tmp_path, "rec.h5", "--sky", "sky.fits", "--out", "out2", "--requirement", "bad.json"
+    )
+    assert result.returncode == 2 and "bad.json: no headline" in result.stderr
+    assert not (tmp_path / "out2").exists()
 
 
 def test_cli_bad_input_names_the_file(tmp_path):

@@ -55,3 +55,40 @@ def test_markdown_says_what_was_found(result):
     text = result.to_markdown()
     assert text.startswith("# Diagnosis of a recording against its simulation")
     assert "**Mismatch found.**" in text and "tes_nonlinearity_cubic" in text
+
+
+def test_a_found_nonlinearity_against_the_shipped_requirement(result):
+    """The example's g1 (electrothermal TES, ~-0.04 K^-1, known to ~1e-4) against the shipped
+    one-year requirement (sigma_g1 < 4.9e-3 K^-1): known far better than required, and
+    about ten times the requirement if left uncorrected."""
+    from hwp_tes_systematics.diagnose.requirement_check import (
+        compare_nonlinearity,
+        load_requirement,
+    )
+
+    requirement = load_requirement()
+    shipped = json.loads((Path(__file__).parents[1] / "docs/one_year/requirement.json").read_text())
+    assert requirement["sigma_g1_per_k"] == shipped["headline"]["requirement_sigma_g1_per_k"]
+    check = compare_nonlinearity(result.effect("tes_nonlinearity_cubic"), requirement)
+    assert len(check["detectors"]) == 2
+    for detector in check["detectors"]:
+        assert detector["sigma_over_requirement"] < 0.1
+        assert 5 < detector["g1_over_requirement"] < 15
+    sentence = check["sentence"]
+    assert sentence.startswith("Fitted g1 = ") and sentence.endswith("times the requirement.")
+    assert "better than required" in sentence and "365.25 days" in sentence
+    assert sentence.rstrip(".").count(". ") == 0  # one sentence
+
+
+def test_a_requirement_file_without_a_headline_is_refused(tmp_path):
+    from hwp_tes_systematics.diagnose.requirement_check import (
+        RequirementFileError,
+        load_requirement,
+    )
+
+    (tmp_path / "other.json").write_text(json.dumps({"per_sigma": []}))
+    with pytest.raises(RequirementFileError, match="other.json: no headline"):
+        load_requirement(tmp_path / "other.json")
+    (tmp_path / "broken.json").write_text("{")
+    with pytest.raises(RequirementFileError, match="broken.json: cannot be read as JSON"):
+        load_requirement(tmp_path / "broken.json")

@@ -25,6 +25,8 @@ from hwp_tes_systematics.instrument.hwp_power import read_hwp_curves
 
 # Files of config/ that the package ships, under the same relative paths below data/.
 SHIPPED = ["config/config.yaml", "config/hwp/mft_hwp_curves.csv", "config/hwp/hft_hwp_curves.csv"]
+# The one-year requirement a diagnosed nonlinearity is compared with: data/ name -> source.
+SHIPPED_REQUIREMENT = ("one_year_requirement.json", "docs/one_year/requirement.json")
 PACKAGE_DATA = Path("src/hwp_tes_systematics/data")
 
 
@@ -35,6 +37,9 @@ def test_package_data_are_symlinks_to_the_repository_config(repo):
         assert shipped.is_symlink(), f"{shipped} should be a symlink to {name}"
         assert shipped.resolve() == (repo / name).resolve()
     assert default_config_path() == data_path() / "config/config.yaml"
+    shipped, source = SHIPPED_REQUIREMENT
+    assert (repo / PACKAGE_DATA / shipped).is_symlink()
+    assert (repo / PACKAGE_DATA / shipped).resolve() == (repo / source).resolve()
 
 
 def test_default_config_loads_from_another_folder(repo, tmp_path, monkeypatch):
@@ -108,6 +113,8 @@ def test_built_package_ships_the_default_config_and_curve_tables(repo, tmp_path)
     for name in ("pyproject.toml", "README.md"):
         shutil.copy(repo / name, source / name)
     shutil.copytree(repo / "config", source / "config")
+    (source / "docs/one_year").mkdir(parents=True)
+    shutil.copy(repo / SHIPPED_REQUIREMENT[1], source / SHIPPED_REQUIREMENT[1])
     shutil.copytree(
         repo / "src",
         source / "src",
@@ -129,3 +136,6 @@ def test_built_package_ships_the_default_config_and_curve_tables(repo, tmp_path)
         built = data / name
         assert built.is_file() and not built.is_symlink(), f"{name} missing from the build"
         assert built.read_bytes() == (source / name).read_bytes()
+    built = data / SHIPPED_REQUIREMENT[0]
+    assert built.is_file() and not built.is_symlink(), "the one-year requirement is missing"
+    assert built.read_bytes() == (source / SHIPPED_REQUIREMENT[1]).read_bytes()

@@ -30,11 +30,14 @@ def run_diagnose(
     threshold: float,
     workers: int = 1,
     a2_k: float | None = None,
-) -> dict:
+    requirement: str | None = None,
+):
     """Diagnose one recording with the nominal HWPSS and noise of the configured instrument.
 
     ``a2_k`` (``--a2``) overrides the instrument model's A_2; a channel the model does not
     know (a lab detector) needs it (see :func:`.diagnose.recording.nominal_a2`).
+    ``requirement`` (``--requirement``): the requirement.json a found nonlinearity is
+    compared with (default: the shipped one-year result).
     """
     from .diagnose import diagnose
     from .diagnose.recording import nominal_a2, read_recording
@@ -52,7 +55,13 @@ def run_diagnose(
         a2_k,
     )
     return diagnose(
-        recording, sky_path, a2_k, out_dir=out_dir, delta_bic_threshold=threshold, workers=workers
+        recording,
+        sky_path,
+        a2_k,
+        out_dir=out_dir,
+        delta_bic_threshold=threshold,
+        workers=workers,
+        requirement=requirement,
     )
 
 
@@ -95,6 +104,12 @@ def main(argv: list[str] | None = None) -> int:
         help="nominal HWPSS amplitude A_2 [K_CMB]: overrides the instrument model's; needed "
         "for a channel not in it (a lab detector)",
     )
+    diagnose.add_argument(
+        "--requirement",
+        default=None,
+        help="a workflow run's results/requirement.json: a nonlinearity found is compared "
+        "with its requirement on sigma_g1 (default: the shipped one-year result)",
+    )
     arguments = parser.parse_args(argv)
 
     if arguments.command == "config-reference":
@@ -117,6 +132,7 @@ def main(argv: list[str] | None = None) -> int:
             arguments.out,
             arguments.delta_bic,
             a2_k=arguments.a2,
+            requirement=arguments.requirement,
         )
     except (ConfigError, ValueError, OSError) as error:
         print(f"error: {error}", file=sys.stderr)
@@ -127,6 +143,8 @@ def main(argv: list[str] | None = None) -> int:
             f"mismatch found: {names}; chi2 {result['chi2_before']:.1f} -> "
             f"{result['chi2_after']:.1f}; report in {arguments.out}"
         )
+        if result.requirement_sentence:
+            print(result.requirement_sentence)
     else:
         print(f"no mismatch found (chi2 {result['chi2_before']:.1f}); report in {arguments.out}")
     return 0

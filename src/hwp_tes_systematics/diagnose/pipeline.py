@@ -49,6 +49,7 @@ from .nominal import (
 )
 from .recording import Recording
 from .report import Diagnosis, write_outputs
+from .requirement_check import NONLINEARITY_FAMILY, compare_nonlinearity, load_requirement
 from .unexplained import find_unexplained
 
 log = logging.getLogger(__name__)
@@ -226,6 +227,7 @@ def diagnose(
     workers: int = 1,
     figures: bool = True,
     sky_residual_nside: int | None = SKY_RESIDUAL_NSIDE,
+    requirement=None,
 ) -> Diagnosis:
     """Diagnose ``recording`` against its simulation (module docstring); never told the effect.
 
@@ -233,11 +235,15 @@ def diagnose(
     ``a2_k``: the nominal HWPSS amplitude A_2 [K] (scalar or one per detector);
     ``nominal_noise``: the configured noise (see :func:`_nominal_noise_models`; default:
     the recording's detector metadata); ``delta_bic_threshold``: an effect is kept if it
-    lowers the BIC by more than this (default -10). Returns the :class:`.report.Diagnosis`
+    lowers the BIC by more than this (default -10); ``requirement``: the ``requirement.json``
+    of a workflow run a found nonlinearity is compared with (default: the shipped one-year
+    result; :mod:`.requirement_check`). Returns the :class:`.report.Diagnosis`
     (what ``diagnosis.json`` holds); with ``out_dir`` the report is also written there.
     """
     if not isinstance(recording, Recording):
         raise TypeError(f"recording: expected a Recording, got {type(recording).__name__}")
+    # a requirement file given is read first: a bad one stops before the long diagnosis
+    requirement_given = None if requirement is None else load_requirement(requirement)
     sky, sky_source = load_sky(sky_iqu)
     a2 = per_detector(a2_k, recording.n_detectors, "a2_k")
     nominal = _nominal_noise_models(recording, nominal_noise)
@@ -347,6 +353,15 @@ def diagnose(
             }
         )
     effects_out = merge_members(effects_out)
+    nonlinearity = next(
+        (e for e in effects_out if family_of(e["name"]) == NONLINEARITY_FAMILY), None
+    )
+    requirement_check = None
+    if nonlinearity is not None:
+        requirement_check = {
+            "effect": nonlinearity["name"],
+            **compare_nonlinearity(nonlinearity, requirement_given or load_requirement()),
+        }
     lines = _line_table(mismatch, ctx, residual, residual_after, noise_models)
     corrections = final.effects[NOMINAL.name]
     adjustments = adjustments_report(
@@ -370,6 +385,7 @@ def diagnose(
         "bic_after": final.bic(selection.ln_n_eff),
         "delta_bic_threshold": delta_bic_threshold,
         "information_criterion": "BIC = chi2 + k ln N_eff (N_eff = real Fourier dof used)",
+        "requirement_check": requirement_check,
         "steps": [dict(step.as_dict(), step=i + 1) for i, step in enumerate(history)],
         "lines": lines,
         "noise": {

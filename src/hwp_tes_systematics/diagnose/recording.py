@@ -43,6 +43,12 @@ from ..io import atomic_path
 DEFAULT_START_TDB = "2032-04-01T00:00:00"
 REQUIRED_DETECTOR_KEYS = ("name", "pol_angle_rad")
 MIN_SAMPLES = 64
+# What diagnosing a recording needs in memory, checked from the declared sizes before
+# anything is read: the peak RSS of diagnose() grows by 1190 B per detector-sample
+# (M1-140 pair at 31 Hz, 2 h -> 6 h: 395 -> 1408 MiB above the 451-612 MiB of the loaded
+# package; `python benchmarks/diagnose_memory.py --hours 2 6`), on top of ~0.7 GB.
+DIAGNOSIS_BYTES_PER_DETECTOR_SAMPLE = 1200
+DIAGNOSIS_BASE_BYTES = 0.7e9
 
 
 class RecordingError(ValueError):
@@ -171,15 +177,18 @@ def _read_flags(path, handle, n_det: int, n: int) -> np.ndarray:
     return flags
 
 
-def read_recording(path) -> Recording:
+def read_recording(path, memory_budget_bytes=None) -> Recording:
     """Read a recording written by :func:`write_recording` (litebird_sim's HDF5 format).
 
     A file that h5py cannot open or read (truncated by an interrupted copy or write, or
-    corrupt) is a :class:`RecordingError` naming the file, what h5py said and what to do.
+    corrupt) is a :class:`RecordingError` naming the file, what h5py said and what to do;
+    so is a file whose declared size would need more memory to diagnose than
+    ``memory_budget_bytes`` (default: the available memory; :func:`check_memory`),
+    refused before any of its data is read.
     """
     path = Path(path)
     try:
-        return _read_recording(path)
+        return _read_recording(path, memory_budget_bytes)
     except OSError as error:  # h5py: "Unable to synchronously open file (truncated file...)"
         size = path.stat().st_size if path.exists() else 0
         _fail(
@@ -190,7 +199,42 @@ def read_recording(path) -> Recording:
         )
 
 
-def _read_recording(path: Path) -> Recording:
+def diagnosis_memory_bytes(n_detectors: int, n_samples: int) -> float:
+    """The memory diagnosing a recording of this size needs [bytes] (estimate, see
+    DIAGNOSIS_BYTES_PER_DETECTOR_SAMPLE)."""
+    return DIAGNOSIS_BASE_BYTES + DIAGNOSIS_BYTES_PER_DETECTOR_SAMPLE * n_detectors * n_samples
+
+
+def available_memory_bytes() -> float:
+    """The memory the system can give this process now [bytes] (psutil)."""
+    import psutil
+
+    return float(psutil.virtual_memory().available)
+
+
+def check_memory(path, n_det: int, n: int, sampling_rate_hz: float, budget_bytes=None) -> None:
+    """Refuse, before reading, a recording whose diagnosis would not fit ``budget_bytes``
+    (default: the available memory), saying the sizes and what to do."""
+    budget = available_memory_bytes() if budget_bytes is None else float(budget_bytes)
+    needed = diagnosis_memory_bytes(n_det, n)
+    if needed <= budget:
+        return
+    per_segment = max(0.0, budget - DIAGNOSIS_BASE_BYTES) / (
+        DIAGNOSIS_BYTES_PER_DETECTOR_SAMPLE * n_det
+    )
+    hours = n / sampling_rate_hz / 3600.0
+    _fail(
+        path,
+        f"declares {n_det} detector(s) x {n:.4g} samples ({hours:.4g} h at "
+        f"{sampling_rate_hz:g} Hz): diagnosing it needs ~{needed / 2**30:.3g} GiB "
+        f"(~{DIAGNOSIS_BYTES_PER_DETECTOR_SAMPLE} B per detector-sample), more than the "
+        f"{budget / 2**30:.3g} GiB available; diagnose it in pieces of at most "
+        f"{per_segment / sampling_rate_hz / 3600.0:.3g} h (write shorter observations, "
+        "e.g. with litebird_sim), or on a machine with more memory",
+    )
+
+
+def _read_recording(path: Path, memory_budget_bytes=None) -> Recording:
     import h5py
 
     if not path.exists():
@@ -230,6 +274,7 @@ def _read_recording(path: Path) -> Recording:
             _fail(path, "dataset 'tod' has no 'sampling_rate_hz' attribute")
         if not (math.isfinite(sampling_rate_hz) and sampling_rate_hz > 0):
             _fail(path, f"sampling_rate_hz = {sampling_rate_hz!r}: expected a rate > 0 Hz")
+        check_memory(path, n_det, n, sampling_rate_hz, memory_budget_bytes)
         detectors = _read_detectors(path, dataset, n_det)
         start_time = _read_start_time(path, dataset)
         try:

@@ -77,6 +77,13 @@ class Diagnosis(Mapping):
         """{value, sigma, ...} of the nominal-model adjustment ``name`` of ``detector``."""
         return self._data["nominal_adjustments"][self._detector(detector)][name]
 
+    @property
+    def requirement_sentence(self) -> str | None:
+        """The fitted nonlinearity against the requirement on sigma_g1, in one sentence
+        (None when no nonlinearity was found)."""
+        check = self._data.get("requirement_check")
+        return check["sentence"] if check else None
+
     def to_dict(self) -> dict:
         """The JSON content as a plain dict."""
         return dict(self._data)
@@ -178,6 +185,9 @@ def markdown_report(result: dict, figure_files: dict | None = None) -> str:
         for pname, p in list(effect["parameters"].items())[:60]:
             out.append(f"| {pname} | {p['value']:.6g} | {p['sigma']:.3g} | {p['unit']} |")
         out.append("")
+        check = result.get("requirement_check")
+        if check and check["effect"] == effect["name"]:
+            out += [f"*Against the requirement*: {check['sentence']}", ""]
     out += ["## What the fit cannot explain", ""]
     if unexplained:
         out += [

@@ -1,0 +1,120 @@
+"""A fitted nonlinearity against the workflow's requirement on sigma_g1, in one sentence.
+
+The study's requirement (``requirement.json``, ``headline``) bounds sigma_g1, the spread of
+the detectors' g1 left after calibration (Micheli et al. 2024: g1 drawn per detector from
+N(0, sigma_g1)). A diagnosis that measures g1 with uncertainty sigma says two things
+against it: whether this recording knows g1 well enough (sigma below the requirement:
+correcting with the fitted g1 leaves an error within it) and how large g1 itself is
+against it (the bias a detector with this g1 would bring if left uncorrected). Without a
+file given, the shipped one-year result is used (``docs/one_year/requirement.json``,
+packaged as ``data/one_year_requirement.json``).
+"""
+
+from __future__ import annotations
+
+import json
+from importlib import resources
+from pathlib import Path
+
+SHIPPED = "one_year_requirement.json"  # under the package's data/
+NONLINEARITY_FAMILY = "tes_nonlinearity"
+
+
+class RequirementFileError(ValueError):
+    """A requirement.json that cannot be read or lacks what the comparison needs."""
+
+
+def load_requirement(path=None) -> dict:
+    """{source, sigma_g1_per_k, error_per_k, delta_r_budget, definition, settings, consistent}
+    from a workflow's ``requirement.json`` (``path``; None: the shipped one-year result)."""
+    if path is None:
+        source = resources.files("hwp_tes_systematics") / "data" / SHIPPED
+        label = "the shipped one-year result (docs/one_year/requirement.json)"
+    else:
+        source, label = Path(path), str(path)
+    try:
+        data = json.loads(source.read_text())
+    except (OSError, json.JSONDecodeError) as error:
+        raise RequirementFileError(f"{label}: cannot be read as JSON ({error})") from error
+    try:
+        headline = data["headline"]
+        sigma = float(headline["requirement_sigma_g1_per_k"])
+    except (KeyError, TypeError, ValueError) as error:
+        raise RequirementFileError(
+            f"{label}: no headline.requirement_sigma_g1_per_k ({error!r}); expected the "
+            "results/requirement.json a workflow run writes"
+        ) from error
+    if not sigma > 0:
+        raise RequirementFileError(f"{label}: requirement_sigma_g1_per_k = {sigma}: expected > 0")
+    return {
+        "source": label,
+        "sigma_g1_per_k": sigma,
+        "error_per_k": headline.get("error_per_k"),
+        "delta_r_budget": data.get("delta_r_budget"),
+        "definition": headline.get("definition", ""),
+        "consistent": headline.get("consistent"),
+        "settings": data.get("settings", {}),
+    }
+
+
+def compare_nonlinearity(effect: dict, requirement: dict) -> dict:
+    """The fitted g1 of each detector (a report entry of the tes_nonlinearity family)
+    against the requirement: sigma / requirement (how well this recording knows g1),
+    |g1| / requirement (what an uncorrected g1 would bring), and the sentence."""
+    limit = requirement["sigma_g1_per_k"]
+    detectors = []
+    for entry in effect["parameters"].values():
+        if entry["parameter"] != "g1" or entry["detector"] == "common":
+            continue
+        detectors.append(
+            {
+                "detector": entry["detector"],
+                "g1_per_k": entry["value"],
+                "sigma_per_k": entry["sigma"],
+                "sigma_over_requirement": entry["sigma"] / limit,
+                "g1_over_requirement": abs(entry["value"]) / limit,
+            }
+        )
+    return {
+        "requirement": requirement,
+        "detectors": detectors,
+        "sentence": _sentence(detectors, requirement),
+    }
+
+
+def _span(values, fmt) -> str:
+    low, high = min(values), max(values)
+    return (
+        format(low, fmt) if format(low, fmt) == format(high, fmt) else f"{low:{fmt}}-{high:{fmt}}"
+    )
+
+
+def _sentence(detectors, requirement) -> str:
+    limit = requirement["sigma_g1_per_k"]
+    error = requirement["error_per_k"]
+    settings = requirement["settings"]
+    fitted = ", ".join(
+        f"{d['g1_per_k']:.3g} +- {d['sigma_per_k']:.2g} ({d['detector']})" for d in detectors
+    )
+    context = []
+    if requirement["delta_r_budget"] is not None:
+        context.append(f"delta r < {requirement['delta_r_budget']:g}")
+    if "duration_days" in settings:
+        context.append(f"{settings['duration_days']:g} days")
+    if "nside" in settings:
+        context.append(f"nside {settings['nside']}")
+    bound = f"{limit:.2g}" + (f" +- {error:.1g}" if error else "")
+    sigma_ratio = [d["sigma_over_requirement"] for d in detectors]
+    known = (
+        f"this recording knows g1 {_span([1 / r for r in sigma_ratio], '.3g')} times better "
+        "than required (correcting with it meets the requirement)"
+        if max(sigma_ratio) < 1
+        else f"this recording knows g1 only to {_span(sigma_ratio, '.2g')} times the "
+        "requirement (not enough to correct with it)"
+    )
+    uncorrected = _span([d["g1_over_requirement"] for d in detectors], ".2g")
+    return (
+        f"Fitted g1 = {fitted} K^-1 against the requirement sigma_g1 < {bound} K^-1 "
+        f"({', '.join(context)}; {requirement['source']}): {known}, and left uncorrected "
+        f"|g1| is {uncorrected} times the requirement."
+    )

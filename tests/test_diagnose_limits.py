@@ -1,0 +1,58 @@
+"""A recording too large to diagnose is refused from its declared sizes, before any of its
+data is read (diagnose.recording.check_memory)."""
+
+import json
+
+import h5py
+import pytest
+
+from hwp_tes_systematics.diagnose import RecordingError, read_recording
+from hwp_tes_systematics.diagnose.recording import (
+    DIAGNOSIS_BYTES_PER_DETECTOR_SAMPLE,
+    diagnosis_memory_bytes,
+)
+
+
+def declared_file(path, n_samples, rate_hz=19.0):
+    """An HDF5 file in the recording layout whose datasets declare ``n_samples`` per
+    detector but hold no data (unallocated: a few kB on disk)."""
+    with h5py.File(path, "w") as handle:
+        tod = handle.create_dataset("tod", shape=(2, n_samples), dtype="f8")
+        handle.create_dataset("pointings", shape=(2, n_samples, 3), dtype="f8")
+        handle.create_dataset("hwp_angle", shape=(n_samples,), dtype="f8")
+        tod.attrs["sampling_rate_hz"] = rate_hz
+        tod.attrs["detectors"] = json.dumps(
+            [{"name": f"d{k}", "pol_angle_rad": 0.0 if k == 0 else 1.5708} for k in range(2)]
+        )
+        tod.attrs["start_time"] = "63324.0"  # MJD, 2032-04-01
+        tod.attrs["mjd_time"] = True
+    return path
+
+
+def test_a_file_declaring_1e10_samples_is_refused_before_reading(tmp_path):
+    path = declared_file(tmp_path / "huge.h5", 10**10)
+    assert path.stat().st_size < 1e6  # sparse: nothing to read, everything to allocate
+    needed = diagnosis_memory_bytes(2, 10**10) / 2**30
+    with pytest.raises(RecordingError) as info:
+        read_recording(path)
+    message = str(info.value)
+    assert "huge.h5: declares 2 detector(s) x 1e+10 samples" in message
+    assert f"~{needed:.3g} GiB" in message and "GiB available" in message
+    assert "diagnose it in pieces of at most" in message
+
+
+def test_the_budget_sets_the_largest_piece(tmp_path):
+    path = declared_file(tmp_path / "day.h5", 19 * 86400)
+    budget = diagnosis_memory_bytes(2, 19 * 3600)  # one hour's worth
+    with pytest.raises(RecordingError, match=r"pieces of at most 1 h"):
+        read_recording(path, memory_budget_bytes=budget)
+    # within the budget, the same file is read
+    recording = read_recording(path, memory_budget_bytes=diagnosis_memory_bytes(2, 19 * 86400))
+    assert recording.tod.shape == (2, 19 * 86400)
+
+
+def test_the_estimate_is_the_measured_slope():
+    """~1.2 kB per detector-sample (benchmarks/diagnose_memory.py: 1190 B measured)."""
+    assert 1000 <= DIAGNOSIS_BYTES_PER_DETECTOR_SAMPLE <= 1500
+    one_day_pair = diagnosis_memory_bytes(2, 31 * 86400) / 2**30
+    assert 5 < one_day_pair < 8  # GiB: the issue measured a one-day pair at 7.7 GB
