@@ -85,6 +85,9 @@ from .noise import NoiseModel, periodogram_scale
 DELTA_BIC_THRESHOLD = -10.0
 GLITCH_THRESHOLD_SIGMA = 5.0
 BACKFIT_PASSES = 4
+GAP_OFFSET = (
+    "gap_offset"  # an offset fitted with the effects when samples are flagged (not reported)
+)
 CONVERGED_CHI2 = 0.05  # backfitting stops when chi^2 changes by less than this
 
 
@@ -170,7 +173,16 @@ class FitProblem:
         self.linear_names = [name for name, e in effects.items() if e.kind == "linear"]
         self.slices: dict[str, slice] = {}
         size = 0
-        self.n_nominal = 0 if nominal is None else len(nominal.parameters)
+        # the nominal adjustments' parameters, and an offset when samples are flagged: the
+        # offset is fitted before (nominal.fit_nominal) and sits in the DC mode, which the
+        # likelihood leaves out; with a gap a constant is no longer a pure DC mode (its
+        # masked version leaks to low frequencies), so the constant part of any effect
+        # (the nonlinearity's g1 A_2^2 / 2) must be absorbed in the fit itself
+        self.gapped = ~self.valid.all(axis=1)
+        self.nominal_parameters = [] if nominal is None else list(nominal.parameters)
+        if nominal is not None and self.gapped.any():
+            self.nominal_parameters.append(GAP_OFFSET)
+        self.n_nominal = len(self.nominal_parameters)
         self.nominal_rows = np.arange(self.n_nominal)
         size = self.n_nominal
         for name in self.linear_names:
@@ -184,6 +196,11 @@ class FitProblem:
             sources.insert(0, (nominal.name, nominal))
         for name, effect in sources:
             templates = effect.templates(ctx)
+            if name == getattr(nominal, "name", None) and GAP_OFFSET in self.nominal_parameters:
+                # the offset's row: 1 on a detector with flagged samples, 0 on the others
+                # (a parameter without data: solve_normal gives it 0)
+                offset_row = np.broadcast_to(self.gapped[:, None, None], (self.n_det, 1, n))
+                templates = np.concatenate([templates, offset_row.astype(float)], axis=1)
             start = self.slices[name].start
             for k in range(self.n_det):
                 for j in range(templates.shape[1]):
@@ -432,7 +449,7 @@ class FitProblem:
             if name not in self.slices:
                 continue
             params = list(
-                self.nominal.parameters
+                self.nominal_parameters
                 if name == getattr(self.nominal, "name", None)
                 else self.units[name]
             )

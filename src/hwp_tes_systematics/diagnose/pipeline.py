@@ -367,7 +367,7 @@ def diagnose(
     adjustments = adjustments_report(
         adjusted, corrections.values, corrections.sigmas, nominal, recording.pol_angles_rad
     )
-    n_nuisance = problem.n_nominal * ctx.n_detectors + 3 * ctx.n_detectors + ctx.n_detectors
+    n_nuisance = len(NOMINAL.parameters) * ctx.n_detectors + 3 * ctx.n_detectors + ctx.n_detectors
     n_nuisance += adjusted.sky_residual_pixels
     unexplained = find_unexplained(ctx, residual_after, noise_models, selection, workers)
     result = {
