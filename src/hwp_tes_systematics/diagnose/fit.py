@@ -77,12 +77,19 @@ import numpy as np
 import scipy.fft
 import scipy.optimize
 
-from .effects import CATALOG, RESPONSE_STAGE, SIGNAL_EFFECTS, Effect, GlitchEvent
+from .effects import (
+    CATALOG,
+    RESPONSE_STAGE,
+    SELECTION_THRESHOLD,
+    SIGNAL_EFFECTS,
+    Effect,
+    GlitchEvent,
+)
 from .linalg import cross, realify, share_across_detectors, solve_normal
 from .model import Context
 from .noise import NoiseModel, periodogram_scale
 
-DELTA_BIC_THRESHOLD = -10.0
+DELTA_BIC_THRESHOLD = SELECTION_THRESHOLD  # effects.base: the effects read it too
 GLITCH_THRESHOLD_SIGMA = 5.0
 BACKFIT_PASSES = 4
 GAP_OFFSET = (

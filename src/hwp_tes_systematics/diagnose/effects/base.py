@@ -15,6 +15,7 @@ NONLINEARITY_HARMONICS = (4, 6)  # the HWPSS lines d^2 and d^3 make of a 2f HWPS
 INJECTION_HARMONICS = (1, 2, 3, 4, 5, 6)  # a simulated recording may carry any of them
 GAIN_DEGREES = (1, 2, 3)  # g0 (a constant gain error) is the nominal gain adjustment
 DRIFT_DEGREE = 3  # hwp_temperature_drift: P1..P3
+SELECTION_THRESHOLD = -10.0  # the selection's default Delta BIC threshold (fit.DELTA_BIC_THRESHOLD)
 MODULATION_STEP_S = 480.0  # hwpss_slow_modulation: one Legendre degree per 8 minutes
 MODULATION_MIN, MODULATION_MAX = 4, 24  # 24: a one-day pair stays within memory and time
 

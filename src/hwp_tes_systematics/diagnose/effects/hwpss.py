@@ -16,6 +16,7 @@ from .base import (
     INJECTION_HARMONICS,
     MODULATION_MIN,
     NONLINEARITY_HARMONICS,
+    SELECTION_THRESHOLD,
     Effect,
     _value,
     format_temperature,
@@ -111,6 +112,33 @@ class HwpssHarmonic(Effect):
                 )
             parts.append(text)
         return "; ".join(parts)
+
+    def unresolved_look_alikes(self, ev, fit) -> list[str]:
+        """For the 4f line: a TES nonlinearity, when the nonlinearity that would make the
+        line's part in phase with it (g1 A_2^2 / 2 cos(4 (chi - theta) - 2 phi): g1 = 2 a /
+        A_2^2 from that part a) predicts 2 f_HWP +- f_spin sidebands g1 A_2 D whose chi^2
+        together (both lines, all detectors) could not pay for the nonlinearity in the
+        selection (n_det ln N_eff + |Delta BIC threshold|, N_eff ~ n_det n): its only
+        signature of its own is then below detection, and a nonlinearity of that size (or
+        a part of the line) cannot be excluded, whichever is the larger."""
+        if self.n != 4:
+            return []
+        phases = ev.ctx.hwpss_phase_rad
+        snr2 = 0.0
+        for k in range(ev.ctx.n_detectors):
+            c, s = fit.values["c4"][k], fit.values["s4"][k]
+            phi = 0.0 if phases is None else float(phases[k])
+            in_phase = c * math.cos(2 * phi) + s * math.sin(2 * phi)
+            if not ev.a2[k]:
+                continue
+            g1 = 2 * in_phase / ev.a2[k] ** 2
+            predicted = abs(g1) * ev.a2[k] * ev.dipole_amplitude(k)
+            for line in ev.sidebands(k):
+                sigma = line[1]
+                snr2 += (predicted / sigma) ** 2 if sigma > 0 else 0.0
+        n_det = ev.ctx.n_detectors
+        detection = n_det * math.log(n_det * ev.ctx.n_samples) + abs(SELECTION_THRESHOLD)
+        return ["tes_nonlinearity"] if snr2 < detection else []
 
 
 class HwpssIntensityCoupling(Effect):

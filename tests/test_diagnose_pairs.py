@@ -1,0 +1,26 @@
+"""Two effects near the selection's threshold (issue 29): a 4f HWPSS of 40 uK and a TES
+nonlinearity g1 = -2e-3 (70 uK of 4f line, 2f +- f_spin sidebands of ~1.8 uK) in a 6 h
+M1-140 pair. The BIC keeps the 4f line; the nonlinearity, whose own signature (the
+sidebands) cannot pay for it at this depth, must still be named as what the line may be."""
+
+import numpy as np
+import pytest
+
+from hwp_tes_systematics.diagnose.testbed import recorded, run
+
+pytestmark = pytest.mark.slow
+
+
+def test_the_weaker_member_of_a_pair_is_named_as_a_look_alike(tmp_path):
+    phase = 1.1  # rad, of the 4f HWPSS harmonic
+    effects = [
+        ("tes_nonlinearity", {"g1": -2e-3}),
+        ("hwpss_harmonics", {"c4": 40e-6 * np.cos(phase), "s4": 40e-6 * np.sin(phase)}),
+    ]
+    recording, _ = recorded(tmp_path, effects, 7301, hours=6.0)
+    result = run(recording, figures=False)
+    named = set(result.effect_names)
+    for effect in result["effects"]:
+        named |= set(effect["look_alikes"])
+    assert {"hwpss_harmonics", "tes_nonlinearity"} <= named, result["effects"]
+    assert result["unexplained"] == []
