@@ -24,3 +24,20 @@ def test_the_weaker_member_of_a_pair_is_named_as_a_look_alike(tmp_path):
         named |= set(effect["look_alikes"])
     assert {"hwpss_harmonics", "tes_nonlinearity"} <= named, result["effects"]
     assert result["unexplained"] == []
+
+
+def test_an_unphysical_coupling_is_not_reported_as_physics(tmp_path):
+    """An HWP intensity-to-2f coupling of 0.3 (beyond the catalog's physical bound 0.1) is
+    not reported as hwpss_intensity_coupling, nor is the nonlinearity of g1 ~0.6 K^-1 the
+    selection would otherwise take in its place: the 2 f_HWP +- f_spin sidebands it makes
+    are left in ``unexplained``. A coupling of 0.02 is found as itself."""
+    recording, _ = recorded(tmp_path, [("hwpss_intensity_coupling", {"a2c": 0.02})], 9100)
+    assert run(recording, figures=False).effect_names == ["hwpss_intensity_coupling"]
+    recording, _ = recorded(tmp_path, [("hwpss_intensity_coupling", {"a2c": 0.3})], 9100)
+    result = run(recording, figures=False)
+    assert "hwpss_intensity_coupling" not in result.effect_names
+    assert not {"tes_nonlinearity", "tes_nonlinearity_cubic"} & set(result.effect_names)
+    texts = " ".join(entry["text"] for entry in result["unexplained"])
+    assert "2 f_HWP - f_spin" in texts and "2 f_HWP + f_spin" in texts
+    removed = [s for s in result["steps"] if "outside physical bounds" in (s.get("note") or "")]
+    assert removed, "the selection says what it removed and why"

@@ -92,3 +92,16 @@ def test_a_requirement_file_without_a_headline_is_refused(tmp_path):
     (tmp_path / "broken.json").write_text("{")
     with pytest.raises(RequirementFileError, match="broken.json: cannot be read as JSON"):
         load_requirement(tmp_path / "broken.json")
+
+
+def test_physical_bounds_say_what_is_out():
+    from hwp_tes_systematics.diagnose.effects import CATALOG
+    from hwp_tes_systematics.diagnose.fit import EffectFit
+
+    coupling = CATALOG["hwpss_intensity_coupling"]
+    inside = EffectFit("hwpss_intensity_coupling", values={"a2c": [0.02, -0.05], "a2s": [0.0, 0.0]})
+    outside = EffectFit("hwpss_intensity_coupling", values={"a2c": [0.02, -0.35], "a2s": [0, 0]})
+    assert coupling.unphysical(inside) is None
+    assert coupling.unphysical(outside) == "|a2c| = 0.35 > 0.1"
+    assert CATALOG["gain_drift"].unphysical(EffectFit("gain_drift", values={"g1": [1.0]}))
+    assert CATALOG["hwpss_harmonic_4"].unphysical(EffectFit("x", values={"c4": [1.0]})) is None

@@ -863,8 +863,13 @@ def select_templates(problem, names, threshold, max_effects, steps: list, initia
             n: {"delta_chi2": t.chi2 - current.chi2, "delta_bic": t.bic(ln_n) - current.bic(ln_n)}
             for n, t in trials.items()
         }
-        best = min(table, key=lambda n: table[n]["delta_bic"])
-        if table[best]["delta_bic"] >= threshold:
+        for n, trial in trials.items():  # an effect with unphysical parameters is not taken
+            why = problem.effects[n].unphysical(trial.effects[n])
+            if why is not None:
+                table[n]["unphysical"] = why
+        allowed = [n for n in table if "unphysical" not in table[n]] or list(table)
+        best = min(allowed, key=lambda n: table[n]["delta_bic"])
+        if table[best]["delta_bic"] >= threshold or "unphysical" in table[best]:
             _step(steps, current, current, ln_n, table, note="no candidate passes the threshold")
             break
         _step(steps, current, trials[best], ln_n, table, added=best)
@@ -872,7 +877,43 @@ def select_templates(problem, names, threshold, max_effects, steps: list, initia
         current = trials[best]
         templates, current = _backward(problem, templates, current, threshold, removed_sets, steps)
     templates, current = _swap_look_alikes(problem, names, templates, current, steps)
-    return _one_family_for_a_line(problem, templates, current, threshold, steps)
+    templates = _one_family_for_a_line(problem, templates, current, threshold, steps)
+    return _without_unphysical(problem, templates, problem.fit(templates), steps)[0]
+
+
+def _without_unphysical(problem, templates, current, steps):
+    """Remove, one at a time, a selected effect whose parameters the final fit puts outside
+    its physical bounds (``Effect.unphysical``): what it absorbed is left to the other
+    effects or to ``unexplained``, not reported as its physics."""
+    ln_n = problem.ln_n_eff
+    while True:
+        reasons = {
+            n: problem.effects[n].unphysical(current.effects[n])
+            for n in templates
+            if n in current.effects
+        }
+        reasons = {n: why for n, why in reasons.items() if why}
+        if not reasons:
+            return templates, current
+        name, why = next(iter(reasons.items()))
+        templates = tuple(t for t in templates if t != name)
+        after = problem.fit(templates)
+        _step(
+            steps,
+            current,
+            after,
+            ln_n,
+            {
+                name: {
+                    "delta_chi2": after.chi2 - current.chi2,
+                    "delta_bic": after.bic(ln_n) - current.bic(ln_n),
+                    "unphysical": why,
+                }
+            },
+            removed=name,
+            note=f"{name} removed: its parameters are outside physical bounds ({why})",
+        )
+        current = after
 
 
 def _swappable(effect) -> bool:
@@ -900,6 +941,8 @@ def _swap_look_alikes(problem, names, templates, current, steps):
                 if frozenset(kept + (candidate,)) in seen:
                     continue
                 trial = problem.fit(kept + (candidate,))
+                if problem.effects[candidate].unphysical(trial.effects[candidate]):
+                    continue
                 gain = trial.bic(ln_n) - current.bic(ln_n)
                 if gain < 0 and (best is None or gain < best[3]):
                     best = (out, candidate, trial, gain)

@@ -80,6 +80,16 @@ def _rejected(selection) -> dict:
     return {}
 
 
+def _unphysical(selection) -> dict:
+    """Effects the selection refused for their unphysical parameters: {name: why}."""
+    found = {}
+    for step in selection.steps:
+        for name, candidate in (step.candidates or {}).items():
+            if isinstance(candidate, dict) and candidate.get("unphysical"):
+                found[name] = candidate["unphysical"]
+    return found
+
+
 def find_unexplained(
     ctx: Context,
     residual_after: np.ndarray,
@@ -90,8 +100,18 @@ def find_unexplained(
     """Significant structure left after the best fit (module docstring), strongest first."""
     n, fs = ctx.n_samples, ctx.sampling_rate_hz
     tried = _rejected(selection)
+    unphysical = _unphysical(selection)
     tried_text = (
-        ", ".join(f"{name} (Delta BIC {value:+.0f})" for name, value in sorted(tried.items()))
+        ", ".join(
+            f"{name} (Delta BIC {value:+.0f}"
+            + (
+                f", rejected: outside physical bounds, {unphysical[name]}"
+                if name in unphysical
+                else ""
+            )
+            + ")"
+            for name, value in sorted(tried.items())
+        )
         or "none left to try"
     )
     nominal_signal = ctx.sky + ctx.dipole

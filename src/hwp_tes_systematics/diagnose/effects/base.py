@@ -103,6 +103,19 @@ class Effect:
         values = np.stack([_value(params, p, ctx.n_detectors) for p in names], axis=1)
         return tod + np.einsum("kj,kjn->kn", values, self.templates(ctx))
 
+    # |parameter| beyond which the effect is not physics but a template absorbing something
+    # else (e.g. an intensity coupling of 0.35): parameter -> bound, in its unit
+    physical_bounds: ClassVar[dict[str, float]] = {}
+
+    def unphysical(self, fit) -> str | None:
+        """Why the fitted values (:class:`.fit.EffectFit`) are outside ``physical_bounds``,
+        or None: the selection does not take an effect whose parameters are unphysical."""
+        for parameter, bound in self.physical_bounds.items():
+            values = np.abs(np.asarray(fit.values.get(parameter, [])))
+            if values.size and values.max() > bound:
+                return f"|{parameter}| = {values.max():.3g} > {bound:g}"
+        return None
+
     def reported_parameters(self, fit, detector_names, sampling_rate_hz, units) -> dict:
         """The report's parameters of a fit (:class:`.fit.EffectFit`): "<parameter>[<detector>]"
         -> {value, sigma, unit, detector, parameter}, and a shared effect's common ones as

@@ -32,6 +32,9 @@ class GainDrift(Effect):
     name = "gain_drift"
     title = "gain error and drift"
     parameters: ClassVar[dict[str, str]] = {f"g{j}": "1" for j in GAIN_DEGREES}
+    # a responsivity drifting by more than half of itself in a recording is no drift to
+    # correct but a detector out of its operating range (assumption)
+    physical_bounds: ClassVar[dict[str, float]] = {"g1": 0.5, "g2": 0.5, "g3": 0.5}
     main_parameters = ("g1",)
     signature = "residual proportional to the whole signal (HWPSS and dipole), drifting in time"
     discrimination = (

@@ -151,6 +151,8 @@ class HwpssIntensityCoupling(Effect):
     name = "hwpss_intensity_coupling"
     title = "HWP intensity-to-2f coupling"
     parameters: ClassVar[dict[str, str]] = {"a2c": "1", "a2s": "1"}
+    # a 2f signal of more than a tenth of the incoming intensity is no HWP's (assumption)
+    physical_bounds: ClassVar[dict[str, float]] = {"a2c": 0.1, "a2s": 0.1}
     main_parameters = ("a2c",)
     signature = "2 f_HWP +- f_spin sidebands proportional to I (dipole), no 4f line, no DC"
     discrimination = (

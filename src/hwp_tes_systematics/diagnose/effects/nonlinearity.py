@@ -21,6 +21,9 @@ class TesNonlinearity(Effect):
     name = "tes_nonlinearity"
     title = "TES gain nonlinearity"
     parameters: ClassVar[dict[str, str]] = {"g1": "1/K"}
+    # |g1| A_2 beyond ~0.1-0.2 (A_2 ~ 0.1-0.3 K): a detector compressed by more than ~15 %
+    # over the HWPSS swing, outside the quadratic expansion's range (assumption)
+    physical_bounds: ClassVar[dict[str, float]] = {"g1": 0.5}
     powers: ClassVar[tuple[int, ...]] = (2,)  # d_obs - d = sum_j p_j d^powers[j]
     main_parameters = ("g1",)
     stage = "response"
@@ -107,6 +110,7 @@ class TesNonlinearityCubic(TesNonlinearity):
     name = "tes_nonlinearity_cubic"
     title = "TES gain nonlinearity with a cubic term"
     parameters: ClassVar[dict[str, str]] = {"g1": "1/K", "g2": "1/K^2"}
+    physical_bounds: ClassVar[dict[str, float]] = {"g1": 0.5, "g2": 5.0}  # K^-1, K^-2 (assumption)
     powers: ClassVar[tuple[int, ...]] = (2, 3)
     extends = "tes_nonlinearity"
     signature = TesNonlinearity.signature + ", 6 f_HWP line g2 A_2^3/4"
