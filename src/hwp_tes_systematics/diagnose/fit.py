@@ -782,6 +782,15 @@ class Selection:
         return sorted(self.final.selected, key=lambda n: -self.delta_chi2[n])
 
 
+def _change(current, after, ln_n, **extra) -> dict:
+    """A step's candidate entry: Delta chi^2 and Delta BIC from ``current`` to ``after``."""
+    return {
+        "delta_chi2": after.chi2 - current.chi2,
+        "delta_bic": after.bic(ln_n) - current.bic(ln_n),
+        **extra,
+    }
+
+
 def _step(steps, current, after, ln_n, candidates, added=None, removed=None, note=""):
     steps.append(
         Step(
@@ -903,13 +912,7 @@ def _without_unphysical(problem, templates, current, steps):
             current,
             after,
             ln_n,
-            {
-                name: {
-                    "delta_chi2": after.chi2 - current.chi2,
-                    "delta_bic": after.bic(ln_n) - current.bic(ln_n),
-                    "unphysical": why,
-                }
-            },
+            {name: _change(current, after, ln_n, unphysical=why)},
             removed=name,
             note=f"{name} removed: its parameters are outside physical bounds ({why})",
         )
@@ -1001,12 +1004,7 @@ def _one_family_for_a_line(problem, templates, current, threshold, steps):
             current,
             trial,
             ln_n,
-            {
-                member: {
-                    "delta_chi2": trial.chi2 - current.chi2,
-                    "delta_bic": trial.bic(ln_n) - current.bic(ln_n),
-                }
-            },
+            {member: _change(current, trial, ln_n)},
             added=member,
             removed=name,
             note=f"{name} replaced by {member}: one family explains the lines as well",
