@@ -39,5 +39,7 @@ def test_an_unphysical_coupling_is_not_reported_as_physics(tmp_path):
     assert not {"tes_nonlinearity", "tes_nonlinearity_cubic"} & set(result.effect_names)
     texts = " ".join(entry["text"] for entry in result["unexplained"])
     assert "2 f_HWP - f_spin" in texts and "2 f_HWP + f_spin" in texts
+    for entry in result["unexplained"]:  # each detector named once per structure
+        assert len(set(entry["detectors"])) == len(entry["detectors"]), entry["text"]
     removed = [s for s in result["steps"] if "outside physical bounds" in (s.get("note") or "")]
     assert removed, "the selection says what it removed and why"

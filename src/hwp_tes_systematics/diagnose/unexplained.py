@@ -145,7 +145,8 @@ def find_unexplained(
                     "tried_and_rejected": tried,
                 },
             )
-            entry["detectors"].append(det)
+            if det not in entry["detectors"]:  # two findings in one detector's bins: one line
+                entry["detectors"].append(det)
             # a line may be static (its amplitude) or only modulated (its rms change)
             modulated = line.modulation_sigma > line.significance_sigma
             entry["modulated"] = entry.get("modulated", False) or modulated
