@@ -1,7 +1,6 @@
 """Helpers of the tests: a copy of the workflow in a temp dir, the Snakemake runner and the
 command-line runner."""
 
-import functools
 import shutil
 import subprocess
 import sys
@@ -41,13 +40,12 @@ def run_cli(cwd, *arguments) -> subprocess.CompletedProcess:
     )
 
 
-@functools.cache
 def m1_140_a2_k() -> float:
-    """M1-140's nominal HWPSS amplitude A_2 [K_CMB] from the default configuration's optics."""
-    from hwp_tes_systematics.config import default_config_path, load_config
-    from hwp_tes_systematics.simulation.channel_inputs import channel_a2_k_cmb
+    """M1-140's nominal HWPSS amplitude A_2 [K_CMB] from the default configuration's optics
+    (the diagnosis testbed's nominal values, computed once)."""
+    from hwp_tes_systematics.diagnose.testbed import nominal
 
-    return channel_a2_k_cmb(load_config(default_config_path()), "M1-140")
+    return nominal("M1-140")["a2_k"]
 
 
 def m1_140_pair(duration_s, chunk_s, nside, rate_hz=None, noise_model="toast"):

@@ -5,7 +5,7 @@ masked residual r = valid x (recording - d_nom), M_f the rfft of the masked mode
 selected effects and S_f = P(f) n f_s v / 2 the expected periodogram of the noise
 (:mod:`.noise`), the Whittle likelihood gives
 
-    chi^2 = sum_k sum_f [ 2 |R_f - M_f|^2 / S_f + 2 ln(S_f / S_f,nom) ],
+    chi^2 = sum_k sum_f 2 |R_f - M_f|^2 / S_f,
 
 over the modes f != 0, f_Nyquist (the DC mode is left out: an offset is a nuisance).
 With the noise weights S the ordinary chi^2 of the whitened Fourier coefficients, two real
@@ -92,9 +92,8 @@ from .noise import NoiseModel, periodogram_scale
 DELTA_BIC_THRESHOLD = SELECTION_THRESHOLD  # effects.base: the effects read it too
 GLITCH_THRESHOLD_SIGMA = 5.0
 BACKFIT_PASSES = 4
-GAP_OFFSET = (
-    "gap_offset"  # an offset fitted with the effects when samples are flagged (not reported)
-)
+# an offset fitted with the effects when samples are flagged (not reported)
+GAP_OFFSET = "gap_offset"
 CONVERGED_CHI2 = 0.05  # backfitting stops when chi^2 changes by less than this
 
 
@@ -125,7 +124,6 @@ class FitResult:
     n_params: int
     effects: dict[str, EffectFit]
     model_f: list[np.ndarray] | None = field(repr=False)  # rfft of the masked model per detector
-    noise_models: list[NoiseModel] = field(repr=False)
     parts: dict | None = field(default=None, repr=False)  # effect -> per-detector rfft model
 
     prior_penalty: float = 0.0  # sum of the selected effects' Effect.prior_penalty
@@ -438,7 +436,6 @@ class FitProblem:
             prior_penalty=base.prior_penalty,
             effects=effects,
             model_f=None,
-            noise_models=base.noise_models,
         )
 
     @staticmethod
@@ -498,7 +495,6 @@ class FitProblem:
                 self._linear_effect_fits(selected, values, covariances), shared
             ),
             model_f=models,
-            noise_models=list(self.nominal_noise),
             parts=parts,
         )
 
@@ -516,9 +512,8 @@ class FitProblem:
         Returns (theta, sigma_theta, linear parameters, their covariance).
         """
         sw = np.sqrt(2.0 * w)
-        if (
-            start is None
-        ):  # linearised solution: the effect's first-order template beside the others
+        if start is None:
+            # the linearised solution: the effect's first-order template beside the others
             lin = self.linearised_f[effect.name][k][None, :]
             aug = np.vstack([lin, bank]) if bank.shape[0] else lin
             a, _ = solve_normal(cross(aug, aug, w), cross(aug, y, w))
@@ -693,7 +688,6 @@ class FitProblem:
             prior_penalty=self.prior_penalty(selected),
             effects=fits,
             model_f=models,
-            noise_models=list(self.nominal_noise),
             parts=parts,
         )
 
@@ -868,17 +862,14 @@ def select_templates(problem, names, threshold, max_effects, steps: list, initia
         if not remaining:
             break
         trials = {n: problem.fit(templates + (n,)) for n in remaining}
-        table = {
-            n: {"delta_chi2": t.chi2 - current.chi2, "delta_bic": t.bic(ln_n) - current.bic(ln_n)}
-            for n, t in trials.items()
-        }
+        table = {n: _change(current, trial, ln_n) for n, trial in trials.items()}
         for n, trial in trials.items():  # an effect with unphysical parameters is not taken
             why = problem.effects[n].unphysical(trial.effects[n])
             if why is not None:
                 table[n]["unphysical"] = why
-        allowed = [n for n in table if "unphysical" not in table[n]] or list(table)
-        best = min(allowed, key=lambda n: table[n]["delta_bic"])
-        if table[best]["delta_bic"] >= threshold or "unphysical" in table[best]:
+        allowed = [n for n in table if "unphysical" not in table[n]]
+        best = min(allowed, key=lambda n: table[n]["delta_bic"]) if allowed else None
+        if best is None or table[best]["delta_bic"] >= threshold:
             _step(steps, current, current, ln_n, table, note="no candidate passes the threshold")
             break
         _step(steps, current, trials[best], ln_n, table, added=best)
@@ -887,24 +878,17 @@ def select_templates(problem, names, threshold, max_effects, steps: list, initia
         templates, current = _backward(problem, templates, current, threshold, removed_sets, steps)
     templates, current = _swap_look_alikes(problem, names, templates, current, steps)
     templates = _one_family_for_a_line(problem, templates, current, threshold, steps)
-    return _without_unphysical(problem, templates, problem.fit(templates), steps)[0]
+    return _without_unphysical(problem, templates, steps)
 
 
-def _without_unphysical(problem, templates, current, steps):
+def _without_unphysical(problem, templates, steps) -> tuple:
     """Remove, one at a time, a selected effect whose parameters the final fit puts outside
     its physical bounds (``Effect.unphysical``): what it absorbed is left to the other
     effects or to ``unexplained``, not reported as its physics."""
     ln_n = problem.ln_n_eff
-    while True:
-        reasons = {
-            n: problem.effects[n].unphysical(current.effects[n])
-            for n in templates
-            if n in current.effects
-        }
-        reasons = {n: why for n, why in reasons.items() if why}
-        if not reasons:
-            return templates, current
-        name, why = next(iter(reasons.items()))
+    current = problem.fit(templates)
+    while (out := _first_unphysical(problem, templates, current)) is not None:
+        name, why = out
         templates = tuple(t for t in templates if t != name)
         after = problem.fit(templates)
         _step(
@@ -917,6 +901,18 @@ def _without_unphysical(problem, templates, current, steps):
             note=f"{name} removed: its parameters are outside physical bounds ({why})",
         )
         current = after
+    return templates
+
+
+def _first_unphysical(problem, templates, fit) -> tuple[str, str] | None:
+    """(name, why) of the first effect of ``templates`` whose parameters in ``fit`` are
+    outside its physical bounds, or None."""
+    for name in templates:
+        if name in fit.effects:
+            why = problem.effects[name].unphysical(fit.effects[name])
+            if why is not None:
+                return name, why
+    return None
 
 
 def _swappable(effect) -> bool:
@@ -957,7 +953,7 @@ def _swap_look_alikes(problem, names, templates, current, steps):
             current,
             trial,
             ln_n,
-            {candidate: {"delta_chi2": trial.chi2 - current.chi2, "delta_bic": gain}},
+            {candidate: _change(current, trial, ln_n)},
             added=candidate,
             removed=out,
             note=f"{out} swapped for {candidate}: a lower BIC",

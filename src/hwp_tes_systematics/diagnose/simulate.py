@@ -39,8 +39,8 @@ from .effects import (
     SIGNAL_EFFECTS,
     Effect,
     GlitchEvent,
-    _value,
 )
+from .effects.base import _value
 from .model import Context, per_detector
 from .recording import DEFAULT_START_TDB, Recording, _json_safe
 

@@ -47,7 +47,6 @@ from .base import (
     NONLINEARITY_HARMONICS,
     SELECTION_THRESHOLD,
     Effect,
-    _value,
     format_temperature,
     modulation_degree,
 )
@@ -164,7 +163,6 @@ __all__ = [
     "HwpssSlowModulation",
     "TesNonlinearity",
     "TesNonlinearityCubic",
-    "_value",
     "catalog_table",
     "family_of",
     "find_transients",
