@@ -19,12 +19,14 @@ TOD from: one data model by construction.
 
 The :class:`Context` holds these pieces per detector (sky intensity, sky polarisation,
 dipole, HWPSS, the total d_nom, the other detector of the pair, the intensity seen
-I(t) = I(p) + D, the HWP angle, the times and the valid-sample mask): everything the
-forward models of :mod:`.effects` need.
+I(t) = I(p) + D, the HWP angle, the times and the valid-sample mask, and the change of
+sky + dipole per arcmin of pointing offset along the focal plane's two axes): everything
+the forward models of :mod:`.effects` need.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from functools import cached_property
 
@@ -108,6 +110,8 @@ class Context:
     sky_polarization_quadrature: np.ndarray | None = None
     hwpss_phase_rad: np.ndarray | None = None  # (n_det,) phi: HWPSS A_2 cos(2 (chi - theta) - phi)
     adjustment: np.ndarray | None = None  # (n_det, n) fitted nominal adjustments (:mod:`.nominal`)
+    # d(sky + dipole)/d(pointing offset) along the focal plane's x and y [K/arcmin], (n_det, 2, n)
+    pointing_gradient: np.ndarray | None = None
     f_spin_hz: float = field(default_factory=_spin_rate_hz)  # the IMo's scanning strategy
     f_precession_hz: float = field(default_factory=_precession_rate_hz)
     extra: dict = field(default_factory=dict)
@@ -209,8 +213,9 @@ def hwp_frequency_hz(hwp_angle_rad: np.ndarray, sampling_rate_hz: float) -> floa
     return float(abs(slope) / (2 * np.pi))
 
 
-def dipole_tod(recording) -> np.ndarray:
-    """Orbital + solar dipole [K_CMB] at the recorded pointing, (n_det, n) (litebird_sim)."""
+def dipole_tod(recording, pointings_ecl: np.ndarray | None = None) -> np.ndarray:
+    """Orbital + solar dipole [K_CMB] at the recorded pointing (or at ``pointings_ecl``,
+    (n_det, n, 3) ecliptic theta, phi, psi), (n_det, n) (litebird_sim)."""
     import litebird_sim as lbs
 
     cache_litebird_sim_kernels()
@@ -229,9 +234,103 @@ def dipole_tod(recording) -> np.ndarray:
     lbs.add_dipole_to_observations(
         observation,
         pos_and_vel=orbit_table(recording.start_time, recording.duration_s),
-        pointings=np.ascontiguousarray(recording.pointings_ecl),
+        pointings=np.ascontiguousarray(
+            recording.pointings_ecl if pointings_ecl is None else pointings_ecl
+        ),
     )
     return np.array(observation.tod, dtype=float)
+
+
+ARCMIN_RAD = np.pi / (180 * 60)
+GRADIENT_STEP_ARCMIN = 1.0  # central difference of the dipole: its curvature error ~1e-8 relative
+
+
+def _unit_vectors(theta, phi):
+    """n, e_theta, e_phi, (n, 3) each, at colatitude theta and longitude phi."""
+    sin_t, cos_t, sin_p, cos_p = np.sin(theta), np.cos(theta), np.sin(phi), np.cos(phi)
+    n = np.stack([sin_t * cos_p, sin_t * sin_p, cos_t], axis=-1)
+    e_theta = np.stack([cos_t * cos_p, cos_t * sin_p, -sin_t], axis=-1)
+    e_phi = np.stack([-sin_p, cos_p, np.zeros_like(phi)], axis=-1)
+    return n, e_theta, e_phi
+
+
+def focal_plane_axes(pointings_ecl: np.ndarray):
+    """(n, u, v), (n, 3) each, ecliptic: the direction and the two tangent directions fixed
+    in the focal plane, u = cos psi e_theta + sin psi e_phi, v = -sin psi e_theta + cos psi e_phi.
+
+    A rotation of the detector quaternion by delta about the focal plane's x (y) axis
+    (litebird_sim's pointing systematics, ``RotQuaternion(quat_rotation_x(delta)) * quat``)
+    moves the pointing by delta along u (v), the same direction in the focal plane at every
+    sample (checked to 1e-12 arcmin over six hours: tests/test_diagnose_pointing.py).
+    """
+    theta, phi, psi = pointings_ecl[:, 0], pointings_ecl[:, 1], pointings_ecl[:, 2]
+    n, e_theta, e_phi = _unit_vectors(theta, phi)
+    cos_psi, sin_psi = np.cos(psi)[:, None], np.sin(psi)[:, None]
+    return n, cos_psi * e_theta + sin_psi * e_phi, -sin_psi * e_theta + cos_psi * e_phi
+
+
+def displaced_pointings(pointings_ecl: np.ndarray, axis: int, angle_rad) -> np.ndarray:
+    """(n, 3) ecliptic pointings moved by ``angle_rad`` (scalar or (n,)) along u (axis 0)
+    or v (axis 1) of :func:`focal_plane_axes`: n' = n cos delta + t sin delta, psi kept."""
+    n, u, v = focal_plane_axes(pointings_ecl)
+    tangent = (u, v)[axis]
+    angle = np.broadcast_to(np.asarray(angle_rad, dtype=float), n.shape[:1])[:, None]
+    moved = n * np.cos(angle) + tangent * np.sin(angle)
+    out = np.array(pointings_ecl, dtype=float, copy=True)
+    out[:, 0] = np.arccos(np.clip(moved[:, 2], -1.0, 1.0))
+    out[:, 1] = np.mod(np.arctan2(moved[:, 1], moved[:, 0]), 2 * np.pi)
+    return out
+
+
+def pointing_gradients(recording, sky: np.ndarray, threads: int = 1) -> np.ndarray:
+    """d(sky + dipole)/d(offset) [K_CMB per arcmin], (n_det, 2, n): the signal's change
+    when the pointing moves along u and v of :func:`focal_plane_axes` (a pointing offset
+    about the focal plane's x and y axes), as central differences [S(+h) - S(-h)] / 2 h.
+
+    Sky: I + rho (Q cos 2a + U sin 2a) at the nearest pixel of the map to the displaced
+    directions (polarisation angle kept), h half a pixel: the nominal sky steps at pixel
+    crossings, as a simulation scanning a map does, and the difference over +-h recovers an
+    offset up to h without bias (beyond, as ~h; a smooth-gradient template underestimates a
+    5 arcmin offset 3 to 10 times on an nside-32 map). Dipole (litebird_sim, smooth):
+    h = 1 arcmin.
+    """
+    import ducc0
+
+    nside = round(np.sqrt(sky.shape[1] / 12))
+    healpix = ducc0.healpix.Healpix_Base(nside, "RING")
+    half_pixel_rad = 0.5 * math.sqrt(4 * math.pi / sky.shape[1])
+    chi = np.asarray(recording.hwp_angle_rad, dtype=float)
+    step = GRADIENT_STEP_ARCMIN * ARCMIN_RAD
+    n_det = recording.n_detectors
+    out = np.empty((n_det, 2, recording.n_samples))
+    for axis in (0, 1):
+        ends = [
+            np.stack(
+                [
+                    displaced_pointings(recording.pointings_ecl[k], axis, sign * step)
+                    for k in range(n_det)
+                ]
+            )
+            for sign in (1, -1)
+        ]
+        out[:, axis] = (dipole_tod(recording, ends[0]) - dipole_tod(recording, ends[1])) / (
+            2 * GRADIENT_STEP_ARCMIN
+        )
+    for k in range(n_det):
+        psi_gal = data_model.galactic_angles(recording.pointings_ecl[k])[:, 2]
+        angles = data_model.polarisation_angles(
+            chi, np.ascontiguousarray(psi_gal), recording.pol_angles_rad[k : k + 1]
+        )
+        rho = recording.pol_efficiency[k : k + 1]
+        for axis in (0, 1):
+            scanned = []
+            for sign in (1, -1):
+                moved = displaced_pointings(recording.pointings_ecl[k], axis, sign * half_pixel_rad)
+                galactic = data_model.galactic_angles(moved)
+                pixels = healpix.ang2pix(np.ascontiguousarray(galactic[:, :2]), nthreads=threads)
+                scanned.append(data_model.scan(pixels[None, :], *angles, rho, sky)[0])
+            out[k, axis] += (scanned[0] - scanned[1]) / (2 * half_pixel_rad / ARCMIN_RAD)
+    return out
 
 
 def scan_sky(recording, sky: np.ndarray, threads: int = 1):
@@ -294,6 +393,7 @@ def build_context(recording, sky_iqu, a2_k, threads: int = 1) -> Context:
         pixels=pixels,
         nside=nside,
         sky_polarization_quadrature=quadrature,
+        pointing_gradient=pointing_gradients(recording, sky, threads),
     )
 
 

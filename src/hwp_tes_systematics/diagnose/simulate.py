@@ -9,7 +9,8 @@ forward models (:mod:`.effects`), or a TES nonlinearity through the electrotherm
 ``tes.solve_operating_point`` and the linearly calibrated response
 d_rec = C [I(P) - I(P0)] / S0, S0 = dI/dP at P0, C [K/W].
 
-Injection order: effects on the sky signal (time constant, HWPSS harmonics, intensity
+Injection order: a pointing offset (the sky and dipole scanned where the rotated
+detectors look) -> effects on the sky signal (time constant, HWPSS harmonics, intensity
 coupling, gain, HWP temperature, crosstalk, in the order given) -> + noise (white + 1/f,
 litebird_sim, its own seed; ``noise_mismatch`` changes its NET/f_knee/alpha) -> detector
 nonlinearity (polynomial or electrothermal) on the total -> + glitches.
@@ -24,6 +25,7 @@ spin-modulated HWP harmonic), which the diagnosis must leave in ``unexplained``.
 
 from __future__ import annotations
 
+import copy
 import functools
 import math
 from dataclasses import asdict
@@ -134,6 +136,67 @@ def _simulated_base(channel_name: str, hours: float, start_time_tdb: str, nside:
     pointing = simulator.pointing(0, plan.n_samples)
     dipole = simulator.dipole(pointing)
     return simulator, pointing, dipole
+
+
+# injected by moving the detectors (litebird_sim quaternions), not through the catalog's
+# first-order templates: the recording keeps the nominal pointing
+POINTING_EFFECTS = frozenset({"pointing_offset", "pointing_drift"})
+
+
+def _rotation_quats(axis: int, angle_rad: np.ndarray) -> np.ndarray:
+    """(n, 4) litebird_sim quaternions (x, y, z, w) of rotations by ``angle_rad`` about the
+    x (axis 0) or y (axis 1) axis."""
+    quats = np.zeros((angle_rad.size, 4))
+    quats[:, axis] = np.sin(0.5 * angle_rad)
+    quats[:, 3] = np.cos(0.5 * angle_rad)
+    return quats
+
+
+def _true_pointing(simulator, pointing, params: dict):
+    """The pointing of a pair whose detectors are rotated about the focal plane's x and y
+    axes by x(t) = offset_x + drift_x (t - t_mid) [arcmin, arcmin/h] (and y), as
+    litebird_sim's pointing systematics do it (``RotQuaternion * detector quat``); one
+    offset per detector or one for both."""
+    import litebird_sim as lbs
+
+    from ..simulation.tod import QUATERNION_STEP_S
+    from .model import ARCMIN_RAD
+
+    n_det = simulator.n_detectors
+    n = pointing.hwp_angle_rad.size
+    fs = simulator.plan.sampling_rate_hz
+    # a drift is sampled as the spin-axis quaternions are (litebird_sim multiplies the two)
+    spin = simulator.scanning.spin_to_ecliptic(
+        simulator.plan.start_time, n / fs + 2 * QUATERNION_STEP_S
+    )
+    n_quats = spin.quats.shape[0]
+    mid_s = 0.5 * (n - 1) / fs
+    hours = (np.arange(n_quats) / spin.sampling_rate_hz - mid_s) / 3600.0
+    timing = {"start_time": spin.start_time, "sampling_rate_hz": spin.sampling_rate_hz}
+    moved = copy.copy(simulator)
+    moved.detectors = [copy.deepcopy(d) for d in simulator.detectors]
+    for k, detector in enumerate(moved.detectors):
+        for axis, name in enumerate("xy"):
+            offset = _value(params, f"offset_{name}", n_det)[k]
+            rate = _value(params, f"drift_{name}", n_det)[k]
+            if offset == 0 and rate == 0:
+                continue
+            if rate == 0:
+                angle = np.array([offset * ARCMIN_RAD])
+                rotation = lbs.RotQuaternion(quats=_rotation_quats(axis, angle))
+            else:
+                angle = (offset + rate * hours) * ARCMIN_RAD
+                rotation = lbs.RotQuaternion(quats=_rotation_quats(axis, angle), **timing)
+                if detector.quat.quats.shape[0] == 1:  # a time-dependent product needs both
+                    detector.quat = lbs.RotQuaternion(
+                        quats=np.repeat(detector.quat.quats, n_quats, axis=0), **timing
+                    )
+            detector.quat = rotation * detector.quat
+    quats = [np.asarray(d.quat.quats) for d in moved.detectors]
+    moved.shares_direction = all(
+        q.shape == quats[0].shape and np.array_equal(q, quats[0]) for q in quats
+    )
+    return moved.pointing(0, n), moved
 
 
 def _detector_dicts(simulator) -> list[dict]:
@@ -254,8 +317,10 @@ def simulate_recording(
     ``effects`` is a list of (name, params): catalog effects with their parameters (a
     scalar or one value per detector each; glitches as ``{"events": [(detector, time_s,
     amplitude_k, tau_s), ...]}``; noise_mismatch as ``{"net_ukrts", "fknee_mhz",
-    "alpha"}``), or ``("tes_electrothermal", {"p0_w", "kelvin_per_watt", ...})``. The
-    noise comes from its own stream ``(master_seed, "noise", channel, noise_seed, 0,
+    "alpha"}``; pointing_offset / pointing_drift as ``{"offset_x", "offset_y", "drift_x",
+    "drift_y"}`` [arcmin, arcmin/h], injected by rotating the detector quaternions while
+    the recording keeps the nominal pointing), or ``("tes_electrothermal", {"p0_w",
+    "kelvin_per_watt", ...})``. The noise comes from its own stream ``(master_seed, "noise", channel, noise_seed, 0,
     detector)``. The truth is kept in ``recording.injected`` (never written to a file).
     ``pol_angle_offsets_rad``: the true polarisation angles are theta + delta while the
     recording's metadata keeps the nominal theta (a polarisation-angle error): the sky
@@ -270,6 +335,14 @@ def simulate_recording(
     n_det = simulator.n_detectors
     a2 = per_detector(a2_k, n_det, "a2_k")
     unpolarized = np.stack([sky[0], np.zeros_like(sky[0]), np.zeros_like(sky[0])])
+    recorded_pointing = pointing
+    effects = [(str(name), dict(params)) for name, params in effects]
+    moves = [params for name, params in effects if name in POINTING_EFFECTS]
+    if len(moves) > 1:
+        raise ValueError("inject one pointing_offset or pointing_drift, not several")
+    if moves:  # the detectors look elsewhere; the recording keeps the nominal pointing
+        pointing, moved = _true_pointing(simulator, pointing, moves[0])
+        dipole = moved.dipole(pointing)
     sky_intensity = simulator.scan_sky(pointing, unpolarized)
     sky_polarization = simulator.scan_sky(pointing, sky) - sky_intensity
     delta = per_detector(pol_angle_offsets_rad, n_det, "pol_angle_offsets_rad")
@@ -303,7 +376,6 @@ def simulate_recording(
     hwpss = data_model.hwpss(pointing.hwp_angle_rad, pol_angles, a2)
     signal = sky_intensity + sky_polarization + dipole + hwpss
 
-    effects = [(str(name), dict(params)) for name, params in effects]
     for name, _ in effects:
         known = CATALOG.keys() | INJECTION_ONLY.keys() | RESPONSE_EFFECTS | OUT_OF_CATALOG.keys()
         if name not in known:
@@ -312,7 +384,7 @@ def simulate_recording(
                 f"{sorted(INJECTION_ONLY)}, {sorted(RESPONSE_EFFECTS)} or {sorted(OUT_OF_CATALOG)}"
             )
     for name, params in effects:
-        if name in SIGNAL_STAGE:
+        if name in SIGNAL_STAGE and name not in POINTING_EFFECTS:
             signal = injectable(name).apply(ctx, params, signal)
         elif name in OUT_OF_CATALOG:
             signal = OUT_OF_CATALOG[name](ctx, params, signal)
@@ -334,13 +406,13 @@ def simulate_recording(
         tod=tod,
         times_s=ctx.times_s.copy(),
         sampling_rate_hz=float(simulator.plan.sampling_rate_hz),
-        hwp_angle_rad=np.array(pointing.hwp_angle_rad, dtype=float),
-        pointings_ecl=np.array(pointing.ecliptic_rad(), dtype=float),
+        hwp_angle_rad=np.array(recorded_pointing.hwp_angle_rad, dtype=float),
+        pointings_ecl=np.array(recorded_pointing.ecliptic_rad(), dtype=float),
         detectors=_detector_dicts(simulator),
         start_time=simulator.plan.start_time,
         flags=np.zeros((n_det, n), dtype=bool),
         channel=channel_name,
         source=f"<simulated {channel_name}, {hours:g} h, noise seed {noise_seed}>",
-        observation=pointing.observation,
+        observation=recorded_pointing.observation,
         injected=effects,
     )

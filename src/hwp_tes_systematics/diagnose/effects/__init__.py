@@ -75,6 +75,7 @@ from .nonlinearity import (
     TesNonlinearity,
     TesNonlinearityCubic,
 )
+from .pointing import PointingDrift, PointingOffset, PointingOffsetCommon
 from .time_constant import (
     DetectorTimeConstant,
     single_pole,
@@ -94,6 +95,9 @@ CATALOG: dict[str, Effect] = {
         GainDriftCommon(),
         HwpTemperatureDrift(),
         HwpssSlowModulation(),
+        PointingOffset(),
+        PointingOffsetCommon(),
+        PointingDrift(),
         Glitches(),
     )
 }
@@ -161,6 +165,9 @@ __all__ = [
     "HwpssHarmonics",
     "HwpssIntensityCoupling",
     "HwpssSlowModulation",
+    "PointingDrift",
+    "PointingOffset",
+    "PointingOffsetCommon",
     "TesNonlinearity",
     "TesNonlinearityCubic",
     "catalog_table",

@@ -49,6 +49,11 @@ class DetectorTimeConstant(Effect):
     # the fit of its one nonlinear parameter (:meth:`.fit.FitProblem.fit`): bounds, and the
     # range the linearised start is clipped to
     bounds = (0.0, 1.0)  # s
+    # a TES slower than 50 ms would pass 1/sqrt(1 + (2 pi 4 f_HWP tau)^2) < 0.62 of the HFT's
+    # 4 f_HWP science band (4.1 Hz): no longer a time constant to correct but a detector out
+    # of its operating range; a larger fitted tau is a sky lag, i.e. a pointing offset along
+    # the scan (tau ~ offset / 13.8 arcmin/s) (assumption)
+    physical_bounds: ClassVar[dict[str, float]] = {"tau": 0.05}
     start_range = (1e-7, 0.5)  # s
 
     @staticmethod
