@@ -656,6 +656,7 @@ class FitProblem:
                         self.residual_f[k] - models[k] + events_f[k],
                         self.s_nom[k],
                     )
+                events = events_effect.detector_events(ctx, events)
                 found = self._masked_rfft(events_effect.events_tod(ctx.times_s, n_det, events))
                 for k in range(n_det):
                     models[k] = models[k] - events_f[k] + found[k]

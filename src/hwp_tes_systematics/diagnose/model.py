@@ -112,6 +112,8 @@ class Context:
     adjustment: np.ndarray | None = None  # (n_det, n) fitted nominal adjustments (:mod:`.nominal`)
     # d(sky + dipole)/d(pointing offset) along the focal plane's x and y [K/arcmin], (n_det, 2, n)
     pointing_gradient: np.ndarray | None = None
+    pointings_ecl: np.ndarray | None = None  # (n_det, n, 3) the recording's (theta, phi, psi)
+    beam_arcmin: float = 30.0  # the detectors' beam FWHM (from their metadata, else MFT-like)
     f_spin_hz: float = field(default_factory=_spin_rate_hz)  # the IMo's scanning strategy
     f_precession_hz: float = field(default_factory=_precession_rate_hz)
     extra: dict = field(default_factory=dict)
@@ -394,7 +396,15 @@ def build_context(recording, sky_iqu, a2_k, threads: int = 1) -> Context:
         nside=nside,
         sky_polarization_quadrature=quadrature,
         pointing_gradient=pointing_gradients(recording, sky, threads),
+        pointings_ecl=recording.pointings_ecl,
+        beam_arcmin=_beam_arcmin(recording),
     )
+
+
+def _beam_arcmin(recording) -> float:
+    """The widest beam FWHM of the detectors' metadata [arcmin] (30 if none says)."""
+    values = [float(d["fwhm_arcmin"]) for d in recording.detectors if d.get("fwhm_arcmin")]
+    return max(values) if values else 30.0
 
 
 def nominal_tod(recording, sky_iqu, a2_k) -> np.ndarray:

@@ -15,6 +15,10 @@ After the nominal adjustments and the selected effects, the residual r' = record
 * time segments (24 equal ones) whose whitened residual variance exceeds the noise by
   more than 5 sigma (chi^2 per segment against 2 m real dof): a stretch where something
   happened that no effect models;
+* transients that recur at one sky position (:func:`.effects.glitches.sky_fixed_groups`:
+  within a beam FWHM of each other, over more than one crossing, in any detector): a
+  compact source the supplied sky map lacks, reported with its Galactic position, the
+  crossings and the peak amplitude (the glitch fit leaves such events in the residual);
 * the sky: structure fixed on the sky shows as lines at spin/precession combinations
   (n = 0) above the sky tolerance; their sky region is where the binned residual is
   largest (``sky_region``). (A correlation of the residual MAP with the intensity or the
@@ -37,7 +41,9 @@ import math
 import numpy as np
 import scipy.fft
 
+from ..simulation import data_model
 from .effects import format_temperature
+from .effects.glitches import event_directions, find_transients, sky_fixed_groups
 from .locate import excess_bands, find_lines, line_at, sinusoid_fit, sky_residual
 from .model import Context
 from .noise import NoiseModel, line_exclusion_mask, periodogram_scale
@@ -176,11 +182,16 @@ def find_unexplained(
     modes[-1] = n % 2 == 1
     lines = line_exclusion_mask(freqs, ctx.f_hwp_hz, ctx.f_spin_hz, max(3 * resolution, 2e-4))
     residual_f = scipy.fft.rfft(residual_after, axis=-1, workers=workers)
+    transients = []
     for k, det in enumerate(ctx.detector_names):
         scale = periodogram_scale(n, fs, float(ctx.valid[k].mean()))
         s = scale * noise_models[k].psd(freqs)
         out += _bands(residual_f[k], freqs, s, modes & ~lines, det, tried)
         out += _segments(residual_f[k], s, ctx, k, tried, workers)
+        transients += find_transients(
+            residual_f[k], s, ctx.valid[k], ctx.times_s, scale, k, workers=workers
+        )
+    out += _sky_fixed_transients(transients, ctx, tried)
     for entry in out:
         entry["text"] = describe(entry, tried_text)
     return sorted(out, key=lambda e: -e["significance_sigma"])
@@ -207,6 +218,34 @@ def _sky_region(residual_after, ctx: Context, noise_models) -> dict:
         "peak_lon_lat_deg": [float(lon[0]), float(lat[0])],
         "peak_residual_k": float(values[top[0]]),
     }
+
+
+def _sky_fixed_transients(events, ctx: Context, tried) -> list[dict]:
+    """Transients recurring at one sky position, one entry per position (strongest first)."""
+    if ctx.pointings_ecl is None:
+        return []
+    rotation, _ = data_model.ecliptic_to_galactic()
+    out = []
+    for group in sky_fixed_groups(events, ctx.pointings_ecl, ctx.times_s, ctx.beam_arcmin):
+        members = [events[i] for i in group]
+        centre = event_directions(members, ctx.pointings_ecl, ctx.times_s).mean(axis=0)
+        x, y, z = rotation @ (centre / np.linalg.norm(centre))
+        strongest = max(members, key=lambda e: abs(e.amplitude_k))
+        out.append(
+            {
+                "kind": "sky_fixed_transient",
+                "galactic_lon_lat_deg": [
+                    float(np.degrees(np.arctan2(y, x)) % 360),
+                    float(np.degrees(np.arcsin(np.clip(z, -1, 1)))),
+                ],
+                "detectors": sorted({ctx.detector_names[e.detector] for e in members}),
+                "times_s": [e.time_s for e in members],
+                "peak_k": strongest.amplitude_k,
+                "significance_sigma": max(e.significance for e in members),
+                "tried_and_rejected": tried,
+            }
+        )
+    return out
 
 
 def _bands(residual_f, freqs, s, use, det, tried) -> list[dict]:
@@ -295,5 +334,15 @@ def describe(entry: dict, tried_text: str) -> str:
             f"the residual of {dets} is {entry['variance_ratio']:.3g} times the noise variance "
             f"from t = {t0:.0f} s to {t1:.0f} s ({entry['significance_sigma']:.0f} sigma): "
             f"something happened in that stretch that no effect models (tried: {tried_text})"
+        )
+    if entry["kind"] == "sky_fixed_transient":
+        lon, lat = entry["galactic_lon_lat_deg"]
+        times = ", ".join(f"{t:.0f}" for t in entry["times_s"])
+        return (
+            f"transients in {dets} that recur at one sky position, Galactic (l, b) = "
+            f"({lon:.2f}, {lat:.2f}) deg, {len(entry['times_s'])} times (t = {times} s), "
+            f"peak {format_temperature(entry['peak_k'])} ({entry['significance_sigma']:.0f} "
+            "sigma): a compact source the supplied sky map lacks, not detector glitches "
+            f"(which fall at random sky positions; tried: {tried_text})"
         )
     raise ValueError(f"unknown kind {entry['kind']!r}")

@@ -130,7 +130,8 @@ class Glitches(Effect):
     signature = "isolated transients in time, uncorrelated with chi and the sky"
     discrimination = (
         "found by robust (MAD) thresholding of the whitened residual and fitted per event; "
-        "not periodic in chi, no lines"
+        "not periodic in chi, no lines; at random sky positions (transients recurring at one "
+        "sky position are a source missing from the sky map: unexplained, with the position)"
     )
 
     # per event: amplitude, time and tail (the BIC's count)
@@ -153,6 +154,17 @@ class Glitches(Effect):
             min_significance=min_significance,
             workers=workers,
         )
+
+    @staticmethod
+    def detector_events(ctx, events) -> list:
+        """The events that are detector events: those recurring at one sky position
+        (:func:`sky_fixed_groups`) are a sky signal the model lacks, left in the residual
+        for :mod:`.unexplained` to report with their position."""
+        if ctx.pointings_ecl is None:
+            return events
+        groups = sky_fixed_groups(events, ctx.pointings_ecl, ctx.times_s, ctx.beam_arcmin)
+        on_sky = {i for group in groups for i in group}
+        return [e for i, e in enumerate(events) if i not in on_sky]
 
     @staticmethod
     def events_tod(times_s, n_detectors, events) -> np.ndarray:
@@ -210,6 +222,70 @@ class Glitches(Effect):
             f"sigma) in {names[strongest.detector]}; exponential tails tau = "
             f"{np.median(taus) * 1e3:.0f} ms (median); localised in time, not periodic in chi"
         )
+
+
+SEPARATE_CROSSINGS_S = 30.0  # events further apart in time are different crossings
+
+
+def event_directions(events, pointings_ecl: np.ndarray, times_s: np.ndarray) -> np.ndarray:
+    """(n_events, 3) ecliptic unit vectors where each event's detector looked at its time."""
+    out = np.empty((len(events), 3))
+    for i, event in enumerate(events):
+        index = min(int(np.searchsorted(times_s, event.time_s - 1e-9)), times_s.size - 1)
+        theta, phi = pointings_ecl[event.detector, index, :2]
+        out[i] = (np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta))
+    return out
+
+
+def sky_fixed_groups(
+    events, pointings_ecl: np.ndarray, times_s: np.ndarray, radius_arcmin: float
+) -> list[list[int]]:
+    """Indices of events that recur at one sky position: events within ``radius_arcmin`` of
+    each other on the sky (linked transitively) seen either on more than one crossing
+    (times > SEPARATE_CROSSINGS_S apart) or by more than one detector with the same sign
+    and amplitudes within a factor 2 (an intensity seen by each detector at its own
+    pointing). A cosmic ray hits one detector (or the two of a pixel, with unrelated
+    amplitudes) once, at a random sky position; a source missing from the sky map is seen
+    at its position each time a detector crosses it."""
+    if len(events) < 2:
+        return []
+    directions = event_directions(events, pointings_ecl, times_s)
+    cos_radius = math.cos(math.radians(radius_arcmin / 60.0))
+    parent = list(range(len(events)))
+
+    def root(i):
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    close = directions @ directions.T >= cos_radius
+    for i, j in zip(*np.nonzero(np.triu(close, 1)), strict=True):
+        parent[root(int(i))] = root(int(j))
+    groups: dict[int, list[int]] = {}
+    for i in range(len(events)):
+        groups.setdefault(root(i), []).append(i)
+    out = []
+    for members in groups.values():
+        times = np.sort([events[i].time_s for i in members])
+        crossings = times.size > 1 and times[-1] - times[0] > SEPARATE_CROSSINGS_S
+        if crossings or _alike_in_several_detectors([events[i] for i in members]):
+            out.append(sorted(members, key=lambda i: events[i].time_s))
+    return out
+
+
+def _alike_in_several_detectors(events) -> bool:
+    """Two or more detectors, each one's strongest event of the same sign and within a
+    factor 2 of the others'."""
+    strongest: dict[int, float] = {}
+    for event in events:
+        if abs(event.amplitude_k) > abs(strongest.get(event.detector, 0.0)):
+            strongest[event.detector] = event.amplitude_k
+    if len(strongest) < 2:
+        return False
+    values = np.array(list(strongest.values()))
+    same_sign = np.all(values > 0) or np.all(values < 0)
+    return bool(same_sign and np.abs(values).max() <= 2 * np.abs(values).min())
 
 
 def find_transients(
