@@ -37,6 +37,10 @@ def _instances(cls: type[Effect]) -> list[Effect]:
 
 def _role(effect: Effect) -> str:
     """How the selection uses the effect, from its ``selectable`` and ``reported_as``."""
+    if effect.kind == "noise" and effect.selectable:
+        return "tested on the selection's residual as an excess noise, then the selection is run again with it"
+    if effect.kind == "noise":
+        return "named as a look-alike only (its fit is its look-alike's)"
     if effect.reported_as:
         return f"selected on its own, reported as `{effect.reported_as}`"
     if effect.selectable:

@@ -148,7 +148,8 @@ class FitProblem:
         self.ctx = ctx
         self.workers = workers
         if effects is None:
-            effects = {name: e for name, e in CATALOG.items() if e.selectable}
+            # noise-kind effects are tested on the selection's residual (:mod:`.pipeline`)
+            effects = {n: e for n, e in CATALOG.items() if e.selectable and e.kind != "noise"}
         effects = dict(effects)
         if ctx.n_detectors < 2:
             effects.pop("crosstalk", None)

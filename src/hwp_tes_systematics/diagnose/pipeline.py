@@ -37,6 +37,7 @@ import numpy as np
 from .effects import CATALOG, family_of, reported_name
 from .evidence import Evidence
 from .fit import FitProblem, stepwise
+from .fluctuations import dipole_signature, fit_fluctuations
 from .locate import line_at, locate
 from .model import build_context, load_sky, nominal_tod, per_detector
 from .noise import NoiseModel, estimate_noise
@@ -216,6 +217,74 @@ def _jsonable(value):
     return value
 
 
+def _fluctuation_entry(ctx, fit, noise_models) -> dict:
+    """The report's entry for a fluctuating gain (:mod:`.fluctuations`)."""
+    effect = CATALOG["gain_fluctuations"]
+    dipole = dipole_signature(ctx, fit, noise_models)
+    amplitudes = ", ".join(f"{a:.4g} K" for a in fit.carriers_k)
+    evidence = (
+        f"the 2f HWPSS ({fit.carrier_hz:.4g} Hz) has broadband sidebands, one gain spectrum "
+        f"P_g(f) = a^2 (10 mHz / f)^beta for all detectors, a = {fit.amplitude:.3g} +- "
+        f"{fit.sigma_amplitude:.2g} /sqrt(Hz), beta = {fit.slope:.3g} +- {fit.sigma_slope:.2g}, "
+        f"scaled by each A_2^2 ({amplitudes}); "
+        + (
+            f"the detectors' sidebands are coherent, rho = {fit.correlation:.3f} +- "
+            f"{fit.sigma_correlation:.2g} ("
+            + (
+                "one fluctuation for both: a focal-plane or HWP temperature"
+                if fit.correlation > 0.5
+                else "mostly independent: each detector its own"
+            )
+            + "); "
+            if len(fit.carriers_k) == 2
+            else ""
+        )
+        + f"the gain's rms between 0.1 mHz and f_HWP is "
+        f"{fit.rms(1e-4, ctx.f_hwp_hz):.3g}; the noise alone fits worse by Delta chi^2 "
+        f"{-fit.delta_chi2:.0f}. A gain would also modulate the dipole and the sky: Delta chi^2 "
+        f"~{dipole:.2g} expected from them, "
+        + (
+            "below detection: NOT told apart from hwp_emission_fluctuations (the HWP's "
+            "emission fluctuating moves the HWPSS alone)"
+            if dipole < 25
+            else "not fitted apart: read as a gain or an HWP emission fluctuation"
+        )
+    )
+    return {
+        "name": effect.name,
+        "title": effect.title,
+        "parameters": {
+            "a[common]": {
+                "value": fit.amplitude,
+                "sigma": fit.sigma_amplitude,
+                "unit": "1/sqrt(Hz)",
+                "detector": "common",
+                "parameter": "a",
+            },
+            "beta[common]": {
+                "value": fit.slope,
+                "sigma": fit.sigma_slope,
+                "unit": "1",
+                "detector": "common",
+                "parameter": "beta",
+            },
+            "rho[common]": {
+                "value": fit.correlation,
+                "sigma": fit.sigma_correlation,
+                "unit": "1",
+                "detector": "common",
+                "parameter": "rho",
+            },
+        },
+        "main_parameters": list(effect.main_parameters),
+        "delta_chi2": fit.delta_chi2,
+        "delta_bic": fit.delta_bic,
+        "evidence": evidence,
+        "signature": effect.signature,
+        "look_alikes": ["hwp_emission_fluctuations"],
+    }
+
+
 def diagnose(
     recording: Recording,
     sky_iqu,
@@ -284,6 +353,7 @@ def diagnose(
     # starting from the effects found (each checked again, then the others tried).
     previous = ()
     history = []
+    fluctuation = None
     problem = FitProblem(ctx, recording.tod, noise_models, workers=workers, nominal=NOMINAL)
     for attempt in range(2):
         if attempt:  # same templates and residual, new noise weights
@@ -296,7 +366,24 @@ def diagnose(
         )
         final = problem.fit(selection.final.selected, keep_model=True)
         history += selection.steps
-        if attempt == 1 or not final.selected:
+        if attempt == 1:
+            break
+        # a fluctuating gain is an excess noise in the 2f sidebands (:mod:`.fluctuations`):
+        # tested on this residual; if taken, everything is selected again with it
+        fluctuation = fit_fluctuations(
+            ctx,
+            problem.residual_f - np.array(final.model_f),
+            noise_models,
+            problem.modes,
+            problem.ln_n_eff,
+        )
+        if fluctuation.delta_bic < delta_bic_threshold:
+            noise_models = fluctuation.noise
+            adjusted.noise = fluctuation.base_noise
+            previous = final.selected  # checked again with the new weights, then extended
+            continue
+        fluctuation = None
+        if not final.selected:
             break
         refit, covariances, change = refit_noise(
             ctx, problem.residual_f - np.array(final.model_f), noise_models
@@ -306,6 +393,19 @@ def diagnose(
         noise_models = refit
         adjusted.noise, adjusted.noise_covariance = refit, covariances
         previous = final.selected  # checked first with the new weights, then extended
+    if fluctuation is not None:  # its parameters on the final residual
+        fluctuation = fit_fluctuations(
+            ctx,
+            problem.residual_f - np.array(final.model_f),
+            fluctuation.base_noise,
+            problem.modes,
+            problem.ln_n_eff,
+        )
+        if fluctuation.delta_bic < delta_bic_threshold:
+            noise_models = fluctuation.noise
+            adjusted.noise = fluctuation.base_noise
+        else:  # what it took is explained by the effects selected since
+            fluctuation = None
     residual_after = problem.residual_after(final)
     partial = problem.partial_residuals(final)
 
@@ -352,6 +452,8 @@ def diagnose(
                 "look_alikes": ties.get(name, []),
             }
         )
+    if fluctuation is not None:
+        effects_out.append(_fluctuation_entry(ctx, fluctuation, noise_models))
     effects_out = merge_members(effects_out)
     nonlinearity = next(
         (e for e in effects_out if family_of(e["name"]) == NONLINEARITY_FAMILY), None
@@ -371,7 +473,7 @@ def diagnose(
     n_nuisance += adjusted.sky_residual_pixels
     unexplained = find_unexplained(ctx, residual_after, noise_models, selection, workers)
     result = {
-        "mismatch_found": bool(final.selected) or bool(unexplained),
+        "mismatch_found": bool(effects_out) or bool(unexplained),
         "effects": effects_out,
         "unexplained": unexplained,
         "nominal_adjustments": adjustments,

@@ -53,6 +53,7 @@ from .base import (
 from .gain import (
     GainDrift,
     GainDriftCommon,
+    GainFluctuations,
 )
 from .glitches import (
     GLITCH_TAIL_CUT,
@@ -64,6 +65,7 @@ from .glitches import (
     glitch_tod,
 )
 from .hwpss import (
+    HwpEmissionFluctuations,
     HwpssHarmonic,
     HwpssHarmonics,
     HwpssIntensityCoupling,
@@ -99,6 +101,8 @@ CATALOG: dict[str, Effect] = {
         PointingOffsetCommon(),
         PointingDrift(),
         Glitches(),
+        GainFluctuations(),
+        HwpEmissionFluctuations(),
     )
 }
 
@@ -158,8 +162,10 @@ __all__ = [
     "Effect",
     "GainDrift",
     "GainDriftCommon",
+    "GainFluctuations",
     "GlitchEvent",
     "Glitches",
+    "HwpEmissionFluctuations",
     "HwpTemperatureDrift",
     "HwpssHarmonic",
     "HwpssHarmonics",

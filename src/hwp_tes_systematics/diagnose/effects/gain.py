@@ -120,3 +120,36 @@ class GainDriftCommon(GainDrift):
     def evidence(self, ev, fit) -> str:
         """The signature measured on the residual ``ev`` (:class:`.evidence.Evidence`), in words."""
         return _one_relative_drift(fit, "g1", "") + "; " + super().evidence(ev, fit)
+
+
+class GainFluctuations(Effect):
+    """A gain fluctuating as a random process, g(t) with PSD P_g(f) = a^2 (f_ref / f)^beta:
+    d_obs = (1 + g(t)) d, seen as broadband sidebands of the 2f HWPSS,
+    E_k(f) = (A_k^2 / 4) [P_g(|f - 2 f_HWP|) + P_g(f + 2 f_HWP)] (:mod:`..fluctuations`).
+
+    One (a, beta) for all detectors, rho the coherence of their fluctuations (1: one
+    focal-plane temperature; 0: each TES its own); fitted as an excess noise
+    by the Whittle likelihood on the residual after the selection, with the detectors'
+    noise refitted alongside (``kind`` "noise": :mod:`..pipeline` tests it, the linear
+    selection never offers it).
+    """
+
+    name = "gain_fluctuations"
+    title = "gain fluctuating in time (a random process)"
+    parameters: ClassVar[dict[str, str]] = {"a": "1/sqrt(Hz)", "beta": "1", "rho": "1"}
+    main_parameters = ("a",)
+    kind = "noise"
+    shared = True
+    signature = (
+        "broadband power in the sidebands of the 2f HWPSS, falling as a power of the offset "
+        "from 2 f_HWP, in proportion to each detector's A_2^2"
+    )
+    discrimination = (
+        "a gain multiplies the dipole and the sky too (their sidebands are ~(D / A_2)^2 ~ "
+        "1e-4 of the HWPSS's, in the 1/f noise): usually NOT told apart from an HWP "
+        "emission fluctuation; a smooth drift (gain_drift, hwp_temperature_drift) is its "
+        "deterministic slow part"
+    )
+
+    def unresolved_look_alikes(self, ev, fit) -> list[str]:
+        return ["hwp_emission_fluctuations"]

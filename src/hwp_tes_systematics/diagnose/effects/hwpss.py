@@ -306,3 +306,23 @@ class HwpssSlowModulation(HwpTemperatureDrift):
 
     def degree(self, ctx: Context | None) -> int:
         return MODULATION_MIN if ctx is None else modulation_degree(ctx.duration_s)
+
+
+class HwpEmissionFluctuations(Effect):
+    """The HWP's emission fluctuating as a random process (its temperature): A_2 (1 + e(t))
+    with e of PSD a^2 (f_ref / f)^beta; the same sidebands of the 2f HWPSS as a gain
+    fluctuation (:class:`.gain.GainFluctuations`), without the dipole's. Never fitted on its
+    own: named as the look-alike of ``gain_fluctuations`` when the dipole's part of the
+    latter is below detection."""
+
+    name = "hwp_emission_fluctuations"
+    title = "HWP emission fluctuating in time (a random process)"
+    parameters: ClassVar[dict[str, str]] = {"a": "1/sqrt(Hz)", "beta": "1"}
+    main_parameters = ("a",)
+    kind = "noise"
+    selectable = False
+    shared = True
+    signature = "broadband power in the sidebands of the 2f HWPSS only"
+    discrimination = (
+        "the dipole and the sky keep their amplitude (a gain fluctuation would modulate them)"
+    )

@@ -1,0 +1,315 @@
+"""Stochastic fluctuations of the 2f HWPSS amplitude: a gain (or HWP emission) that varies in
+time as a random process, seen as broadband sidebands of the 2f line.
+
+A relative gain g(t) with one-sided PSD P_g(f) multiplying the signal (dominated by the
+HWPSS A_k cos(2 pi f_0 t + phi), f_0 = 2 f_HWP) adds to detector k's residual the power
+
+    E_k(f) = (A_k^2 / 4) [P_g(|f - f_0|) + P_g(f + f_0)],   P_g(f) = a^2 (f_ref / f)^beta
+
+[K^2/Hz], f_ref = 10 mHz, the offset clipped at the frequency resolution. (litebird_sim's
+thermal gain drift has beta = alpha_drift and a = sigma_drift (T_fluct / T_bath) (fknee /
+f_ref)^(beta/2).) Its sky and dipole sidebands are (D / A_k)^2 ~ 1e-4 of these and sit in
+the 1/f noise: a gain fluctuation and an HWP emission fluctuation, which moves the HWPSS
+alone, are told apart only when that part shows (:func:`dipole_signature`).
+
+Fit (:func:`fit_fluctuations`): the Whittle likelihood of the residual periodogram,
+
+    -2 ln L = sum_k sum_f [2 |R_kf|^2 / (S_kf + E_kf) + 2 ln(S_kf + E_kf)],
+
+over the modes beyond INNER_HZ of 2 f_HWP and off the known lines, one (a, beta) for all
+detectors (a common bath or HWP temperature) and each
+detector's white + 1/f noise, refitted jointly (the excess would otherwise inflate the
+white level); against the same noise refitted without E. Delta BIC = Delta(-2 ln L) +
+2 ln N_eff. When it is below the selection threshold, the noise of the selection becomes
+S + E (:class:`WithExcess`) and the effects are selected again with these weights, so a
+linear effect that only absorbed the fluctuation's slow part (a slow 2f modulation) must
+earn its place again.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.fft
+import scipy.optimize
+
+from .model import Context
+from .noise import NoiseModel, line_exclusion_mask, noise_psd, periodogram_scale
+
+F_REF_HZ = 0.01  # the frequency at which the gain PSD's amplitude a is quoted
+# the likelihood leaves out the modes within this of 2 f_HWP: the deterministic effects
+# (drifts, slow modulation, intensity coupling at 2 f_HWP +- f_spin) own that neighbourhood,
+# the fluctuation claims only the broadband sidebands beyond it
+INNER_HZ = 2e-3
+SLOPE_BOUNDS = (0.0, 3.0)
+
+
+@dataclass(frozen=True)
+class WithExcess:
+    """A noise model plus an excess PSD tabulated on a frequency grid (``psd`` adds them)."""
+
+    base: NoiseModel
+    freqs_hz: np.ndarray
+    excess_psd: np.ndarray
+
+    def psd(self, freqs_hz) -> np.ndarray:
+        f = np.abs(np.asarray(freqs_hz, dtype=float))
+        return self.base.psd(f) + np.interp(f, self.freqs_hz, self.excess_psd)
+
+    def __getattr__(self, name):  # net_k_sqrt_s, fknee_hz, alpha, fmin_hz of the base
+        return getattr(self.base, name)
+
+
+def gain_psd(offsets_hz: np.ndarray, amplitude: float, slope: float, resolution_hz: float):
+    """P_g = a^2 (f_ref / f)^beta [1/Hz], the offset clipped at the resolution."""
+    f = np.maximum(np.abs(offsets_hz), resolution_hz)
+    return amplitude**2 * (F_REF_HZ / f) ** slope
+
+
+def sideband_psd(freqs_hz, carrier_hz, amplitude_k, gain_amplitude, slope, resolution_hz):
+    """E(f) = (A^2 / 4) [P_g(|f - f_0|) + P_g(f + f_0)] [K^2/Hz]."""
+    return (amplitude_k**2 / 4) * (
+        gain_psd(freqs_hz - carrier_hz, gain_amplitude, slope, resolution_hz)
+        + gain_psd(freqs_hz + carrier_hz, gain_amplitude, slope, resolution_hz)
+    )
+
+
+@dataclass
+class FluctuationFit:
+    """The fitted fluctuation: (a, beta) with uncertainties, the likelihood gain, noise."""
+
+    amplitude: float  # a [1/sqrt(Hz)] at F_REF_HZ
+    slope: float
+    correlation: float  # rho: 1 a gain common to the detectors, 0 independent ones
+    sigma_amplitude: float
+    sigma_slope: float
+    sigma_correlation: float
+    delta_chi2: float  # Delta(-2 ln L) against the noise alone (negative: better)
+    delta_bic: float
+    noise: list  # WithExcess per detector (the noise of the selection when selected)
+    base_noise: list  # the white + 1/f models refitted with the excess
+    carriers_k: np.ndarray  # A_k
+    carrier_hz: float
+
+    def rms(self, f_lo_hz: float, f_hi_hz: float) -> float:
+        """sqrt(int P_g df) over [f_lo, f_hi]: the gain's rms fluctuation in that band."""
+        power = 1.0 - self.slope
+        if abs(power) < 1e-9:
+            integral = math.log(f_hi_hz / f_lo_hz)
+        else:
+            integral = (f_hi_hz**power - f_lo_hz**power) / power
+        return float(self.amplitude * math.sqrt(F_REF_HZ**self.slope * integral))
+
+
+def carrier_phases(ctx: Context, carrier_hz: float) -> np.ndarray:
+    """psi_k of each detector's 2f carrier cos(2 pi f_0 t + psi_k) in numpy's FFT convention
+    (X_f0 = (n / 2) e^{i psi}), from the adjusted nominal HWPSS."""
+    phase = np.exp(-2j * np.pi * carrier_hz * ctx.times_s)
+    return np.angle(ctx.carrier @ phase)
+
+
+def fit_fluctuations(
+    ctx: Context,
+    residual_f,
+    noise: list[NoiseModel],
+    used: np.ndarray,
+    ln_n_eff: float,
+) -> FluctuationFit:
+    """Maximum-Whittle-likelihood (a, beta, rho) of the 2f sidebands with each detector's
+    noise refitted alongside (module docstring); ``used`` the modes of the likelihood.
+
+    With two detectors the likelihood is the pair's: per mode the 2 x 2 covariance
+    [[S_A + E_A, C], [C*, S_B + E_B]], C = rho sqrt(s_A s_B) (A_A A_B / 4) [P_g(|f - f_0|)
+    e^{i dpsi} + P_g(f + f_0) e^{-i dpsi}] (dpsi the carriers' phase difference), and
+    -2 ln L = sum_f 2 [ln det + R^H Sigma^-1 R]: a gain common to the detectors (rho = 1)
+    makes their sidebands coherent while their noise is independent, which separates the
+    sidebands' far wings from the white noise they would otherwise pass for.
+    """
+    n, fs = ctx.n_samples, ctx.sampling_rate_hz
+    freqs = scipy.fft.rfftfreq(n, 1.0 / fs)
+    carrier = 2 * ctx.f_hwp_hz
+    used = used & (np.abs(freqs - carrier) > INNER_HZ)
+    used &= ~line_exclusion_mask(freqs, ctx.f_hwp_hz, ctx.f_spin_hz, max(3 * fs / n, 2e-4))
+    scales = [periodogram_scale(n, fs, float(np.mean(ctx.valid[k]))) for k in range(len(noise))]
+    rows = [np.asarray(r)[used] for r in residual_f]
+    n_det = len(rows)
+    pair = n_det == 2
+    # the periodograms summed in bins 1/2 % wide in f and in |f - f_0|, over which S, E and C
+    # are constant to ~1e-2 of themselves (the likelihood then needs the sums only)
+    f, counts, power, cross = _binned(
+        freqs[used],
+        carrier,
+        [r.real**2 + r.imag**2 for r in rows],
+        rows[0].conj() * rows[1] if pair else None,
+    )
+    resolution = fs / n
+    carriers = np.asarray(ctx.a2_k, dtype=float)
+    psi = carrier_phases(ctx, carrier)
+    fmins = [m.fmin_hz for m in noise]
+    n_noise = 3 * n_det
+
+    start = []
+    for m in noise:
+        start += [math.log(m.net_k_sqrt_s), math.log(max(m.fknee_hz, 1e-5)), m.alpha]
+    start = np.array(start)
+    noise_bounds = []
+    for k in range(n_det):
+        noise_bounds += [
+            (start[3 * k] - 5.0, start[3 * k] + 5.0),
+            (math.log(1e-6), math.log(fs / 2)),
+            (0.05, 6.0),
+        ]
+    excess_bounds = [(math.log(1e-9), 0.0), SLOPE_BOUNDS, (0.0, 1.0)]
+
+    def spectra(theta, with_excess):
+        """(S_k + E_k per detector, the cross term C or None)."""
+        total = []
+        for k in range(n_det):
+            log_net, log_fknee, alpha = theta[3 * k : 3 * k + 3]
+            total.append(
+                scales[k] * noise_psd(f, math.exp(log_net), math.exp(log_fknee), alpha, fmins[k])
+            )
+        if not with_excess:
+            return total, None
+        log_a, slope, rho = theta[n_noise:]
+        lower = gain_psd(f - carrier, math.exp(log_a), slope, resolution)
+        upper = gain_psd(f + carrier, math.exp(log_a), slope, resolution)
+        for k in range(n_det):
+            total[k] = total[k] + scales[k] * carriers[k] ** 2 / 4 * (lower + upper)
+        c = None
+        if pair:
+            d_psi = psi[0] - psi[1]
+            c = (
+                rho
+                * math.sqrt(scales[0] * scales[1])
+                * carriers[0]
+                * carriers[1]
+                / 4
+                * (lower * np.exp(1j * d_psi) + upper * np.exp(-1j * d_psi))
+            )
+        return total, c
+
+    def minus_two_ln_l(theta, with_excess: bool):
+        total, c = spectra(theta, with_excess)
+        if c is None:
+            return sum(
+                2 * float(np.sum(power[k] / total[k] + counts * np.log(total[k])))
+                for k in range(n_det)
+            )
+        det = total[0] * total[1] - (c.real**2 + c.imag**2)
+        quadratic = (total[1] * power[0] + total[0] * power[1] - 2 * (c * cross).real) / det
+        return 2 * float(np.sum(counts * np.log(det) + quadratic))
+
+    def minimise(x0, with_excess):
+        bounds = noise_bounds + (excess_bounds if with_excess else [])
+        x0 = np.clip(x0, [b[0] for b in bounds], [b[1] for b in bounds])
+        return scipy.optimize.minimize(
+            minus_two_ln_l, x0, args=(with_excess,), method="L-BFGS-B", bounds=bounds
+        )
+
+    without = minimise(start, False)
+    # a coarse grid in (ln a, beta, rho) with the noise held, then everything jointly
+    grid = [
+        (minus_two_ln_l(np.concatenate([without.x, [log_a, slope, rho]]), True), log_a, slope, rho)
+        for log_a in np.log(np.geomspace(1e-6, 1e-1, 16))
+        for slope in (0.5, 1.0, 1.5, 2.0, 2.5)
+        for rho in ((0.0, 0.5, 0.95) if pair else (0.0,))
+    ]
+    _, log_a, slope, rho = min(grid)
+    best = minimise(np.concatenate([without.x, [log_a, slope, rho]]), True)
+    # the noise alone again from the joint fit's noise: a gain must not be credited with
+    # what a better-converged noise fit gives
+    again = minimise(best.x[:n_noise], False)
+    delta_chi2 = float(best.fun - min(without.fun, again.fun))
+    sigmas = _curvature_sigmas(
+        lambda p: minus_two_ln_l(np.concatenate([best.x[:n_noise], p]), True),
+        best.x[n_noise:],
+        steps=(0.02, 0.02, 0.01),
+    )
+    amplitude, slope, rho = (
+        math.exp(best.x[n_noise]),
+        float(best.x[n_noise + 1]),
+        float(best.x[n_noise + 2]),
+    )
+    base, with_excess = [], []
+    for k in range(n_det):
+        log_net, log_fknee, alpha = best.x[3 * k : 3 * k + 3]
+        model = NoiseModel(math.exp(log_net), math.exp(log_fknee), float(alpha), fmins[k])
+        base.append(model)
+        excess = sideband_psd(freqs, carrier, carriers[k], amplitude, slope, resolution)
+        with_excess.append(WithExcess(model, freqs, excess))
+    return FluctuationFit(
+        amplitude=amplitude,
+        slope=slope,
+        correlation=rho,
+        sigma_amplitude=amplitude * sigmas[0],
+        sigma_slope=sigmas[1],
+        sigma_correlation=sigmas[2],
+        # the pair's likelihood counts rho: three parameters (two for one detector)
+        delta_chi2=delta_chi2,
+        delta_bic=delta_chi2 + (3 if pair else 2) * ln_n_eff,
+        noise=with_excess,
+        base_noise=base,
+        carriers_k=carriers,
+        carrier_hz=carrier,
+    )
+
+
+def _binned(f, carrier_hz, powers, cross, relative_width=0.005):
+    """(mean f, modes, summed periodograms, summed cross-periodogram) per bin of relative
+    width ``relative_width`` in both f and |f - f_0| (each side of f_0 apart)."""
+    offset = f - carrier_hz
+    in_f = np.floor(np.log(f) / relative_width).astype(np.int64)
+    in_offset = np.floor(np.log(np.abs(offset)) / relative_width).astype(np.int64)
+    key = (
+        (in_f - in_f.min()) * 4 * (np.abs(in_offset).max() + 2)
+        + 2 * (in_offset - in_offset.min())
+        + (offset > 0)
+    )
+    _, index = np.unique(key, return_inverse=True)
+    counts = np.bincount(index).astype(float)
+    mean_f = np.bincount(index, weights=f) / counts
+    summed = [np.bincount(index, weights=p) for p in powers]
+    if cross is not None:
+        cross = np.bincount(index, weights=cross.real) + 1j * np.bincount(index, weights=cross.imag)
+    return mean_f, counts, summed, cross
+
+
+def _curvature_sigmas(function, x, steps):
+    """1-sigma of each parameter from the diagonal curvature of -2 ln L (sigma^2 = 2 / f'')."""
+    sigmas = []
+    f0 = function(x)
+    for i, h in enumerate(steps):
+        up, down = x.copy(), x.copy()
+        up[i] += h
+        down[i] -= h
+        curvature = (function(up) - 2 * f0 + function(down)) / h**2
+        sigmas.append(math.sqrt(2.0 / curvature) if curvature > 0 else math.inf)
+    return sigmas
+
+
+def dipole_signature(ctx: Context, fit: FluctuationFit, noise) -> float:
+    """The Delta(-2 ln L) a gain fluctuation's dipole and sky sidebands would add, from the
+    fitted P_g and the nominal sky + dipole spectrum (what would tell a gain fluctuation from
+    an HWP emission one): sum_f E_D(f)^2 / S(f)^2 over the modes, E_D = (f_s / 2 n) x
+    sum_f' P_g(|f - f'|) |D_f'|^2 restricted to the strongest sky + dipole modes."""
+    n, fs = ctx.n_samples, ctx.sampling_rate_hz
+    freqs = scipy.fft.rfftfreq(n, 1.0 / fs)
+    resolution = fs / n
+    total = 0.0
+    for k in range(ctx.n_detectors):
+        spectrum = scipy.fft.rfft(ctx.sky[k] + ctx.dipole[k] - np.mean(ctx.dipole[k]))
+        power = spectrum.real**2 + spectrum.imag**2
+        strongest = np.argsort(power)[-64:]
+        excess = np.zeros(freqs.size)
+        for j in strongest:
+            excess += power[j] * (
+                gain_psd(freqs - freqs[j], fit.amplitude, fit.slope, resolution)
+                + gain_psd(freqs + freqs[j], fit.amplitude, fit.slope, resolution)
+            )
+        excess *= fs / (2 * n)
+        s = periodogram_scale(n, fs, float(np.mean(ctx.valid[k]))) * noise[k].psd(freqs)
+        total += float(np.sum((excess[1:] / s[1:]) ** 2))
+    return total

@@ -1,0 +1,74 @@
+"""Gain fluctuations as physics (issue 29): litebird_sim's thermal gain drift (a 1/f
+focal-plane temperature, the same for both detectors) is named ``gain_fluctuations`` with
+its spectrum and coherence, not an HWP emission change or an intensity coupling; the
+likelihood's pieces against analytic expectations."""
+
+import math
+
+import litebird_sim as lbs
+import numpy as np
+import pytest
+
+from hwp_tes_systematics.diagnose import diagnose, simulate
+from hwp_tes_systematics.diagnose.fluctuations import (
+    F_REF_HZ,
+    WithExcess,
+    gain_psd,
+    sideband_psd,
+)
+from hwp_tes_systematics.diagnose.noise import NoiseModel
+from hwp_tes_systematics.diagnose.testbed import A2_K, CHANNEL, MASTER_SEED, sky_map
+
+
+def test_a_gain_times_a_carrier_has_the_sideband_spectrum():
+    """r = g(t) A cos(2 pi f0 t), g white of one-sided PSD P0: the PSD of r is A^2 P0 / 2."""
+    rng = np.random.default_rng(3)
+    fs, n, f0, amplitude, p0 = 20.0, 2**18, 2.6, 0.3, 1e-6
+    g = rng.normal(0.0, math.sqrt(p0 * fs / 2), n)
+    r = g * amplitude * np.cos(2 * np.pi * f0 * np.arange(n) / fs)
+    measured = np.mean(np.abs(np.fft.rfft(r)[1:-1]) ** 2) / (n * fs / 2)
+    expected = sideband_psd(np.array([1.0]), f0, amplitude, math.sqrt(p0), 0.0, fs / n)[0]
+    assert measured == pytest.approx(expected, rel=0.02)
+    assert expected == pytest.approx(amplitude**2 * p0 / 2)
+
+
+def test_the_gain_spectrum_and_the_noise_with_its_excess():
+    assert gain_psd(np.array([F_REF_HZ]), 2e-3, 1.0, 1e-5)[0] == pytest.approx(4e-6)
+    # clipped at the resolution: finite at the carrier
+    assert np.isfinite(gain_psd(np.array([0.0]), 2e-3, 1.0, 1e-5)).all()
+    base = NoiseModel(5e-5, 0.02, 1.0, 1e-5)
+    grid = np.linspace(0, 10, 101)
+    noise = WithExcess(base, grid, np.full(grid.size, 1e-9))
+    assert noise.psd(np.array([3.0]))[0] == pytest.approx(base.psd(np.array([3.0]))[0] + 1e-9)
+    assert noise.net_k_sqrt_s == base.net_k_sqrt_s
+
+
+@pytest.mark.slow
+def test_litebird_sims_thermal_gain_drift_is_a_gain_fluctuation():
+    """An M1-140 pair (2 h), litebird_sim's THERMAL_GAIN with sigma_drift 1e-4 (gain rms
+    ~6e-4): named gain_fluctuations, coherent in the two detectors, its spectrum's slope
+    that of litebird_sim's 1/f (alpha_drift = 1), HWP emission named as look-alike (six
+    hours: gain_fluctuations alone; in two its slow part can also pass as a drift)."""
+    recording = simulate.simulate_recording(CHANNEL, 2.0, MASTER_SEED, 93, sky_map(), A2_K, [])
+    params = lbs.GainDriftParams(
+        drift_type=lbs.GainDriftType.THERMAL_GAIN, sigma_drift=1e-4, detector_mismatch=0.1
+    )
+    lbs.apply_gaindrift_to_tod(
+        recording.tod,
+        recording.sampling_rate_hz,
+        params,
+        focalplane_attr=np.array(["wafer", "wafer"]),
+        dets_random=[np.random.default_rng(5), np.random.default_rng(6)],
+    )
+    result = diagnose(recording, sky_map(), A2_K, figures=False)
+    names = result.effect_names
+    assert "gain_fluctuations" in names, (names, [u["text"][:120] for u in result["unexplained"]])
+    # the fluctuation's slow part (within 2 mHz of 2 f_HWP) may be taken as a drift, with
+    # its own look-alike named; never as a slow 2f modulation or an intensity coupling
+    assert set(names) <= {"gain_fluctuations", "gain_drift", "hwp_temperature_drift"}, names
+    effect = result.effect("gain_fluctuations")
+    parameters = {p["parameter"]: p for p in effect["parameters"].values()}
+    assert parameters["rho"]["value"] > 0.95
+    assert 0.7 < parameters["beta"]["value"] < 1.3
+    assert 5e-4 < parameters["a"]["value"] < 5e-3
+    assert effect["look_alikes"] == ["hwp_emission_fluctuations"]
