@@ -104,9 +104,10 @@ def main() -> None:
         top = sum(r["top"] == POINTING for r in group)
         named = sum(r["named"] for r in group)
         within = sum(r.get("within_3_sigma", False) for r in group)
+        fitted = f"{within}/{named}" if named else "-"
         print(
             f"  {offset:g} arcmin: top-ranked {top}/{len(group)}, named {named}/{len(group)}, "
-            f"both components within 3 sigma {within}/{named or 1}"
+            f"both components within 3 sigma {fitted}"
         )
         if threshold is None and top >= 0.9 * len(group):
             threshold = offset
