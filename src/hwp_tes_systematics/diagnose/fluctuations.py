@@ -20,7 +20,7 @@ over the modes beyond INNER_HZ of 2 f_HWP and off the known lines, one (a, beta)
 detectors (a common bath or HWP temperature) and each
 detector's white + 1/f noise, refitted jointly (the excess would otherwise inflate the
 white level); against the same noise refitted without E. Delta BIC = Delta(-2 ln L) +
-2 ln N_eff. When it is below the selection threshold, the noise of the selection becomes
+k ln N_eff, k = 3 for a pair (a, beta, rho), 2 for one detector. When it is below the selection threshold, the noise of the selection becomes
 S + E (:class:`WithExcess`) and the effects are selected again with these weights, so a
 linear effect that only absorbed the fluctuation's slow part (a slow 2f modulation) must
 earn its place again.

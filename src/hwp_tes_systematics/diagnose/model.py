@@ -247,7 +247,7 @@ ARCMIN_RAD = np.pi / (180 * 60)
 GRADIENT_STEP_ARCMIN = 1.0  # central difference of the dipole: its curvature error ~1e-8 relative
 
 
-def _unit_vectors(theta, phi):
+def unit_vectors(theta, phi):
     """n, e_theta, e_phi, (n, 3) each, at colatitude theta and longitude phi."""
     sin_t, cos_t, sin_p, cos_p = np.sin(theta), np.cos(theta), np.sin(phi), np.cos(phi)
     n = np.stack([sin_t * cos_p, sin_t * sin_p, cos_t], axis=-1)
@@ -263,10 +263,10 @@ def focal_plane_axes(pointings_ecl: np.ndarray):
     A rotation of the detector quaternion by delta about the focal plane's x (y) axis
     (litebird_sim's pointing systematics, ``RotQuaternion(quat_rotation_x(delta)) * quat``)
     moves the pointing by delta along u (v), the same direction in the focal plane at every
-    sample (checked to 1e-12 arcmin over six hours: tests/test_diagnose_pointing.py).
+    sample (checked to 1e-6 arcmin over half an hour: tests/test_diagnose_pointing.py).
     """
     theta, phi, psi = pointings_ecl[:, 0], pointings_ecl[:, 1], pointings_ecl[:, 2]
-    n, e_theta, e_phi = _unit_vectors(theta, phi)
+    n, e_theta, e_phi = unit_vectors(theta, phi)
     cos_psi, sin_psi = np.cos(psi)[:, None], np.sin(psi)[:, None]
     return n, cos_psi * e_theta + sin_psi * e_phi, -sin_psi * e_theta + cos_psi * e_phi
 

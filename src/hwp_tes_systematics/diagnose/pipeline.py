@@ -220,6 +220,7 @@ def _jsonable(value):
 def _fluctuation_entry(ctx, fit, noise_models) -> dict:
     """The report's entry for a fluctuating gain (:mod:`.fluctuations`)."""
     effect = CATALOG["gain_fluctuations"]
+    (look_alike,) = effect.unresolved_look_alikes(None, fit)
     dipole = dipole_signature(ctx, fit, noise_models)
     amplitudes = ", ".join(f"{a:.4g} K" for a in fit.carriers_k)
     evidence = (
@@ -244,7 +245,7 @@ def _fluctuation_entry(ctx, fit, noise_models) -> dict:
         f"{-fit.delta_chi2:.0f}. A gain would also modulate the dipole and the sky: Delta chi^2 "
         f"~{dipole:.2g} expected from them, "
         + (
-            "below detection: NOT told apart from hwp_emission_fluctuations (the HWP's "
+            f"below detection: NOT told apart from {look_alike} (the HWP's "
             "emission fluctuating moves the HWPSS alone)"
             if dipole < 25
             else "not fitted apart: read as a gain or an HWP emission fluctuation"
@@ -281,7 +282,7 @@ def _fluctuation_entry(ctx, fit, noise_models) -> dict:
         "delta_bic": fit.delta_bic,
         "evidence": evidence,
         "signature": effect.signature,
-        "look_alikes": ["hwp_emission_fluctuations"],
+        "look_alikes": [look_alike],
     }
 
 

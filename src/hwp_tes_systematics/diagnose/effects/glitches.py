@@ -11,6 +11,7 @@ import numpy as np
 import scipy.fft
 import scipy.optimize
 
+from ..model import unit_vectors
 from .base import Effect, format_temperature
 
 
@@ -229,12 +230,14 @@ SEPARATE_CROSSINGS_S = 30.0  # events further apart in time are different crossi
 
 def event_directions(events, pointings_ecl: np.ndarray, times_s: np.ndarray) -> np.ndarray:
     """(n_events, 3) ecliptic unit vectors where each event's detector looked at its time."""
-    out = np.empty((len(events), 3))
-    for i, event in enumerate(events):
-        index = min(int(np.searchsorted(times_s, event.time_s - 1e-9)), times_s.size - 1)
-        theta, phi = pointings_ecl[event.detector, index, :2]
-        out[i] = (np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta))
-    return out
+    indices = [
+        min(int(np.searchsorted(times_s, event.time_s - 1e-9)), times_s.size - 1)
+        for event in events
+    ]
+    angles = np.array(
+        [pointings_ecl[e.detector, i, :2] for e, i in zip(events, indices, strict=True)]
+    ).reshape(-1, 2)
+    return unit_vectors(angles[:, 0], angles[:, 1])[0]
 
 
 def sky_fixed_groups(
