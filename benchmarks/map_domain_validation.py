@@ -17,7 +17,16 @@ map_domain_alms jobs made them in memory.) Printed, as Markdown:
    mean over seeds;
 3. the systematic-only Fisher bias k = delta r / sigma_g1^2 and the paper estimator's
    delta r per sigma_g1, mean over seeds with its standard error, for both paths, their
-   ratio and their difference in units of the combined error; sigma_r.
+   ratio and their difference in units of the combined error; sigma_r;
+4. per channel with systematics, what sets the answer: the Fisher bias k_c of the
+   channel's own template BB (detectors 0 and 1 at unit g1, the expectation over the g1
+   draws, beam deconvolved) through the TOD run's likelihood model, for the whole
+   template and for its seed part alone (the template minus the fixed pass's, i.e. the
+   CMB x h and noise x h terms), both paths, mean over seeds with its error.
+
+To validate where the seed part matters (issue 26), run both at one-year noise depth:
+``config/one_year.yaml config/map_domain_validation.yaml`` (one month, the noise scaled
+to one year's per pixel) and the same + ``config/tod_path.yaml``.
 
 The paths share each seed's CMB draw, not its noise draw: per seed they differ by noise,
 so they are compared through the seed means (the paper's estimator at small sigma_g1
@@ -34,9 +43,13 @@ import healpy as hp
 import numpy as np
 import pandas as pd
 
+from hwp_tes_systematics import config as cfg
+from hwp_tes_systematics.analysis.likelihood import BBModel, fisher_bias, model_from_noise_csv
+from hwp_tes_systematics.analysis.spectra import pseudo_spectra
 from hwp_tes_systematics.config import analysis_variant, load_config
 from hwp_tes_systematics.simulation.map_domain import ChannelSeeds
 from hwp_tes_systematics.simulation.maps_file import read_channel_maps
+from hwp_tes_systematics.simulation.tod_maps import templates_from_terms
 
 ELL_BANDS = ((2, 12), (12, 40), (40, 80), (80, 129))
 
@@ -72,6 +85,48 @@ def channel_rows(run: Path, config: dict | None = None) -> dict[str, tuple[float
         if noise:
             rows[folder.name] = (float(np.mean(noise)), float(np.mean(template)))
     return rows
+
+
+def template_bb(templates: np.ndarray, good: np.ndarray, lmax: int, fwhm_arcmin: float):
+    """sum_k BB of detector k's template [K_CMB^2 K^2] on ``good``, beam deconvolved:
+    the expectation over independent unit g1 draws of BB(sum_k g1_k T_k)."""
+    beam_bb = hp.gauss_beam(np.radians(fwhm_arcmin / 60), lmax=lmax, pol=True)[:, 2]
+    total = np.zeros(lmax + 1)
+    for template in templates:
+        alm = hp.map2alm(np.where(good, template, 0.0), lmax=lmax, iter=0)
+        total += pseudo_spectra(alm, lmax, good.mean())[2]
+    return total / beam_bb**2
+
+
+def channel_biases(tod_run: Path, md_run: Path, config: dict, model: BBModel) -> dict:
+    """{(channel, path): {"total": k_c per seed, "seed_part": k_c per seed}} of the
+    channels with systematics, path "tod" or "map_domain": the Fisher bias of the
+    channel's template BB (:func:`template_bb`) and of its seed part (the template minus
+    the map-domain run's fixed pass's; the same operator on both paths, so the rest is the
+    seed's CMB x h and noise x h) [1/K^2]. ``config``: the map-domain run's."""
+    lmax = int(model.ell.max())
+    biases = {}
+    for name in config["instrument"]["systematics_channels"]:
+        folder = md_run / "results" / "maps" / name
+        fixed_h5 = folder / f"fixed_pass_{analysis_variant(config)}.h5"
+        if not fixed_h5.exists():
+            continue
+        channel_seeds = ChannelSeeds(config, fixed_h5)
+        fixed = channel_seeds.fixed
+        fixed_templates = templates_from_terms(
+            fixed.template_terms, float(channel_seeds.attributes["a2_k_cmb"])
+        )
+        fwhm = cfg.channel(config, name).fwhm_arcmin
+        tod_seeds = seed_maps(tod_run / "results" / "maps" / name, None)
+        md_seeds = (channel_seeds.maps(seed) for seed in range(config["simulation"]["seeds"]))
+        for path, seeds in (("tod", tod_seeds), ("map_domain", md_seeds)):
+            rows = {"total": [], "seed_part": []}
+            for data in seeds:
+                templates = np.where(fixed.good, data["templates"], 0.0)
+                for key, maps in (("total", templates), ("seed_part", templates - fixed_templates)):
+                    rows[key].append(fisher_bias(template_bb(maps, fixed.good, lmax, fwhm), model))
+            biases[(name, path)] = {key: np.asarray(values) for key, values in rows.items()}
+    return biases
 
 
 def residual_bands(run: Path) -> np.ndarray:
@@ -163,6 +218,25 @@ def main() -> None:
         f"| sigma_r | {tod['sigma_r']:.3g} | {fast['sigma_r']:.3g} | "
         f"{fast['sigma_r'] / tod['sigma_r']:.2f} | |"
     )
+
+    likelihood = md_config["likelihood"]
+    model = model_from_noise_csv(
+        str(arguments.tod / "results" / "spectra" / "noise_model.csv"),
+        likelihood["lmin"],
+        likelihood["lmax"],
+        likelihood["model"],
+    )
+    biases = channel_biases(arguments.tod, arguments.map_domain, md_config, model)
+    print(
+        "\n| channel's own template: Fisher bias k_c [1/K^2] (mean over seeds +- its error) "
+        "| tod | map domain | ratio | difference / error |"
+    )
+    print("|---|---|---|---|---|")
+    for name in dict.fromkeys(name for name, _ in biases):
+        for key in ("total", "seed_part"):
+            label = f"{name}, {'whole template' if key == 'total' else 'seed part'}"
+            tod_k = biases[(name, "tod")][key]
+            print(compared(label, tod_k, biases[(name, "map_domain")][key]))
 
 
 if __name__ == "__main__":

@@ -137,6 +137,27 @@ def test_no_baselines_overlay_merges_after_one_year(repo, monkeypatch):
     assert overlaid == base
 
 
+def test_map_domain_validation_overlays_differ_only_in_the_path(repo, monkeypatch):
+    """config/map_domain_validation.yaml puts one month at one year's per-pixel noise
+    (noise_scale^2 = duration / one year); config/tod_path.yaml after it switches the path
+    and nothing else."""
+    monkeypatch.chdir(repo)
+    files = ["config/config.yaml", "config/one_year.yaml", "config/map_domain_validation.yaml"]
+    map_domain = load_config(*files)
+    tod = load_config(*files, "config/tod_path.yaml")
+    simulation = map_domain["simulation"]
+    assert simulation["realizations"] == "map_domain"
+    assert simulation["noise_scale"] ** 2 == pytest.approx(
+        simulation["duration_days"] / 365.25, rel=1e-5
+    )
+    assert set(map_domain["instrument"]["systematics_channels"]) <= set(
+        map_domain["instrument"]["channels"]
+    )
+    assert tod["simulation"].pop("realizations") == "tod"
+    map_domain["simulation"].pop("realizations")
+    assert tod == map_domain
+
+
 def test_resolution_overlays_share_one_fixed_pass(repo, monkeypatch):
     """config/nside<N>.yaml after one_year.yaml and resolution_study.yaml (with or without
     no_baselines.yaml): each analyses its own map-maker of the same fixed pass, whose
