@@ -102,3 +102,34 @@ def test_cli_a2_for_a_lab_detector(tmp_path):
     negative = cli(tmp_path, "lab.h5", "--sky", "sky.fits", "--out", "out", "--a2", "-0.1")
     assert negative.returncode == 2 and "expected an amplitude >= 0" in negative.stderr
     assert not (tmp_path / "out").exists()
+
+
+def test_cli_diagnoses_a_recording_too_long_for_the_budget_in_segments(tmp_path):
+    """--memory-gb below what the recording needs at once: the command cuts it into
+    segments that fit, diagnoses each, and reports them combined (--segment-hours asks
+    for segments directly)."""
+    from hwp_tes_systematics.diagnose.recording import diagnosis_memory_bytes
+
+    recording = simulate_recording(
+        CHANNEL, 2.2, MASTER_SEED, 4246, sky_map(), A2_K, [("tes_nonlinearity", {"g1": -0.03})]
+    )
+    write_recording(tmp_path / "rec.h5", recording)
+    sky.write_sky_map(tmp_path / "sky.fits", sky_map())
+    half = diagnosis_memory_bytes(2, recording.n_samples // 2 + 1) / 2**30
+    result = cli(
+        tmp_path, "rec.h5", "--sky", "sky.fits", "--out", "out", "--memory-gb", f"{half:.6f}"
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "diagnosed in 2 segments" in result.stdout
+    diagnosis = json.loads((tmp_path / "out/diagnosis.json").read_text())
+    assert [s["effects"] for s in diagnosis["segments"]] == [["tes_nonlinearity"]] * 2
+    assert diagnosis["effects"][0]["segments"] == [0, 1]
+    assert (tmp_path / "out/segments/1/residual_spectrum.png").exists()
+    short = simulate_recording(CHANNEL, 0.5, MASTER_SEED, 4247, sky_map(), A2_K)
+    write_recording(tmp_path / "short.h5", short)
+    result = cli(
+        tmp_path, "short.h5", "--sky", "sky.fits", "--out", "out2", "--segment-hours", "0.25"
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "no mismatch found" in result.stdout
+    assert len(json.loads((tmp_path / "out2/diagnosis.json").read_text())["segments"]) == 2

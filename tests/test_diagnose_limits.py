@@ -38,13 +38,13 @@ def test_a_file_declaring_1e10_samples_is_refused_before_reading(tmp_path):
     message = str(info.value)
     assert "huge.h5: declares 2 detector(s) x 1e+10 samples" in message
     assert f"~{needed:.3g} GiB" in message and "GiB available" in message
-    assert "diagnose it in pieces of at most" in message
+    assert "diagnose it in segments of at most" in message
 
 
 def test_the_budget_sets_the_largest_piece(tmp_path):
     path = declared_file(tmp_path / "day.h5", 19 * 86400)
     budget = diagnosis_memory_bytes(2, 19 * 3600)  # one hour's worth
-    with pytest.raises(RecordingError, match=r"pieces of at most 1 h"):
+    with pytest.raises(RecordingError, match=r"segments of at most 1 h"):
         read_recording(path, memory_budget_bytes=budget)
     # within the budget, the same file is read
     recording = read_recording(path, memory_budget_bytes=diagnosis_memory_bytes(2, 19 * 86400))

@@ -31,38 +31,54 @@ def run_diagnose(
     workers: int = 1,
     a2_k: float | None = None,
     requirement: str | None = None,
+    memory_gb: float | None = None,
+    segment_hours: float | None = None,
 ):
     """Diagnose one recording with the nominal HWPSS and noise of the configured instrument.
 
     ``a2_k`` (``--a2``) overrides the instrument model's A_2; a channel the model does not
     know (a lab detector) needs it (see :func:`.diagnose.recording.nominal_a2`).
     ``requirement`` (``--requirement``): the requirement.json a found nonlinearity is
-    compared with (default: the shipped one-year result).
+    compared with (default: the shipped one-year result). A recording whose diagnosis
+    would not fit ``memory_gb`` (default: the available memory), or any recording with
+    ``segment_hours``, is diagnosed in segments (:mod:`.diagnose.segments`).
     """
     from .diagnose import diagnose
-    from .diagnose.recording import nominal_a2, read_recording
+    from .diagnose.recording import MIN_SAMPLES, nominal_a2, read_recording, recording_size
+    from .diagnose.segments import diagnose_segments, needs_segments
     from .simulation.channel_inputs import channel_a2_k_cmb
 
     config = load_config(*config_paths)
-    recording = read_recording(recording_path)
-    a2_k = nominal_a2(recording, a2_k, lambda channel: channel_a2_k_cmb(config, channel))
+    budget = None if memory_gb is None else memory_gb * 2**30
+    segmented = segment_hours is not None or needs_segments(recording_path, budget)
+    head = (  # a segmented recording: its first samples give the metadata
+        read_recording(recording_path, budget, samples=(0, MIN_SAMPLES))
+        if segmented
+        else read_recording(recording_path, budget)
+    )
+    a2_k = nominal_a2(head, a2_k, lambda channel: channel_a2_k_cmb(config, channel))
+    _, n_samples, rate_hz = recording_size(recording_path)
     log.info(
-        "%s: channel %s, %d detectors, %.2f h; nominal A_2 = %.4g K_CMB",
+        "%s: channel %s, %d detectors, %.2f h%s; nominal A_2 = %.4g K_CMB",
         recording_path,
-        recording.channel,
-        recording.n_detectors,
-        recording.n_samples / recording.sampling_rate_hz / 3600,
+        head.channel,
+        head.n_detectors,
+        n_samples / rate_hz / 3600,
+        ", in segments" if segmented else "",
         a2_k,
     )
-    return diagnose(
-        recording,
-        sky_path,
-        a2_k,
-        out_dir=out_dir,
-        delta_bic_threshold=threshold,
-        workers=workers,
-        requirement=requirement,
-    )
+    options = {"delta_bic_threshold": threshold, "workers": workers, "requirement": requirement}
+    if segmented:
+        return diagnose_segments(
+            recording_path,
+            sky_path,
+            a2_k,
+            out_dir=out_dir,
+            segment_hours=segment_hours,
+            memory_budget_bytes=budget,
+            **options,
+        )
+    return diagnose(head, sky_path, a2_k, out_dir=out_dir, **options)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -110,6 +126,19 @@ def main(argv: list[str] | None = None) -> int:
         help="a workflow run's results/requirement.json: a nonlinearity found is compared "
         "with its requirement on sigma_g1 (default: the shipped one-year result)",
     )
+    diagnose.add_argument(
+        "--memory-gb",
+        type=float,
+        default=None,
+        help="memory the diagnosis may use [GiB] (default: the available memory); a longer "
+        "recording is diagnosed in segments that fit it",
+    )
+    diagnose.add_argument(
+        "--segment-hours",
+        type=float,
+        default=None,
+        help="diagnose in segments of at most this many hours, combined in one report",
+    )
     arguments = parser.parse_args(argv)
 
     if arguments.command == "config-reference":
@@ -133,10 +162,14 @@ def main(argv: list[str] | None = None) -> int:
             arguments.delta_bic,
             a2_k=arguments.a2,
             requirement=arguments.requirement,
+            memory_gb=arguments.memory_gb,
+            segment_hours=arguments.segment_hours,
         )
     except (ConfigError, ValueError, OSError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
+    if result.get("segments"):
+        print(f"diagnosed in {len(result['segments'])} segments (see diagnosis.md)")
     if result["mismatch_found"]:
         names = ", ".join(effect["name"] for effect in result["effects"])
         print(

@@ -14,10 +14,11 @@ evidence), :mod:`.noise` (noise estimate, Whittle), :mod:`.linalg` (whitened lea
 squares), :mod:`.locate` (lines, HWP-angle harmonics, transients, drifts, sky),
 :mod:`.fit` (stepwise selection with the BIC), :mod:`.unexplained` (what no effect
 explains), :mod:`.evidence` (measurements for the evidence texts), :mod:`.pipeline`
-(``diagnose``), :mod:`.report` (diagnosis.json, diagnosis.md) and :mod:`.figures` (its
+(``diagnose``), :mod:`.segments` (a recording longer than memory allows, diagnosed
+segment by segment and combined), :mod:`.report` (diagnosis.json, diagnosis.md) and :mod:`.figures` (its
 PNGs). Imports go one way: recording/model -> effects -> simulate;
 effects -> locate -> nominal/fit/unexplained
--> pipeline -> report -> figures (no cycle).
+-> pipeline -> segments; pipeline -> report -> figures (no cycle).
 """
 
 from .effects import CATALOG, catalog_table

@@ -178,18 +178,21 @@ def _read_flags(path, handle, n_det: int, n: int) -> np.ndarray:
     return flags
 
 
-def read_recording(path, memory_budget_bytes=None) -> Recording:
+def read_recording(path, memory_budget_bytes=None, samples=None) -> Recording:
     """Read a recording written by :func:`write_recording` (litebird_sim's HDF5 format).
 
+    ``samples``: (start, stop), read only those samples (a segment: its ``start_time`` is
+    the file's plus start / sampling rate, its ``times_s`` start at 0), so that a
+    recording longer than memory allows is diagnosed piece by piece (:mod:`.segments`).
     A file that h5py cannot open or read (truncated by an interrupted copy or write, or
     corrupt) is a :class:`RecordingError` naming the file, what h5py said and what to do;
-    so is a file whose declared size would need more memory to diagnose than
+    so is a file (or segment) whose declared size would need more memory to diagnose than
     ``memory_budget_bytes`` (default: the available memory; :func:`check_memory`),
     refused before any of its data is read.
     """
     path = Path(path)
     try:
-        return _read_recording(path, memory_budget_bytes)
+        return _read_recording(path, memory_budget_bytes, samples)
     except OSError as error:  # h5py: "Unable to synchronously open file (truncated file...)"
         size = path.stat().st_size if path.exists() else 0
         _fail(
@@ -198,6 +201,21 @@ def read_recording(path, memory_budget_bytes=None) -> Recording:
             "or corrupt, e.g. by an interrupted copy or write; copy or write it again "
             "(compare its size or checksum with the original)",
         )
+
+
+def recording_size(path) -> tuple[int, int, float]:
+    """(detectors, samples, sampling rate [Hz]) a recording file declares, its datasets'
+    shapes checked and none of its data read."""
+    import h5py
+
+    path = Path(path)
+    try:
+        _check_file(path)
+        with h5py.File(path, "r") as handle:
+            _, n_det, n, sampling_rate_hz = _declared(path, handle)
+    except OSError as error:
+        _fail(path, f"cannot be read as HDF5 ({error}): the file is truncated or corrupt")
+    return n_det, n, sampling_rate_hz
 
 
 def diagnosis_memory_bytes(n_detectors: int, n_samples: int) -> float:
@@ -229,62 +247,84 @@ def check_memory(path, n_det: int, n: int, sampling_rate_hz: float, budget_bytes
         f"declares {n_det} detector(s) x {n:.4g} samples ({hours:.4g} h at "
         f"{sampling_rate_hz:g} Hz): diagnosing it needs ~{needed / 2**30:.3g} GiB "
         f"(~{DIAGNOSIS_BYTES_PER_DETECTOR_SAMPLE} B per detector-sample), more than the "
-        f"{budget / 2**30:.3g} GiB available; diagnose it in pieces of at most "
-        f"{per_segment / sampling_rate_hz / 3600.0:.3g} h (write shorter observations, "
-        "e.g. with litebird_sim), or on a machine with more memory",
+        f"{budget / 2**30:.3g} GiB available; diagnose it in segments of at most "
+        f"{per_segment / sampling_rate_hz / 3600.0:.3g} h (the command line does so by "
+        "itself, --segment-hours; from Python: diagnose.segments.diagnose_segments), or on "
+        "a machine with more memory",
     )
 
 
-def _read_recording(path: Path, memory_budget_bytes=None) -> Recording:
+def _check_file(path: Path) -> None:
     import h5py
 
     if not path.exists():
         _fail(path, "no such file")
     if not path.is_file() or not h5py.is_hdf5(path):
         _fail(path, "not an HDF5 file (expected a litebird_sim observation file)")
+
+
+def _declared(path: Path, handle) -> tuple:
+    """(tod dataset, detectors, samples, sampling rate) of an open file, shapes checked."""
+    import h5py
+
+    for name in ("tod", "pointings", "hwp_angle"):
+        if name not in handle or not isinstance(handle[name], h5py.Dataset):
+            hint = (
+                " (write the observation with write_full_pointings=True)" if name != "tod" else ""
+            )
+            _fail(path, f"missing dataset {name!r}{hint}")
+    dataset = handle["tod"]
+    if dataset.ndim != 2:
+        _fail(path, f"dataset 'tod' has shape {dataset.shape}, expected (n_det, n_samples)")
+    n_det, n = dataset.shape
+    if n < MIN_SAMPLES or n_det < 1:
+        _fail(path, f"dataset 'tod' has shape {dataset.shape}: too few samples/detectors")
+    pointings = handle["pointings"]
+    if pointings.shape != (n_det, n, 3):
+        _fail(
+            path,
+            f"length mismatch: 'pointings' has shape {pointings.shape}, 'tod' {(n_det, n)} "
+            f"(expected {(n_det, n, 3)})",
+        )
+    hwp = handle["hwp_angle"]
+    if hwp.shape != (n,):
+        _fail(path, f"length mismatch: 'hwp_angle' has shape {hwp.shape}, 'tod' has {n} samples")
+    try:
+        sampling_rate_hz = float(dataset.attrs["sampling_rate_hz"])
+    except KeyError:
+        _fail(path, "dataset 'tod' has no 'sampling_rate_hz' attribute")
+    if not (math.isfinite(sampling_rate_hz) and sampling_rate_hz > 0):
+        _fail(path, f"sampling_rate_hz = {sampling_rate_hz!r}: expected a rate > 0 Hz")
+    return dataset, n_det, n, sampling_rate_hz
+
+
+def _read_recording(path: Path, memory_budget_bytes=None, samples=None) -> Recording:
+    import h5py
+
+    _check_file(path)
     with h5py.File(path, "r") as handle:
-        for name in ("tod", "pointings", "hwp_angle"):
-            if name not in handle or not isinstance(handle[name], h5py.Dataset):
-                hint = (
-                    " (write the observation with write_full_pointings=True)"
-                    if name != "tod"
-                    else ""
-                )
-                _fail(path, f"missing dataset {name!r}{hint}")
-        dataset = handle["tod"]
-        if dataset.ndim != 2:
-            _fail(path, f"dataset 'tod' has shape {dataset.shape}, expected (n_det, n_samples)")
-        n_det, n = dataset.shape
-        if n < MIN_SAMPLES or n_det < 1:
-            _fail(path, f"dataset 'tod' has shape {dataset.shape}: too few samples/detectors")
-        pointings = handle["pointings"]
-        if pointings.shape != (n_det, n, 3):
+        dataset, n_det, n_file, sampling_rate_hz = _declared(path, handle)
+        pointings, hwp = handle["pointings"], handle["hwp_angle"]
+        start, stop = (0, n_file) if samples is None else (int(samples[0]), int(samples[1]))
+        if not 0 <= start < stop <= n_file or stop - start < MIN_SAMPLES:
             _fail(
                 path,
-                f"length mismatch: 'pointings' has shape {pointings.shape}, 'tod' {(n_det, n)} "
-                f"(expected {(n_det, n, 3)})",
+                f"samples {start}:{stop}: expected a range of at least {MIN_SAMPLES} samples "
+                f"within the file's {n_file}",
             )
-        hwp = handle["hwp_angle"]
-        if hwp.shape != (n,):
-            _fail(
-                path, f"length mismatch: 'hwp_angle' has shape {hwp.shape}, 'tod' has {n} samples"
-            )
-        try:
-            sampling_rate_hz = float(dataset.attrs["sampling_rate_hz"])
-        except KeyError:
-            _fail(path, "dataset 'tod' has no 'sampling_rate_hz' attribute")
-        if not (math.isfinite(sampling_rate_hz) and sampling_rate_hz > 0):
-            _fail(path, f"sampling_rate_hz = {sampling_rate_hz!r}: expected a rate > 0 Hz")
+        n = stop - start
         check_memory(path, n_det, n, sampling_rate_hz, memory_budget_bytes)
         detectors = _read_detectors(path, dataset, n_det)
         start_time = _read_start_time(path, dataset)
+        if start:
+            start_time = start_time + astropy.time.TimeDelta(start / sampling_rate_hz, format="sec")
         try:
-            tod = np.asarray(dataset[()], dtype=float)
-            pointings_ecl = np.asarray(pointings[()], dtype=float)
-            hwp_angle = np.asarray(hwp[()], dtype=float)
+            tod = np.asarray(dataset[:, start:stop], dtype=float)
+            pointings_ecl = np.asarray(pointings[:, start:stop], dtype=float)
+            hwp_angle = np.asarray(hwp[start:stop], dtype=float)
         except (TypeError, ValueError) as error:
             _fail(path, f"non-numeric data ({error})")
-        flags = _read_flags(path, handle, n_det, n)
+        flags = _read_flags(path, handle, n_det, n_file)[:, start:stop]
 
     # NaN = gap (masked); Inf = corruption (error unless already flagged).
     for name, values, per_sample in (

@@ -106,6 +106,9 @@ class Effect:
     # |parameter| beyond which the effect is not physics but a template absorbing something
     # else (e.g. an intensity coupling of 0.35): parameter -> bound, in its unit
     physical_bounds: ClassVar[dict[str, float]] = {}
+    # its parameters describe events at times (a recording diagnosed in segments keeps
+    # them per segment instead of averaging them: :mod:`..segments`)
+    events: ClassVar[bool] = False
 
     def unphysical(self, fit) -> str | None:
         """Why the fitted values (:class:`.fit.EffectFit`) are outside ``physical_bounds``,

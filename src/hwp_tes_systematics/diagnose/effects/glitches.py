@@ -125,6 +125,7 @@ class Glitches(Effect):
     name = "glitches"
     title = "cosmic-ray glitches"
     parameters: ClassVar[dict[str, str]] = {"amplitude": "K", "time": "s", "tau": "s"}
+    events: ClassVar[bool] = True
     main_parameters = ("amplitude",)
     kind = "events"
     stage = "events"

@@ -1,0 +1,182 @@
+"""Recordings longer than memory allows are diagnosed segment by segment (issue 29, item 7):
+the segments fit the budget and cover the recording, a segment read from the file is that
+stretch of the whole, and the combination of the segments' findings is the
+inverse-variance mean with a consistency check; on a recording, the segmented diagnosis
+finds what the whole one finds."""
+
+import itertools
+import json
+
+import numpy as np
+import pytest
+
+from hwp_tes_systematics.diagnose import RecordingError, read_recording
+from hwp_tes_systematics.diagnose.recording import diagnosis_memory_bytes
+from hwp_tes_systematics.diagnose.requirement_check import load_requirement
+from hwp_tes_systematics.diagnose.segments import (
+    VARIES_P,
+    combine_segments,
+    diagnose_segments,
+    plan_segments,
+)
+from hwp_tes_systematics.diagnose.testbed import A2_K, recorded, run, sky_map
+
+RATE_HZ = 19.0
+WEEK = int(7 * 86400 * RATE_HZ)
+
+
+def test_a_week_is_cut_into_the_fewest_equal_segments_that_fit_the_budget():
+    budget = 16 * 2**30
+    bounds = plan_segments(WEEK, 2, RATE_HZ, budget)
+    lengths = np.diff(np.array(bounds), axis=1).ravel()
+    assert bounds[0][0] == 0 and bounds[-1][1] == WEEK
+    assert all(a[1] == b[0] for a, b in itertools.pairwise(bounds))
+    assert lengths.max() - lengths.min() <= 1
+    assert all(diagnosis_memory_bytes(2, n) <= budget for n in lengths)
+    one_fewer = WEEK / (len(bounds) - 1)  # fewer segments would not fit
+    assert diagnosis_memory_bytes(2, one_fewer) > budget
+    # a requested length is honoured when the budget allows it
+    daily = plan_segments(WEEK, 2, RATE_HZ, budget, segment_hours=24)
+    assert len(daily) == 7
+
+
+def test_a_budget_too_small_for_an_hour_is_an_error_naming_the_file():
+    with pytest.raises(RecordingError, match=r"week.h5: a memory budget of .* less than the 1 h"):
+        plan_segments(WEEK, 2, RATE_HZ, 0.8 * 2**30, source="week.h5")  # 0.9 h
+
+
+def entry(value, sigma, parameter="g1", unit="1/K", detector="d0"):
+    return {
+        "value": value,
+        "sigma": sigma,
+        "unit": unit,
+        "detector": detector,
+        "parameter": parameter,
+    }
+
+
+def segment_result(g1, sigma, glitch_time_s=None, unexplained=()):
+    effects = [
+        {
+            "name": "tes_nonlinearity",
+            "title": "TES nonlinearity",
+            "signature": "s",
+            "main_parameters": ["g1"],
+            "parameters": {"g1[d0]": entry(g1, sigma)},
+            "delta_chi2": 100.0,
+            "delta_bic": -90.0,
+            "evidence": "e",
+            "look_alikes": [],
+        }
+    ]
+    if glitch_time_s is not None:
+        effects.append(
+            {
+                **effects[0],
+                "name": "glitches",
+                "parameters": {"glitch0.time[d0]": entry(glitch_time_s, 0.1, "time", "s")},
+                "delta_chi2": 50.0,
+            }
+        )
+    return {
+        "mismatch_found": True,
+        "effects": effects,
+        "unexplained": [{"kind": "line", "text": text} for text in unexplained],
+        "nominal_adjustments": {"d0": {"gain": {**entry(1.0, 0.01, "gain", ""), "nominal": 1.0}}},
+        "chi2_before": 200.0,
+        "chi2_after": 100.0,
+        "bic_before": 210.0,
+        "bic_after": 120.0,
+        "dof": 90,
+        "n_eff": 100,
+        "delta_bic_threshold": -10.0,
+        "information_criterion": "BIC",
+        "steps": [{"step": 1, "note": "n"}],
+        "lines": [{"identification": "4f"}],
+        "noise": {"nominal": [{"net_k_sqrt_s": 1.0}], "estimated": [{"net_k_sqrt_s": 1.0}]},
+        "recording": {"duration_s": 3600.0, "flagged_fraction": 0.0, "source": "r.h5"},
+    }
+
+
+REQUIREMENT = load_requirement()  # the shipped one-year result
+
+
+def test_parameters_combine_as_the_inverse_variance_mean_and_events_stay_per_segment():
+    results = [
+        segment_result(-3.0e-3, 1e-4, glitch_time_s=100.0),
+        segment_result(-3.2e-3, 2e-4, unexplained=["a line"]),
+    ]
+    combined = combine_segments(results, [(0, 3600), (3600, 7200)], 1.0, REQUIREMENT)
+    nonlinearity = next(e for e in combined["effects"] if e["name"] == "tes_nonlinearity")
+    g1 = nonlinearity["parameters"]["g1[d0]"]
+    weights = np.array([1e-4, 2e-4]) ** -2.0
+    assert g1["value"] == pytest.approx(np.sum(weights * [-3.0e-3, -3.2e-3]) / weights.sum())
+    assert g1["sigma"] == pytest.approx(weights.sum() ** -0.5)
+    assert g1["consistency_dof"] == 1 and not g1["varies_between_segments"]
+    assert [s["value"] for s in g1["per_segment"]] == [-3.0e-3, -3.2e-3]
+    assert nonlinearity["segments"] == [0, 1] and nonlinearity["delta_chi2"] == 200.0
+    glitches = next(e for e in combined["effects"] if e["name"] == "glitches")
+    assert glitches["segments"] == [0]
+    assert glitches["parameters"]["segment0.glitch0.time[d0]"]["value"] == 100.0
+    assert combined["unexplained"][0]["segment"] == 1
+    assert combined["unexplained"][0]["text"].startswith("segment 1 (from 1 h)")
+    assert combined["chi2_after"] == 200.0 and combined["dof"] == 180
+    assert combined["recording"]["duration_s"] == 7200.0
+    assert combined["requirement_check"]["effect"] == "tes_nonlinearity"
+    json.dumps(combined)  # what diagnosis.json holds
+
+
+def test_a_parameter_that_changes_between_segments_is_marked():
+    results = [segment_result(-3.0e-3, 1e-5), segment_result(-4.0e-3, 1e-5)]
+    combined = combine_segments(results, [(0, 10), (10, 20)], 1.0, REQUIREMENT)
+    g1 = combined["effects"][0]["parameters"]["g1[d0]"]
+    assert g1["consistency_p"] < VARIES_P and g1["varies_between_segments"]
+    assert combined["effects"][0]["varies_between_segments"] == ["g1[d0]"]
+    assert "differ between segments" in combined["effects"][0]["evidence"]
+
+
+def test_a_segment_read_from_the_file_is_that_stretch_of_it(tmp_path):
+    recording, _ = recorded(tmp_path, [], 7001, hours=0.5)
+    path = tmp_path / "rec.h5"
+    start, stop = 5000, 20000
+    segment = read_recording(path, samples=(start, stop))
+    np.testing.assert_array_equal(segment.tod, recording.tod[:, start:stop])
+    np.testing.assert_array_equal(segment.pointings_ecl, recording.pointings_ecl[:, start:stop])
+    np.testing.assert_array_equal(segment.hwp_angle_rad, recording.hwp_angle_rad[start:stop])
+    shift_s = (segment.start_time - recording.start_time).to_value("s")
+    assert shift_s == pytest.approx(start / recording.sampling_rate_hz, abs=1e-6)
+    assert segment.times_s[0] == 0.0
+    with pytest.raises(RecordingError, match=r"rec.h5: samples 5000:4000"):
+        read_recording(path, samples=(5000, 4000))
+
+
+@pytest.mark.slow
+def test_a_recording_in_two_segments_gives_the_effect_of_the_whole(tmp_path):
+    """A 2 h pair with g1 = -3e-3, diagnosed at once and in two 1 h segments: the same
+    effect; the combined g1 within the errors of the whole's, with a similar sigma."""
+    g1_true = -3e-3
+    recording, _ = recorded(tmp_path, [("tes_nonlinearity", {"g1": g1_true})], 7002)
+    whole = run(recording, figures=False)
+    segmented = diagnose_segments(
+        tmp_path / "rec.h5",
+        sky_map(),
+        A2_K,
+        out_dir=tmp_path / "out",
+        segment_hours=1.0,
+        figures=False,
+    )
+    assert segmented.effect_names == whole.effect_names == ["tes_nonlinearity"], segmented[
+        "unexplained"
+    ]
+    assert len(segmented["segments"]) == 2
+    assert segmented.effect("tes_nonlinearity")["segments"] == [0, 1]
+    for k in range(2):
+        combined = segmented.parameter("tes_nonlinearity", "g1", k)
+        at_once = whole.parameter("tes_nonlinearity", "g1", k)
+        assert abs(combined["value"] - at_once["value"]) < 3 * at_once["sigma"]
+        assert abs(combined["value"] - g1_true) < 4 * combined["sigma"]
+        assert 0.7 < combined["sigma"] / at_once["sigma"] < 1.5
+        assert not combined["varies_between_segments"]
+    report = (tmp_path / "out" / "diagnosis.md").read_text()
+    assert "## Segments" in report and "segments/1/diagnosis.md" in report
+    assert (tmp_path / "out" / "segments" / "1" / "diagnosis.json").exists()
