@@ -19,8 +19,8 @@ alarms: ``mismatch_found``), each catalog effect at three amplitudes from barely
 detectable to strong (``--seeds`` recordings each; the phases of lines, the sign and
 shape of drifts and the times of events drawn per recording), a time constant alone (a 2f
 phase adjustment: no effect and its lag in the adjusted phase, or, where the lag of the
-other frequencies shows, the effect with its tau), pairs of effects and two
-effects outside the catalog; ``--only`` runs some of these cases (several runs with
+other frequencies shows, the effect with its tau), pairs of effects (each at its
+amplitudes times PAIR_SCALES: the pair's threshold) and two effects outside the catalog; ``--only`` runs some of these cases (several runs with
 far-apart ``--first-seed`` add up). Prints per case the detection rate, the rate at which the
 top-ranked effect is the injected one and its main parameter within 3 sigma, the
 detection threshold of each effect (the smallest amplitude found in >= 90 % of its
@@ -167,6 +167,35 @@ PAIRS = {
         {"hwpss_harmonics", "glitches"},
     ),
 }
+# Each pair also runs with its members' amplitudes (PAIR_AMPLITUDES) scaled by these factors:
+# from about the weaker member's single-effect threshold in 6 h (g1 1e-3, the 4f and 3f
+# lines 6e-6 K, a gain drift 1e-3; glitches 3e-4 K, below their 3e-3 K threshold) to the
+# pair as defined (x1). The pair's threshold: the smallest factor at which both members are
+# reported, or the weaker one named as a look-alike, in >= 90 % of the recordings.
+PAIR_SCALES = (0.1, 0.3, 1.0)
+PAIR_AMPLITUDES = {  # effect -> its parameters that the scale multiplies
+    "tes_nonlinearity": ("g1",),
+    "gain_drift": ("g1",),
+    "hwpss_harmonics": ("c3", "c4", "s4"),
+    "glitches": ("events",),  # each event's amplitude
+    "detector_time_constant": (),  # a 2f phase adjustment: not scaled
+}
+
+
+def scaled_pair(effects: list, scale: float) -> list:
+    """A pair's effects with their amplitudes (PAIR_AMPLITUDES) times ``scale``."""
+    out = []
+    for name, params in effects:
+        params = dict(params)
+        for key in PAIR_AMPLITUDES[name]:
+            if key == "events":
+                params[key] = [(k, t, a * scale, tau) for k, t, a, tau in params[key]]
+            elif key in params:
+                params[key] = (np.asarray(params[key]) * scale).tolist()
+        out.append((name, params))
+    return out
+
+
 # a time constant alone: its lag atan(2 pi 2 f_HWP tau) in the 2f phase adjustment (no effect),
 # or, where the lag of the other frequencies shows, the effect with its tau
 TIME_CONSTANTS_S = [1e-3, 3e-3, 1e-2]
@@ -314,11 +343,26 @@ def rates(arguments) -> dict:
         for label, (effects, expected) in PAIRS.items():
             if not wanted(label):
                 continue
-            for _ in range(n_seeds):
-                result = _one(support, effects, seed, arguments, folder)
-                seed += 1
-                names = {family_of(e["name"]) for e in result["effects"]}
-                _tally(counts["pairs"], label, n=1, found=expected <= names)
+            ladder = counts.setdefault("pair_ladder", {}).setdefault(label, {})
+            for scale in PAIR_SCALES:
+                for _ in range(n_seeds):
+                    result = _one(support, scaled_pair(effects, scale), seed, arguments, folder)
+                    seed += 1
+                    names = {family_of(e["name"]) for e in result["effects"]}
+                    alike = {family_of(n) for e in result["effects"] for n in e["look_alikes"]}
+                    members = {f"found_{m}": m in names for m in expected}
+                    found = expected <= names
+                    if scale == 1.0:  # the pair as defined
+                        _tally(counts["pairs"], label, n=1, found=found)
+                    _tally(
+                        ladder,
+                        f"{scale:g}",
+                        n=1,
+                        found=found,
+                        named=expected <= names | alike,
+                        **members,
+                    )
+                print("  " + _pair_line(label, scale, ladder[f"{scale:g}"]), flush=True)
         if wanted("detector_time_constant"):
             for tau in TIME_CONSTANTS_S:
                 for _ in range(n_seeds):
@@ -383,6 +427,23 @@ def merge_counts(a: dict, b: dict) -> dict:
     return out
 
 
+def _pair_line(label: str, scale: float, c: dict) -> str:
+    members = ", ".join(f"{key[6:]} {c[key]}" for key in sorted(c) if key.startswith("found_"))
+    return (
+        f"pair {label} x{scale:g}: both reported {c['found']}/{c['n']}, both reported or "
+        f"the weaker named as a look-alike {c['named']}/{c['n']} (each reported: {members})"
+    )
+
+
+def pair_thresholds(counts: dict) -> dict:
+    """{pair: the smallest scale at which both members are reported or named in >= 90 %}."""
+    out = {}
+    for label, ladder in counts.get("pair_ladder", {}).items():
+        good = [float(s) for s, c in ladder.items() if c["named"] >= 0.9 * c["n"]]
+        out[label] = min(good) if good else None
+    return out
+
+
 def summary(counts: dict) -> list[str]:
     """The rates, the targets' four numbers and the thresholds, as lines of text."""
     lines = [
@@ -414,6 +475,18 @@ def summary(counts: dict) -> list[str]:
     for label, c in counts["pairs"].items():
         expected = " and ".join(sorted(PAIRS[label][1])) if label in PAIRS else "both"
         lines.append(f"  pair {label}: {expected} found {c['found']}/{c['n']}")
+    for label, ladder in counts.get("pair_ladder", {}).items():
+        for scale in sorted(ladder, key=float):
+            lines.append("  " + _pair_line(label, float(scale), ladder[scale]))
+    for label, scale in pair_thresholds(counts).items():
+        amplitudes = "; ".join(
+            f"{name} {params}" for name, params in scaled_pair(PAIRS[label][0], scale or 1.0)
+        )
+        lines.append(
+            f"  pair {label}: threshold x{scale:g} ({amplitudes})"
+            if scale is not None
+            else f"  pair {label}: not reached up to x{max(PAIR_SCALES):g}"
+        )
     for tau, c in counts["time_constants"].items():
         lines.append(
             f"  detector_time_constant tau = {tau} s alone: its lag in the 2f phase adjustment "

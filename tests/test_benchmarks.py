@@ -49,6 +49,7 @@ def benchmarks(repo, monkeypatch):
         "map_level_cost",
         "run_cost",
         "resolution_study",
+        "diagnose_benchmark",
     ):
         sys.modules.pop(name, None)
 
@@ -176,3 +177,36 @@ def test_map_level_cost_times_every_case_of_a_seed(benchmarks, monkeypatch, caps
     printed = capsys.readouterr().out
     assert "22 channels, 5 cases" in printed
     assert "100 seeds:" in printed and "core-hours" in printed
+
+
+def test_diagnosis_pairs_run_on_a_ladder_of_amplitudes(benchmarks):
+    """Each pair's amplitudes scale together (event times and time constants do not), and
+    the pair's threshold is the smallest scale at which both members are reported or the
+    weaker one named as a look-alike in >= 90 % of the recordings."""
+    from diagnose_benchmark import PAIRS, pair_thresholds, scaled_pair, summary
+
+    effects = scaled_pair(PAIRS["harmonics+glitches"][0], 0.1)
+    assert effects[0][1]["c3"] == pytest.approx(2e-6)
+    assert effects[1][1]["events"][0] == pytest.approx((0, 900.0, 3e-4, 0.1))
+    tau = scaled_pair(PAIRS["nonlinearity+time_constant"][0], 0.3)[1][1]["tau"]
+    assert tau == PAIRS["nonlinearity+time_constant"][0][1][1]["tau"]
+    ladder = {
+        "0.1": {"n": 10, "found": 2, "named": 5},
+        "0.3": {"n": 10, "found": 7, "named": 9},
+        "1": {"n": 10, "found": 10, "named": 10},
+    }
+    counts = {
+        "hours": 6.0,
+        "recordings": 30,
+        "seconds": 1,
+        "first_seeds": [1],
+        "clean": {},
+        "effects": {},
+        "pairs": {"nonlinearity+4f_hwpss": {"n": 10, "found": 10}},
+        "pair_ladder": {"nonlinearity+4f_hwpss": ladder},
+        "time_constants": {},
+        "outside": {},
+    }
+    assert pair_thresholds(counts) == {"nonlinearity+4f_hwpss": 0.3}
+    text = "\n".join(summary(counts))
+    assert "pair nonlinearity+4f_hwpss: threshold x0.3" in text
