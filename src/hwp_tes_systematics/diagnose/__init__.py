@@ -10,7 +10,8 @@ injection-only effects), :mod:`.testbed` (recordings with randomized nominal err
 the tests and the rates benchmark), :mod:`.model` (nominal model),
 :mod:`.nominal` (nominal-model adjustments fitted on every recording), :mod:`.effects`
 (catalog: one class per effect with its forward model, templates, signature and
-evidence), :mod:`.noise` (noise estimate, Whittle), :mod:`.linalg` (whitened least
+evidence), :mod:`.noise` (noise estimate, Whittle), :mod:`.rolloff` (the detector's pole in the
+noise), :mod:`.linalg` (whitened least
 squares), :mod:`.locate` (lines, HWP-angle harmonics, transients, drifts, sky),
 :mod:`.fit` (stepwise selection with the BIC), :mod:`.unexplained` (what no effect
 explains), :mod:`.evidence` (measurements for the evidence texts), :mod:`.pipeline`

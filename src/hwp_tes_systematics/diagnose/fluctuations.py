@@ -36,7 +36,7 @@ import scipy.fft
 import scipy.optimize
 
 from .model import Context
-from .noise import NoiseModel, line_exclusion_mask, noise_psd, periodogram_scale
+from .noise import NoiseModel, line_exclusion_mask, noise_psd, periodogram_scale, rolloff
 
 F_REF_HZ = 0.01  # the frequency at which the gain PSD's amplitude a is quoted
 # the likelihood leaves out the modes within this of 2 f_HWP: the deterministic effects
@@ -148,6 +148,7 @@ def fit_fluctuations(
     carriers = np.asarray(ctx.a2_k, dtype=float)
     psi = carrier_phases(ctx, carrier)
     fmins = [m.fmin_hz for m in noise]
+    poles = [rolloff(f, getattr(m, "tau_s", 0.0) ** 2) for m in noise]  # held
     n_noise = 3 * n_det
 
     start = []
@@ -169,7 +170,9 @@ def fit_fluctuations(
         for k in range(n_det):
             log_net, log_fknee, alpha = theta[3 * k : 3 * k + 3]
             total.append(
-                scales[k] * noise_psd(f, math.exp(log_net), math.exp(log_fknee), alpha, fmins[k])
+                scales[k]
+                * noise_psd(f, math.exp(log_net), math.exp(log_fknee), alpha, fmins[k])
+                * poles[k]
             )
         if not with_excess:
             return total, None
@@ -236,7 +239,9 @@ def fit_fluctuations(
     base, with_excess = [], []
     for k in range(n_det):
         log_net, log_fknee, alpha = best.x[3 * k : 3 * k + 3]
-        model = NoiseModel(math.exp(log_net), math.exp(log_fknee), float(alpha), fmins[k])
+        model = NoiseModel(
+            math.exp(log_net), math.exp(log_fknee), float(alpha), fmins[k], noise[k].tau_s
+        )
         base.append(model)
         excess = sideband_psd(freqs, carrier, carriers[k], amplitude, slope, resolution)
         with_excess.append(WithExcess(model, freqs, excess))

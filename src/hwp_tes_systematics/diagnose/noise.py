@@ -40,15 +40,18 @@ import scipy.signal
 
 @dataclass(frozen=True)
 class NoiseModel:
-    """P(f) = 2 net^2 (f^alpha + fknee^alpha) / (f^alpha + fmin^alpha) [K^2/Hz]."""
+    """P(f) = 2 net^2 (f^alpha + fknee^alpha) / (f^alpha + fmin^alpha) / (1 + (2 pi f tau)^2)
+    [K^2/Hz]: white + 1/f, through the detector's pole tau (0: none; :mod:`.rolloff`)."""
 
     net_k_sqrt_s: float
     fknee_hz: float
     alpha: float
     fmin_hz: float
+    tau_s: float = 0.0
 
     def psd(self, freqs_hz) -> np.ndarray:
-        return noise_psd(freqs_hz, self.net_k_sqrt_s, self.fknee_hz, self.alpha, self.fmin_hz)
+        psd = noise_psd(freqs_hz, self.net_k_sqrt_s, self.fknee_hz, self.alpha, self.fmin_hz)
+        return psd * rolloff(freqs_hz, self.tau_s**2) if self.tau_s else psd
 
     @classmethod
     def from_detector(cls, detector: dict) -> NoiseModel:
@@ -70,6 +73,11 @@ def noise_psd(freqs_hz, net_k_sqrt_s, fknee_hz, alpha, fmin_hz) -> np.ndarray:
         * (f_alpha + max(fknee_hz, 0.0) ** alpha)
         / (f_alpha + max(fmin_hz, 1e-30) ** alpha)
     )
+
+
+def rolloff(freqs_hz, tau_squared_s2) -> np.ndarray:
+    """|H(f)|^2 = 1 / (1 + (2 pi f)^2 tau^2) of a single pole."""
+    return 1.0 / (1.0 + (2 * np.pi * np.asarray(freqs_hz, dtype=float)) ** 2 * tau_squared_s2)
 
 
 def periodogram_scale(n_samples: int, sampling_rate_hz: float, valid_fraction: float) -> float:
@@ -253,7 +261,7 @@ def whittle_fit(
     """Maximum-Whittle-likelihood (net, fknee, alpha) for the periodogram ``power`` = |R_f|^2.
 
     ``use`` selects the modes (DC and line bins excluded by the caller); ``scale`` = S_f/P(f)
-    (:func:`periodogram_scale`); fmin is kept at ``start.fmin_hz``. The white level is
+    (:func:`periodogram_scale`); fmin and the pole tau are kept at ``start``'s. The white level is
     profiled analytically (S = c g(f; fk, alpha) gives c = sum |R_f|^2 / g / N_modes),
     (ln fk, alpha) by Nelder-Mead.
     """
@@ -261,9 +269,10 @@ def whittle_fit(
     fmin = start.fmin_hz
     total = float(m_bin.sum())
     bounds = np.array([[math.log(1e-6), math.log(max(freqs_hz.max(), 1e-3))], [0.05, 6.0]])
+    pole = rolloff(f_bin, start.tau_s**2)  # the detector's pole, held (:mod:`.rolloff`)
 
     def shape(theta):
-        return scale * noise_psd(f_bin, 1.0, math.exp(theta[0]), theta[1], fmin)
+        return scale * noise_psd(f_bin, 1.0, math.exp(theta[0]), theta[1], fmin) * pole
 
     def objective(theta):
         if np.any(theta < bounds[:, 0]) or np.any(theta > bounds[:, 1]):
@@ -293,7 +302,7 @@ def whittle_fit(
     log_fknee, alpha = best.x
     c = float(np.sum(p_bin / shape(best.x))) / total
     theta = np.array([0.5 * math.log(c), log_fknee, alpha])
-    model = NoiseModel(math.exp(theta[0]), math.exp(log_fknee), float(alpha), fmin)
+    model = NoiseModel(math.exp(theta[0]), math.exp(log_fknee), float(alpha), fmin, start.tau_s)
 
     # Fisher matrix of ln L: sum over modes of d ln S / d theta_i d ln S / d theta_j.
     step = np.array([1e-5, 1e-4, 1e-4])

@@ -12,7 +12,8 @@ d_rec = C [I(P) - I(P0)] / S0, S0 = dI/dP at P0, C [K/W].
 Injection order: a pointing offset (the sky and dipole scanned where the rotated
 detectors look) -> effects on the sky signal (time constant, HWPSS harmonics, intensity
 coupling, gain, HWP temperature, crosstalk, in the order given) -> + noise (white + 1/f,
-litebird_sim, its own seed; ``noise_mismatch`` changes its NET/f_knee/alpha) -> detector
+litebird_sim, its own seed; ``noise_mismatch`` changes its NET/f_knee/alpha) -> a time
+constant ``through_noise`` (on signal and noise) -> detector
 nonlinearity (polynomial or electrothermal) on the total -> + glitches.
 
 Injection only (never offered by the selection): ``noise_mismatch`` (the white level,
@@ -301,6 +302,13 @@ OUT_OF_CATALOG = {
 }
 
 
+def _filters_noise(name: str, params: dict) -> bool:
+    """A time constant injected with ``through_noise``: it acts on the optical signal and
+    the detector noise together (photon and phonon noise pass the TES's pole), before the
+    nonlinearity, instead of on the signal alone."""
+    return name == "detector_time_constant" and bool(params.get("through_noise", False))
+
+
 def simulate_recording(
     channel_name: str,
     hours: float,
@@ -320,7 +328,8 @@ def simulate_recording(
     "alpha"}``; pointing_offset / pointing_drift as ``{"offset_x", "offset_y", "drift_x",
     "drift_y"}`` [arcmin, arcmin/h], injected by rotating the detector quaternions while
     the recording keeps the nominal pointing), or ``("tes_electrothermal", {"p0_w",
-    "kelvin_per_watt", ...})``. The noise comes from its own stream ``(master_seed, "noise", channel, noise_seed, 0,
+    "kelvin_per_watt", ...})``; a ``detector_time_constant`` with ``"through_noise": True``
+    filters the noise as well (the noise then rolls off: :mod:`.rolloff`). The noise comes from its own stream ``(master_seed, "noise", channel, noise_seed, 0,
     detector)``. The truth is kept in ``recording.injected`` (never written to a file).
     ``pol_angle_offsets_rad``: the true polarisation angles are theta + delta while the
     recording's metadata keeps the nominal theta (a polarisation-angle error): the sky
@@ -384,12 +393,17 @@ def simulate_recording(
                 f"{sorted(INJECTION_ONLY)}, {sorted(RESPONSE_EFFECTS)} or {sorted(OUT_OF_CATALOG)}"
             )
     for name, params in effects:
+        if _filters_noise(name, params):
+            continue  # below, on signal and noise
         if name in SIGNAL_STAGE and name not in POINTING_EFFECTS:
             signal = injectable(name).apply(ctx, params, signal)
         elif name in OUT_OF_CATALOG:
             signal = OUT_OF_CATALOG[name](ctx, params, signal)
     noise_params = next((p for name, p in effects if name == "noise_mismatch"), None)
     tod = signal + _noise(simulator, pointing, master_seed, noise_seed, noise_params)
+    for name, params in effects:  # a time constant the detector noise also passes through
+        if _filters_noise(name, params):
+            tod = injectable(name).apply(ctx, params, tod)
     for name, params in effects:
         if name in RESPONSE_STAGE:
             tod = injectable(name).apply(ctx, params, tod)

@@ -42,7 +42,9 @@ class DetectorTimeConstant(Effect):
     discrimination = (
         "a 2f phase error (a nominal adjustment) lags the 2f line only; with only a 2f HWPSS "
         "and a faint sky the two are the SAME signal (the adjustment reports the equivalent "
-        "tau = tan(phi) / (2 pi 2 f_HWP)); tau is selected only when the lag of the other "
+        "tau = tan(phi) / (2 pi 2 f_HWP)), and the nonlinearity's 4f line lags exactly twice "
+        "the 2f line; tau is found from the detector noise's roll-off 1 / (1 + (2 pi f tau)^2) "
+        "when the noise passes the pole (photon, phonon noise), or when the lag of other "
         "frequencies is seen (fitted jointly with the 2f phase)"
     )
 
