@@ -52,7 +52,7 @@ from .nominal import (
 from .recording import Recording
 from .report import Diagnosis, write_outputs
 from .requirement_check import NONLINEARITY_FAMILY, compare_nonlinearity, load_requirement
-from .rolloff import RolloffFit, fit_rolloff
+from .rolloff import fit_rolloff
 from .unexplained import find_unexplained
 
 log = logging.getLogger(__name__)
@@ -217,119 +217,6 @@ def _jsonable(value):
     if isinstance(value, np.bool_):
         return bool(value)
     return value
-
-
-def _rolloff_text(ctx, fit: RolloffFit) -> str:
-    """The noise roll-off in words: tau per detector, the drop, what else would do it."""
-    taus = ", ".join(
-        f"{name}: tau = {1e3 * t:.3g} +- {1e3 * s:.2g} ms ({100 * d:.2g} % lower at Nyquist)"
-        for name, t, s, d in zip(
-            ctx.detector_names, fit.tau_s, fit.sigma_tau_s, fit.drop_at_nyquist, strict=True
-        )
-    )
-    return (
-        f"the detector noise rolls off between {fit.band_hz[0]:g} and {fit.band_hz[1]:.3g} Hz as "
-        f"1 / (1 + (2 pi f tau)^2) ({taus}); the white noise alone fits worse by Delta chi^2 "
-        f"{-fit.delta_chi2:.0f}. The lines cannot show tau: its lag of the 2f HWPSS, "
-        "atan(2 pi 2 f_HWP tau), is inside the 2f phase adjustment, and the nonlinearity's 4f "
-        "line lags twice as much; a readout or anti-aliasing filter would roll the noise off "
-        "as well (not in the catalog)"
-    )
-
-
-def _rolloff_entry(ctx, fit: RolloffFit, adjusted) -> dict:
-    """The report's entry for a time constant seen in the noise (:mod:`.rolloff`)."""
-    effect = CATALOG["detector_time_constant"]
-    parameters = {
-        f"tau[{name}]": {
-            "value": float(t),
-            "sigma": float(s),
-            "unit": "s",
-            "detector": name,
-            "parameter": "tau",
-        }
-        for name, t, s in zip(ctx.detector_names, fit.tau_s, fit.sigma_tau_s, strict=True)
-    }
-    return {
-        "name": effect.name,
-        "title": effect.title,
-        "parameters": parameters,
-        "main_parameters": list(effect.main_parameters),
-        "delta_chi2": -fit.delta_chi2,
-        "delta_bic": fit.delta_bic,
-        "evidence": _rolloff_text(ctx, fit),
-        "signature": "the detector noise rolls off as 1 / (1 + (2 pi f tau)^2)",
-        "look_alikes": [],
-    }
-
-
-def _fluctuation_entry(ctx, fit, noise_models) -> dict:
-    """The report's entry for a fluctuating gain (:mod:`.fluctuations`)."""
-    effect = CATALOG["gain_fluctuations"]
-    (look_alike,) = effect.unresolved_look_alikes(None, fit)
-    dipole = dipole_signature(ctx, fit, noise_models)
-    amplitudes = ", ".join(f"{a:.4g} K" for a in fit.carriers_k)
-    evidence = (
-        f"the 2f HWPSS ({fit.carrier_hz:.4g} Hz) has broadband sidebands, one gain spectrum "
-        f"P_g(f) = a^2 (10 mHz / f)^beta for all detectors, a = {fit.amplitude:.3g} +- "
-        f"{fit.sigma_amplitude:.2g} /sqrt(Hz), beta = {fit.slope:.3g} +- {fit.sigma_slope:.2g}, "
-        f"scaled by each A_2^2 ({amplitudes}); "
-        + (
-            f"the detectors' sidebands are coherent, rho = {fit.correlation:.3f} +- "
-            f"{fit.sigma_correlation:.2g} ("
-            + (
-                "one fluctuation for both: a focal-plane or HWP temperature"
-                if fit.correlation > 0.5
-                else "mostly independent: each detector its own"
-            )
-            + "); "
-            if len(fit.carriers_k) == 2
-            else ""
-        )
-        + f"the gain's rms between 0.1 mHz and f_HWP is "
-        f"{fit.rms(1e-4, ctx.f_hwp_hz):.3g}; the noise alone fits worse by Delta chi^2 "
-        f"{-fit.delta_chi2:.0f}. A gain would also modulate the dipole and the sky: Delta chi^2 "
-        f"~{dipole:.2g} expected from them, "
-        + (
-            f"below detection: NOT told apart from {look_alike} (the HWP's "
-            "emission fluctuating moves the HWPSS alone)"
-            if dipole < 25
-            else "not fitted apart: read as a gain or an HWP emission fluctuation"
-        )
-    )
-    return {
-        "name": effect.name,
-        "title": effect.title,
-        "parameters": {
-            "a[common]": {
-                "value": fit.amplitude,
-                "sigma": fit.sigma_amplitude,
-                "unit": "1/sqrt(Hz)",
-                "detector": "common",
-                "parameter": "a",
-            },
-            "beta[common]": {
-                "value": fit.slope,
-                "sigma": fit.sigma_slope,
-                "unit": "1",
-                "detector": "common",
-                "parameter": "beta",
-            },
-            "rho[common]": {
-                "value": fit.correlation,
-                "sigma": fit.sigma_correlation,
-                "unit": "1",
-                "detector": "common",
-                "parameter": "rho",
-            },
-        },
-        "main_parameters": list(effect.main_parameters),
-        "delta_chi2": fit.delta_chi2,
-        "delta_bic": fit.delta_bic,
-        "evidence": evidence,
-        "signature": effect.signature,
-        "look_alikes": [look_alike],
-    }
 
 
 def diagnose(
@@ -521,13 +408,15 @@ def diagnose(
             }
         )
     if fluctuation is not None:
-        effects_out.append(_fluctuation_entry(ctx, fluctuation, noise_models))
+        dipole = dipole_signature(ctx, fluctuation, noise_models)
+        effects_out.append(CATALOG["gain_fluctuations"].report_entry(ctx, fluctuation, dipole))
     if rolloff.delta_bic < delta_bic_threshold:
-        tau_entry = next((e for e in effects_out if e["name"] == "detector_time_constant"), None)
-        if tau_entry is None:
-            effects_out.append(_rolloff_entry(ctx, rolloff, adjusted))
-        else:
-            tau_entry["evidence"] += "; " + _rolloff_text(ctx, rolloff)
+        time_constant = CATALOG["detector_time_constant"]
+        entry = next((e for e in effects_out if e["name"] == time_constant.name), None)
+        if entry is None:
+            effects_out.append(time_constant.rolloff_entry(ctx, rolloff))
+        else:  # also seen in the lines: the noise's roll-off added to its evidence
+            entry["evidence"] += "; " + time_constant.rolloff_evidence(ctx, rolloff)
     effects_out = merge_members(effects_out)
     nonlinearity = next(
         (e for e in effects_out if family_of(e["name"]) == NONLINEARITY_FAMILY), None

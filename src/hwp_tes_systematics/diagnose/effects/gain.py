@@ -153,3 +153,72 @@ class GainFluctuations(Effect):
 
     def unresolved_look_alikes(self, ev, fit) -> list[str]:
         return ["hwp_emission_fluctuations"]
+
+    def report_entry(self, ctx, fit, dipole_delta_chi2: float) -> dict:
+        """The report's entry for the fitted fluctuation (:class:`..fluctuations.FluctuationFit`);
+        ``dipole_delta_chi2``: what its dipole and sky sidebands would add
+        (:func:`..fluctuations.dipole_signature`), which tells it from an HWP emission one."""
+        (look_alike,) = self.unresolved_look_alikes(None, fit)
+        dipole = dipole_delta_chi2
+        amplitudes = ", ".join(f"{a:.4g} K" for a in fit.carriers_k)
+        evidence = (
+            f"the 2f HWPSS ({fit.carrier_hz:.4g} Hz) has broadband sidebands, one gain spectrum "
+            f"P_g(f) = a^2 (10 mHz / f)^beta for all detectors, a = {fit.amplitude:.3g} +- "
+            f"{fit.sigma_amplitude:.2g} /sqrt(Hz), beta = {fit.slope:.3g} +- {fit.sigma_slope:.2g}, "
+            f"scaled by each A_2^2 ({amplitudes}); "
+            + (
+                f"the detectors' sidebands are coherent, rho = {fit.correlation:.3f} +- "
+                f"{fit.sigma_correlation:.2g} ("
+                + (
+                    "one fluctuation for both: a focal-plane or HWP temperature"
+                    if fit.correlation > 0.5
+                    else "mostly independent: each detector its own"
+                )
+                + "); "
+                if len(fit.carriers_k) == 2
+                else ""
+            )
+            + f"the gain's rms between 0.1 mHz and f_HWP is "
+            f"{fit.rms(1e-4, ctx.f_hwp_hz):.3g}; the noise alone fits worse by Delta chi^2 "
+            f"{-fit.delta_chi2:.0f}. A gain would also modulate the dipole and the sky: Delta chi^2 "
+            f"~{dipole:.2g} expected from them, "
+            + (
+                f"below detection: NOT told apart from {look_alike} (the HWP's "
+                "emission fluctuating moves the HWPSS alone)"
+                if dipole < 25
+                else "not fitted apart: read as a gain or an HWP emission fluctuation"
+            )
+        )
+        return {
+            "name": self.name,
+            "title": self.title,
+            "parameters": {
+                "a[common]": {
+                    "value": fit.amplitude,
+                    "sigma": fit.sigma_amplitude,
+                    "unit": "1/sqrt(Hz)",
+                    "detector": "common",
+                    "parameter": "a",
+                },
+                "beta[common]": {
+                    "value": fit.slope,
+                    "sigma": fit.sigma_slope,
+                    "unit": "1",
+                    "detector": "common",
+                    "parameter": "beta",
+                },
+                "rho[common]": {
+                    "value": fit.correlation,
+                    "sigma": fit.sigma_correlation,
+                    "unit": "1",
+                    "detector": "common",
+                    "parameter": "rho",
+                },
+            },
+            "main_parameters": list(self.main_parameters),
+            "delta_chi2": -fit.delta_chi2,  # what leaving it out costs (> 0)
+            "delta_bic": fit.delta_bic,
+            "evidence": evidence,
+            "signature": self.signature,
+            "look_alikes": [look_alike],
+        }
