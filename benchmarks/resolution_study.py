@@ -3,6 +3,7 @@ without baselines, from one set of fixed passes (issue 27).
 
     python benchmarks/resolution_study.py --run --out docs/resolution
     python benchmarks/resolution_study.py --out docs/resolution   # only gather the runs
+    python benchmarks/resolution_study.py --out docs/resolution --requirements-only
 
 For each map-maker (nside in ``--nsides``, 60 s baselines or none), the workflow's
 configuration is ``--configfile`` (default config/one_year.yaml config/resolution_study.yaml)
@@ -97,6 +98,20 @@ def requirement_row(folder: Path) -> dict:
         "requirement_fisher_error_per_k": headline["fisher_peak_shift_error_per_k"],
         "paper_estimator_crossing_per_k": headline["paper_estimator_budget_crossing_per_k"],
     }
+
+
+def with_requirements(table: pd.DataFrame, out: Path) -> pd.DataFrame:
+    """The table with each map-maker's requirement columns read again from
+    ``out``/<variant>/requirement.json where that analysis has been run (the templates
+    kept as they are)."""
+    table = table.copy()
+    table["consistent"] = table["consistent"].astype(object)  # bool where run, NaN elsewhere
+    for index, variant in table["variant"].items():
+        folder = out / variant
+        if (folder / "requirement.json").exists():
+            for key, value in requirement_row(folder).items():
+                table.loc[index, key] = value
+    return table
 
 
 def template_bands(config: dict, fixed_h5: Path, seeds: int) -> list[float]:
@@ -200,9 +215,21 @@ def main() -> None:
     parser.add_argument(
         "--replot", action="store_true", help="only redraw the figure from the CSV in --out"
     )
+    parser.add_argument(
+        "--requirements-only",
+        action="store_true",
+        help="fill the CSV's requirement columns from the analyses in --out/<variant>/ "
+        "(templates not recomputed), then redraw",
+    )
     arguments = parser.parse_args()
-    if arguments.replot:
+    if arguments.replot or arguments.requirements_only:
         table = pd.read_csv(arguments.out / "resolution_study.csv")
+        if arguments.requirements_only:
+            table = with_requirements(table, arguments.out)
+            table.to_csv(arguments.out / "resolution_study.csv", index=False)
+            document = json.loads((arguments.out / "resolution_study.json").read_text())
+            document["rows"] = table.astype(object).where(table.notna(), None).to_dict("records")
+            (arguments.out / "resolution_study.json").write_text(json.dumps(document, indent=1))
         plot(table, arguments.channels, arguments.out / "resolution_study.png")
         return
     baselines = {"both": [60.0, None], "with": [60.0], "without": [None]}[arguments.baselines]

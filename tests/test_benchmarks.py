@@ -115,6 +115,42 @@ def test_resolution_study_crossing_numbers(benchmarks, tmp_path):
     assert numbers["crossings_per_pixel"] == pytest.approx(71.25 / (19 * 0.498), rel=1e-2)
 
 
+def test_resolution_study_fills_requirements_from_the_analyses_run(benchmarks, tmp_path):
+    """--requirements-only: a map-maker whose analysis folder holds a requirement.json gets
+    its requirement columns from it; the others and the templates stay as they were."""
+    import json
+
+    import pandas as pd
+    import resolution_study
+
+    table = pd.DataFrame(
+        {
+            "variant": ["nside64_baselines60s", "nside128_baselines60s"],
+            "nside": [64, 128],
+            "template_bb_M1-140_ell2_12": [5.0e-18, 8.6e-18],
+            **{key: [np.nan, np.nan] for key in resolution_study.REQUIREMENT_KEYS},
+        }
+    )
+    headline = {
+        "consistent": True,
+        "sigma_r_fisher": 8e-3,
+        "requirement_sigma_g1_per_k": 4e-3,
+        "error_per_k": 4e-4,
+        "fisher_peak_shift_requirement_sigma_g1_per_k": 3e-3,
+        "fisher_peak_shift_error_per_k": 3e-4,
+        "paper_estimator_budget_crossing_per_k": 1e-3,
+    }
+    (tmp_path / "nside128_baselines60s").mkdir()
+    (tmp_path / "nside128_baselines60s" / "requirement.json").write_text(
+        json.dumps({"headline": headline})
+    )
+    filled = resolution_study.with_requirements(table, tmp_path)
+    assert filled.loc[1, "requirement_68_per_k"] == 4e-3
+    assert filled.loc[1, "requirement_fisher_per_k"] == 3e-3
+    assert np.isnan(filled.loc[0, "requirement_68_per_k"])
+    assert filled["template_bb_M1-140_ell2_12"].tolist() == [5.0e-18, 8.6e-18]
+
+
 def test_template_vs_duration_merges_parallel_runs(benchmarks, tmp_path, monkeypatch):
     """--days 0 --merge: rows of runs made in parallel joined into one JSON and one figure."""
     import json
