@@ -58,11 +58,16 @@ def qu_rms(maps: np.ndarray, seen: np.ndarray) -> float:
     return float(np.sqrt(np.mean(maps[1:, seen] ** 2)))
 
 
-def seed_maps(folder: Path, config: dict | None):
-    """Each seed's maps of a channel: its maps files (TOD path), or made from its fixed
-    pass (map-domain path, ``config`` given)."""
+def seed_maps(folder: Path, config: dict | None, seeds: int | None = None):
+    """Each seed's maps of a channel: its maps files (TOD path; seeds 0 to ``seeds`` - 1,
+    default all there are), or made from its fixed pass (map-domain path, ``config``
+    given)."""
     if config is None:
-        return [read_channel_maps(path) for path in sorted(folder.glob("seed*.h5"))]
+        paths = sorted(folder.glob("seed*.h5"), key=lambda p: int(p.stem[4:]))
+        if seeds is not None:
+            paths = [folder / f"seed{seed}.h5" for seed in range(seeds)]
+            paths = [path for path in paths if path.exists()]
+        return [read_channel_maps(path) for path in paths]
     fixed_h5 = folder / f"fixed_pass_{analysis_variant(config)}.h5"
     if not fixed_h5.exists():
         return []
@@ -70,14 +75,17 @@ def seed_maps(folder: Path, config: dict | None):
     return [channel_seeds.maps(seed) for seed in range(config["simulation"]["seeds"])]
 
 
-def channel_rows(run: Path, config: dict | None = None) -> dict[str, tuple[float, float]]:
-    """{channel: (noise Q/U rms, template detector-0 Q/U rms)} averaged over seeds."""
+def channel_rows(
+    run: Path, config: dict | None = None, seeds: int | None = None
+) -> dict[str, tuple[float, float]]:
+    """{channel: (noise Q/U rms, template detector-0 Q/U rms)} averaged over seeds (the
+    first ``seeds`` of a TOD run)."""
     rows = {}
     for folder in sorted((run / "results" / "maps").iterdir()):
         if not folder.is_dir():
             continue
         noise, template = [], []
-        for data in seed_maps(folder, config):
+        for data in seed_maps(folder, config, seeds):
             seen = data["nosys"][0] != hp.UNSEEN
             residual = data["nosys"] - data["cmb_reference"] - data["foreground_reference"]
             noise.append(qu_rms(residual, seen))
@@ -117,8 +125,9 @@ def channel_biases(tod_run: Path, md_run: Path, config: dict, model: BBModel) ->
             fixed.template_terms, float(channel_seeds.attributes["a2_k_cmb"])
         )
         fwhm = cfg.channel(config, name).fwhm_arcmin
-        tod_seeds = seed_maps(tod_run / "results" / "maps" / name, None)
-        md_seeds = (channel_seeds.maps(seed) for seed in range(config["simulation"]["seeds"]))
+        seeds = config["simulation"]["seeds"]
+        tod_seeds = seed_maps(tod_run / "results" / "maps" / name, None, seeds)
+        md_seeds = (channel_seeds.maps(seed) for seed in range(seeds))
         for path, seeds in (("tod", tod_seeds), ("map_domain", md_seeds)):
             rows = {"total": [], "seed_part": []}
             for data in seeds:
@@ -174,7 +183,8 @@ def main() -> None:
 
     md_config = load_config(*arguments.configfile)
     configs = {"tod": None, "map_domain": md_config}
-    channels = {name: channel_rows(run, configs.get(name)) for name, run in runs.items()}
+    seeds = md_config["simulation"]["seeds"]
+    channels = {name: channel_rows(run, configs[name], seeds) for name, run in runs.items()}
     print(
         "| channel | noise Q/U rms tod [K] | map domain | ratio | template Q/U rms tod "
         "[K^2] | map domain | ratio |"
@@ -188,6 +198,38 @@ def main() -> None:
             f"{template:.3g} | {other_template:.3g} | {template_ratio:.3f} |"
         )
 
+    if not all((run / "results" / "requirement.json").exists() for run in runs.values()):
+        print("\n(one run has no analysis: the HILC-level comparison is left out)")
+    else:
+        analysis_tables(runs)
+
+    likelihood = md_config["likelihood"]
+    analysed = next(
+        run
+        for run in (arguments.tod, arguments.map_domain)
+        if (run / "results" / "spectra" / "noise_model.csv").exists()
+    )
+    model = model_from_noise_csv(
+        str(analysed / "results" / "spectra" / "noise_model.csv"),
+        likelihood["lmin"],
+        likelihood["lmax"],
+        likelihood["model"],
+    )
+    biases = channel_biases(arguments.tod, arguments.map_domain, md_config, model)
+    print(
+        "\n| channel's own template: Fisher bias k_c [1/K^2] (mean over seeds +- its error; "
+        f"the likelihood model of {analysed}) | tod | map domain | ratio | difference / error |"
+    )
+    print("|---|---|---|---|---|")
+    for name in dict.fromkeys(name for name, _ in biases):
+        for key in ("total", "seed_part"):
+            label = f"{name}, {'whole template' if key == 'total' else 'seed part'}"
+            tod_k = biases[(name, "tod")][key]
+            print(compared(label, tod_k, biases[(name, "map_domain")][key]))
+
+
+def analysis_tables(runs: dict) -> None:
+    """The HILC-level comparison: residual BB bands, k and the paper's delta r, sigma_r."""
     bands = {name: residual_bands(run) for name, run in runs.items()}
     print(
         "\n| nosys HILC residual BB [K^2] | "
@@ -218,25 +260,6 @@ def main() -> None:
         f"| sigma_r | {tod['sigma_r']:.3g} | {fast['sigma_r']:.3g} | "
         f"{fast['sigma_r'] / tod['sigma_r']:.2f} | |"
     )
-
-    likelihood = md_config["likelihood"]
-    model = model_from_noise_csv(
-        str(arguments.tod / "results" / "spectra" / "noise_model.csv"),
-        likelihood["lmin"],
-        likelihood["lmax"],
-        likelihood["model"],
-    )
-    biases = channel_biases(arguments.tod, arguments.map_domain, md_config, model)
-    print(
-        "\n| channel's own template: Fisher bias k_c [1/K^2] (mean over seeds +- its error) "
-        "| tod | map domain | ratio | difference / error |"
-    )
-    print("|---|---|---|---|---|")
-    for name in dict.fromkeys(name for name, _ in biases):
-        for key in ("total", "seed_part"):
-            label = f"{name}, {'whole template' if key == 'total' else 'seed part'}"
-            tod_k = biases[(name, "tod")][key]
-            print(compared(label, tod_k, biases[(name, "map_domain")][key]))
 
 
 if __name__ == "__main__":

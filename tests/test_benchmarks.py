@@ -50,6 +50,7 @@ def benchmarks(repo, monkeypatch):
         "run_cost",
         "resolution_study",
         "diagnose_benchmark",
+        "diagnose_lbs_rates",
     ):
         sys.modules.pop(name, None)
 
@@ -246,3 +247,33 @@ def test_diagnosis_pairs_run_on_a_ladder_of_amplitudes(benchmarks):
     assert pair_thresholds(counts) == {"nonlinearity+4f_hwpss": 0.3}
     text = "\n".join(summary(counts))
     assert "pair nonlinearity+4f_hwpss: threshold x0.3" in text
+
+
+def test_litebird_sim_injectors_of_the_rates_benchmark(benchmarks):
+    """The independent recordings' effects come from litebird_sim's functions: the
+    nonlinearity's truth is the g1 litebird_sim drew (d_NL - d = g1 d^2 exactly), the linear
+    gain drift's the half-range of its ramp, the correlated noise is the same in both
+    detectors."""
+    from types import SimpleNamespace
+
+    from diagnose_lbs_rates import inject
+
+    rng = np.random.default_rng(1)
+    base = rng.normal(0.0, 0.3, (2, 4000))
+    recording = SimpleNamespace(
+        tod=base.copy(), sampling_rate_hz=19.0, detectors=[{"net_ukrts": 50.0}] * 2
+    )
+    truth = inject("nonlinearity", 3e-3, recording, np.random.default_rng(2))
+    for k in range(2):
+        np.testing.assert_allclose(recording.tod[k] - base[k], truth[k] * base[k] ** 2, rtol=1e-9)
+        assert -4.5e-3 < truth[k] < -1.5e-3  # loc -3e-3, scale 3e-4
+    recording.tod = base.copy()
+    truth = inject("linear_gain", 1e-2, recording, np.random.default_rng(3))
+    gain = recording.tod / base
+    np.testing.assert_allclose((gain[:, -1] - gain[:, 0]) / 2, truth)
+    assert np.all(np.abs(np.diff(gain, axis=1, n=2)) < 1e-9)  # a ramp
+    recording.tod = base.copy()
+    assert inject("correlated_noise", 0.1, recording, np.random.default_rng(4)) == []
+    added = recording.tod - base
+    np.testing.assert_allclose(added[0], added[1])
+    assert added.std() > 0

@@ -1,0 +1,212 @@
+"""Rates of the diagnosis on recordings whose effects litebird_sim's own injectors made
+(issue 29, item 9).
+
+    python benchmarks/diagnose_lbs_rates.py --channels M1-140 H3-402 --hours 6 --seeds 3 \
+        --gap-every 3 --out lbs_rates.json
+
+Each recording: a pair of ``--channels`` simulated with random nominal errors
+(diagnose.testbed.nominal_errors, as the catalog's rates benchmark) and its own noise
+seed, then ONE of these applied to its TOD by litebird_sim's functions (the diagnosis is
+told nothing):
+
+* ``nonlinearity``: ``non_linearity.apply_quadratic_nonlin_for_one_detector`` with g1 per
+  detector drawn by litebird_sim (NonLinParams loc = the amplitude, scale 10 % of it);
+  expected ``tes_nonlinearity``, g1 within 3 sigma of the drawn value;
+* ``linear_gain``: ``apply_gaindrift_for_one_detector`` (LINEAR_GAIN, sigma_drift = the
+  amplitude, calibration period longer than the recording: one ramp per detector);
+  expected ``gain_drift`` (or the HWP temperature drift with ``gain_drift`` named), its g1
+  within 3 sigma of the ramp's half-range;
+* ``thermal_gain``: ``apply_gaindrift_to_tod`` (THERMAL_GAIN, one focal-plane group,
+  detector_mismatch 0.1, sigma_drift = the amplitude); expected ``gain_fluctuations`` (or a
+  drift of the gain or the HWP emission taking its slow part);
+* ``correlated_noise``: a 1/f noise common to the two detectors (knee = the amplitude
+  [Hz], the detectors' NET) added to their own: not an effect, no catalog effect may be
+  reported (a false alarm otherwise);
+* ``clean``: nothing (false alarms).
+
+Every ``--gap-every``-th recording has 10 % of its samples NaN (one stretch at a random
+place). Printed per case and amplitude: reported, expected effect ranked first (or named as
+look-alike), main parameter within 3 sigma; false alarms. ``--out`` keeps the counts.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from hwp_tes_systematics.diagnose import diagnose
+from hwp_tes_systematics.diagnose.effects import family_of
+
+CASES = {  # case -> (amplitudes, accepted families)
+    "nonlinearity": ([1e-3, 3e-3, 1e-2], {"tes_nonlinearity"}),
+    "linear_gain": ([1e-3, 3e-3, 1e-2], {"gain_drift"}),
+    "thermal_gain": ([3e-5, 1e-4, 3e-4], {"gain_fluctuations"}),
+    "correlated_noise": ([0.02, 0.1], set()),
+    "clean": ([0.0], set()),
+}
+DRIFTS = {"gain_drift", "hwp_temperature_drift", "hwpss_slow_modulation"}  # a gain's slow part
+
+
+def inject(case: str, amplitude: float, recording, rng: np.random.Generator) -> list:
+    """Apply ``case`` at ``amplitude`` to ``recording.tod`` with litebird_sim's functions;
+    the truth of the main parameter per detector (or [])."""
+    import litebird_sim as lbs
+    from litebird_sim.non_linearity import apply_quadratic_nonlin_for_one_detector
+
+    tod, rate = recording.tod, recording.sampling_rate_hz
+    truth = []
+    if case == "nonlinearity":
+        params = lbs.NonLinParams(
+            sampling_gaussian_loc=-amplitude, sampling_gaussian_scale=0.1 * amplitude
+        )
+        for k in range(tod.shape[0]):
+            before = tod[k].copy()
+            apply_quadratic_nonlin_for_one_detector(tod[k], nl_params=params, random=rng)
+            # the drawn g1: d_NL - d = g1 d^2
+            truth.append(float(np.sum((tod[k] - before) * before**2) / np.sum(before**4)))
+    elif case == "linear_gain":
+        params = lbs.GainDriftParams(
+            drift_type=lbs.GainDriftType.LINEAR_GAIN,
+            sigma_drift=amplitude,
+            calibration_period_sec=int(2 * tod.shape[1] / rate),
+        )
+        for k in range(tod.shape[0]):
+            gain = np.ones(tod.shape[1])
+            lbs.apply_gaindrift_for_one_detector(gain, rate, params, random=rng)
+            tod[k] *= gain
+            truth.append(float((gain[-1] - gain[0]) / 2))  # a ramp is g1 P1(x), x in [-1, 1]
+    elif case == "thermal_gain":
+        params = lbs.GainDriftParams(
+            drift_type=lbs.GainDriftType.THERMAL_GAIN,
+            sigma_drift=amplitude,
+            detector_mismatch=0.1,
+        )
+        lbs.apply_gaindrift_to_tod(
+            tod,
+            rate,
+            params,
+            focalplane_attr=np.array(["wafer"] * tod.shape[0]),
+            dets_random=[np.random.default_rng(rng.integers(2**32)) for _ in range(tod.shape[0])],
+        )
+    elif case == "correlated_noise":
+        net = np.mean([d["net_ukrts"] for d in recording.detectors]) * 1e-6
+        freqs = np.fft.rfftfreq(tod.shape[1], 1 / rate)
+        white = rng.standard_normal(tod.shape[1]) * net * np.sqrt(rate)
+        shape = np.sqrt(amplitude / np.maximum(freqs, freqs[1]))
+        tod += np.fft.irfft(np.fft.rfft(white) * shape, n=tod.shape[1])[None, :]
+    return truth
+
+
+def with_gap(recording, rng: np.random.Generator, fraction: float = 0.1) -> None:
+    """NaN over ``fraction`` of the samples, one stretch at a random place."""
+    n = recording.tod.shape[1]
+    length = int(fraction * n)
+    start = int(rng.integers(0, n - length))
+    recording.tod[:, start : start + length] = np.nan
+
+
+def one(support, channel, case, amplitude, seed, arguments, folder) -> dict:
+    """Simulate, inject, (gap), write, read back, diagnose: the tallies of one recording."""
+    import h5py
+
+    from hwp_tes_systematics.diagnose import read_recording
+
+    started = time.perf_counter()
+    rng = np.random.default_rng([seed, 29])
+    errors = support.nominal_errors(rng)
+    name = f"lbs{seed}.h5"
+    recording, _ = support.recorded_with_errors(
+        Path(folder), [], 20_000 + seed, errors, hours=arguments.hours, name=name, channel=channel
+    )
+    truth = inject(case, amplitude, recording, rng)
+    gapped = arguments.gap_every > 0 and seed % arguments.gap_every == 0
+    if gapped:
+        with_gap(recording, rng)
+    path = Path(folder) / name
+    with h5py.File(path, "r+") as handle:  # the injected TOD back into the file
+        handle["tod"][...] = recording.tod
+    recording = read_recording(path)
+    a2 = support.nominal(channel)["a2_k"]
+    result = diagnose(recording, support.supplied_sky(errors), a2, figures=False)
+    names = [family_of(e["name"]) for e in result["effects"]]
+    accepted = CASES[case][1]
+    top = result["effects"][0] if result["effects"] else None
+    named = bool(top) and bool(accepted & {family_of(n) for n in top.get("look_alikes", [])})
+    correct = bool(names) and (names[0] in accepted or named)
+    if case == "thermal_gain":  # its slow part may be taken as a drift
+        correct = correct or bool(names) and set(names) <= accepted | DRIFTS
+    within = None
+    if truth and correct and names[0] in accepted:
+        effect = result["effects"][0]
+        main = effect["main_parameters"][0]
+        entries = [p for p in effect["parameters"].values() if p["parameter"] == main]
+        within = all(
+            abs(p["value"] - t) < 3 * p["sigma"] for p, t in zip(entries, truth, strict=False)
+        )
+    print(
+        f"{channel} {case} {amplitude:g} seed {seed}{' (gap)' if gapped else ''}: reported "
+        f"{', '.join(names) or '-'}; unexplained {len(result['unexplained'])}; "
+        f"{time.perf_counter() - started:.0f} s",
+        file=sys.stderr,
+        flush=True,
+    )
+    return {
+        "n": 1,
+        "gapped": int(gapped),
+        "reported": int(bool(names)),
+        "alarm": int(bool(result["mismatch_found"])),
+        "correct": int(correct),
+        "param_checked": int(within is not None),
+        "within": int(bool(within)),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--channels", nargs="+", default=["M1-140", "H3-402"])
+    parser.add_argument("--hours", type=float, default=6.0)
+    parser.add_argument("--seeds", type=int, default=3, help="recordings per case and amplitude")
+    parser.add_argument("--first-seed", type=int, default=1)
+    parser.add_argument("--gap-every", type=int, default=3, help="0: no gaps")
+    parser.add_argument("--only", nargs="+", choices=sorted(CASES), default=sorted(CASES))
+    parser.add_argument("--out", type=Path)
+    arguments = parser.parse_args()
+    from hwp_tes_systematics.diagnose import testbed as support
+
+    counts: dict = {"hours": arguments.hours, "cases": {}}
+    seed = arguments.first_seed
+    with tempfile.TemporaryDirectory() as folder:
+        for channel in arguments.channels:
+            for case in arguments.only:
+                for amplitude in CASES[case][0]:
+                    key = f"{channel} {case} {amplitude:g}"
+                    entry = counts["cases"].setdefault(key, {})
+                    for _ in range(arguments.seeds):
+                        tally = one(support, channel, case, amplitude, seed, arguments, folder)
+                        seed += 1
+                        for name, value in tally.items():
+                            entry[name] = entry.get(name, 0) + value
+                    print(summary_line(key, entry), flush=True)
+    if arguments.out:
+        arguments.out.write_text(json.dumps(counts, indent=1))
+
+
+def summary_line(key: str, c: dict) -> str:
+    case = key.split()[1]
+    if not CASES[case][1]:
+        return f"{key}: false alarms {c['alarm']}/{c['n']} ({c['gapped']} with a gap)"
+    return (
+        f"{key}: reported {c['reported']}/{c['n']}, expected ranked first or named "
+        f"{c['correct']}/{c['n']}, parameter within 3 sigma {c['within']}/{c['param_checked']} "
+        f"({c['gapped']} with a gap)"
+    )
+
+
+if __name__ == "__main__":
+    main()
