@@ -167,6 +167,8 @@ def plot(table: pd.DataFrame, channels: list[str], path: Path) -> None:
                         label=f"{channel}, ell {first}-{last}, {label}",
                     )
         for key, marker, colour, convention in CONVENTIONS:
+            if not group[f"requirement_{key}_per_k"].notna().any():
+                continue  # that map-maker's analysis not run yet
             right.errorbar(
                 group["nside"],
                 group[f"requirement_{key}_per_k"],
