@@ -56,8 +56,6 @@ class RolloffFit:
 
     tau_s: np.ndarray
     sigma_tau_s: np.ndarray
-    tau_squared_s2: np.ndarray  # u, the fitted parameter (>= 0)
-    sigma_tau_squared_s2: np.ndarray
     delta_chi2: float  # Delta(-2 ln L) against no roll-off (<= 0)
     delta_bic: float
     band_hz: tuple[float, float]
@@ -83,7 +81,7 @@ def fit_rolloff(ctx: Context, residual_f, noise, used: np.ndarray, ln_n_eff: flo
     used = used & ~line_exclusion_mask(freqs, ctx.f_hwp_hz, ctx.f_spin_hz, max(3 * fs / n, 2e-4))
     used &= freqs > NOISE_FMIN_SPINS * ctx.f_spin_hz
     nyquist = fs / 2
-    taus, sigmas, us, sigma_us, drops, models = [], [], [], [], [], []
+    taus, sigmas, drops, models = [], [], [], []
     delta_chi2 = 0.0
     for k, model in enumerate(noise):
         power = np.asarray(residual_f[k])
@@ -132,15 +130,11 @@ def fit_rolloff(ctx: Context, residual_f, noise, used: np.ndarray, ln_n_eff: flo
         )
         taus.append(tau)
         sigmas.append(sigma_u / (2 * tau) if tau > 0 else math.sqrt(sigma_u))
-        us.append(u)
-        sigma_us.append(sigma_u)
         drops.append(1.0 - float(rolloff(nyquist, u)))
     n_det = len(noise)
     return RolloffFit(
         tau_s=np.array(taus),
         sigma_tau_s=np.array(sigmas),
-        tau_squared_s2=np.array(us),
-        sigma_tau_squared_s2=np.array(sigma_us),
         delta_chi2=delta_chi2,
         delta_bic=delta_chi2 + n_det * ln_n_eff,
         band_hz=(NOISE_FMIN_SPINS * ctx.f_spin_hz, nyquist),
