@@ -50,14 +50,14 @@ def run_diagnose(
 
     config = load_config(*config_paths)
     budget = None if memory_gb is None else memory_gb * 2**30
-    segmented = segment_hours is not None or needs_segments(recording_path, budget)
+    n_detectors, n_samples, rate_hz = recording_size(recording_path)
+    segmented = segment_hours is not None or needs_segments(n_detectors, n_samples, budget)
     head = (  # a segmented recording: its first samples give the metadata
         read_recording(recording_path, budget, samples=(0, MIN_SAMPLES))
         if segmented
         else read_recording(recording_path, budget)
     )
     a2_k = nominal_a2(head, a2_k, lambda channel: channel_a2_k_cmb(config, channel))
-    _, n_samples, rate_hz = recording_size(recording_path)
     log.info(
         "%s: channel %s, %d detectors, %.2f h%s; nominal A_2 = %.4g K_CMB",
         recording_path,

@@ -87,7 +87,7 @@ from .effects import (
 )
 from .linalg import cross, realify, share_across_detectors, solve_normal
 from .model import Context
-from .noise import NoiseModel, periodogram_scale
+from .noise import NoiseModel, fitted_modes, periodogram_scale
 
 DELTA_BIC_THRESHOLD = SELECTION_THRESHOLD  # effects.base: the effects read it too
 GLITCH_THRESHOLD_SIGMA = 5.0
@@ -161,11 +161,7 @@ class FitProblem:
         self.n = n
         self.n_det = ctx.n_detectors
         self.freqs = scipy.fft.rfftfreq(n, 1.0 / fs)
-        modes = np.ones(self.freqs.size, dtype=bool)
-        modes[0] = False
-        if n % 2 == 0:
-            modes[-1] = False
-        self.modes = modes
+        self.modes = modes = fitted_modes(n)
         self.n_eff = int(2 * modes.sum() * self.n_det)
         self.ln_n_eff = math.log(self.n_eff)
         self.valid = np.asarray(ctx.valid, dtype=bool)

@@ -53,7 +53,7 @@ import scipy.stats
 from .effects.glitches import GlitchEvent, find_transients
 from .linalg import whitened_lstsq
 from .model import Context
-from .noise import NoiseModel, line_exclusion_mask, periodogram_scale
+from .noise import NoiseModel, fitted_modes, line_exclusion_mask, periodogram_scale
 
 FIVE_SIGMA_P = float(scipy.stats.norm.sf(5.0))
 MAX_LINES = 25
@@ -555,9 +555,7 @@ def locate(
     freqs = scipy.fft.rfftfreq(n, 1.0 / fs)
     residual = np.where(ctx.valid, residual, 0.0)
     residual_f = scipy.fft.rfft(residual, axis=-1, workers=workers)
-    modes = np.ones(freqs.size, dtype=bool)
-    modes[0] = False
-    modes[-1] = n % 2 == 1
+    modes = fitted_modes(n)
     lines_mask = line_exclusion_mask(freqs, ctx.f_hwp_hz, ctx.f_spin_hz, max(3 * fs / n, 2e-4))
     sigma_samples = []
     for k, name in enumerate(ctx.detector_names):

@@ -85,6 +85,16 @@ def periodogram_scale(n_samples: int, sampling_rate_hz: float, valid_fraction: f
     return 0.5 * n_samples * sampling_rate_hz * valid_fraction
 
 
+def fitted_modes(n_samples: int) -> np.ndarray:
+    """The rfft modes the likelihood uses (bool, n_samples // 2 + 1): all but DC and, for
+    an even length, the Nyquist mode (both real: one degree of freedom, not two)."""
+    modes = np.ones(n_samples // 2 + 1, dtype=bool)
+    modes[0] = False
+    if n_samples % 2 == 0:
+        modes[-1] = False
+    return modes
+
+
 def line_exclusion_mask(
     freqs_hz: np.ndarray,
     f_hwp_hz: float,

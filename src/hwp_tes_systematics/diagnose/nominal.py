@@ -73,7 +73,7 @@ from .effects import Effect
 from .linalg import cross, solve_normal
 from .locate import coarse_pixels
 from .model import Context
-from .noise import NoiseModel, line_exclusion_mask, periodogram_scale, whittle_fit
+from .noise import NoiseModel, fitted_modes, line_exclusion_mask, periodogram_scale, whittle_fit
 
 # Binning the residual on the sky is NOT done by default (0): fitted apart from the effects it
 # also absorbs the slow dipole part of a gain drift (the dipole is fixed on the sky over a
@@ -164,10 +164,7 @@ def fit_nominal(
     n_det, n, fs = ctx.n_detectors, ctx.n_samples, ctx.sampling_rate_hz
     valid = np.asarray(ctx.valid, dtype=bool)
     freqs = scipy.fft.rfftfreq(n, 1.0 / fs)
-    modes = np.ones(freqs.size, dtype=bool)
-    modes[0] = False
-    if n % 2 == 0:
-        modes[-1] = False
+    modes = fitted_modes(n)
     scale = [periodogram_scale(n, fs, float(valid[k].mean())) for k in range(n_det)]
     residual0 = np.where(valid, tod - ctx.d_nom, 0.0)
     templates = NOMINAL.templates(ctx)

@@ -41,7 +41,7 @@ from .fit import FitProblem, stepwise
 from .fluctuations import dipole_signature, fit_fluctuations
 from .locate import line_at, locate
 from .model import build_context, load_sky, nominal_tod, per_detector
-from .noise import NoiseModel, estimate_noise
+from .noise import NoiseModel, estimate_noise, fitted_modes
 from .nominal import (
     NOMINAL,
     SKY_RESIDUAL_NSIDE,
@@ -281,8 +281,7 @@ def diagnose(
     residual = np.where(ctx.valid, recording.tod - ctx.d_nom, 0.0)
     # a noise that rolls off (the detector's pole, :mod:`.rolloff`) is in the noise model from
     # here on: white + 1/f alone would pass it for a ~1 Hz knee and leave excess bands
-    modes = np.ones(residual.shape[1] // 2 + 1, dtype=bool)
-    modes[0] = modes[-1] = False
+    modes = fitted_modes(residual.shape[1])
     early = fit_rolloff(
         ctx,
         scipy.fft.rfft(residual, axis=-1, workers=workers),

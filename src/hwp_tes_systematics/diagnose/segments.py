@@ -58,12 +58,11 @@ MIN_SEGMENT_H = 1.0  # h; shorter segments would lose the slow signatures (spin,
 __all__ = ["combine_segments", "diagnose_segments", "needs_segments", "plan_segments"]
 
 
-def needs_segments(path, memory_budget_bytes=None) -> bool:
-    """Whether diagnosing the recording file at once would exceed the budget (default:
-    the available memory)."""
-    n_det, n, _ = recording_size(path)
+def needs_segments(n_detectors: int, n_samples: int, memory_budget_bytes=None) -> bool:
+    """Whether diagnosing a recording of this size (:func:`.recording.recording_size`) at
+    once would exceed the budget (default: the available memory)."""
     budget = available_memory_bytes() if memory_budget_bytes is None else memory_budget_bytes
-    return diagnosis_memory_bytes(n_det, n) > budget
+    return diagnosis_memory_bytes(n_detectors, n_samples) > budget
 
 
 def plan_segments(

@@ -46,7 +46,7 @@ from .effects import format_temperature
 from .effects.glitches import event_directions, find_transients, sky_fixed_groups
 from .locate import excess_bands, find_lines, line_at, sinusoid_fit, sky_residual
 from .model import Context
-from .noise import NoiseModel, line_exclusion_mask, periodogram_scale
+from .noise import NoiseModel, fitted_modes, line_exclusion_mask, periodogram_scale
 
 SKY_TOLERANCE = 0.10
 MIN_SIGMA = 5.0
@@ -177,9 +177,7 @@ def find_unexplained(
             if entry["n_hwp"] == 0:
                 entry["sky_region"] = region
     freqs = scipy.fft.rfftfreq(n, 1.0 / fs)
-    modes = np.ones(freqs.size, dtype=bool)
-    modes[0] = False
-    modes[-1] = n % 2 == 1
+    modes = fitted_modes(n)
     lines = line_exclusion_mask(freqs, ctx.f_hwp_hz, ctx.f_spin_hz, max(3 * resolution, 2e-4))
     residual_f = scipy.fft.rfft(residual_after, axis=-1, workers=workers)
     transients = []
