@@ -22,7 +22,13 @@ map_domain_alms jobs made them in memory.) Printed, as Markdown:
    channel's own template BB (detectors 0 and 1 at unit g1, the expectation over the g1
    draws, beam deconvolved) through the TOD run's likelihood model, for the whole
    template and for its seed part alone (the template minus the fixed pass's, i.e. the
-   CMB x h and noise x h terms), both paths, mean over seeds with its error.
+   CMB x h and noise x h terms), both paths, mean over seeds with its error;
+5. with ``--split``, the seed part in its two pieces: k_c of CMB x h (the map domain's
+   M^-1 H_k CMB, the same seed's CMB on both paths) and of noise x h (the map domain's
+   draw; on the TOD path the seed part minus the map domain's CMB x h), and per multipole
+   band the noise x h BB of each path over the map domain's unshaped draw M^-1 c_k: the
+   filter's action on h n that each path has (the TOD's is the truth, the map domain's
+   is its shaping S_ell).
 
 To validate where the seed part matters (issue 26), run both at one-year noise depth:
 ``config/one_year.yaml config/map_domain_validation.yaml`` (one month, the noise scaled
@@ -47,7 +53,7 @@ from hwp_tes_systematics import config as cfg
 from hwp_tes_systematics.analysis.likelihood import BBModel, fisher_bias, model_from_noise_csv
 from hwp_tes_systematics.analysis.spectra import pseudo_spectra
 from hwp_tes_systematics.config import analysis_variant, load_config
-from hwp_tes_systematics.simulation.map_domain import ChannelSeeds
+from hwp_tes_systematics.simulation.map_domain import ChannelSeeds, band_limited_seed_cmb
 from hwp_tes_systematics.simulation.maps_file import read_channel_maps
 from hwp_tes_systematics.simulation.tod_maps import templates_from_terms
 
@@ -138,6 +144,86 @@ def channel_biases(tod_run: Path, md_run: Path, config: dict, model: BBModel) ->
     return biases
 
 
+def seed_part_pieces(tod_run: Path, md_run: Path, config: dict, model: BBModel) -> dict:
+    """{channel: {"k": {piece: k_c per seed}, "bb": {piece: mean BB over seeds}}} of the
+    seed part's pieces (module docstring, item 5): pieces "cmb_h" and "noise_h_md",
+    "noise_h_tod"; "bb" also holds "noise_h_unshaped" (the map domain's M^-1 c_k)."""
+    lmax = int(model.ell.max())
+    master_seed, simulation = config["master_seed"], config["simulation"]
+    pieces = {}
+    for name in config["instrument"]["systematics_channels"]:
+        fixed_h5 = md_run / "results" / "maps" / name / f"fixed_pass_{analysis_variant(config)}.h5"
+        if not fixed_h5.exists():
+            continue
+        channel_seeds = ChannelSeeds(config, fixed_h5)
+        fixed, good = channel_seeds.fixed, channel_seeds.fixed.good
+        pixels = np.flatnonzero(good)
+        a2 = float(channel_seeds.attributes["a2_k_cmb"])
+        fixed_templates = templates_from_terms(fixed.template_terms, a2)
+        fwhm = cfg.channel(config, name).fwhm_arcmin
+        tod_seeds = seed_maps(tod_run / "results" / "maps" / name, None, simulation["seeds"])
+        k_rows = {"cmb_h": [], "noise_h_md": [], "noise_h_tod": []}
+        bb_rows = {"noise_h_md": [], "noise_h_tod": [], "noise_h_unshaped": []}
+        for seed, tod_data in enumerate(tod_seeds):
+            md_data = channel_seeds.maps(seed)
+            operators = channel_seeds.operators
+            cmb_alm, band = band_limited_seed_cmb(
+                channel_seeds.lmax, simulation["cmb_r"], master_seed, seed, fwhm
+            )
+            cmb = hp.alm2map(cmb_alm, hp.npix2nside(good.size), lmax=band, pixwin=False)
+            _, c = operators.noise.draw(channel_seeds.noise_generator(seed))  # md_data's h n
+            cmb_h, unshaped = np.zeros_like(fixed_templates), np.zeros_like(fixed_templates)
+            for k, h_k in enumerate(operators.h_matrices):
+                product = np.einsum("pij,jp->ip", h_k, cmb[:, pixels])
+                cmb_h[k][:, pixels] = 2 * a2 * operators.solve(product)
+                unshaped[k][:, pixels] = 2 * a2 * operators.solve(c[k][:, pixels])
+            maps = {
+                "cmb_h": cmb_h,
+                "noise_h_md": np.where(good, md_data["templates"], 0.0) - fixed_templates - cmb_h,
+                "noise_h_tod": np.where(good, tod_data["templates"], 0.0) - fixed_templates - cmb_h,
+                "noise_h_unshaped": unshaped,
+            }
+            spectra = {
+                key: template_bb(np.where(good, value, 0.0), good, lmax, fwhm)
+                for key, value in maps.items()
+            }
+            for key, values in k_rows.items():
+                values.append(fisher_bias(spectra[key], model))
+            for key, values in bb_rows.items():
+                values.append(spectra[key])
+        pieces[name] = {
+            "k": {key: np.asarray(values) for key, values in k_rows.items()},
+            "bb": {key: np.mean(values, axis=0) for key, values in bb_rows.items()},
+        }
+    return pieces
+
+
+def print_seed_part_pieces(pieces: dict) -> None:
+    """The tables of item 5 (module docstring)."""
+    print(
+        "\n| seed part's pieces: k_c [1/K^2] (mean over seeds +- its error) | tod | map domain "
+        "| ratio | difference / error |"
+    )
+    print("|---|---|---|---|---|")
+    for name, piece in pieces.items():
+        k = piece["k"]
+        cmb, error = mean_and_error(k["cmb_h"])
+        print(f"| {name}, CMB x h (the same on both paths) | {cmb:.3g} +- {error:.2g} | | | |")
+        print(compared(f"{name}, noise x h", k["noise_h_tod"], k["noise_h_md"]))
+    bands = ((2, 12), (12, 24), (24, 40), (40, 60), (60, 80), (80, 129))
+    print(
+        "\n| noise x h BB over the unshaped draw (the filter's action on h n) | "
+        + " | ".join(f"ell {a}-{b - 1}" for a, b in bands)
+        + " |"
+    )
+    print("|---|" + "---|" * len(bands))
+    for name, piece in pieces.items():
+        bb = piece["bb"]
+        for key, label in (("noise_h_tod", "TOD"), ("noise_h_md", "map domain")):
+            ratios = [bb[key][a:b].mean() / bb["noise_h_unshaped"][a:b].mean() for a, b in bands]
+            print(f"| {name}, {label} | " + " | ".join(f"{r:.3f}" for r in ratios) + " |")
+
+
 def residual_bands(run: Path) -> np.ndarray:
     """Mean over seeds of the nosys HILC residual BB [K^2] per ELL_BANDS."""
     tables = [pd.read_csv(p) for p in sorted((run / "results" / "spectra").glob("seed*/nosys.csv"))]
@@ -177,6 +263,11 @@ def main() -> None:
     parser.add_argument("--map-domain", type=Path, required=True, help="run folder, map domain")
     parser.add_argument(
         "--configfile", nargs="+", required=True, help="the map-domain run's configuration files"
+    )
+    parser.add_argument(
+        "--split",
+        action="store_true",
+        help="also split the seed part into CMB x h and noise x h (item 5)",
     )
     arguments = parser.parse_args()
     runs = {"tod": arguments.tod, "map_domain": arguments.map_domain}
@@ -226,6 +317,10 @@ def main() -> None:
             label = f"{name}, {'whole template' if key == 'total' else 'seed part'}"
             tod_k = biases[(name, "tod")][key]
             print(compared(label, tod_k, biases[(name, "map_domain")][key]))
+    if arguments.split:
+        print_seed_part_pieces(
+            seed_part_pieces(arguments.tod, arguments.map_domain, md_config, model)
+        )
 
 
 def analysis_tables(runs: dict) -> None:

@@ -484,26 +484,38 @@ class ChannelSeeds:
             )
         self._operators = None
 
-    def maps(self, seed: int) -> dict:
-        simulation, master_seed = self.config["simulation"], self.config["master_seed"]
+    @property
+    def operators(self) -> SeedOperators:
+        """The :class:`SeedOperators` the seeds share (built on first use)."""
         if self._operators is None:
-            self._operators = SeedOperators(self.fixed, simulation["noise_scale"], self.filter_lmax)
-        cmb_alm, band = band_limited_seed_cmb(
-            self.lmax, simulation["cmb_r"], master_seed, seed, self.fwhm_arcmin
-        )
+            noise_scale = self.config["simulation"]["noise_scale"]
+            self._operators = SeedOperators(self.fixed, noise_scale, self.filter_lmax)
+        return self._operators
+
+    def noise_generator(self, seed: int):
+        """rng_of_detector(k) of a seed: detector k's stream ("map-domain noise", channel,
+        seed, detector)."""
         detectors = list(self.attributes["detectors"])
+        master_seed = self.config["master_seed"]
 
         def rng_of_detector(k):
             return seeding.rng(master_seed, "map-domain noise", self.name, seed, detectors[k])
 
+        return rng_of_detector
+
+    def maps(self, seed: int) -> dict:
+        simulation, master_seed = self.config["simulation"], self.config["master_seed"]
+        cmb_alm, band = band_limited_seed_cmb(
+            self.lmax, simulation["cmb_r"], master_seed, seed, self.fwhm_arcmin
+        )
         maps = realize_seed(
             self.fixed,
             cmb_alm,
             band,
             float(self.attributes["a2_k_cmb"]),
             simulation["noise_scale"],
-            rng_of_detector,
-            self._operators,
+            self.noise_generator(seed),
+            self.operators,
         )
         maps["attrs"] = {**self.attributes, "seed": seed, "realization": "map_domain"}
         return maps
