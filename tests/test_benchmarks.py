@@ -51,6 +51,9 @@ def benchmarks(repo, monkeypatch):
         "resolution_study",
         "diagnose_benchmark",
         "diagnose_lbs_rates",
+        "map_domain_cost",
+        "map_domain_validation",
+        "seed_part_share",
     ):
         sys.modules.pop(name, None)
 
@@ -277,3 +280,33 @@ def test_litebird_sim_injectors_of_the_rates_benchmark(benchmarks):
     added = recording.tod - base
     np.testing.assert_allclose(added[0], added[1])
     assert added.std() > 0
+
+
+def test_seed_part_share_splits_a_fixed_pass_template_from_its_seeds(benchmarks, repo, tmp_path):
+    """seed_part_share.py: a fixed pass without a template of its own has all of its k_c in
+    the seeds' part (share 1); with a strong fixed template the share is small, and the
+    whole is the fixed plus the seed part (independent, to the seeds' cross term)."""
+    import map_domain_cost
+    import seed_part_share
+
+    from hwp_tes_systematics.analysis.likelihood import BBModel
+    from hwp_tes_systematics.config import load_config
+    from hwp_tes_systematics.simulation.map_domain import write_fixed_maps
+
+    config = load_config(repo / "config/config.yaml")
+    config["simulation"]["noise_scale"] = 1e-3  # the synthetic pass's weights are 1 / K^2
+    fixed = map_domain_cost.synthetic_full_sky(8, True)
+    attributes = {"channel": "M1-140", "nside": 8, "a2_k_cmb": 0.5, "detectors": ["a", "b"]}
+    ell = np.arange(24)
+    model = BBModel(ell, 1e-18, 1e-16 / (1 + ell), 0.0, 1e-17, 1.0)
+    write_fixed_maps(tmp_path / "none.h5", fixed, attributes)
+    alone = seed_part_share.seed_part_share(tmp_path / "none.h5", config, model, 2)
+    assert alone["fixed"] == 0 and alone["seed_part"] > 0
+    assert alone["share"] == pytest.approx(1.0)
+
+    rng = np.random.default_rng(1)
+    fixed.template_terms[2] = 1e-2 * rng.standard_normal(fixed.template_terms[2].shape)
+    write_fixed_maps(tmp_path / "strong.h5", fixed, attributes)
+    strong = seed_part_share.seed_part_share(tmp_path / "strong.h5", config, model, 2)
+    assert strong["share"] < 0.1
+    assert strong["whole"] == pytest.approx(strong["fixed"] + strong["seed_part"], rel=0.1)
