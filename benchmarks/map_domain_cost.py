@@ -113,6 +113,7 @@ def synthetic_full_sky(nside: int, carries_systematics: bool, samples_per_pixel:
         foreground_reference=zeros,
         transfer=np.ones((3, lmax + 1)),
         noise_shaping=np.full((3, lmax + 1), 0.9),
+        noise_h_shaping=np.full((3, lmax + 1), 0.4),
         matrix=moments[:, :, 0].sum(axis=0).T.copy(),
         moments=moments if carries_systematics else np.zeros((0,)),
         hits=np.full(npix, 100.0),

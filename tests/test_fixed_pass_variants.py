@@ -59,7 +59,7 @@ def assert_same(fixed, reference, label, rtol=1e-9):
         scale = np.abs(expected[np.abs(expected) < 1e20]).max()
         np.testing.assert_allclose(value, expected, rtol=0, atol=rtol * scale, err_msg=name)
     np.testing.assert_array_equal(fixed.good, reference.good, err_msg=f"{label}: good")
-    for name in ("transfer", "noise_shaping"):
+    for name in ("transfer", "noise_shaping", "noise_h_shaping"):
         np.testing.assert_allclose(
             getattr(fixed, name), getattr(reference, name), rtol=1e-6, err_msg=name
         )
@@ -79,7 +79,7 @@ def test_nested_accumulation_gives_the_same_maps_bit_for_bit(passes):
     """Accumulating in NESTED pixels and reordering to RING at the end changes no number."""
     together, _, nested = passes
     for variant, fixed in together.items():
-        for name in (*FIELDS, "condition", "good", "transfer", "noise_shaping"):
+        for name in (*FIELDS, "condition", "good", "transfer", "noise_shaping", "noise_h_shaping"):
             np.testing.assert_array_equal(
                 getattr(nested[variant], name), getattr(fixed, name), err_msg=f"{variant} {name}"
             )

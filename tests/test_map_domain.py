@@ -241,8 +241,25 @@ def test_calibration_tods_only_on_their_chunks():
     assert calibration.equations.hits.sum() == 2 * per_chunk  # chunks 0 and 2
     assert calibration.equations.n_tods == 3  # the reference, noise filtered and not
     assert np.abs(calibration.equations.rhs[1:]).max() > 0  # the noise reached them
+    # with the s h term's noise and two realizations: the reference, (n, h n) of each
+    # realization filtered, then the same unfiltered; the first realization's n is the
+    # pass's without them, the second another stream
+    with_h = Calibration(
+        8, (sky_map,), map_domain.NOISE_REFERENCE_SEED, 2, hwpss_noise=True, noise_realizations=2
+    )
+    accumulate(simulator, settings, sky_map, template_terms=False, calibration=with_h)
+    assert with_h.equations.n_tods == 9
+    rhs, rhs_n = with_h.equations.rhs, calibration.equations.rhs
+    scale = np.abs(rhs_n).max()
+    np.testing.assert_allclose(rhs[[0, 1, 5]], rhs_n, rtol=0, atol=1e-10 * scale)
+    for first, second in ((1, 3), (5, 7), (2, 4), (6, 8)):  # the realizations differ
+        assert not np.allclose(rhs[first], rhs[second])
+    for h_n, n in ((2, 1), (6, 5)):
+        assert np.abs(rhs[h_n]).max() > 0 and not np.allclose(rhs[h_n], rhs[n])
     with pytest.raises(ValueError, match="every_chunks = 0"):
         Calibration(8, (), 0, every_chunks=0)
+    with pytest.raises(ValueError, match="noise_realizations = 0"):
+        Calibration(8, (), 0, noise_realizations=0)
 
 
 @pytest.mark.slow

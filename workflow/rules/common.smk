@@ -79,13 +79,17 @@ def pair_maps_mem_mb(wildcards, attempt):
 
 
 def fixed_pass_mem_mb(wildcards, attempt):
-    """Memory of one fixed pass: a chunk in flight (x 2 with both baseline settings) and,
-    per map-maker, its equations (~16 maps), moments and calibration (~40 doubles per
-    pixel in all), solved at the end (x 2)."""
+    """Memory of one fixed pass: a chunk in flight (~40 doubles per detector-sample, x 2
+    with both baseline settings) and, per map-maker, its equations (~16 maps), moments
+    and calibration (~40 doubles per pixel in all), solved at the end (x 2); each
+    reference noise realization beyond the first adds n and h n: 2 TODs in flight, 4
+    calibration maps (12 doubles per pixel)."""
     offsets = len(set(b is None for b in fixed_pass_baselines(config)))
-    chunk_mb = 2 * chunk_samples() * 8 * 40 * offsets
+    extra_realizations = config["simulation"]["noise_reference_realizations"] - 1
+    chunk_mb = 2 * chunk_samples() * 8 * (40 + 2 * 2 * extra_realizations) * offsets
     pixels = sum(12 * nside**2 for nside, _ in fixed_pass_variants(config))
-    return int(1500 + chunk_mb / 2**20 + 2 * pixels * 40 * 8 / 2**20) * attempt
+    per_pixel = 40 + 12 * extra_realizations
+    return int(1500 + chunk_mb / 2**20 + 2 * pixels * per_pixel * 8 / 2**20) * attempt
 
 
 def component_separation_mem_mb(wildcards, attempt):

@@ -11,16 +11,21 @@ removal, notch, baselines and binning as the full path (:func:`tod_maps.accumula
 * the HWPSS moments per detector k and pixel p (:class:`mapmaking.PixelMoments`):
   M_k = sum w a^T a, H_k = sum w h a^T a, Q_k = sum w h^2 a^T a (M = sum_k M_k);
 * the filter's action on a reference CMB realization, T_ell = C_ell(bin F CMB, CMB) /
-  C_ell(CMB) (TT, EE, BB), and on a reference noise realization, the shaping S_ell
-  (~ sqrt(C_ell(bin F n) / C_ell(bin n)), calibrated so that shaping bin n gives the
-  pseudo-spectrum of bin F n on the observed pixels); both from every
+  C_ell(CMB) (TT, EE, BB), and on ``simulation.noise_reference_realizations`` reference
+  noise realizations, the shaping S_ell (~ sqrt(sum C_ell(bin F n) / sum C_ell(bin n)),
+  calibrated so that shaping bin n gives the pseudo-spectrum of bin F n on the observed
+  pixels), and the shaping S^h_ell of the same noise times the unit HWPSS, h n (the s h
+  term's noise: the filter does not act on h n as on n), each an expectation that one
+  realization measures poorly at low ell (docs/physics/map_domain.md: with one
+  realization and S_ell for both, H3-402's one-month seed part came out 17 % high, with
+  four and S^h 10 %); all from every
   ``simulation.calibration_every_chunks``-th chunk (1 by default: a subset of the days
   biases the low-ell shaping, benchmarks/calibration_stride_validation.py).
 
 Each seed then costs map operations only:
 
     nosys            = m_f + T CMB_seed + S M^-1 sum_k b_k
-    s h term of k    = (s_f h term of k) + M^-1 H_k CMB_seed + S M^-1 c_k
+    s h term of k    = (s_f h term of k) + M^-1 H_k CMB_seed + S^h M^-1 c_k
     cmb_reference    = T CMB_seed
 
 with (b_k, c_k) ~ N(0, noise_scale^2 [[M_k, H_k], [H_k, Q_k]]) the binned white noise and
@@ -112,22 +117,32 @@ def measure_transfer(output_iqu: np.ndarray, input_iqu: np.ndarray, good: np.nda
     return transfer
 
 
-def measure_noise_shaping(
-    filtered_iqu: np.ndarray, unfiltered_iqu: np.ndarray, good: np.ndarray, lmax: int
-) -> np.ndarray:
+def measure_noise_shaping(filtered_iqu, unfiltered_iqu, good: np.ndarray, lmax: int) -> np.ndarray:
     """S_ell (3, lmax + 1) for TT, EE, BB such that :func:`shaped_noise_map` of the
-    unfiltered noise realization bin n has the pseudo-spectrum of the filtered one,
-    bin F n, on ``good``: starting from sqrt(C_ell(bin F n) / C_ell(bin n)), corrected
-    SHAPING_ITERATIONS times by sqrt(C_ell(bin F n) / C_ell(shaped)) (the mask couples
-    multipoles, so shaping by S does not give S^2 exactly on a partial sky). Ratios of
-    the same realization (its own scatter cancels), averaged over SHAPING_BIN_WIDTH
-    multipoles."""
-    target = _binned_pseudo_spectra(filtered_iqu, good, lmax)
-    shaping = np.sqrt(_ratio(target, _binned_pseudo_spectra(unfiltered_iqu, good, lmax)))
+    unfiltered noise realizations bin n has, summed over them, the pseudo-spectrum of
+    the filtered ones, bin F n, on ``good``: starting from sqrt(sum C_ell(bin F n) /
+    sum C_ell(bin n)), corrected SHAPING_ITERATIONS times by sqrt(sum C_ell(bin F n) /
+    sum C_ell(shaped)) (the mask couples multipoles, so shaping by S does not give S^2
+    exactly on a partial sky); averaged over SHAPING_BIN_WIDTH multipoles.
+    ``filtered_iqu``, ``unfiltered_iqu``: (3, npix) maps of one realization or
+    sequences of them, in the same order."""
+    filtered, unfiltered = _realizations(filtered_iqu), _realizations(unfiltered_iqu)
+
+    def summed(maps):
+        return sum(_binned_pseudo_spectra(m, good, lmax) for m in maps)
+
+    target = summed(filtered)
+    shaping = np.sqrt(_ratio(target, summed(unfiltered)))
     for _ in range(SHAPING_ITERATIONS):
-        shaped = shaped_noise_map(unfiltered_iqu, shaping, good, lmax)
-        shaping *= np.sqrt(_ratio(target, _binned_pseudo_spectra(shaped, good, lmax)))
+        shaped = [shaped_noise_map(m, shaping, good, lmax) for m in unfiltered]
+        shaping *= np.sqrt(_ratio(target, summed(shaped)))
     return shaping
+
+
+def _realizations(maps) -> list[np.ndarray]:
+    """A (3, npix) map or a sequence of them, as a list of (3, npix) maps."""
+    maps = np.asarray(maps)
+    return [maps] if maps.ndim == 2 else list(maps)
 
 
 def _binned_pseudo_spectra(maps_iqu: np.ndarray, good: np.ndarray, lmax: int) -> np.ndarray:
@@ -182,6 +197,9 @@ class FixedMaps:
     foreground_reference: np.ndarray  # (3, npix) bin F(fg) [K_CMB]
     transfer: np.ndarray  # (3, measure_lmax + 1) T_ell of TT, EE, BB [1]
     noise_shaping: np.ndarray  # (3, measure_lmax + 1) sqrt(N_ell of F n / N_ell of n) [1]
+    noise_h_shaping: (
+        np.ndarray
+    )  # (3, measure_lmax + 1) the same of h n [1]; (0,) without systematics
     matrix: np.ndarray  # (6, npix) sum_k M_k, MATRIX_ENTRIES order [K^-2]
     moments: np.ndarray  # (n_det, npix, 3, 6) M_k, H_k, Q_k [K^-2]; (0,) without systematics
     hits: np.ndarray
@@ -207,6 +225,7 @@ def fixed_pass(
     lmax: int,
     calibration_every_chunks: int = 1,
     measure_lmax: int | None = None,
+    noise_realizations: int = 1,
 ) -> FixedMaps:
     """The seed-independent TOD pass of one channel (see the module docstring), binned at
     ``settings.nside`` with ``settings.baseline_length_s``: :func:`fixed_passes` with
@@ -221,6 +240,7 @@ def fixed_pass(
         lmax,
         calibration_every_chunks,
         measure_lmax,
+        noise_realizations=noise_realizations,
     )[primary]
 
 
@@ -234,12 +254,13 @@ def fixed_passes(
     calibration_every_chunks: int = 1,
     measure_lmax: int | None = None,
     extra_variants=(),
+    noise_realizations: int = 1,
 ) -> dict[tuple[int, float | None], FixedMaps]:
     """{(nside, baseline length): FixedMaps} of the seed-independent TOD pass of one
     channel (see the module docstring): no CMB, no noise; the sky (``foreground_iqu_k``,
     and ``transfer_alm``, beam-smoothed, band ``lmax``, scanned alone to measure T_ell)
-    scanned at ``settings.nside``, and the noise reference realization giving S_ell, both
-    on every ``calibration_every_chunks``-th chunk (:class:`tod_maps.Calibration`). The
+    scanned at ``settings.nside``, and ``noise_realizations`` reference noise
+    realizations giving S_ell and S^h_ell, both on every ``calibration_every_chunks``-th chunk (:class:`tod_maps.Calibration`). The
     TODs are binned at (settings.nside, settings.baseline_length_s) and at every
     (nside, baseline length) of ``extra_variants`` in the same pass
     (:class:`tod_maps.ExtraBinning`): the binning is cheap beside the TOD. T_ell and
@@ -267,7 +288,12 @@ def fixed_passes(
     ]
     noiseless = dataclasses.replace(settings, noise_scale=0.0)
     calibration = Calibration(
-        settings.nside, (transfer_input,), NOISE_REFERENCE_SEED, calibration_every_chunks
+        settings.nside,
+        (transfer_input,),
+        NOISE_REFERENCE_SEED,
+        calibration_every_chunks,
+        hwpss_noise=carries_systematics,
+        noise_realizations=noise_realizations,
     )
     equations = accumulate(
         simulator,
@@ -328,15 +354,23 @@ def _solve_fixed_pass(
     calibration_maps, _, calibrated = solve_maps(
         calibration_equations, settings.max_condition_number
     )
-    transfer_output, noise_filtered, noise_unfiltered = calibration_maps
+    transfer_output, *noise_maps = calibration_maps
+    # per realization n and, with systematics, h n (``kinds``); all filtered, then unfiltered
+    kinds = 2 if carries_systematics else 1
+    filtered, unfiltered = np.split(np.asarray(noise_maps), 2)
+    shapings = [
+        measure_noise_shaping(
+            filtered[kind::kinds], unfiltered[kind::kinds], calibrated, measure_lmax
+        )
+        for kind in range(kinds)
+    ]
     return FixedMaps(
         nosys=solved["nosys"],
         template_terms=solved["template_terms"],
         foreground_reference=foreground_reference,
         transfer=measure_transfer(transfer_output, transfer_input, calibrated, measure_lmax),
-        noise_shaping=measure_noise_shaping(
-            noise_filtered, noise_unfiltered, calibrated, measure_lmax
-        ),
+        noise_shaping=shapings[0],
+        noise_h_shaping=shapings[1] if carries_systematics else np.zeros(0),
         matrix=equations.matrix,
         moments=moments.values if carries_systematics else np.zeros(0),
         hits=equations.hits,
@@ -437,20 +471,22 @@ def realize_seed(
     cmb_filtered = filtered_cmb_map(cmb, cmb_alm, fixed.transfer, lmax, operators.filter_lmax)
     b, c = operators.noise.draw(rng_of_detector)
 
-    def filtered_noise(vectors):  # the binned white noise, shaped by the filter's action
+    def filtered_noise(vectors, shaping):  # the binned white noise, shaped by the filter
         white = np.zeros_like(fixed.nosys)
         white[:, good] = operators.solve(vectors)
-        shaped = shaped_noise_map(white, fixed.noise_shaping, good, operators.filter_lmax)
+        shaped = shaped_noise_map(white, shaping, good, operators.filter_lmax)
         return shaped[:, good]
 
     noise = np.zeros_like(fixed.nosys)
-    noise[:, good] = filtered_noise(b[:, good])
+    noise[:, good] = filtered_noise(b[:, good], fixed.noise_shaping)
     nosys = np.full_like(fixed.nosys, hp.UNSEEN)
     nosys[:, good] = fixed.nosys[:, good] + cmb_filtered[:, good] + noise[:, good]
     terms = fixed.template_terms.copy()
     for k, h_k in enumerate(operators.h_matrices):  # the s h term gets the seed's part
         cmb_h = np.einsum("pij,jp->ip", h_k, cmb[:, good])
-        terms[SH_TERM, k][:, good] += operators.solve(cmb_h) + filtered_noise(c[k][:, good])
+        terms[SH_TERM, k][:, good] += operators.solve(cmb_h) + filtered_noise(
+            c[k][:, good], fixed.noise_h_shaping
+        )
     templates = np.where(good, templates_from_terms(terms, a2_k_cmb), hp.UNSEEN)
     return {
         "nosys": nosys,
@@ -567,6 +603,14 @@ def read_fixed_maps(path) -> tuple[FixedMaps, dict]:
     attributes.pop("moments_in", None)
     if carries and holder is not None:
         arrays["moments"] = read_fixed_field(holder, "moments")
+    if "noise_h_shaping" not in arrays:
+        if carries:
+            raise ValueError(
+                f"{path}: a fixed pass written before the filter's action on the s h term's "
+                "noise (noise_h_shaping) was measured; make it again: snakemake --forcerun "
+                "fixed_pass"
+            )
+        arrays["noise_h_shaping"] = np.zeros(0)
     if not carries:
         n_det = len(attributes["detectors"])
         arrays["template_terms"] = np.zeros((len(TEMPLATE_TERMS), n_det, *arrays["nosys"].shape))

@@ -100,20 +100,42 @@ def simulated_rate_hz(config: dict, channel) -> float:
 class Calibration:
     """TODs that measure what the filter does (the map-domain fixed pass), binned into their
     own normal equations on every ``every_chunks``-th chunk only (chunk index divisible by
-    it): each map of ``references_iqu_k`` scanned alone, then the detector noise of
-    realization ``noise_seed`` (scale 1) after the filter and before it. The filter's
-    transfer and noise shaping are ratios of the same realization, so a subset of the
-    days measures them as well as all of them, at a fraction of the cost."""
+    it): each map of ``references_iqu_k`` scanned alone, then ``noise_realizations``
+    realizations of the detector noise n (scale 1; streams ``noise_seed``,
+    ``noise_seed`` - 1, ...) and, with ``hwpss_noise``, each one's product h n with the
+    unit HWPSS (the noise of the template's s h term): realization by realization n, h n
+    after the filter, then the same before it. The filter's transfer and noise shaping
+    are ratios of binned maps; the noise's is an expectation, which one realization
+    measures poorly at low ell (the notch removes particular TOD modes: two realizations
+    differ by 30 % to 3x at ell 2-11), hence several."""
 
     nside: int
     references_iqu_k: tuple
     noise_seed: int
     every_chunks: int = 1
+    hwpss_noise: bool = False
+    noise_realizations: int = 1
 
     def __post_init__(self):
         if self.every_chunks < 1:
             raise ValueError(f"calibration every_chunks = {self.every_chunks}: expected >= 1")
-        self.equations = NormalEquations(self.nside, len(self.references_iqu_k) + 2)
+        if self.noise_realizations < 1:
+            raise ValueError(
+                f"calibration noise_realizations = {self.noise_realizations}: expected >= 1"
+            )
+        self.equations = NormalEquations(
+            self.nside, len(self.references_iqu_k) + 2 * self.n_noise_tods
+        )
+
+    @property
+    def kinds(self) -> int:
+        """Noise TODs per realization: n, and h n with ``hwpss_noise``."""
+        return 2 if self.hwpss_noise else 1
+
+    @property
+    def n_noise_tods(self) -> int:
+        """The noise TODs binned filtered and unfiltered (each): kinds x realizations."""
+        return self.kinds * self.noise_realizations
 
     def includes(self, chunk: int) -> bool:
         return chunk % self.every_chunks == 0
@@ -283,7 +305,7 @@ def accumulate(
     offsets = {primary_offset} | {e.baseline_length_s is not None for e in extra_binnings}
     weights = detector_weights(simulator)
     peak_rss_mb = 0.0
-    unfiltered_noise = None  # the calibration noise before the filter, on its chunks
+    unfiltered_noise = None  # the calibration noise TODs before the filter, on its chunks
     for chunk, pointing, inner, signal, hwpss in chunk_tods(simulator, settings, sky_iqu_k, clock):
         calibrating = calibration is not None and calibration.includes(chunk)
         scanned = list(references_iqu_k)
@@ -322,7 +344,8 @@ def accumulate(
                 )
         # all TODs of the chunk in one array, for one batched 2f removal + notch
         with clock("nonlinearity terms"):
-            n_rows = 1 + n_terms + len(scanned) + int(calibrating)
+            n_noise = calibration.n_noise_tods if calibrating else 0
+            n_rows = 1 + n_terms + len(scanned) + n_noise
             unfiltered = np.empty((n_rows, *signal.shape))
             tod = unfiltered[0]
             np.multiply(hwpss, settings.a2_k_cmb, out=tod)
@@ -333,16 +356,21 @@ def accumulate(
                 np.square(hwpss, out=unfiltered[3])
             elif not linear:
                 tod += np.asarray(g1_per_k)[:, None] * tod**2
-            del tod, signal, hwpss
+            del tod, signal
         with clock("reference scans"):
             for index, reference_iqu_k in enumerate(scanned, start=1 + n_terms):
                 simulator.scan_sky(pointing, reference_iqu_k, out=unfiltered[index])
         if calibrating:
             with clock("noise"):
-                unfiltered[-1] = simulator.noise(
-                    pointing, settings.master_seed, calibration.noise_seed, chunk
-                )
-                unfiltered_noise = unfiltered[-1][:, inner].copy()
+                for realization in range(calibration.noise_realizations):
+                    row = n_rows - n_noise + realization * calibration.kinds
+                    unfiltered[row] = simulator.noise(
+                        pointing, settings.master_seed, calibration.noise_seed - realization, chunk
+                    )
+                    if calibration.hwpss_noise:  # the noise of the s h term
+                        np.multiply(unfiltered[row], hwpss, out=unfiltered[row + 1])
+                unfiltered_noise = unfiltered[-n_noise:, :, inner].copy()
+        del hwpss
         with clock("2f removal + notch"):
             if len(offsets) == 1:
                 notched_of = {
@@ -438,13 +466,13 @@ def accumulate(
 def _bin_chunk(target, calibration_target, pixels, angles, filtered, binned, noise):
     """Bin a chunk's filtered TOD stack at ``pixels`` into ``target`` and, when
     ``calibration_target`` is given, the stack's rows after its ``n_binned`` first (the
-    calibration TODs) with the unfiltered ``noise`` into it. ``binned``: (rows, owners,
+    calibration TODs) with the unfiltered ``noise`` TODs (rows, n_det, n) into it. ``binned``: (rows, owners,
     n_binned), TOD i of ``target`` being row ``rows[i]`` (detector ``owners[i]`` only
     unless None); ``angles``: (cos 2 alpha, sin 2 alpha, weights, pol_efficiency)."""
     rows, owners, n_binned = binned
     target.add(pixels, *angles, filtered, owners, rows=rows)
     if calibration_target is not None:
-        calibration_target.add(pixels, *angles, [*filtered[n_binned:], noise])
+        calibration_target.add(pixels, *angles, [*filtered[n_binned:], *noise])
 
 
 def _nest_to_ring(equations, moments, calibration, extra_binnings) -> None:

@@ -78,6 +78,7 @@ def run_fixed_pass(
         config["simulation"]["calibration_every_chunks"],
         measure_lmax=config["simulation"]["filter_lmax"] or lmax,  # null: the full band
         extra_variants=extra_variants,
+        noise_realizations=config["simulation"]["noise_reference_realizations"],
     )
     source = sky.read_sky_header(foreground_fits).get("FGSOURCE", "unknown")
     for (nside, baseline), fixed in passes.items():
