@@ -49,13 +49,11 @@ import healpy as hp
 import numpy as np
 import pandas as pd
 
-from hwp_tes_systematics import config as cfg
 from hwp_tes_systematics.analysis.likelihood import BBModel, fisher_bias, model_from_noise_csv
 from hwp_tes_systematics.analysis.spectra import pseudo_spectra
 from hwp_tes_systematics.config import analysis_variant, load_config
 from hwp_tes_systematics.simulation.map_domain import ChannelSeeds, band_limited_seed_cmb
 from hwp_tes_systematics.simulation.maps_file import read_channel_maps
-from hwp_tes_systematics.simulation.tod_maps import templates_from_terms
 
 ELL_BANDS = ((2, 12), (12, 40), (40, 80), (80, 129))
 
@@ -126,11 +124,8 @@ def channel_biases(tod_run: Path, md_run: Path, config: dict, model: BBModel) ->
         if not fixed_h5.exists():
             continue
         channel_seeds = ChannelSeeds(config, fixed_h5)
-        fixed = channel_seeds.fixed
-        fixed_templates = templates_from_terms(
-            fixed.template_terms, float(channel_seeds.attributes["a2_k_cmb"])
-        )
-        fwhm = cfg.channel(config, name).fwhm_arcmin
+        fixed, fixed_templates = channel_seeds.fixed, channel_seeds.fixed_templates
+        fwhm = channel_seeds.fwhm_arcmin
         seeds = config["simulation"]["seeds"]
         tod_seeds = seed_maps(tod_run / "results" / "maps" / name, None, seeds)
         md_seeds = (channel_seeds.maps(seed) for seed in range(seeds))
@@ -156,11 +151,10 @@ def seed_part_pieces(tod_run: Path, md_run: Path, config: dict, model: BBModel) 
         if not fixed_h5.exists():
             continue
         channel_seeds = ChannelSeeds(config, fixed_h5)
-        fixed, good = channel_seeds.fixed, channel_seeds.fixed.good
+        good = channel_seeds.fixed.good
         pixels = np.flatnonzero(good)
         a2 = float(channel_seeds.attributes["a2_k_cmb"])
-        fixed_templates = templates_from_terms(fixed.template_terms, a2)
-        fwhm = cfg.channel(config, name).fwhm_arcmin
+        fixed_templates, fwhm = channel_seeds.fixed_templates, channel_seeds.fwhm_arcmin
         tod_seeds = seed_maps(tod_run / "results" / "maps" / name, None, simulation["seeds"])
         k_rows = {"cmb_h": [], "noise_h_md": [], "noise_h_tod": []}
         bb_rows = {"noise_h_md": [], "noise_h_tod": [], "noise_h_unshaped": []}
@@ -211,17 +205,18 @@ def print_seed_part_pieces(pieces: dict) -> None:
         print(f"| {name}, CMB x h (the same on both paths) | {cmb:.3g} +- {error:.2g} | | | |")
         print(compared(f"{name}, noise x h", k["noise_h_tod"], k["noise_h_md"]))
     bands = ((2, 12), (12, 24), (24, 40), (40, 60), (60, 80), (80, 129))
-    print(
-        "\n| noise x h BB over the unshaped draw (the filter's action on h n) | "
-        + " | ".join(f"ell {a}-{b - 1}" for a, b in bands)
-        + " |"
-    )
-    print("|---|" + "---|" * len(bands))
+    print_band_header("noise x h BB over the unshaped draw (the filter's action on h n)", bands)
     for name, piece in pieces.items():
         bb = piece["bb"]
         for key, label in (("noise_h_tod", "TOD"), ("noise_h_md", "map domain")):
             ratios = [bb[key][a:b].mean() / bb["noise_h_unshaped"][a:b].mean() for a, b in bands]
             print(f"| {name}, {label} | " + " | ".join(f"{r:.3f}" for r in ratios) + " |")
+
+
+def print_band_header(title: str, bands) -> None:
+    """A Markdown table's header: ``title``, then one column per multipole band (lo, hi)."""
+    print(f"\n| {title} | " + " | ".join(f"ell {a}-{b - 1}" for a, b in bands) + " |")
+    print("|---|" + "---|" * len(bands))
 
 
 def residual_bands(run: Path) -> np.ndarray:
@@ -326,12 +321,7 @@ def main() -> None:
 def analysis_tables(runs: dict) -> None:
     """The HILC-level comparison: residual BB bands, k and the paper's delta r, sigma_r."""
     bands = {name: residual_bands(run) for name, run in runs.items()}
-    print(
-        "\n| nosys HILC residual BB [K^2] | "
-        + " | ".join(f"ell {a}-{b - 1}" for a, b in ELL_BANDS)
-        + " |"
-    )
-    print("|---|" + "---|" * len(ELL_BANDS))
+    print_band_header("nosys HILC residual BB [K^2]", ELL_BANDS)
     for name, values in bands.items():
         print(f"| {name} | " + " | ".join(f"{v:.3g}" for v in values) + " |")
     ratio = bands["map_domain"] / bands["tod"]

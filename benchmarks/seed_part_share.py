@@ -20,24 +20,19 @@ from pathlib import Path
 import numpy as np
 from map_domain_validation import template_bb
 
-from hwp_tes_systematics import config as cfg
 from hwp_tes_systematics.analysis.likelihood import fisher_bias, model_from_noise_csv
 from hwp_tes_systematics.config import analysis_variant, load_config
 from hwp_tes_systematics.simulation.map_domain import ChannelSeeds
-from hwp_tes_systematics.simulation.tod_maps import templates_from_terms
 
 
 def seed_part_share(fixed_h5: Path, config: dict, model, seeds: int) -> dict:
     """{"fixed", "seed_part", "whole": k_c [1/K^2], "share": seed part / whole} of a channel."""
     lmax = int(model.ell.max())
     channel_seeds = ChannelSeeds(config, fixed_h5)
-    good = channel_seeds.fixed.good
-    fwhm = cfg.channel(config, channel_seeds.name).fwhm_arcmin
-    a2 = float(channel_seeds.attributes["a2_k_cmb"])
-    fixed = np.where(good, templates_from_terms(channel_seeds.fixed.template_terms, a2), 0.0)
+    good, fixed = channel_seeds.fixed.good, channel_seeds.fixed_templates
 
     def k_c(templates):
-        return fisher_bias(template_bb(templates, good, lmax, fwhm), model)
+        return fisher_bias(template_bb(templates, good, lmax, channel_seeds.fwhm_arcmin), model)
 
     whole, seed_part = [], []
     for seed in range(seeds):

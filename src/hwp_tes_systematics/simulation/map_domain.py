@@ -528,6 +528,14 @@ class ChannelSeeds:
             self._operators = SeedOperators(self.fixed, noise_scale, self.filter_lmax)
         return self._operators
 
+    @property
+    def fixed_templates(self) -> np.ndarray:
+        """(n_det, 3, npix) the fixed pass's templates T_k at the channel's A_2 [K_CMB^2],
+        zero off its good pixels: a seed's templates minus these are its seed part."""
+        a2_k_cmb = float(self.attributes["a2_k_cmb"])
+        terms = self.fixed.template_terms
+        return np.where(self.fixed.good, templates_from_terms(terms, a2_k_cmb), 0.0)
+
     def noise_generator(self, seed: int):
         """rng_of_detector(k) of a seed: detector k's stream ("map-domain noise", channel,
         seed, detector)."""

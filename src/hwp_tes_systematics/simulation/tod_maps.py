@@ -466,9 +466,10 @@ def accumulate(
 def _bin_chunk(target, calibration_target, pixels, angles, filtered, binned, noise):
     """Bin a chunk's filtered TOD stack at ``pixels`` into ``target`` and, when
     ``calibration_target`` is given, the stack's rows after its ``n_binned`` first (the
-    calibration TODs) with the unfiltered ``noise`` TODs (rows, n_det, n) into it. ``binned``: (rows, owners,
-    n_binned), TOD i of ``target`` being row ``rows[i]`` (detector ``owners[i]`` only
-    unless None); ``angles``: (cos 2 alpha, sin 2 alpha, weights, pol_efficiency)."""
+    calibration TODs) with the unfiltered ``noise`` TODs (rows, n_det, n) into it.
+    ``binned``: (rows, owners, n_binned), TOD i of ``target`` being row ``rows[i]``
+    (detector ``owners[i]`` only unless None); ``angles``: (cos 2 alpha, sin 2 alpha,
+    weights, pol_efficiency)."""
     rows, owners, n_binned = binned
     target.add(pixels, *angles, filtered, owners, rows=rows)
     if calibration_target is not None:
