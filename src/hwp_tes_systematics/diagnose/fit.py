@@ -144,7 +144,10 @@ class FitProblem:
         glitch_threshold_sigma: float = GLITCH_THRESHOLD_SIGMA,
         workers: int = 1,
         nominal: Effect | None = None,
+        residual_f: np.ndarray | None = None,
     ):
+        """``residual_f``: the rfft of the residual where(valid, tod - d_nom, 0) if the
+        caller has taken it already (computed from ``tod`` otherwise)."""
         self.ctx = ctx
         self.workers = workers
         if effects is None:
@@ -167,8 +170,10 @@ class FitProblem:
         self.valid = np.asarray(ctx.valid, dtype=bool)
         self.valid_fraction = self.valid.mean(axis=1)
         self.scale = [periodogram_scale(n, fs, v) for v in self.valid_fraction]
-        residual = np.where(self.valid, tod - ctx.d_nom, 0.0)
-        self.residual_f = scipy.fft.rfft(residual, axis=-1, workers=workers)
+        if residual_f is None:
+            residual = np.where(self.valid, tod - ctx.d_nom, 0.0)
+            residual_f = scipy.fft.rfft(residual, axis=-1, workers=workers)
+        self.residual_f = residual_f
 
         # Linear template bank per detector, rows grouped by effect; the nominal
         # adjustments (always fitted, never selected) come first.

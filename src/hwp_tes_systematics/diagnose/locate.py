@@ -547,14 +547,17 @@ def locate(
     noise_models: list[NoiseModel],
     nominal_noise: list[NoiseModel],
     workers: int = 1,
+    residual_f: np.ndarray | None = None,
 ) -> Mismatch:
-    """Run the four searches on the residual (n_det, n); ``noise_models`` from the residual."""
+    """Run the four searches on the residual (n_det, n); ``noise_models`` from the residual;
+    ``residual_f`` its rfft (flagged samples zeroed) if the caller has it."""
     mismatch = Mismatch()
     n = ctx.n_samples
     fs = ctx.sampling_rate_hz
     freqs = scipy.fft.rfftfreq(n, 1.0 / fs)
     residual = np.where(ctx.valid, residual, 0.0)
-    residual_f = scipy.fft.rfft(residual, axis=-1, workers=workers)
+    if residual_f is None:
+        residual_f = scipy.fft.rfft(residual, axis=-1, workers=workers)
     modes = fitted_modes(n)
     lines_mask = line_exclusion_mask(freqs, ctx.f_hwp_hz, ctx.f_spin_hz, max(3 * fs / n, 2e-4))
     sigma_samples = []

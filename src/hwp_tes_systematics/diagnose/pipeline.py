@@ -282,16 +282,17 @@ def diagnose(
     # a noise that rolls off (the detector's pole, :mod:`.rolloff`) is in the noise model from
     # here on: white + 1/f alone would pass it for a ~1 Hz knee and leave excess bands
     modes = fitted_modes(residual.shape[1])
+    residual_f = scipy.fft.rfft(residual, axis=-1, workers=workers)  # locate's and FitProblem's too
     early = fit_rolloff(
         ctx,
-        scipy.fft.rfft(residual, axis=-1, workers=workers),
+        residual_f,
         noise_models,
         modes,
         math.log(2 * modes.sum() * ctx.n_detectors),
     )
     if early.delta_bic < delta_bic_threshold:
         noise_models = adjusted.noise = early.noise
-    mismatch = locate(ctx, residual, noise_models, nominal, workers=workers)
+    mismatch = locate(ctx, residual, noise_models, nominal, workers=workers, residual_f=residual_f)
 
     # The noise was fitted before any effect was removed: a strong effect leaks power
     # beyond the line bins and inflates it. Refit it on the residual of the best fit and,
@@ -300,7 +301,9 @@ def diagnose(
     previous = ()
     history = []
     fluctuation = None
-    problem = FitProblem(ctx, recording.tod, noise_models, workers=workers, nominal=NOMINAL)
+    problem = FitProblem(
+        ctx, recording.tod, noise_models, workers=workers, nominal=NOMINAL, residual_f=residual_f
+    )
     for attempt in range(2):
         if attempt:  # same templates and residual, new noise weights
             problem = problem.with_noise(noise_models)

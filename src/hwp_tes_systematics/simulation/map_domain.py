@@ -328,6 +328,7 @@ def fixed_passes(
             reference,
             carries_systematics,
             min(measure_lmax, band),
+            calibration.kinds,
         )
         log.info("fixed pass variant nside %d, baselines %s: solved", nside, baseline)
     return results
@@ -342,10 +343,12 @@ def _solve_fixed_pass(
     transfer_input,
     carries_systematics: bool,
     measure_lmax: int,
+    kinds: int,
 ) -> FixedMaps:
     """FixedMaps of one map-maker's accumulated equations: the maps solved, T_ell and
-    S_ell measured up to ``measure_lmax`` against the reference CMB ``transfer_input``
-    at the map-maker's resolution."""
+    S_ell (and S^h_ell) measured up to ``measure_lmax`` against the reference CMB
+    ``transfer_input`` at the map-maker's resolution; ``kinds``: the noise TODs per
+    realization (:attr:`tod_maps.Calibration.kinds`: n, and h n with systematics)."""
     maps, condition, good = solve_maps(equations, settings.max_condition_number)
     solved = split_solved_maps(
         maps, simulator.n_detectors, settings.a2_k_cmb, template_terms=carries_systematics
@@ -356,7 +359,6 @@ def _solve_fixed_pass(
     )
     transfer_output, *noise_maps = calibration_maps
     # per realization n and, with systematics, h n (``kinds``); all filtered, then unfiltered
-    kinds = 2 if carries_systematics else 1
     filtered, unfiltered = np.split(np.asarray(noise_maps), 2)
     shapings = [
         measure_noise_shaping(
@@ -370,7 +372,7 @@ def _solve_fixed_pass(
         foreground_reference=foreground_reference,
         transfer=measure_transfer(transfer_output, transfer_input, calibrated, measure_lmax),
         noise_shaping=shapings[0],
-        noise_h_shaping=shapings[1] if carries_systematics else np.zeros(0),
+        noise_h_shaping=shapings[1] if kinds == 2 else np.zeros(0),
         matrix=equations.matrix,
         moments=moments.values if carries_systematics else np.zeros(0),
         hits=equations.hits,
