@@ -5,10 +5,14 @@
         --disk-gb 50 --scale-seeds 100
 
 Reads the run folder's Snakemake log (the latest, or ``--log``; every job's start and end,
-one-second resolution, as benchmarks/timeline.py), the rules' benchmark files
-(``results/benchmarks/``: peak resident memory per job) and the size of ``results/``.
-Prints, as Markdown: per rule the jobs, their summed and longest wall time and their
-peak memory; the run's wall time, core-hours and disk; each target met or missed.
+one-second resolution, as benchmarks/timeline.py; a run resumed after a stop gives the log
+of each part, and its wall time is their sum), the rules' benchmark files
+(``results/benchmarks/``: peak resident memory and CPU time per job) and the size of
+``results/``. Prints, as Markdown: per rule the jobs, their summed wall time and CPU
+time, the longest job and the peak memory; the run's wall time, core-hours, CPU hours
+and disk; each target met or missed. On cores shared with other work the wall time
+overstates the run's cost: the CPU time over the cores is then the measure (a lower
+bound of an idle machine's wall time: perfect packing).
 ``--scale-seeds N``: the same grid with N seeds instead of the run's, per rule: the jobs
 of a per-seed rule (component_separation, residual_spectra, likelihood) times N / seeds,
 the per-channel seed jobs (map_domain_alms, pair_maps) likewise (their shared operators
@@ -29,15 +33,17 @@ SEED_SCALED = {"component_separation", "residual_spectra", "likelihood", "map_do
 SEED_SCALED |= {"pair_maps"}
 
 
-def peak_memory_gb(run: Path) -> dict[str, float]:
-    """{rule: largest max_rss over its jobs [GB]} from results/benchmarks."""
-    peaks = {}
+def benchmark_figures(run: Path) -> tuple[dict[str, float], dict[str, float]]:
+    """({rule: largest max_rss over its jobs [GB]}, {rule: summed cpu_time [h]}) from
+    results/benchmarks (a job's file holds one row per run of it: the last is kept)."""
+    peaks, cpu_h = {}, collections.defaultdict(float)
     root = run / "results" / "benchmarks"
     for path in root.rglob("*.tsv"):
         rule = path.parent.name if path.parent != root else path.stem
-        rss_mb = float(pd.read_csv(path, sep="\t")["max_rss"].max())
-        peaks[rule] = max(peaks.get(rule, 0.0), rss_mb / 1024)
-    return peaks
+        last = pd.read_csv(path, sep="\t").iloc[-1]
+        peaks[rule] = max(peaks.get(rule, 0.0), float(last["max_rss"]) / 1024)
+        cpu_h[rule] += float(last["cpu_time"]) / 3600
+    return peaks, dict(cpu_h)
 
 
 def disk_gb(folder: Path) -> float:
@@ -48,7 +54,9 @@ def disk_gb(folder: Path) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run", type=Path, help="the run's folder (holding results/, .snakemake/)")
-    parser.add_argument("--log", type=Path, help="Snakemake log (default: the latest)")
+    parser.add_argument(
+        "--log", type=Path, nargs="+", help="Snakemake log(s), one per part (default: the latest)"
+    )
     parser.add_argument("--cores", type=int, default=2)
     parser.add_argument("--wall-hours", type=float, help="target: wall time of the run")
     parser.add_argument("--job-memory-gb", type=float, help="target: peak memory of any job")
@@ -56,17 +64,19 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, help="the run's seeds (default: from the jobs)")
     parser.add_argument("--scale-seeds", type=int, help="project the grid to this many seeds")
     arguments = parser.parse_args()
-    log = arguments.log or max((arguments.run / ".snakemake" / "log").glob("*.snakemake.log"))
-    jobs = parse_jobs(log)
-    wall_s = max(job["end"] for job in jobs)
+    logs = arguments.log or [max((arguments.run / ".snakemake" / "log").glob("*.snakemake.log"))]
+    parts = [parse_jobs(log) for log in logs]
+    jobs = [job for part in parts for job in part]
+    wall_s = sum(max(job["end"] for job in part) for part in parts)
     per_rule = collections.defaultdict(list)
     for job in jobs:
         per_rule[job["rule"]].append((job["end"] - job["start"], job["threads"]))
-    peaks = peak_memory_gb(arguments.run)
+    peaks, cpu_h = benchmark_figures(arguments.run)
     seeds = arguments.seeds or len(per_rule.get("component_separation", [])) or 1
-    print(f"run {arguments.run} (log {log.name}), {len(jobs)} jobs, {seeds} seeds")
-    print("| rule | jobs | core-hours | longest job [min] | peak memory [GB] |")
-    print("|---|---|---|---|---|")
+    names = ", ".join(log.name for log in logs)
+    print(f"run {arguments.run} (log {names}), {len(jobs)} jobs, {seeds} seeds")
+    print("| rule | jobs | core-hours | CPU hours | longest job [min] | peak memory [GB] |")
+    print("|---|---|---|---|---|---|")
     total_core_h = 0.0
     scaled_core_h = 0.0
     scale = (arguments.scale_seeds or seeds) / seeds
@@ -75,14 +85,19 @@ def main() -> None:
         total_core_h += core_h
         scaled_core_h += core_h * (scale if rule in SEED_SCALED else 1.0)
         peak = f"{peaks[rule]:.1f}" if rule in peaks else "-"
+        cpu = f"{cpu_h[rule]:.2f}" if rule in cpu_h else "-"
         longest_min = max(wall for wall, _ in times) / 60
-        print(f"| {rule} | {len(times)} | {core_h:.2f} | {longest_min:.1f} | {peak} |")
+        print(f"| {rule} | {len(times)} | {core_h:.2f} | {cpu} | {longest_min:.1f} | {peak} |")
     size_gb = disk_gb(arguments.run / "results")
     peak_gb = max(peaks.values(), default=float("nan"))
+    total_cpu_h = sum(cpu_h.values())
     print(
-        f"wall time {wall_s / 3600:.2f} h on {arguments.cores} cores; {total_core_h:.2f} "
-        f"core-hours (utilisation {total_core_h * 3600 / (wall_s * arguments.cores):.0%}); "
-        f"peak job memory {peak_gb:.1f} GB; results/ {size_gb:.1f} GB"
+        f"wall time {wall_s / 3600:.2f} h on {arguments.cores} cores ({len(parts)} part(s)); "
+        f"{total_core_h:.2f} core-hours (utilisation "
+        f"{total_core_h * 3600 / (wall_s * arguments.cores):.0%}); {total_cpu_h:.2f} CPU hours "
+        f"(jobs with a benchmark file), {total_cpu_h / arguments.cores:.2f} h on "
+        f"{arguments.cores} idle cores at best; peak job memory {peak_gb:.1f} GB; "
+        f"results/ {size_gb:.1f} GB"
     )
     for name, value, target in (
         ("wall time [h]", wall_s / 3600, arguments.wall_hours),

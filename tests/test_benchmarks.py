@@ -87,19 +87,32 @@ def test_run_cost_sums_rules_and_checks_targets(benchmarks, tmp_path, monkeypatc
     (tmp_path / ".snakemake" / "log" / "run.snakemake.log").write_text(LOG)
     bench = tmp_path / "results" / "benchmarks" / "pair_maps"
     bench.mkdir(parents=True)
-    (bench / "M1-140_seed0.tsv").write_text("s\tmax_rss\n10\t2048\n")
-    (bench / "M1-140_seed1.tsv").write_text("s\tmax_rss\n20\t3072\n")
+    (bench / "M1-140_seed0.tsv").write_text("s\tmax_rss\tcpu_time\n10\t2048\t9\n")
+    # a job run twice (resumed): its last row counts
+    (bench / "M1-140_seed1.tsv").write_text("s\tmax_rss\tcpu_time\n5\t9000\t4\n20\t3072\t18\n")
     (tmp_path / "results" / "payload.bin").write_bytes(b"0" * 1000)
     arguments = [str(tmp_path), "--wall-hours", "0.001", "--job-memory-gb", "2.5"]
     monkeypatch.setattr(sys, "argv", ["run_cost.py", *arguments, "--scale-seeds", "10"])
     run_cost.main()
     out = capsys.readouterr().out
-    assert "| pair_maps | 2 | 0.01 | 0.3 | 3.0 |" in out  # 30 s, longest 20 s, 3072 MB
-    assert "| component_separation | 1 | 0.01 | 0.2 | - |" in out  # 10 s on 2 threads
+    # 30 s, 27 CPU seconds, longest 20 s, 3072 MB
+    assert "| pair_maps | 2 | 0.01 | 0.01 | 0.3 | 3.0 |" in out
+    assert "| component_separation | 1 | 0.01 | - | 0.2 | - |" in out  # 10 s on 2 threads
     assert "target wall time [h] <= 0.001: 0.01 (MISSED)" in out
     assert "target peak job memory [GB] <= 2.5: 3.00 (MISSED)" in out
     # one component_separation job: one seed; x 10 seeds for both rules' 50 core-seconds
     assert "with 10 seeds: ~0.1 core-hours" in out
+    # a run resumed after a stop: the wall time is the sum of its parts' (20 s each)
+    second = tmp_path / "part2.snakemake.log"
+    second.write_text(LOG)
+    first = tmp_path / ".snakemake" / "log" / "run.snakemake.log"
+    monkeypatch.setattr(
+        sys, "argv", ["run_cost.py", str(tmp_path), "--log", str(first), str(second)]
+    )
+    run_cost.main()
+    out = capsys.readouterr().out
+    assert "wall time 0.01 h on 2 cores (2 part(s))" in out
+    assert "| pair_maps | 4 | 0.02 | 0.01 |" in out
 
 
 def test_resolution_study_crossing_numbers(benchmarks, tmp_path):
