@@ -23,6 +23,7 @@ from hwp_tes_systematics.config import (
     selected_channels,
 )
 from hwp_tes_systematics.analysis.systematics import case_names
+from hwp_tes_systematics.simulation.map_domain import noise_shaping_siblings
 
 check_config(config, source="Snakemake config")
 

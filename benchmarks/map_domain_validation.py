@@ -75,7 +75,7 @@ def seed_maps(folder: Path, config: dict | None, seeds: int | None = None):
     fixed_h5 = folder / f"fixed_pass_{analysis_variant(config)}.h5"
     if not fixed_h5.exists():
         return []
-    channel_seeds = ChannelSeeds(config, fixed_h5)
+    channel_seeds = ChannelSeeds.from_run(config, fixed_h5)
     return [channel_seeds.maps(seed) for seed in range(config["simulation"]["seeds"])]
 
 
@@ -123,7 +123,7 @@ def channel_biases(tod_run: Path, md_run: Path, config: dict, model: BBModel) ->
         fixed_h5 = folder / f"fixed_pass_{analysis_variant(config)}.h5"
         if not fixed_h5.exists():
             continue
-        channel_seeds = ChannelSeeds(config, fixed_h5)
+        channel_seeds = ChannelSeeds.from_run(config, fixed_h5)
         fixed, fixed_templates = channel_seeds.fixed, channel_seeds.fixed_templates
         fwhm = channel_seeds.fwhm_arcmin
         seeds = config["simulation"]["seeds"]
@@ -150,7 +150,7 @@ def seed_part_pieces(tod_run: Path, md_run: Path, config: dict, model: BBModel) 
         fixed_h5 = md_run / "results" / "maps" / name / f"fixed_pass_{analysis_variant(config)}.h5"
         if not fixed_h5.exists():
             continue
-        channel_seeds = ChannelSeeds(config, fixed_h5)
+        channel_seeds = ChannelSeeds.from_run(config, fixed_h5)
         good = channel_seeds.fixed.good
         pixels = np.flatnonzero(good)
         a2 = float(channel_seeds.attributes["a2_k_cmb"])

@@ -116,7 +116,7 @@ def with_requirements(table: pd.DataFrame, out: Path) -> pd.DataFrame:
 
 def template_bands(config: dict, fixed_h5: Path, seeds: int) -> list[float]:
     """Mean over seeds of detector 0's total template BB [K_CMB^2 K^2] per BANDS."""
-    channel_seeds = ChannelSeeds(config, fixed_h5)
+    channel_seeds = ChannelSeeds.from_run(config, fixed_h5)
     good = channel_seeds.fixed.good
     lmax = BANDS[-1][1]
     spectra = []

@@ -28,7 +28,7 @@ from hwp_tes_systematics.simulation.map_domain import ChannelSeeds
 def seed_part_share(fixed_h5: Path, config: dict, model, seeds: int) -> dict:
     """{"fixed", "seed_part", "whole": k_c [1/K^2], "share": seed part / whole} of a channel."""
     lmax = int(model.ell.max())
-    channel_seeds = ChannelSeeds(config, fixed_h5)
+    channel_seeds = ChannelSeeds.from_run(config, fixed_h5)
     good, fixed = channel_seeds.fixed.good, channel_seeds.fixed_templates
 
     def k_c(templates):

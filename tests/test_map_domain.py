@@ -397,3 +397,55 @@ def test_fixed_pass_measures_the_filter_to_the_band_it_is_applied_to(setup):
     np.testing.assert_array_equal(limited.nosys, fixed.nosys)
     with pytest.raises(ValueError, match="measure_lmax"):
         m1_140_fixed_pass(inputs, measure_lmax=LMAX + 1)
+
+
+def _shaping_file(path, shaping, h_shaping, realizations=None):
+    """A fixed pass file holding only what pooled_noise_shaping reads."""
+    import h5py
+
+    with h5py.File(path, "w") as out:
+        out.create_dataset("noise_shaping", data=shaping)
+        out.create_dataset("noise_h_shaping", data=h_shaping)
+        if realizations is not None:
+            out.attrs["noise_reference_realizations"] = realizations
+    return path
+
+
+def test_pooled_noise_shaping_averages_the_squares_by_realizations(tmp_path):
+    """S_pool^2 = sum_c K_c S_c^2 / sum_c K_c; S^h from the files with systematics only;
+    a file measured to another ell is refused, naming it."""
+    one = np.full((3, 9), 0.3)
+    three = np.full((3, 9), 0.5)
+    files = [
+        _shaping_file(tmp_path / "a.h5", one, one, realizations=1),
+        _shaping_file(tmp_path / "b.h5", three, three, realizations=3),
+        _shaping_file(tmp_path / "c.h5", three, np.zeros(0)),  # no systematics, K = 1
+    ]
+    shaping, h_shaping = map_domain.pooled_noise_shaping(files)
+    np.testing.assert_allclose(shaping, np.sqrt((0.09 + 3 * 0.25 + 0.25) / 5))
+    np.testing.assert_allclose(h_shaping, np.sqrt((0.09 + 3 * 0.25) / 4))
+    shaping, h_shaping = map_domain.pooled_noise_shaping(files[2:])
+    np.testing.assert_allclose(shaping, three)
+    assert h_shaping.size == 0
+    short = _shaping_file(tmp_path / "short.h5", np.ones((3, 5)), np.ones((3, 5)))
+    with pytest.raises(ValueError, match="short.h5"):
+        map_domain.pooled_noise_shaping([files[0], short])
+
+
+def test_noise_shaping_pooled_over_a_telescopes_channels():
+    """One year's 22 channels: a channel pools with those of its telescope that share the
+    sampling rate and systematics (the PTEP model gives every channel of a telescope the
+    same noise shape); "channel" pools nothing."""
+    from hwp_tes_systematics.config import default_config_path, load_config
+
+    config = load_config(default_config_path(), "config/one_year.yaml")
+    siblings = map_domain.noise_shaping_siblings
+    assert siblings(config, "M1-140") == ["M1-100", "M2-119", "M1-140", "M2-166", "M1-195"]
+    assert siblings(config, "H3-402") == ["H1-195", "H2-235", "H1-280", "H2-337", "H3-402"]
+    lft = siblings(config, "L1-040")
+    assert len(lft) == 12 and all(name.startswith("L") for name in lft)
+    config["instrument"]["systematics_channels"] = ["M1-140"]
+    assert siblings(config, "M1-140") == ["M1-140"]
+    assert "M1-140" not in siblings(config, "M1-100")
+    config["simulation"]["noise_shaping_pooling"] = "channel"
+    assert siblings(config, "M1-100") == ["M1-100"]

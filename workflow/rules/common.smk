@@ -39,6 +39,8 @@ def pass_config():
         "fixed_pass_nsides": fixed_pass_nsides(config),
         "fixed_pass_baseline_lengths_s": fixed_pass_baselines(config),
     }
+    # the seeds' choice, not the pass's: changing it reruns no fixed pass
+    del passed["simulation"]["noise_shaping_pooling"]
     return passed
 
 
@@ -50,6 +52,15 @@ ANALYSIS_VARIANT = analysis_variant(config)
 def analysis_fixed_pass(channel="{channel}"):
     """The fixed pass file the analysis reads (of ``channel``, or its wildcard)."""
     return paths.FIXED_PASS.format(channel=channel, variant=ANALYSIS_VARIANT)
+
+
+def noise_shaping_files(wildcards):
+    """The analysis fixed pass files whose noise shaping a channel's seeds pool
+    (map_domain.noise_shaping_siblings: its own alone, or its telescope's)."""
+    return [
+        analysis_fixed_pass(name)
+        for name in noise_shaping_siblings(config, wildcards.channel)
+    ]
 
 
 def shared_moments_file(channel="{channel}"):

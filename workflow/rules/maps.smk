@@ -68,11 +68,13 @@ else:
         and white noise added in the map domain (module map_domain), its maps reduced in
         memory to the a_lm the HILC combines (never written: ~0.8 GB per channel and seed
         at nside 512); one job per channel, as the seeds share the fixed pass's operators.
-        Wildcards: channel."""
+        The noise shaping pooled over the fixed passes of the channels that share it
+        (simulation.noise_shaping_pooling). Wildcards: channel."""
         input:
             fixed=analysis_fixed_pass(),
             shared_moments=shared_moments_file(),
             mask=paths.ANALYSIS_MASK,
+            pooled=noise_shaping_files,
         output:
             alms=expand(paths.CHANNEL_ALMS, seed=SEEDS, allow_missing=True),
         log:

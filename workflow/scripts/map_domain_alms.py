@@ -11,4 +11,5 @@ map_domain_maps.run_seeds(
     fixed_h5=snakemake.input.fixed,
     mask_h5=snakemake.input.mask,
     out_h5s=snakemake.output.alms,
+    pooled_h5s=list(snakemake.input.pooled),
 )

@@ -68,6 +68,7 @@ from .tod_maps import (
     Calibration,
     ExtraBinning,
     accumulate,
+    simulated_rate_hz,
     split_solved_maps,
     templates_from_terms,
 )
@@ -505,11 +506,21 @@ class ChannelSeeds:
     foreground_reference, attrs), each seed's CMB the draw of
     :func:`band_limited_seed_cmb` and its noise the stream ("map-domain noise", channel,
     seed, detector); the filter's action applied up to ``simulation.filter_lmax`` (at
-    most the map's band 3 nside - 1). The operators are computed once, on the first seed."""
+    most the map's band 3 nside - 1). The operators are computed once, on the first seed.
+    ``pooled_h5s``: the fixed passes whose noise shaping is pooled with this one's
+    (:func:`noise_shaping_siblings`; this channel's file among them): the seeds then use
+    :func:`pooled_noise_shaping` of them."""
 
-    def __init__(self, config: dict, fixed_h5):
+    def __init__(self, config: dict, fixed_h5, pooled_h5s=()):
         self.config = config
         self.fixed, self.attributes = read_fixed_maps(fixed_h5)
+        if len(pooled_h5s) > 1:
+            shaping, h_shaping = pooled_noise_shaping(pooled_h5s)
+            if not self.fixed.carries_systematics:
+                h_shaping = self.fixed.noise_h_shaping
+            self.fixed = dataclasses.replace(
+                self.fixed, noise_shaping=shaping, noise_h_shaping=h_shaping
+            )
         self.name = str(self.attributes["channel"])
         self.fwhm_arcmin = cfg.channel(config, self.name).fwhm_arcmin
         self.lmax = 3 * int(self.attributes["nside"]) - 1
@@ -521,6 +532,22 @@ class ChannelSeeds:
                 f"simulation.filter_lmax asks for {self.filter_lmax}: rerun its fixed_pass rule"
             )
         self._operators = None
+
+    @classmethod
+    def from_run(cls, config: dict, fixed_h5) -> ChannelSeeds:
+        """As the workflow makes them: the noise shaping pooled over the fixed passes of
+        :func:`noise_shaping_siblings` in the same run folder (``<maps>/<channel>/<the
+        same file name>``; those not made are left out, with a warning)."""
+        fixed_h5 = Path(fixed_h5)
+        name = read_fixed_attribute(fixed_h5, "channel")
+        pooled = []
+        for sibling in noise_shaping_siblings(config, name):
+            path = fixed_h5.parent.parent / sibling / fixed_h5.name
+            if path.exists():
+                pooled.append(path)
+            else:
+                log.warning("%s: no fixed pass %s to pool its noise shaping with", name, path)
+        return cls(config, fixed_h5, pooled)
 
     @property
     def operators(self) -> SeedOperators:
@@ -567,6 +594,74 @@ class ChannelSeeds:
         return maps
 
 
+def noise_shaping_key(config: dict, channel_name: str) -> tuple:
+    """What a channel's noise shaping S_ell, S^h_ell depends on besides the realizations
+    drawn: the filter (its HWP frequency: the notch sits at 4 f_HWP), the sampling rate,
+    the noise spectrum's shape (f_knee, f_min, alpha; not its level: S is a ratio) and
+    whether h n is measured (systematics). The map-maker, the duration and the notch are
+    the run's. Channels with equal keys (a telescope's, in the PTEP model) differ only by
+    their focal-plane position: their S agree within the realizations' scatter
+    (docs/physics/map_domain.md)."""
+    channel = cfg.channel(config, channel_name)
+    return (
+        channel.hwp_rpm,
+        simulated_rate_hz(config, channel),
+        channel.fknee_mhz,
+        channel.fmin_hz,
+        channel.alpha,
+        channel_name in config["instrument"]["systematics_channels"],
+    )
+
+
+def noise_shaping_siblings(config: dict, channel_name: str) -> list[str]:
+    """The channels of the run whose measured noise shaping is pooled with
+    ``channel_name``'s (itself included, in the run's order): those with its
+    :func:`noise_shaping_key` when ``simulation.noise_shaping_pooling`` is "telescope",
+    itself alone when it is "channel"."""
+    if config["simulation"]["noise_shaping_pooling"] == "channel":
+        return [channel_name]
+    key = noise_shaping_key(config, channel_name)
+    return [
+        name
+        for name in cfg.selected_channels(config)
+        if name == channel_name or noise_shaping_key(config, name) == key
+    ]
+
+
+def pooled_noise_shaping(fixed_h5s) -> tuple[np.ndarray, np.ndarray]:
+    """(S_ell, S^h_ell) pooled over fixed passes whose shaping is the same by construction
+    (:func:`noise_shaping_siblings`): S = sqrt(sum_c K_c S_c^2 / sum_c K_c), K_c the
+    noise reference realizations of file c (its ``noise_reference_realizations``
+    attribute, 1 if absent). Each S_c^2 is a ratio of pseudo-spectra summed over its
+    realizations, so the pooled one averages sum_c K_c of them: its scatter at low ell
+    (a realization's S^2 differs by 30 % to 3x at ell 2-11) falls as 1 / sqrt(sum K_c).
+    S^h pools the files that carry systematics; (0,) if none does."""
+    if not fixed_h5s:
+        raise ValueError("pooled_noise_shaping: no fixed pass files given")
+    sums = {"noise_shaping": [0.0, 0.0], "noise_h_shaping": [0.0, 0.0]}
+    shape = None
+    for path in fixed_h5s:
+        with h5py.File(path) as stored:
+            weight = float(stored.attrs.get("noise_reference_realizations", 1))
+            for name, total in sums.items():
+                if name not in stored or stored[name].size == 0:
+                    continue
+                values = stored[name][()]
+                shape = shape or values.shape
+                if values.shape != shape:
+                    raise ValueError(
+                        f"{path}: {name} of shape {values.shape}, the other pooled fixed "
+                        f"passes' {shape} (measured to another ell): rerun its fixed_pass rule"
+                    )
+                total[0] += weight * values**2
+                total[1] += weight
+    pooled = [
+        np.sqrt(total / weight) if weight else np.zeros(0)
+        for total, weight in (sums["noise_shaping"], sums["noise_h_shaping"])
+    ]
+    return pooled[0], pooled[1]
+
+
 def write_fixed_maps(path, fixed: FixedMaps, attributes: dict, moments_in=None) -> None:
     """The fixed pass of one channel as HDF5 (datasets named as FixedMaps' fields). A
     channel without systematics stores no template terms (all zero) and no moments;
@@ -590,6 +685,13 @@ def read_fixed_field(path, name: str) -> np.ndarray:
     """One dataset of a fixed pass file (e.g. ``good``), without reading the rest."""
     with h5py.File(path) as stored:
         return stored[name][()]
+
+
+def read_fixed_attribute(path, name: str):
+    """One attribute of a fixed pass file (e.g. ``channel``)."""
+    with h5py.File(path) as stored:
+        value = stored.attrs[name]
+    return value.decode() if isinstance(value, bytes) else value
 
 
 def moments_file(path) -> Path | None:

@@ -86,6 +86,9 @@ def run_fixed_pass(
         attributes = maps_attributes(variant_settings, simulator, fixed.good.mean())
         attributes["foreground_source"] = source
         attributes["scan_nside"] = scan_nside
+        attributes["noise_reference_realizations"] = config["simulation"][
+            "noise_reference_realizations"
+        ]
         del attributes["seed"]
         out_h5 = out_h5s[cfg.map_variant(nside, baseline)]
         holder = Path(out_h5s[cfg.moments_variant(config, nside)]).name
@@ -116,14 +119,20 @@ def run_mask(config: dict, fixed_h5s: list[str], out_h5: str) -> None:
     )
 
 
-def run_seeds(config: dict, channel_name: str, seeds, fixed_h5: str, mask_h5: str, out_h5s) -> None:
+def run_seeds(
+    config: dict, channel_name: str, seeds, fixed_h5: str, mask_h5: str, out_h5s, pooled_h5s=()
+) -> None:
     """Write each seed's a_lm of one channel (:class:`ilc_residuals.ChannelAlms`) from the
     channel's fixed pass: the seed's maps are made in memory
     (:class:`map_domain.ChannelSeeds`) and reduced to the a_lm the HILC combines, so no
     seed's maps reach the disk (at nside 512 they would take ~0.8 GB per channel and
-    seed). One job per channel: the seeds share the fixed pass's operators."""
+    seed). One job per channel: the seeds share the fixed pass's operators.
+    ``pooled_h5s``: the fixed passes whose noise shaping is pooled with this channel's
+    (:func:`map_domain.noise_shaping_siblings`)."""
     started = time.perf_counter()
-    channel_seeds = map_domain.ChannelSeeds(config, fixed_h5)
+    channel_seeds = map_domain.ChannelSeeds(config, fixed_h5, pooled_h5s)
+    if len(pooled_h5s) > 1:
+        log.info("%s: noise shaping pooled over %d fixed passes", channel_name, len(pooled_h5s))
     mask = ilc_residuals.read_mask(mask_h5)
     if mask.size != channel_seeds.fixed.good.size:
         raise ValueError(
