@@ -39,7 +39,8 @@ def remove_hwp_harmonics(
 ):
     """d - P d: subtract the least-squares fit of the HWP harmonics (and with ``offset`` a
     constant) from each row of ``tod`` (any shape (..., n_samples); the fit is per row).
-    ``overwrite`` reuses ``tod``'s memory (a C-contiguous float64 array) for the result."""
+    ``overwrite`` reuses ``tod``'s memory (a C-contiguous float64 or float32 array, its
+    dtype kept) for the result."""
     if len(harmonics) == 0 and not offset:
         return tod
     templates = harmonic_templates(hwp_angle_rad, harmonics, offset)  # D^T

@@ -69,12 +69,15 @@ def apply_notch(
 def apply_transfer(tod: np.ndarray, transfer_on_grid, workers: int = 1) -> np.ndarray:
     """irfft(T(f) rfft(tod)) along the last axis, zero-padded to a fast FFT length
     (ducc0's FFT, ``workers`` threads; all rows in one call). ``transfer_on_grid(n_fft)``
-    gives T at the rfft frequencies k f_s / n_fft, k = 0 .. n_fft // 2."""
-    tod = np.asarray(tod, dtype=np.float64)
+    gives T at the rfft frequencies k f_s / n_fft, k = 0 .. n_fft // 2. A float32 TOD is
+    filtered in single precision (half the time), any other in float64."""
+    tod = np.asarray(tod)
+    if tod.dtype != np.float32:
+        tod = np.asarray(tod, dtype=np.float64)
     n_samples = tod.shape[-1]
     n_fft = ducc0.fft.good_size(n_samples, True)
     if n_fft != n_samples:
-        padded = np.zeros((*tod.shape[:-1], n_fft))
+        padded = np.zeros((*tod.shape[:-1], n_fft), dtype=tod.dtype)
         padded[..., :n_samples] = tod
         tod = padded
     axis = (tod.ndim - 1,)
