@@ -112,22 +112,27 @@ class ChannelAlms:
         data: dict,
         mask: np.ndarray,
         harmonic: HarmonicSettings,
+        known: dict[str, np.ndarray] | None = None,
     ) -> ChannelAlms:
         """From a channel's maps (:func:`maps_file.read_channel_maps` layout: nosys,
-        template_terms, cmb_reference, foreground_reference, attrs)."""
+        template_terms, cmb_reference, foreground_reference, attrs; and cmb_input, the
+        seed's unfiltered CMB map, if the maps were made in memory: otherwise drawn again).
+        ``known``: a_lm already computed for this channel's maps (e.g. the
+        foreground_reference, the same for every seed of a fixed pass), used as given."""
         fwhm = cfg.channel(config, name).fwhm_arcmin
         detectors = [str(d) for d in data["attrs"]["detectors"]]
         a2_k = float(data["attrs"]["a2_k_cmb"])
         draws = _unit_draws(config, name, seed, detectors)
         unseen = data["nosys"] == hp.UNSEEN
-        alms = {"nosys": harmonic.alm(data["nosys"], fwhm, mask)}
+        alms = dict(known or {})
+        alms["nosys"] = harmonic.alm(data["nosys"], fwhm, mask)
         for kind in ("cmb_reference", "foreground_reference"):
-            alms[kind] = harmonic.alm(np.where(unseen, hp.UNSEEN, data[kind]), fwhm, mask)
-        alms["cmb_input"] = harmonic.alm(
-            np.where(unseen, hp.UNSEEN, _input_cmb_map(config, seed, fwhm, unseen.shape[-1])),
-            fwhm,
-            mask,
-        )
+            if kind not in alms:
+                alms[kind] = harmonic.alm(np.where(unseen, hp.UNSEEN, data[kind]), fwhm, mask)
+        cmb_input = data.get("cmb_input")
+        if cmb_input is None:
+            cmb_input = _input_cmb_map(config, seed, fwhm, unseen.shape[-1])
+        alms["cmb_input"] = harmonic.alm(np.where(unseen, hp.UNSEEN, cmb_input), fwhm, mask)
         if np.any(draws):
             seen = ~unseen[0]
             for kind, coefficient in zip(TERM_KINDS, (1.0, 2.0 * a2_k, a2_k**2), strict=True):

@@ -464,7 +464,8 @@ def realize_seed(
 ) -> dict[str, np.ndarray]:
     """The maps of one seed from the fixed pass (see the module docstring): nosys,
     template_terms, templates, cmb_reference, foreground_reference (UNSEEN where the
-    fixed pass is not good), as :func:`tod_maps.split_solved_maps` names them.
+    fixed pass is not good), as :func:`tod_maps.split_solved_maps` names them, and
+    cmb_input, the seed's CMB map before the filter (the map of ``cmb_alm``, everywhere).
     ``operators``: the :class:`SeedOperators` of (fixed, noise_scale), shared by the seeds
     of a channel (built here, filtering up to ``lmax``, if None)."""
     nside = hp.npix2nside(fixed.good.size)
@@ -497,6 +498,7 @@ def realize_seed(
         "templates": templates,
         "cmb_reference": np.where(good, cmb_filtered, hp.UNSEEN),
         "foreground_reference": fixed.foreground_reference,
+        "cmb_input": cmb,
     }
 
 

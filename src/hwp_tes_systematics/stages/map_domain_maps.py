@@ -140,9 +140,13 @@ def run_seeds(
             f"{channel_seeds.fixed.good.size}"
         )
     harmonic = ilc_residuals.HarmonicSettings.from_config(config)
+    known = {}  # the foreground reference is the fixed pass's: its a_lm are every seed's
     for seed, out_h5 in zip(seeds, out_h5s, strict=True):
         maps = channel_seeds.maps(seed)
-        alms = ilc_residuals.ChannelAlms.from_maps(config, seed, channel_name, maps, mask, harmonic)
+        alms = ilc_residuals.ChannelAlms.from_maps(
+            config, seed, channel_name, maps, mask, harmonic, known
+        )
+        known = {"foreground_reference": alms.alms["foreground_reference"]}
         ilc_residuals.write_channel_alms(
             out_h5, alms, ilc_residuals.alms_attributes(seed, harmonic, mask)
         )
