@@ -59,6 +59,8 @@ from collections.abc import Sequence
 import healpy as hp
 import numpy as np
 
+from ..sky import harmonics
+
 log = logging.getLogger(__name__)
 
 N_STOKES = 3  # T, E, B
@@ -181,9 +183,9 @@ def maps_to_alm(
     """T, E, B a_lm (3, nalm) of mask x (I, Q, U) maps (3, npix) [K_CMB], RING.
 
     UNSEEN (and non-finite) pixels are set to 0 and the maps multiplied by ``mask``
-    (weights in [0, 1], e.g. :func:`spectra.apodized_mask`); then ``hp.map2alm(pol=True,
-    iter=iter, use_weights=False, use_pixel_weights=False)`` (pixel and ring weights
-    would need a download). ValueError if the mask is non-zero on an UNSEEN pixel (the
+    (weights in [0, 1], e.g. :func:`spectra.apodized_mask`); then healpy's
+    ``map2alm(pol=True, iter=iter, use_weights=False, use_pixel_weights=False)``, computed
+    by :func:`sky.harmonics.map2alm` (pixel and ring weights would need a download). ValueError if the mask is non-zero on an UNSEEN pixel (the
     data would be silently zero there: build the mask with :func:`spectra.common_mask`).
     """
     maps = np.array(maps, dtype=float)
@@ -202,15 +204,7 @@ def maps_to_alm(
         )
     maps[:, bad] = 0.0
     maps *= mask
-    return hp.map2alm(
-        maps,
-        lmax=int(lmax),
-        mmax=int(lmax),
-        pol=True,
-        iter=int(iter),
-        use_weights=False,
-        use_pixel_weights=False,
-    )
+    return harmonics.map2alm(maps, int(lmax), iter=int(iter))
 
 
 def channel_alms(

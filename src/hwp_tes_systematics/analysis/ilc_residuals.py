@@ -37,6 +37,7 @@ from .. import config as cfg
 from ..io import atomic_path
 from ..simulation import map_domain
 from ..simulation.maps_file import read_channel_maps
+from ..sky import harmonics
 from . import hilc, spectra
 from .systematics import unit_g1_draws
 
@@ -164,7 +165,7 @@ def _input_cmb_map(config: dict, seed: int, fwhm_arcmin: float, npix: int) -> np
     alm, band = map_domain.band_limited_seed_cmb(
         3 * nside - 1, config["simulation"]["cmb_r"], config["master_seed"], seed, fwhm_arcmin
     )
-    return hp.alm2map(alm, nside, lmax=band, pixwin=False)
+    return harmonics.alm2map(alm, nside, band)
 
 
 def write_channel_alms(path, channel: ChannelAlms, attributes: dict) -> None:

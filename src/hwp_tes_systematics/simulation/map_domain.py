@@ -62,6 +62,7 @@ from .. import config as cfg
 from .. import seeding
 from ..io import atomic_path
 from ..sky import cmb as sky_cmb
+from ..sky import harmonics
 from .mapmaking import PixelMoments, solve_maps, symmetric_matrices
 from .tod_maps import (
     TEMPLATE_TERMS,
@@ -172,9 +173,9 @@ def shaped_noise_map(noise_iqu: np.ndarray, shaping: np.ndarray, good: np.ndarra
     on a correction that is itself (shaping - 1) of the noise)."""
     nside = hp.npix2nside(good.size)
     masked = np.where(good, noise_iqu, 0.0)
-    alm = hp.map2alm(masked, lmax=lmax, iter=0 if lmax <= nside else 1)
+    alm = harmonics.map2alm(masked, lmax, iter=0 if lmax <= nside else 1)
     change = np.array([hp.almxfl(alm[i], shaping[i, : lmax + 1] - 1.0) for i in range(3)])
-    return masked + hp.alm2map(change, nside, lmax=lmax, pixwin=False)
+    return masked + harmonics.alm2map(change, nside, lmax)
 
 
 def filtered_cmb_map(
@@ -186,7 +187,7 @@ def filtered_cmb_map(
     nside = hp.npix2nside(cmb_iqu.shape[-1])
     band = hp.resize_alm(alm, lmax, lmax, filter_lmax, filter_lmax)
     change = np.array([hp.almxfl(band[i], transfer[i, : filter_lmax + 1] - 1.0) for i in range(3)])
-    return cmb_iqu + hp.alm2map(change, nside, lmax=filter_lmax, pixwin=False)
+    return cmb_iqu + harmonics.alm2map(change, nside, filter_lmax)
 
 
 @dataclasses.dataclass
@@ -471,7 +472,7 @@ def realize_seed(
     nside = hp.npix2nside(fixed.good.size)
     good = fixed.good
     operators = operators or SeedOperators(fixed, noise_scale, lmax)
-    cmb = hp.alm2map(cmb_alm, nside, lmax=lmax, pixwin=False)
+    cmb = harmonics.alm2map(cmb_alm, nside, lmax)
     cmb_filtered = filtered_cmb_map(cmb, cmb_alm, fixed.transfer, lmax, operators.filter_lmax)
     b, c = operators.noise.draw(rng_of_detector)
 

@@ -16,7 +16,9 @@ Submodules (each with its own description, constants and sources):
 * :mod:`.foregrounds`: the d0/s0 SEDs, the choice between pysm3 data and the offline
   templates, pysm3 bandpass integration and conversion to K_CMB, foreground maps;
 * :mod:`.channels`: the sky seen by one channel (CMB + foreground, beam-smoothed);
-* :mod:`.fits_io`: FITS writing and reading of sky maps (header keys, IAU input).
+* :mod:`.fits_io`: FITS writing and reading of sky maps (header keys, IAU input);
+* :mod:`.harmonics`: I, Q, U <-> T, E, B transforms with ducc0's SHT, as healpy's
+  ``alm2map`` and ``map2alm`` (used as ``sky.harmonics.alm2map``: not re-exported).
 
 Imports between them go one way: conventions <- cmb <- templates <- foregrounds <-
 channels, and conventions <- fits_io. Every name is re-exported here, so
