@@ -115,7 +115,7 @@ def channel_biases(tod_run: Path, md_run: Path, config: dict, model: BBModel) ->
     channels with systematics, path "tod" or "map_domain": the Fisher bias of the
     channel's template BB (:func:`template_bb`) and of its seed part (the template minus
     the map-domain run's fixed pass's; the same operator on both paths, so the rest is the
-    seed's CMB x h and noise x h) [1/K^2]. ``config``: the map-domain run's."""
+    seed's CMB x h and noise x h) [K^2]. ``config``: the map-domain run's."""
     lmax = int(model.ell.max())
     biases = {}
     for name in config["instrument"]["systematics_channels"]:
@@ -195,7 +195,7 @@ def seed_part_pieces(tod_run: Path, md_run: Path, config: dict, model: BBModel) 
 def print_seed_part_pieces(pieces: dict) -> None:
     """The tables of item 5 (module docstring)."""
     print(
-        "\n| seed part's pieces: k_c [1/K^2] (mean over seeds +- its error) | tod | map domain "
+        "\n| seed part's pieces: k_c [K^2] (mean over seeds +- its error) | tod | map domain "
         "| ratio | difference / error |"
     )
     print("|---|---|---|---|---|")
@@ -303,7 +303,7 @@ def main() -> None:
     )
     biases = channel_biases(arguments.tod, arguments.map_domain, md_config, model)
     print(
-        "\n| channel's own template: Fisher bias k_c [1/K^2] (mean over seeds +- its error; "
+        "\n| channel's own template: Fisher bias k_c [K^2] (mean over seeds +- its error; "
         f"the likelihood model of {analysed}) | tod | map domain | ratio | difference / error |"
     )
     print("|---|---|---|---|---|")

@@ -5,7 +5,7 @@ at one month) set the answer.
     python benchmarks/seed_part_share.py RUN --configfile config/config.yaml \
         config/one_year.yaml config/nside128.yaml --seeds 2
 
-Per channel with systematics whose fixed pass RUN holds: the Fisher bias k_c [1/K^2] of the
+Per channel with systematics whose fixed pass RUN holds: the Fisher bias k_c [K^2] of the
 channel's template BB (detectors 0 + 1, beam deconvolved; RUN's likelihood model, or that
 of ``--model-from``) for the fixed pass's template alone, for the seed part (a seed's
 template minus it) and for the whole, mean over the first ``--seeds`` seeds, and the seed
@@ -26,7 +26,7 @@ from hwp_tes_systematics.simulation.map_domain import ChannelSeeds
 
 
 def seed_part_share(fixed_h5: Path, config: dict, model, seeds: int) -> dict:
-    """{"fixed", "seed_part", "whole": k_c [1/K^2], "share": seed part / whole} of a channel."""
+    """{"fixed", "seed_part", "whole": k_c [K^2], "share": seed part / whole} of a channel."""
     lmax = int(model.ell.max())
     channel_seeds = ChannelSeeds.from_run(config, fixed_h5)
     good, fixed = channel_seeds.fixed.good, channel_seeds.fixed_templates
@@ -62,7 +62,7 @@ def main() -> None:
         likelihood["model"],
     )
     print(f"# {arguments.run}, {analysis_variant(config)}, {arguments.seeds} seeds")
-    print("| channel | k_c fixed pass [1/K^2] | seed part | whole | seed part / whole |")
+    print("| channel | k_c fixed pass [K^2] | seed part | whole | seed part / whole |")
     print("|---|---|---|---|---|")
     for name in config["instrument"]["systematics_channels"]:
         fixed_h5 = (
