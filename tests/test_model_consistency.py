@@ -60,6 +60,28 @@ def test_the_same_data_with_the_transfer_in_the_model_pass(base):
     assert check["consistent"], check["failing_bins"]
 
 
+def test_transfers_both_near_zero_are_one_answer(base):
+    """Where the filter leaves no sky, a model transfer of ~0 and a measured -1.7e-3 +-
+    0.5e-3 (3.4 sigma: the nside-512 one-year run's ell 2-4) agree: below
+    SKY_TRANSFER_FLOOR the difference holds no information on r. A model 0.05 above a
+    measured 0 +- 0.001 still fails."""
+    rng = np.random.default_rng(4)
+    data_transfer = filtered_transfer(base.ell)
+    data_transfer[base.ell < NOTCH_ELL] = -1.7e-3
+    model_transfer = filtered_transfer(base.ell)
+    sem = np.full(base.ell.size, 0.5e-3 * np.sqrt(3.0))  # ell 2-4: 0.5e-3 for the bin
+    check = consistency.check_model(
+        base, model_transfer, data_transfer, sem, noise_draws(base, rng)
+    )
+    assert check["bins"][0]["sky_consistent"], check["bins"][0]
+    model_transfer[base.ell < NOTCH_ELL] = 0.05
+    data_transfer[base.ell < NOTCH_ELL] = 0.0
+    check = consistency.check_model(
+        base, model_transfer, data_transfer, np.full(base.ell.size, 1e-3), noise_draws(base, rng)
+    )
+    assert not check["bins"][0]["sky_consistent"]
+
+
 def test_a_residual_holding_the_filtered_cmb_fails_the_power_check(base):
     """The paper's words read literally: recovered minus the unfiltered input keeps the
     CMB the filter removed, which the model does not have as noise."""
