@@ -185,8 +185,9 @@ def maps_to_alm(
     UNSEEN (and non-finite) pixels are set to 0 and the maps multiplied by ``mask``
     (weights in [0, 1], e.g. :func:`spectra.apodized_mask`); then healpy's
     ``map2alm(pol=True, iter=iter, use_weights=False, use_pixel_weights=False)``, computed
-    by :func:`sky.harmonics.map2alm` (pixel and ring weights would need a download). ValueError if the mask is non-zero on an UNSEEN pixel (the
-    data would be silently zero there: build the mask with :func:`spectra.common_mask`).
+    by :func:`sky.harmonics.map2alm` (pixel and ring weights would need a download).
+    ValueError if the mask is non-zero on an UNSEEN pixel (the data would be silently
+    zero there: build the mask with :func:`spectra.common_mask`).
     """
     maps = np.array(maps, dtype=float)
     mask = np.asarray(mask, dtype=float)

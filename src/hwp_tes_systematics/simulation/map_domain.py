@@ -199,9 +199,7 @@ class FixedMaps:
     foreground_reference: np.ndarray  # (3, npix) bin F(fg) [K_CMB]
     transfer: np.ndarray  # (3, measure_lmax + 1) T_ell of TT, EE, BB [1]
     noise_shaping: np.ndarray  # (3, measure_lmax + 1) sqrt(N_ell of F n / N_ell of n) [1]
-    noise_h_shaping: (
-        np.ndarray
-    )  # (3, measure_lmax + 1) the same of h n [1]; (0,) without systematics
+    noise_h_shaping: np.ndarray  # (3, measure_lmax + 1) the same of h n [1]; (0,) if none
     matrix: np.ndarray  # (6, npix) sum_k M_k, MATRIX_ENTRIES order [K^-2]
     moments: np.ndarray  # (n_det, npix, 3, 6) M_k, H_k, Q_k [K^-2]; (0,) without systematics
     hits: np.ndarray
@@ -262,8 +260,8 @@ def fixed_passes(
     channel (see the module docstring): no CMB, no noise; the sky (``foreground_iqu_k``,
     and ``transfer_alm``, beam-smoothed, band ``lmax``, scanned alone to measure T_ell)
     scanned at ``settings.nside``, and ``noise_realizations`` reference noise
-    realizations giving S_ell and S^h_ell, both on every ``calibration_every_chunks``-th chunk (:class:`tod_maps.Calibration`). The
-    TODs are binned at (settings.nside, settings.baseline_length_s) and at every
+    realizations giving S_ell and S^h_ell, both on every ``calibration_every_chunks``-th
+    chunk (:class:`tod_maps.Calibration`). The TODs are binned at (settings.nside, settings.baseline_length_s) and at every
     (nside, baseline length) of ``extra_variants`` in the same pass
     (:class:`tod_maps.ExtraBinning`): the binning is cheap beside the TOD. T_ell and
     S_ell are measured up to ``measure_lmax`` (default ``lmax``; at most 3 nside - 1 of
@@ -517,10 +515,8 @@ class ChannelSeeds:
     def __init__(self, config: dict, fixed_h5, pooled_h5s=()):
         self.config = config
         self.fixed, self.attributes = read_fixed_maps(fixed_h5)
-        if len(pooled_h5s) > 1:
+        if len(pooled_h5s) > 1:  # siblings share the systematics: S^h pools like S
             shaping, h_shaping = pooled_noise_shaping(pooled_h5s)
-            if not self.fixed.carries_systematics:
-                h_shaping = self.fixed.noise_h_shaping
             self.fixed = dataclasses.replace(
                 self.fixed, noise_shaping=shaping, noise_h_shaping=h_shaping
             )

@@ -194,8 +194,8 @@ def filter_offsets(unfiltered, offsets, pointing, simulator, settings) -> dict:
 def calibration_stack(calibration, simulator, settings, pointing, chunk, hwpss, inner, clock):
     """(the chunk's calibration TODs before the filter, (rows, n_det, n) in
     CALIBRATION_DTYPE: each reference map scanned alone, then per realization n and, with
-    ``calibration.hwpss_noise``, h n; the noise TODs' ``inner`` samples in float64, to be
-    binned unfiltered)."""
+    ``calibration.hwpss_noise``, h n; a copy of the noise TODs' ``inner`` samples, to be
+    binned unfiltered: the stack is filtered in place)."""
     n_references = len(calibration.references_iqu_k)
     stack = np.empty(
         (n_references + calibration.n_noise_tods, *hwpss.shape), dtype=CALIBRATION_DTYPE
@@ -211,7 +211,7 @@ def calibration_stack(calibration, simulator, settings, pointing, chunk, hwpss, 
             )
             if calibration.hwpss_noise:  # the noise of the s h term
                 np.multiply(stack[row], hwpss, out=stack[row + 1])
-    return stack, stack[n_references:, :, inner].astype(np.float64)
+    return stack, stack[n_references:, :, inner].copy()
 
 
 def chunk_tods(
