@@ -59,6 +59,17 @@ def test_whole_workflow_on_tiny_config(tiny_local_run):
     assert (workdir / "results/figures/information_and_bias_vs_ell.png").stat().st_size > 10_000
     noise_model = (workdir / "results/spectra/noise_model.csv").read_text().splitlines()[0]
     assert "sky_transfer_bb" in noise_model
+    # fixed instruments: one row each, the own power beside the linear term, a figure
+    fixed = requirement["fixed_instruments"]
+    assert fixed["n_instruments"] == len(fixed["instruments"]) > 1
+    for row in fixed["instruments"]:
+        assert row["n_seeds"] == 2 and row["k_per_k2"] > 0
+        requirement_sigma, own = (
+            row[f"requirement_{k}_per_k"] for k in ("sigma_g1", "quadratic_only")
+        )
+        if row["b_per_k"] >= 0:  # a positive linear term reaches the budget first
+            assert 0 < requirement_sigma <= own * (1 + 1e-9)
+    assert (workdir / "results/figures/fixed_instruments.png").stat().st_size > 10_000
 
 
 def scheduled_rules(workdir, repo, *more_configfiles):

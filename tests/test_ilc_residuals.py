@@ -173,3 +173,65 @@ def test_map2alm_iter_zero_changes_the_residual_spectra_little(seed_maps, synthe
     ratio = once[bands].reshape(-1, 10).sum(axis=1) / iterated[bands].reshape(-1, 10).sum(axis=1)
     np.testing.assert_allclose(ratio, 1.0, atol=0.01)
     assert not np.array_equal(once, iterated)
+
+
+def test_fixed_instrument_spectra_match_the_direct_spectra(seed_maps):
+    """With the seed's own draws as the instrument, the auto spectrum is the systematic-only
+    BB (bb_unit_k4); the cross spectrum with the no-systematics residual is
+    (C[R + S] - C[R] - C[S]) / 2 of the a_lm combined directly."""
+    nosys = seed_maps.residual(0.0)
+    table = seed_maps.instrument_spectra(nosys, [seed_maps.unit_draws])
+    unit = seed_maps.systematic_spectra(nosys["weights"])
+    np.testing.assert_allclose(table["bb_auto_instrument0_k4"], unit["bb_unit_k4"], rtol=1e-10)
+    template = seed_maps.systematic_term_alms(nosys["weights"]).sum(axis=0)
+    residual = nosys["residual_alm"]
+
+    def bb(alm):
+        return unit_beam_spectra(
+            alm, None, seed_maps.lmax, seed_maps.fractions["w2"], seed_maps.common_fwhm_arcmin
+        )[2]
+
+    direct = (bb(residual + template) - bb(residual) - bb(template)) / 2
+    np.testing.assert_allclose(
+        table["bb_cross_instrument0_k3"], direct, rtol=1e-8, atol=1e-12 * np.abs(direct).max()
+    )
+    assert np.any(table["bb_cross_instrument0_k3"] != table["bb_cross_unfiltered_instrument0_k3"])
+
+
+def test_component_separation_writes_the_fixed_instruments(synthetic, tmp_path):
+    """Three fixed instruments: their draws differ from the seed's and from each other,
+    and the table holds one auto and two cross spectra each."""
+    config, paths = synthetic
+    cases = case_names(config["requirement"]["sigma_g1_per_k"])
+    outs = [str(tmp_path / f"{case}.h5") for case in cases]
+    csv = tmp_path / "instruments.csv"
+    component_separation.run(
+        config, 0, cases, paths, outs, str(tmp_path / "s.csv"), None, str(csv), 3
+    )
+    table = pd.read_csv(csv)
+    autos = [table[f"bb_auto_instrument{i}_k4"].to_numpy() for i in range(3)]
+    assert len({round(float(a[2:].sum()), 30) for a in autos}) == 3
+    assert all(f"bb_cross_unfiltered_instrument{i}_k3" in table for i in range(3))
+
+
+def test_channel_alms_files_keep_each_detector_and_refuse_summed_terms(synthetic, tmp_path):
+    """A stored channel's terms are per detector (any draws combine them); a file of the
+    older layout (terms already summed over the seed's draws) is refused by name."""
+    from hwp_tes_systematics.analysis import ilc_residuals as ir
+
+    config, paths = synthetic
+    seed_maps = SeedMaps.load(config, 0, paths)
+    harmonic = ir.HarmonicSettings.from_config(config)
+    data = read_channel_maps(paths["M1-140"])
+    channel = ir.ChannelAlms.from_maps(config, 0, "M1-140", data, seed_maps.mask, harmonic)
+    assert channel.alms["x1"].shape[0] == 2
+    path = tmp_path / "M1-140.h5"
+    ir.write_channel_alms(path, channel, ir.alms_attributes(0, harmonic, seed_maps.mask))
+    stored = ir.read_channel_alms(path, harmonic, float(seed_maps.mask.sum()))
+    np.testing.assert_array_equal(stored.term("x1"), channel.term("x1"))
+    with h5py.File(path, "r+") as out:
+        summed = out["alm_x1"][()].sum(axis=0)
+        del out["alm_x1"]
+        out["alm_x1"] = summed
+    with pytest.raises(ValueError, match="alm_x1.*older map_domain_alms"):
+        ir.read_channel_alms(path, harmonic, float(seed_maps.mask.sum()))

@@ -105,12 +105,15 @@ def fixed_pass_mem_mb(wildcards, attempt):
 
 def component_separation_mem_mb(wildcards, attempt):
     """Memory of one seed's HILC: one channel's maps at a time (~60 doubles per pixel, TOD
-    path; none on the map-domain path, which reads a_lm) and every channel's a_lm (7 kinds
-    of 3 complex a_lm up to the analysis lmax)."""
+    path; none on the map-domain path, which reads a_lm) and every channel's a_lm (4
+    kinds, 3 template terms per detector of a pair, their sums and each detector's whole
+    template: ~14 sets of 3 complex a_lm up to the analysis lmax)."""
     nside = config["maps"]["nside"]
     lmax = config["component_separation"]["lmax"] or 2 * nside
     maps_mb = 0 if MAP_DOMAIN else 12 * nside**2 * 60 * 8 / 2**20
-    alms_mb = len(CHANNELS) * 7 * 3 * (lmax + 1) ** 2 / 2 * 16 * 3 / 2**20  # x3: copies
+    alms_mb = (
+        len(CHANNELS) * 14 * 3 * (lmax + 1) ** 2 / 2 * 16 * 3 / 2**20
+    )  # x3: copies
     return int(1000 + maps_mb + alms_mb) * attempt
 
 

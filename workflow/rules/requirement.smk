@@ -5,12 +5,14 @@ rule requirement:
     requirement on sigma_g1 from each, whether sigma^2 holds, and the systematic-only
     requirement versus the A_2 scale; whether the likelihood model describes the data
     (per multipole bin); where in ell the information and the bias come from; the
-    paper's Figs. 7 and 8. No wildcards."""
+    paper's Figs. 7 and 8; the bias of fixed instruments (g1 held over every seed, the
+    term linear in g1 included) and their requirements. No wildcards."""
     input:
         **MASK_INPUT,
         likelihoods=expand(paths.LIKELIHOOD, seed=SEEDS),
         nosys_spectra=expand(paths.RESIDUAL_SPECTRA, seed=SEEDS, case="nosys"),
         systematic=expand(paths.SYSTEMATIC_SPECTRA, seed=SEEDS),
+        instruments=expand(paths.INSTRUMENT_SPECTRA, seed=SEEDS),
         noise_model=paths.NOISE_MODEL,
         maps=[path for seed in SEEDS for path in all_channel_maps()[seed].values()],
     output:
@@ -38,6 +40,11 @@ rule requirement:
         fig_ell_distribution=report(
             paths.FIG_ELL_DISTRIBUTION,
             caption="../report/ell_distribution.rst",
+            category="3. Requirement",
+        ),
+        fig_fixed_instruments=report(
+            paths.FIG_FIXED_INSTRUMENTS,
+            caption="../report/fixed_instruments.rst",
             category="3. Requirement",
         ),
     log:

@@ -11,5 +11,7 @@ component_separation.run(
     map_paths={name: path for name, path in snakemake.input.items() if name != "mask"},
     out_h5s=list(snakemake.output.hilc),
     systematic_csv=snakemake.output.systematic,
+    instruments_csv=snakemake.output.instruments,
+    fixed_instruments=snakemake.params.fixed_instruments,
     mask_path=snakemake.input.get("mask"),
 )

@@ -17,6 +17,8 @@ requirement.run(
     noise_csv=snakemake.input.noise_model,
     nosys_spectra_csvs=list(snakemake.input.nosys_spectra),
     systematic_csvs=list(snakemake.input.systematic),
+    instrument_csvs=list(snakemake.input.instruments),
+    fig_fixed_instruments=snakemake.output.fig_fixed_instruments,
     extension={
         "map_paths": snakemake.params.map_paths,
         "nosys_spectra": dict(zip(seeds, snakemake.input.nosys_spectra, strict=True)),

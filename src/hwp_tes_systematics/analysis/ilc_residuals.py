@@ -93,9 +93,12 @@ class ChannelAlms:
     """One channel's share of a realization's HILC, as a_lm (3, nalm) at the common beam
     on the common mask: ``alms`` holds ALM_KINDS (the no-systematics map, the CMB and
     foreground references through the filters, the unfiltered input CMB) and, on a
-    systematics channel, TERM_KINDS: X^j = c_j(A_2) sum_k z_k T^j_k with c = (1, 2 A_2,
-    A_2^2) and the unit g1 draws z_k, so that sum_k z_k T_k = X^0 + X^1 + X^2. Made from
-    a maps file (:meth:`from_maps`), or from a seed's maps in memory and stored
+    systematics channel, TERM_KINDS per detector, (n_det, 3, nalm): c_j(A_2) T^j_k with
+    c = (1, 2 A_2, A_2^2), so that for any unit g1 draws z_k the channel's contamination
+    is sum_j X^j with X^j = sum_k z_k c_j T^j_k (:meth:`term`). The draws are the
+    analysis' choice, not the maps': ``unit_draws`` are the seed's own, and a fixed
+    instrument (:func:`systematics.instrument_g1_draws`) combines the same a_lm. Made
+    from a maps file (:meth:`from_maps`), or from a seed's maps in memory and stored
     (:func:`write_channel_alms`): the map-domain path never writes a seed's maps."""
 
     name: str
@@ -137,17 +140,31 @@ class ChannelAlms:
         if np.any(draws):
             seen = ~unseen[0]
             for kind, coefficient in zip(TERM_KINDS, (1.0, 2.0 * a2_k, a2_k**2), strict=True):
-                term = np.full_like(data["nosys"], hp.UNSEEN)
-                summed = np.tensordot(draws, data["template_terms"][int(kind[1:])], axes=1)
-                term[:, seen] = coefficient * summed[:, seen]
-                alms[kind] = harmonic.alm(term, fwhm, mask)
+                per_detector = []
+                for template in data["template_terms"][int(kind[1:])]:
+                    term = np.full_like(data["nosys"], hp.UNSEEN)
+                    term[:, seen] = coefficient * template[:, seen]
+                    per_detector.append(harmonic.alm(term, fwhm, mask))
+                alms[kind] = np.array(per_detector)
         return cls(name, alms, detectors, a2_k, draws)
 
-    def term(self, kind: str) -> np.ndarray:
-        """The a_lm of ``kind``; zeros for a term of a channel without systematics."""
-        if kind in self.alms:
+    def term(self, kind: str, draws=None) -> np.ndarray:
+        """The a_lm (3, nalm) of ``kind``: one of ALM_KINDS as stored, or of TERM_KINDS
+        X^j = sum_k z_k c_j T^j_k for the unit draws ``draws`` (the seed's own by
+        default); zeros for a term of a channel without systematics."""
+        if kind not in self.alms:
+            return np.zeros_like(self.alms["nosys"])
+        if kind not in TERM_KINDS:
             return self.alms[kind]
-        return np.zeros_like(self.alms["nosys"])
+        draws = self.unit_draws if draws is None else np.asarray(draws, dtype=float)
+        return np.tensordot(draws, self.alms[kind], axes=1)
+
+    def detector_templates(self) -> np.ndarray:
+        """(n_det, 3, nalm) each detector's whole contamination at g1 = 1 1/K, sum_j c_j
+        T^j_k [K_CMB K]; zeros for a channel without systematics."""
+        if TERM_KINDS[0] not in self.alms:
+            return np.zeros((len(self.detectors), *self.alms["nosys"].shape), complex)
+        return sum(self.alms[kind] for kind in TERM_KINDS)
 
 
 def _unit_draws(config: dict, name: str, seed: int, detectors: list[str]) -> np.ndarray:
@@ -186,6 +203,12 @@ def read_channel_alms(path, harmonic: HarmonicSettings, mask_sum: float) -> Chan
         attributes = dict(stored.attrs)
         alms = {name[4:]: stored[name][()] for name in stored if name.startswith("alm_")}
         draws = stored["unit_draws"][()]
+    for kind in TERM_KINDS:
+        if kind in alms and alms[kind].ndim != 3:
+            raise ValueError(
+                f"{path}: alm_{kind} has shape {alms[kind].shape}, expected one a_lm per "
+                "detector (n_det, 3, nalm): made by an older map_domain_alms (rerun it)"
+            )
     expected = {
         "lmax": harmonic.lmax,
         "common_fwhm_arcmin": harmonic.common_fwhm_arcmin,
@@ -246,6 +269,9 @@ class SeedMaps:
     fractions: dict
     unit_draws: list[np.ndarray]
     channel_alms: dict[str, np.ndarray] = field(repr=False)  # kind -> (n_ch, 3, nalm)
+    # per channel (n_det, 3, nalm): each detector's contamination at g1 = 1 1/K
+    detector_templates: list[np.ndarray] = field(repr=False, default_factory=list)
+    detectors: list[list[str]] = field(default_factory=list)  # per channel
     map2alm_iter: int = hilc.MAP2ALM_ITER
 
     @classmethod
@@ -309,6 +335,8 @@ class SeedMaps:
             fractions=fractions,
             unit_draws=[c.unit_draws for c in channels],
             channel_alms={kind: np.array([c.term(kind) for c in channels]) for kind in kinds},
+            detector_templates=[c.detector_templates() for c in channels],
+            detectors=[c.detectors for c in channels],
             map2alm_iter=harmonic.map2alm_iter,
         )
 
@@ -367,6 +395,45 @@ class SeedMaps:
                 for kind in TERM_KINDS
             ]
         )
+
+    def instrument_template_alms(self, draws: list[np.ndarray], weights: np.ndarray):
+        """(3, nalm) the systematic at sigma_g1 = 1 1/K of one instrument [K_CMB K]: the
+        unit draws ``draws`` (one array per channel, :func:`systematics.instrument_g1_draws`)
+        on every detector's template, combined through ``weights``."""
+        contamination = np.array(
+            [
+                np.tensordot(np.asarray(z, dtype=float), templates, axes=1)
+                for z, templates in zip(draws, self.detector_templates, strict=True)
+            ]
+        )
+        return hilc.apply_ilc(contamination, weights, self.bins, self.lmax)
+
+    def instrument_spectra(
+        self, nosys: dict[str, np.ndarray], instruments: list[list[np.ndarray]]
+    ) -> pd.DataFrame:
+        """For fixed instruments (each a list of per-channel unit draws), the BB of the
+        systematic at sigma_g1 = 1 1/K through the no-systematics weights
+        (``bb_auto_instrument<i>_k4`` [K_CMB^2 K^2]) and its cross spectra with the
+        no-systematics residual ``nosys`` (:meth:`residual` at sigma 0) against the
+        filtered CMB reference and against the unfiltered input
+        (``bb_cross_instrument<i>_k3``, ``bb_cross_unfiltered_instrument<i>_k3``
+        [K_CMB^2 K]): at sigma, C_obs = C_nosys + 2 sigma C_cross + sigma^2 C_auto."""
+        residuals = {
+            "cross": nosys["residual_alm"],
+            "cross_unfiltered": nosys["residual_alm"] + nosys["cmb_filter_loss_alm"],
+        }
+        table = {"ell": np.arange(self.lmax + 1)}
+        for index, draws in enumerate(instruments):
+            template = self.instrument_template_alms(draws, nosys["weights"])
+            for label, alm2 in (("auto", None), *residuals.items()):
+                cl = unit_beam_spectra(
+                    template, alm2, self.lmax, self.fractions["w2"], self.common_fwhm_arcmin
+                )
+                unit = "k4" if label == "auto" else "k3"
+                table[f"bb_{label}_instrument{index}_{unit}"] = cl[2]
+        out = pd.DataFrame(table)
+        out["fsky_eff"] = self.fractions["fsky_eff"]
+        return out
 
     def residual_spectra(self, sigma_g1_per_k: float) -> pd.DataFrame:
         """:func:`residual_spectra_table` of the paper's residual at sigma."""

@@ -62,6 +62,27 @@ def unit_g1_draws(
     )
 
 
+def instrument_g1_draws(
+    master_seed: int, channel: str, instrument: int, detectors, per: str = "detector"
+) -> np.ndarray:
+    """z_k ~ N(0, 1) of fixed instrument number ``instrument``: the same for every
+    realization, from the stream ("g1", channel, "instrument", instrument, detector) (or
+    "pair"), independent of every seed's own draws (:func:`unit_g1_draws`). A fixed
+    instrument's g1 over many skies and noise draws separates the bias a given focal
+    plane carries (the mean) from the scatter it adds."""
+    if per not in G1_PER:
+        raise ValueError(f"per = {per!r}: expected one of {G1_PER}")
+    names = ["pair"] * len(detectors) if per == "pair" else list(detectors)
+    return np.array(
+        [
+            seeding.rng(
+                master_seed, "g1", channel, "instrument", instrument, name
+            ).standard_normal()
+            for name in names
+        ]
+    )
+
+
 def maps_for_sigma(nosys: np.ndarray, templates: np.ndarray, unit_draws, sigma_g1_per_k: float):
     """m = m_nosys + sigma sum_k z_k T_k (3, npix) [K_CMB]; unobserved pixels stay UNSEEN."""
     if sigma_g1_per_k == 0.0:

@@ -8,6 +8,7 @@ from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
+from matplotlib.ticker import MaxNLocator
 
 from . import save_figure, subplots
 
@@ -413,5 +414,69 @@ def plot_ell_distribution(
     right.set_title(f"Does the model describe the data? {verdict}")
     right.grid(alpha=0.3, which="both")
     right.legend(fontsize="x-small", loc="best")
+    save_figure(figure, path)
+    return path
+
+
+def plot_fixed_instruments(
+    sigma,
+    curves,
+    rows: list[dict],
+    k_study: float,
+    budget: float,
+    sigma_r: float,
+    path: str | os.PathLike,
+) -> Path:
+    """Left: ``curves`` (n_instruments, n_sigma), |delta r| = |2 sigma b_i + sigma^2 k_i|
+    of each fixed instrument on ``sigma`` [1/K] (grey) and the study's own-power
+    k sigma^2 (blue) against the budget; right: each instrument's requirement with its
+    linear term and from its own power alone. ``rows``:
+    :func:`fixed_instruments.fixed_instrument_estimator`'s ``instruments``."""
+    path = Path(path)
+    sigma = np.asarray(sigma, dtype=float)
+    figure, (left, right) = subplots(1, 2, figsize=(11, 4.5))
+    for index, curve in enumerate(curves):
+        left.plot(
+            sigma, curve, color="0.6", lw=0.8, label="fixed instruments" if index == 0 else None
+        )
+    left.plot(sigma, k_study * sigma**2, color="C0", lw=2, label="own power, k sigma^2 (study)")
+    left.axhline(budget, color="k", ls="--", label=f"budget {budget:.2g}")
+    left.axhline(sigma_r, color="C3", ls=":", label=f"sigma_r {sigma_r:.2g}")
+    left.set_xscale("log")
+    left.set_yscale("log")
+    left.set_ylim(budget * 1e-3, max(sigma_r, budget) * 30)
+    left.set_xlabel("sigma_g1 [K^-1]")
+    left.set_ylabel("|delta r| (Fisher peak shift)")
+    left.set_title("Bias of one focal plane (g1 fixed over seeds)")
+    left.grid(alpha=0.3, which="both")
+    left.legend(fontsize="small", loc="upper left")
+    order = np.argsort([row["requirement_sigma_g1_per_k"] for row in rows])
+    position = np.arange(len(rows))
+    with_linear = np.array([rows[i]["requirement_sigma_g1_per_k"] for i in order])
+    quadratic = np.array([rows[i]["requirement_quadratic_only_per_k"] for i in order])
+    resolved = np.array([abs(rows[i]["t_linear"]) > 2 for i in order])
+    right.plot(position, quadratic, "x", color="C0", label="own power alone")
+    right.plot(
+        position[~resolved],
+        with_linear[~resolved],
+        "o",
+        mfc="none",
+        color="C1",
+        label="with linear term (|b| < 2 s.e.)",
+    )
+    right.plot(
+        position[resolved],
+        with_linear[resolved],
+        "o",
+        color="C1",
+        label="with linear term (|b| > 2 s.e.)",
+    )
+    right.set_yscale("log")
+    right.xaxis.set_major_locator(MaxNLocator(integer=True))
+    right.set_xlabel("instrument (sorted by requirement)")
+    right.set_ylabel("requirement on sigma_g1 [K^-1]")
+    right.set_title("Requirement per instrument")
+    right.grid(alpha=0.3, which="both")
+    right.legend(fontsize="small")
     save_figure(figure, path)
     return path

@@ -3,8 +3,10 @@
 For each case ``nosys`` or ``sigma<value>`` the residual of :class:`ilc_residuals.SeedMaps`
 (the paper's HILC, weights recomputed on the contaminated maps) and its foreground part
 are written as a_lm, with the weights and the mask, one file per case; the systematic's
-spectra through the no-systematics weights (the systematic-only estimator) go to a CSV.
-Each channel's a_lm are computed (or read, on the map-domain path) once for all of them.
+spectra through the no-systematics weights (the systematic-only estimator) go to a CSV,
+and so do, for each fixed instrument (:func:`systematics.instrument_g1_draws`), its
+systematic's BB and cross spectrum with the no-systematics residual. Each channel's a_lm
+are computed (or read, on the map-domain path) once for all of them.
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ import h5py
 import numpy as np
 
 from ..analysis.ilc_residuals import SeedMaps
-from ..analysis.systematics import NOSYS, sigma_of_case
+from ..analysis.systematics import NOSYS, instrument_g1_draws, sigma_of_case
 from ..io import atomic_path, write_csv
 from ..sky import map_metadata
 
@@ -30,22 +32,49 @@ def run(
     out_h5s: list[str],
     systematic_csv: str,
     mask_path: str | None = None,
+    instruments_csv: str | None = None,
+    fixed_instruments: int = 0,
 ) -> None:
     """HILC of (seed, case) for each case, written to ``out_h5s[i]`` for ``cases[i]``; the
-    systematic-only spectra (sigma_g1 = 1, no-systematics weights) to ``systematic_csv``.
+    systematic-only spectra (sigma_g1 = 1, no-systematics weights) to ``systematic_csv``;
+    the spectra of ``fixed_instruments`` fixed instruments to ``instruments_csv``.
     ``map_paths``: {channel: maps file}, or {channel: a_lm file} made on ``mask_path``."""
     if len(cases) != len(out_h5s):
         raise ValueError(f"component_separation: {len(cases)} cases but {len(out_h5s)} outputs")
     if NOSYS not in cases:
         raise ValueError(f"component_separation: the cases {cases} lack {NOSYS!r}")
     seed_maps = SeedMaps.from_files(config, seed, map_paths, mask_path)
-    nosys_weights = None
+    nosys = None
     for case, out_h5 in zip(cases, out_h5s, strict=True):
         result = write_case(config, seed_maps, case, out_h5)
         if case == NOSYS:
-            nosys_weights = result["weights"]
-    write_csv(seed_maps.systematic_spectra(nosys_weights), systematic_csv)
+            nosys = result
+    write_csv(seed_maps.systematic_spectra(nosys["weights"]), systematic_csv)
     log.info("seed %d: wrote the systematic-only spectra %s", seed, systematic_csv)
+    if instruments_csv is not None:
+        instruments = [
+            instrument_draws(config, seed_maps, index) for index in range(fixed_instruments)
+        ]
+        table = seed_maps.instrument_spectra(nosys, instruments)
+        write_csv(table, instruments_csv)
+        log.info(
+            "seed %d: %d fixed instruments, wrote %s", seed, fixed_instruments, instruments_csv
+        )
+
+
+def instrument_draws(config: dict, seed_maps: SeedMaps, instrument: int) -> list[np.ndarray]:
+    """The unit g1 draws of fixed instrument ``instrument``, one array per channel of the
+    realization (zeros on the channels without systematics)."""
+    per = config["requirement"]["g1_per"]
+    draws = []
+    for name, detectors in zip(seed_maps.names, seed_maps.detectors, strict=True):
+        if name in config["instrument"]["systematics_channels"]:
+            draws.append(
+                instrument_g1_draws(config["master_seed"], name, instrument, detectors, per)
+            )
+        else:
+            draws.append(np.zeros(len(detectors)))
+    return draws
 
 
 def write_case(config: dict, seed_maps: SeedMaps, case: str, out_h5: str) -> dict:

@@ -39,6 +39,11 @@ import numpy as np
 import pandas as pd
 
 from ..analysis import consistency
+from ..analysis.fixed_instruments import (
+    delta_r_curves,
+    fixed_instrument_estimator,
+    n_instruments,
+)
 from ..analysis.ilc_residuals import systematic_bb
 from ..analysis.likelihood import (
     ANALYSES,
@@ -62,6 +67,7 @@ from ..analysis.requirement import (
 from ..figures.results import (
     plot_a2_scaling,
     plot_ell_distribution,
+    plot_fixed_instruments,
     plot_likelihoods,
     plot_requirement,
 )
@@ -88,9 +94,13 @@ def run(
     nosys_spectra_csvs: list[str],
     systematic_csvs: list[str],
     extension: dict | None = None,
+    instrument_csvs: list[str] | None = None,
+    fig_fixed_instruments: str | None = None,
 ) -> None:
     """``extension``: {"map_paths": {seed: {channel: maps or a_lm file}}, "nosys_spectra":
-    {seed: csv}, "mask": the a_lm files' analysis mask or None} to extend the paper estimator's grid (None: no extension)."""
+    {seed: csv}, "mask": the a_lm files' analysis mask or None} to extend the paper
+    estimator's grid (None: no extension). ``instrument_csvs``: the seeds' fixed-instrument
+    spectra (:mod:`fixed_instruments`), drawn in ``fig_fixed_instruments``."""
     likelihoods = sorted(
         (json.loads(Path(path).read_text()) for path in likelihood_jsons), key=lambda r: r["seed"]
     )
@@ -129,6 +139,9 @@ def run(
     systematic_only["fraction_point"] = fraction_point_estimator(likelihoods, budget)
     fraction_point = systematic_only["fraction_point"]
     failing = ", ".join(f"ell {first}-{last}" for first, last in check["failing_bins"])
+    fixed = fixed_instruments_summary(
+        instrument_csvs, model, budget, analysis, systematic_only, fig_fixed_instruments
+    )
     headline = {
         "definition": "the systematic's own power in the paper's convention: sigma_g1 where "
         "the mean over seeds of the 68 %-point shift reaches the budget; error: bootstrap "
@@ -188,6 +201,7 @@ def run(
             summary[~summary["sigma_g1"].isin(grid_summary["sigma_g1"])]
         ),
         "systematic_only": systematic_only,
+        "fixed_instruments": fixed,
         "settings": {
             "baseline_length_s": config["maps"]["baseline_length_s"],
             "g1_per": config["requirement"]["g1_per"],
@@ -273,6 +287,41 @@ def run(
         inconsistent=None if check["consistent"] else f"{analysis}: fails in {failing}",
     )
     plot_a2_scaling(systematic_only["by_a2_scale"], budget, fig_a2_scaling)
+
+
+def fixed_instruments_summary(
+    instrument_csvs, model, budget: float, analysis: str, systematic_only: dict, figure
+) -> dict | None:
+    """:func:`fixed_instruments.fixed_instrument_estimator` of the seeds' tables (None
+    without instruments), logged and drawn beside the study's own k sigma^2."""
+    tables = [pd.read_csv(path) for path in instrument_csvs or []]
+    if not tables or n_instruments(tables[0]) == 0:
+        return None
+    unfiltered = analysis == "paper_literal"
+    fixed = fixed_instrument_estimator(tables, model, budget, unfiltered)
+    log.info(
+        "fixed instruments (%d, %d seeds): requirement with the linear term median %.3e "
+        "1/K (16-84 %%: %.3e-%.3e), own power alone %.3e; linear term resolved (|t| > 2) "
+        "in %.0f %% of the instruments",
+        fixed["n_instruments"],
+        len(tables),
+        fixed["requirement_median_per_k"],
+        *fixed["requirement_16_84_per_k"],
+        fixed["quadratic_only_median_per_k"],
+        100 * fixed["fraction_linear_resolved"],
+    )
+    if figure is not None:
+        sigma = np.logspace(-5, -1, 200)
+        plot_fixed_instruments(
+            sigma,
+            delta_r_curves(fixed["instruments"], sigma),
+            fixed["instruments"],
+            systematic_only["k_per_k2"],
+            budget,
+            model.fisher_sigma_r(),
+            figure,
+        )
+    return fixed
 
 
 def model_check(

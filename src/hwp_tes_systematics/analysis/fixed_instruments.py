@@ -1,0 +1,135 @@
+"""The bias one instrument carries: g1 draws held fixed over every sky and noise draw.
+
+The study draws new g1 for every seed (:func:`systematics.unit_g1_draws`), so the term
+linear in g1, C_obs(sigma) = C_nosys + 2 sigma C_cross + sigma^2 C_auto with C_cross the
+cross spectrum of the systematic (at sigma_g1 = 1 1/K) with the no-systematics residual,
+averages to zero over seeds. A real focal plane has one set of g1: over skies and noise
+its linear term averages to E[C_cross | z], which is zero only if nothing in the
+residual correlates with that instrument's systematic (the foreground residual and the
+dipole's template are every seed's; the template's noise x h part is drawn with the
+noise). For each fixed instrument i (:func:`systematics.instrument_g1_draws`) the
+Fisher bias (:func:`likelihood.fisher_bias`) of the seeds' mean spectra gives
+
+    delta r_i(sigma) = 2 sigma b_i + sigma^2 k_i,
+    b_i = F[mean_s C_cross,i,s],  k_i = F[mean_s C_auto,i,s],
+
+and the requirement of instrument i is the smallest sigma with |delta r_i| = budget
+(:func:`budget_sigma`). b_i is measured to +- its standard error over seeds: a b_i
+consistent with zero means the instrument's linear term is below what the seeds
+resolve, and the requirement then bounds rather than measures it (|b_i| includes that
+error; ``requirement_debiased_per_k`` uses sqrt(max(b_i^2 - se_i^2, 0))). The
+per-seed scatter of 2 sigma b_i,s is not a bias: it widens r like noise (beside sigma_r).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from .likelihood import fisher_bias
+
+CROSS = "bb_cross_instrument{index}_k3"
+CROSS_UNFILTERED = "bb_cross_unfiltered_instrument{index}_k3"
+AUTO = "bb_auto_instrument{index}_k4"
+
+
+def n_instruments(table: pd.DataFrame) -> int:
+    """The number of instruments in a table of :meth:`SeedMaps.instrument_spectra`."""
+    return sum(1 for column in table.columns if column.startswith("bb_auto_instrument"))
+
+
+def budget_sigma(b: float, k: float, budget: float) -> float:
+    """The smallest sigma > 0 [1/K] with |2 sigma b + sigma^2 k| = budget (k > 0):
+    (-b + sqrt(b^2 + k B)) / k when delta r rises through +B first; when b < 0 and the
+    dip, -b^2 / k, reaches -B: (-b - sqrt(b^2 - k B)) / k."""
+    b, k, budget = float(b), float(k), float(budget)
+    if not (k > 0 and budget > 0):
+        raise ValueError(f"k = {k}, budget = {budget}: expected both > 0")
+    if b < 0 and b * b >= k * budget:
+        return (-b - np.sqrt(b * b - k * budget)) / k
+    return (-b + np.sqrt(b * b + k * budget)) / k
+
+
+def _column(index: int, unfiltered: bool) -> str:
+    return (CROSS_UNFILTERED if unfiltered else CROSS).format(index=index)
+
+
+def instrument_biases(tables: list[pd.DataFrame], model, unfiltered: bool = False) -> list[dict]:
+    """Per instrument: b (mean over seeds of the linear term's Fisher bias, per 1/K), its
+    standard error, the seeds' scatter b_std, and k [K^2] (the quadratic term's), from
+    the seeds' tables (:meth:`SeedMaps.instrument_spectra`) through ``model``.
+    ``unfiltered``: the cross spectrum with the residual against the unfiltered CMB (the
+    paper_literal analysis)."""
+    if not tables:
+        raise ValueError("fixed instruments: no seed's table")
+    counts = {n_instruments(table) for table in tables}
+    if len(counts) != 1:
+        raise ValueError(f"fixed instruments: the seeds' tables hold {sorted(counts)} instruments")
+    size = model.ell.size
+    rows = []
+    for index in range(counts.pop()):
+        b_seeds = np.array(
+            [fisher_bias(t[_column(index, unfiltered)].to_numpy()[:size], model) for t in tables]
+        )
+        k_seeds = np.array(
+            [fisher_bias(t[AUTO.format(index=index)].to_numpy()[:size], model) for t in tables]
+        )
+        rows.append(
+            {
+                "instrument": index,
+                "b_per_k": float(b_seeds.mean()),
+                "b_error_per_k": float(b_seeds.std(ddof=1) / np.sqrt(b_seeds.size))
+                if b_seeds.size > 1
+                else float("nan"),
+                "b_std_over_seeds_per_k": float(b_seeds.std(ddof=1))
+                if b_seeds.size > 1
+                else float("nan"),
+                "k_per_k2": float(k_seeds.mean()),
+                "n_seeds": int(b_seeds.size),
+            }
+        )
+    return rows
+
+
+def fixed_instrument_estimator(
+    tables: list[pd.DataFrame], model, budget: float, unfiltered: bool = False
+) -> dict:
+    """The requirement of each fixed instrument (:func:`budget_sigma` of its b and k),
+    beside its quadratic term alone, and their spread over instruments."""
+    rows = instrument_biases(tables, model, unfiltered)
+    for row in rows:
+        b, error, k = row["b_per_k"], row["b_error_per_k"], row["k_per_k2"]
+        row["t_linear"] = b / error if error > 0 else float("nan")
+        row["requirement_sigma_g1_per_k"] = budget_sigma(b, k, budget)
+        debiased = np.sign(b) * np.sqrt(max(b * b - error * error, 0.0)) if error > 0 else b
+        row["requirement_debiased_per_k"] = budget_sigma(debiased, k, budget)
+        row["requirement_quadratic_only_per_k"] = float(np.sqrt(budget / k))
+    with_linear = np.array([row["requirement_sigma_g1_per_k"] for row in rows])
+    debiased = np.array([row["requirement_debiased_per_k"] for row in rows])
+    quadratic = np.array([row["requirement_quadratic_only_per_k"] for row in rows])
+    t = np.array([row["t_linear"] for row in rows])
+    k_mean = float(np.mean([row["k_per_k2"] for row in rows]))
+    return {
+        "definition": "g1 draws held fixed over every seed (one focal plane each); per "
+        "instrument delta r = 2 sigma b + sigma^2 k (Fisher peak shift of the seeds' mean "
+        "cross and auto spectra through the no-systematics weights); requirement: the "
+        "smallest sigma_g1 with |delta r| = budget",
+        "n_instruments": len(rows),
+        "residual": "unfiltered CMB" if unfiltered else "filtered CMB reference",
+        "requirement_median_per_k": float(np.median(with_linear)),
+        "requirement_16_84_per_k": np.percentile(with_linear, [16, 84]).tolist(),
+        "requirement_debiased_median_per_k": float(np.median(debiased)),
+        "quadratic_only_median_per_k": float(np.median(quadratic)),
+        "quadratic_only_of_mean_k_per_k": float(np.sqrt(budget / k_mean)),
+        "fraction_linear_resolved": float(np.mean(np.abs(t) > 2.0)),
+        "chi2_linear": float(np.sum(t**2)),
+        "instruments": rows,
+    }
+
+
+def delta_r_curves(rows: list[dict], sigma) -> np.ndarray:
+    """(n_instruments, n_sigma) |2 sigma b_i + sigma^2 k_i| on the grid ``sigma`` [1/K]."""
+    sigma = np.asarray(sigma, dtype=float)
+    b = np.array([row["b_per_k"] for row in rows])[:, None]
+    k = np.array([row["k_per_k2"] for row in rows])[:, None]
+    return np.abs(2 * sigma * b + sigma**2 * k)

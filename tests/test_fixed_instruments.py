@@ -1,0 +1,114 @@
+"""Fixed instruments: g1 draws held over every seed, and the bias one focal plane carries."""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from hwp_tes_systematics.analysis import fixed_instruments as fi
+from hwp_tes_systematics.analysis.likelihood import BBModel, fisher_bias
+from hwp_tes_systematics.analysis.systematics import instrument_g1_draws, unit_g1_draws
+
+DETECTORS = ["det_a", "det_b"]
+
+
+def test_instrument_draws_are_fixed_and_independent_of_every_seed():
+    first = instrument_g1_draws(7, "M1-140", 0, DETECTORS)
+    np.testing.assert_array_equal(first, instrument_g1_draws(7, "M1-140", 0, DETECTORS))
+    assert not np.allclose(first, instrument_g1_draws(7, "M1-140", 1, DETECTORS))
+    assert not np.allclose(first, instrument_g1_draws(7, "M1-166", 0, DETECTORS))
+    for seed in range(5):
+        assert not np.allclose(first, unit_g1_draws(7, "M1-140", seed, DETECTORS))
+    pair = instrument_g1_draws(7, "M1-140", 0, DETECTORS, per="pair")
+    assert pair[0] == pair[1]
+    with pytest.raises(ValueError, match="per"):
+        instrument_g1_draws(7, "M1-140", 0, DETECTORS, per="focal_plane")
+
+
+@pytest.mark.parametrize("b", [0.0, 3e-4, -3e-4, -3e-3])
+def test_budget_sigma_is_the_first_crossing_of_the_budget(b):
+    """|2 sigma b + sigma^2 k| reaches the budget at the returned sigma and nowhere below."""
+    k, budget = 1.0, 6.5e-6
+    sigma = fi.budget_sigma(b, k, budget)
+    assert abs(2 * sigma * b + sigma**2 * k) == pytest.approx(budget, rel=1e-9)
+    below = np.linspace(0, sigma, 10_001)[:-1]
+    assert np.all(np.abs(2 * below * b + below**2 * k) < budget)
+    if b == 0.0:
+        assert sigma == pytest.approx(np.sqrt(budget / k))
+    if b == -3e-3:  # the dip reaches -budget first: the linear term sets it
+        assert sigma < np.sqrt(budget / k)
+
+
+def _model(lmax=40):
+    ell = np.arange(lmax + 1)
+    return BBModel(ell, 1e-18, 1e-16 / (1 + ell), 0.0, 1e-17, 0.5)
+
+
+def _tables(model, cross_mean, n_seeds, scatter, rng, n_instruments=2):
+    """Seeds' instrument tables: auto = C_GW shape, cross = cross_mean x shape + noise."""
+    shape = model.c_gw_r1
+    tables = []
+    for _ in range(n_seeds):
+        table = {"ell": model.ell}
+        for index in range(n_instruments):
+            table[fi.AUTO.format(index=index)] = 4.0 * shape
+            noise = rng.normal(scale=scatter) * shape
+            table[fi.CROSS.format(index=index)] = cross_mean[index] * shape + noise
+            table[fi.CROSS_UNFILTERED.format(index=index)] = 0.0 * shape
+        tables.append(pd.DataFrame(table))
+    return tables
+
+
+def test_a_resolved_linear_term_sets_the_requirement():
+    """An instrument whose cross spectrum has a mean far above its seed scatter: b is that
+    mean's Fisher bias, |t| > 2, and the requirement is tighter than the own power's; an
+    instrument with a zero-mean cross spectrum keeps (nearly) the own power's."""
+    model = _model()
+    rng = np.random.default_rng(3)
+    tables = _tables(model, [5e-3, 0.0], 40, 1e-4, rng)
+    result = fi.fixed_instrument_estimator(tables, model, 6.5e-6)
+    strong, null = result["instruments"]
+    expected_b = fisher_bias(5e-3 * model.c_gw_r1, model)
+    assert strong["b_per_k"] == pytest.approx(expected_b, rel=0.01)
+    assert abs(strong["t_linear"]) > 20 and abs(null["t_linear"]) < 4
+    assert strong["k_per_k2"] == pytest.approx(fisher_bias(4.0 * model.c_gw_r1, model))
+    assert strong["requirement_sigma_g1_per_k"] < 0.5 * strong["requirement_quadratic_only_per_k"]
+    assert null["requirement_debiased_per_k"] == pytest.approx(
+        null["requirement_quadratic_only_per_k"], rel=0.05
+    )
+    assert result["fraction_linear_resolved"] == 0.5
+    # the unfiltered residual's cross spectra (all zero here) give the own power alone
+    unfiltered = fi.fixed_instrument_estimator(tables, model, 6.5e-6, unfiltered=True)
+    for row in unfiltered["instruments"]:
+        assert row["requirement_sigma_g1_per_k"] == pytest.approx(
+            row["requirement_quadratic_only_per_k"]
+        )
+
+
+def test_tables_with_different_instrument_counts_are_refused():
+    model = _model()
+    rng = np.random.default_rng(4)
+    tables = _tables(model, [0.0, 0.0], 2, 1e-4, rng)
+    tables[1] = tables[1].drop(columns=[fi.AUTO.format(index=1)])
+    with pytest.raises(ValueError, match="instruments"):
+        fi.instrument_biases(tables, model)
+
+
+def test_requirement_stage_summarises_and_draws_the_instruments(tmp_path):
+    """The requirement stage's summary of the seeds' CSVs: the JSON block and the figure;
+    no instruments (fixed_instruments: 0): no block."""
+    from hwp_tes_systematics.stages.requirement import fixed_instruments_summary
+
+    model = _model()
+    rng = np.random.default_rng(5)
+    paths = []
+    for seed, table in enumerate(_tables(model, [5e-3, 0.0, -1e-3], 4, 1e-4, rng, 3)):
+        paths.append(tmp_path / f"seed{seed}.csv")
+        table.to_csv(paths[-1], index=False)
+    figure = tmp_path / "fixed_instruments.png"
+    own = {"k_per_k2": 1.0}
+    fixed = fixed_instruments_summary(paths, model, 6.5e-6, "paper_recipe", own, str(figure))
+    assert fixed["n_instruments"] == 3 and fixed["residual"] == "filtered CMB reference"
+    assert figure.stat().st_size > 10_000
+    empty = tmp_path / "empty.csv"
+    pd.DataFrame({"ell": model.ell}).to_csv(empty, index=False)
+    assert fixed_instruments_summary([empty], model, 6.5e-6, "paper_recipe", own, None) is None
