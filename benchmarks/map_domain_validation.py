@@ -62,28 +62,32 @@ def qu_rms(maps: np.ndarray, seen: np.ndarray) -> float:
     return float(np.sqrt(np.mean(maps[1:, seen] ** 2)))
 
 
-def seed_maps(folder: Path, config: dict | None, seeds: int | None = None):
-    """Each seed's maps of a channel: its maps files (TOD path; seeds 0 to ``seeds`` - 1,
+def seed_maps(folder: Path, config: dict | None, seeds=None):
+    """Each seed's maps of a channel: its maps files (TOD path; the seeds ``seeds``, by
     default all there are), or made from its fixed pass (map-domain path, ``config``
-    given)."""
+    given; by default seeds 0 to simulation.seeds - 1)."""
     if config is None:
         paths = sorted(folder.glob("seed*.h5"), key=lambda p: int(p.stem[4:]))
         if seeds is not None:
-            paths = [folder / f"seed{seed}.h5" for seed in range(seeds)]
+            paths = [folder / f"seed{seed}.h5" for seed in seeds]
             paths = [path for path in paths if path.exists()]
         return [read_channel_maps(path) for path in paths]
     fixed_h5 = folder / f"fixed_pass_{analysis_variant(config)}.h5"
     if not fixed_h5.exists():
         return []
     channel_seeds = ChannelSeeds.from_run(config, fixed_h5)
-    return [channel_seeds.maps(seed) for seed in range(config["simulation"]["seeds"])]
+    return [channel_seeds.maps(seed) for seed in seed_list(config, seeds)]
+
+
+def seed_list(config: dict, seeds=None) -> list[int]:
+    """``seeds``, or 0 to simulation.seeds - 1."""
+    return list(range(config["simulation"]["seeds"])) if seeds is None else list(seeds)
 
 
 def channel_rows(
-    run: Path, config: dict | None = None, seeds: int | None = None
+    run: Path, config: dict | None = None, seeds=None
 ) -> dict[str, tuple[float, float]]:
-    """{channel: (noise Q/U rms, template detector-0 Q/U rms)} averaged over seeds (the
-    first ``seeds`` of a TOD run)."""
+    """{channel: (noise Q/U rms, template detector-0 Q/U rms)} averaged over ``seeds``."""
     rows = {}
     for folder in sorted((run / "results" / "maps").iterdir()):
         if not folder.is_dir():
@@ -110,12 +114,14 @@ def template_bb(templates: np.ndarray, good: np.ndarray, lmax: int, fwhm_arcmin:
     return total / beam_bb**2
 
 
-def channel_biases(tod_run: Path, md_run: Path, config: dict, model: BBModel) -> dict:
+def channel_biases(tod_run: Path, md_run: Path, config: dict, model: BBModel, seeds=None) -> dict:
     """{(channel, path): {"total": k_c per seed, "seed_part": k_c per seed}} of the
     channels with systematics, path "tod" or "map_domain": the Fisher bias of the
     channel's template BB (:func:`template_bb`) and of its seed part (the template minus
     the map-domain run's fixed pass's; the same operator on both paths, so the rest is the
-    seed's CMB x h and noise x h) [K^2]. ``config``: the map-domain run's."""
+    seed's CMB x h and noise x h) [K^2]. ``config``: the map-domain run's; ``seeds``: the
+    realizations compared (default 0 to simulation.seeds - 1; a TOD seed missing is left
+    out on both paths)."""
     lmax = int(model.ell.max())
     biases = {}
     for name in config["instrument"]["systematics_channels"]:
@@ -126,12 +132,13 @@ def channel_biases(tod_run: Path, md_run: Path, config: dict, model: BBModel) ->
         channel_seeds = ChannelSeeds.from_run(config, fixed_h5)
         fixed, fixed_templates = channel_seeds.fixed, channel_seeds.fixed_templates
         fwhm = channel_seeds.fwhm_arcmin
-        seeds = config["simulation"]["seeds"]
-        tod_seeds = seed_maps(tod_run / "results" / "maps" / name, None, seeds)
-        md_seeds = (channel_seeds.maps(seed) for seed in range(seeds))
-        for path, seeds in (("tod", tod_seeds), ("map_domain", md_seeds)):
+        tod_folder = tod_run / "results" / "maps" / name
+        held = [s for s in seed_list(config, seeds) if (tod_folder / f"seed{s}.h5").exists()]
+        tod_seeds = seed_maps(tod_folder, None, held)
+        md_seeds = (channel_seeds.maps(seed) for seed in held)
+        for path, realizations in (("tod", tod_seeds), ("map_domain", md_seeds)):
             rows = {"total": [], "seed_part": []}
-            for data in seeds:
+            for data in realizations:
                 templates = np.where(fixed.good, data["templates"], 0.0)
                 for key, maps in (("total", templates), ("seed_part", templates - fixed_templates)):
                     rows[key].append(fisher_bias(template_bb(maps, fixed.good, lmax, fwhm), model))
@@ -139,7 +146,7 @@ def channel_biases(tod_run: Path, md_run: Path, config: dict, model: BBModel) ->
     return biases
 
 
-def seed_part_pieces(tod_run: Path, md_run: Path, config: dict, model: BBModel) -> dict:
+def seed_part_pieces(tod_run: Path, md_run: Path, config: dict, model: BBModel, seeds=None) -> dict:
     """{channel: {"k": {piece: k_c per seed}, "bb": {piece: mean BB over seeds}}} of the
     seed part's pieces (module docstring, item 5): pieces "cmb_h" and "noise_h_md",
     "noise_h_tod"; "bb" also holds "noise_h_unshaped" (the map domain's M^-1 c_k)."""
@@ -155,10 +162,12 @@ def seed_part_pieces(tod_run: Path, md_run: Path, config: dict, model: BBModel) 
         pixels = np.flatnonzero(good)
         a2 = float(channel_seeds.attributes["a2_k_cmb"])
         fixed_templates, fwhm = channel_seeds.fixed_templates, channel_seeds.fwhm_arcmin
-        tod_seeds = seed_maps(tod_run / "results" / "maps" / name, None, simulation["seeds"])
+        tod_folder = tod_run / "results" / "maps" / name
+        held = [s for s in seed_list(config, seeds) if (tod_folder / f"seed{s}.h5").exists()]
+        tod_seeds = seed_maps(tod_folder, None, held)
         k_rows = {"cmb_h": [], "noise_h_md": [], "noise_h_tod": []}
         bb_rows = {"noise_h_md": [], "noise_h_tod": [], "noise_h_unshaped": []}
-        for seed, tod_data in enumerate(tod_seeds):
+        for seed, tod_data in zip(held, tod_seeds, strict=True):
             md_data = channel_seeds.maps(seed)
             operators = channel_seeds.operators
             cmb_alm, band = band_limited_seed_cmb(
@@ -264,12 +273,22 @@ def main() -> None:
         action="store_true",
         help="also split the seed part into CMB x h and noise x h (item 5)",
     )
+    parser.add_argument(
+        "--seeds",
+        nargs=2,
+        type=int,
+        metavar=("FIRST", "LAST"),
+        help="compare the realizations FIRST..LAST (default: 0 to simulation.seeds - 1), "
+        "e.g. held-out TOD seeds",
+    )
     arguments = parser.parse_args()
     runs = {"tod": arguments.tod, "map_domain": arguments.map_domain}
+    seeds = None if arguments.seeds is None else range(arguments.seeds[0], arguments.seeds[1] + 1)
 
     md_config = load_config(*arguments.configfile)
     configs = {"tod": None, "map_domain": md_config}
-    seeds = md_config["simulation"]["seeds"]
+    if seeds is None:
+        seeds = range(md_config["simulation"]["seeds"])
     channels = {name: channel_rows(run, configs[name], seeds) for name, run in runs.items()}
     print(
         "| channel | noise Q/U rms tod [K] | map domain | ratio | template Q/U rms tod "
@@ -301,7 +320,7 @@ def main() -> None:
         likelihood["lmax"],
         likelihood["model"],
     )
-    biases = channel_biases(arguments.tod, arguments.map_domain, md_config, model)
+    biases = channel_biases(arguments.tod, arguments.map_domain, md_config, model, seeds)
     print(
         "\n| channel's own template: Fisher bias k_c [K^2] (mean over seeds +- its error; "
         f"the likelihood model of {analysed}) | tod | map domain | ratio | difference / error |"
@@ -314,7 +333,7 @@ def main() -> None:
             print(compared(label, tod_k, biases[(name, "map_domain")][key]))
     if arguments.split:
         print_seed_part_pieces(
-            seed_part_pieces(arguments.tod, arguments.map_domain, md_config, model)
+            seed_part_pieces(arguments.tod, arguments.map_domain, md_config, model, seeds)
         )
 
 
