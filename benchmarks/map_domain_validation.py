@@ -85,12 +85,13 @@ def seed_list(config: dict, seeds=None) -> list[int]:
 
 
 def channel_rows(
-    run: Path, config: dict | None = None, seeds=None
+    run: Path, config: dict | None = None, seeds=None, channels=None
 ) -> dict[str, tuple[float, float]]:
-    """{channel: (noise Q/U rms, template detector-0 Q/U rms)} averaged over ``seeds``."""
+    """{channel: (noise Q/U rms, template detector-0 Q/U rms)} averaged over ``seeds``, for
+    ``channels`` (default: every channel folder of the run)."""
     rows = {}
     for folder in sorted((run / "results" / "maps").iterdir()):
-        if not folder.is_dir():
+        if not folder.is_dir() or (channels is not None and folder.name not in channels):
             continue
         noise, template = [], []
         for data in seed_maps(folder, config, seeds):
@@ -134,6 +135,8 @@ def channel_biases(tod_run: Path, md_run: Path, config: dict, model: BBModel, se
         fwhm = channel_seeds.fwhm_arcmin
         tod_folder = tod_run / "results" / "maps" / name
         held = [s for s in seed_list(config, seeds) if (tod_folder / f"seed{s}.h5").exists()]
+        if len(held) < 2:
+            continue
         tod_seeds = seed_maps(tod_folder, None, held)
         md_seeds = (channel_seeds.maps(seed) for seed in held)
         for path, realizations in (("tod", tod_seeds), ("map_domain", md_seeds)):
@@ -164,6 +167,8 @@ def seed_part_pieces(tod_run: Path, md_run: Path, config: dict, model: BBModel, 
         fixed_templates, fwhm = channel_seeds.fixed_templates, channel_seeds.fwhm_arcmin
         tod_folder = tod_run / "results" / "maps" / name
         held = [s for s in seed_list(config, seeds) if (tod_folder / f"seed{s}.h5").exists()]
+        if len(held) < 2:
+            continue
         tod_seeds = seed_maps(tod_folder, None, held)
         k_rows = {"cmb_h": [], "noise_h_md": [], "noise_h_tod": []}
         bb_rows = {"noise_h_md": [], "noise_h_tod": [], "noise_h_unshaped": []}
@@ -286,10 +291,10 @@ def main() -> None:
     seeds = None if arguments.seeds is None else range(arguments.seeds[0], arguments.seeds[1] + 1)
 
     md_config = load_config(*arguments.configfile)
-    configs = {"tod": None, "map_domain": md_config}
     if seeds is None:
         seeds = range(md_config["simulation"]["seeds"])
-    channels = {name: channel_rows(run, configs[name], seeds) for name, run in runs.items()}
+    channels = {"tod": channel_rows(runs["tod"], None, seeds)}
+    channels["map_domain"] = channel_rows(runs["map_domain"], md_config, seeds, channels["tod"])
     print(
         "| channel | noise Q/U rms tod [K] | map domain | ratio | template Q/U rms tod "
         "[K^2] | map domain | ratio |"
@@ -303,7 +308,9 @@ def main() -> None:
             f"{template:.3g} | {other_template:.3g} | {template_ratio:.3f} |"
         )
 
-    if not all((run / "results" / "requirement.json").exists() for run in runs.values()):
+    if arguments.seeds is not None:
+        print("\n(--seeds: the HILC-level comparison, over the runs' own seeds, is left out)")
+    elif not all((run / "results" / "requirement.json").exists() for run in runs.values()):
         print("\n(one run has no analysis: the HILC-level comparison is left out)")
     else:
         analysis_tables(runs)
