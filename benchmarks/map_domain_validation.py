@@ -286,6 +286,11 @@ def main() -> None:
         help="compare the realizations FIRST..LAST (default: 0 to simulation.seeds - 1), "
         "e.g. held-out TOD seeds",
     )
+    parser.add_argument(
+        "--noise-model",
+        type=Path,
+        help="the noise_model.csv whose likelihood model weighs k_c (default: either run's)",
+    )
     arguments = parser.parse_args()
     runs = {"tod": arguments.tod, "map_domain": arguments.map_domain}
     seeds = None if arguments.seeds is None else range(arguments.seeds[0], arguments.seeds[1] + 1)
@@ -316,13 +321,14 @@ def main() -> None:
         analysis_tables(runs)
 
     likelihood = md_config["likelihood"]
-    analysed = next(
-        run
-        for run in (arguments.tod, arguments.map_domain)
-        if (run / "results" / "spectra" / "noise_model.csv").exists()
-    )
+    candidates = [run / "results" / "spectra" / "noise_model.csv" for run in runs.values()]
+    if arguments.noise_model is not None:
+        candidates = [arguments.noise_model]
+    analysed = next((path for path in candidates if path.exists()), None)
+    if analysed is None:
+        parser.error(f"no likelihood model: none of {[str(p) for p in candidates]} exists")
     model = model_from_noise_csv(
-        str(analysed / "results" / "spectra" / "noise_model.csv"),
+        str(analysed),
         likelihood["lmin"],
         likelihood["lmax"],
         likelihood["model"],

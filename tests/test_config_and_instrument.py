@@ -12,6 +12,7 @@ from hwp_tes_systematics.config import (
     check_config,
     load_config,
     load_schema,
+    read_yaml,
     selected_channels,
 )
 
@@ -92,6 +93,19 @@ def test_systematics_channels_must_be_simulated(tmp_path, repo, monkeypatch):
 def test_missing_config_file(tmp_path):
     with pytest.raises(ConfigError, match="not found"):
         load_config(tmp_path / "missing.yaml")
+
+
+def test_a_key_given_twice_is_refused_and_no_shipped_file_has_one(tmp_path, repo):
+    """PyYAML keeps the last of two equal keys silently; the configuration reader names
+    the key and the file. Every shipped YAML configuration is read with it."""
+    twice = tmp_path / "twice.yaml"
+    twice.write_text("simulation:\n  seeds: 2\n  seeds: 3\n")
+    with pytest.raises(ConfigError, match=r"twice.yaml.*'seeds' given twice"):
+        load_config(repo / "config/config.yaml", twice)
+    shipped = [*(repo / "config").glob("*.yaml"), *(repo / "tests/configs").glob("*.yaml")]
+    assert len(shipped) > 5
+    for path in shipped:
+        read_yaml(path)
 
 
 def test_user_detector_pair_must_be_orthogonal():

@@ -235,3 +235,37 @@ def test_channel_alms_files_keep_each_detector_and_refuse_summed_terms(synthetic
         out["alm_x1"] = summed
     with pytest.raises(ValueError, match="alm_x1.*older map_domain_alms"):
         ir.read_channel_alms(path, harmonic, float(seed_maps.mask.sum()))
+
+
+def test_template_split_sums_to_the_systematic(synthetic):
+    """Map-domain a_lm carry the seed's two pieces of the s h term: the split's parts
+    (fixed, cmb_h, noise_h) sum to the whole systematic, and their auto and cross BB
+    (each cross twice) to bb_unit_k4."""
+    from hwp_tes_systematics.analysis import ilc_residuals as ir
+
+    config, paths = synthetic
+    mask = SeedMaps.load(config, 0, paths).mask
+    harmonic = ir.HarmonicSettings.from_config(config)
+    rng = np.random.default_rng(9)
+    channels = []
+    for name, path in paths.items():
+        data = read_channel_maps(path)
+        shape = data["template_terms"][1].shape
+        data["sh_term_pieces"] = {
+            "cmb_h": 0.3 * data["template_terms"][1] + rng.normal(size=shape) * 1e-5,
+            "noise_h": rng.normal(size=shape) * 1e-4,
+        }
+        channels.append(ir.ChannelAlms.from_maps(config, 0, name, data, mask, harmonic))
+    seed_maps = SeedMaps.combine(config, 0, channels, mask, harmonic)
+    weights = seed_maps.residual(0.0)["weights"]
+    parts = seed_maps.template_split_alms(weights)
+    whole = seed_maps.systematic_term_alms(weights).sum(axis=0)
+    np.testing.assert_allclose(sum(parts.values()), whole, rtol=1e-12, atol=0)
+    table = seed_maps.systematic_spectra(weights)
+    summed = sum(
+        (1 if a == b else 2) * table[f"bb_{a}_x_{b}_k4"]
+        for i, a in enumerate(ir.TEMPLATE_PARTS)
+        for b in ir.TEMPLATE_PARTS[i:]
+    )
+    np.testing.assert_allclose(summed, table["bb_unit_k4"], rtol=1e-9, atol=1e-30)
+    assert np.all(table["bb_noise_h_x_noise_h_k4"][2:] > 0)

@@ -135,6 +135,24 @@ def test_cmb_part_of_the_sh_term_is_the_hwpss_moment_product(setup):
 
 
 @pytest.mark.slow
+def test_seed_part_of_the_sh_term_is_its_two_pieces(setup):
+    """A seed's s h term is the fixed pass's plus its two pieces (to rounding); without
+    noise the noise piece is zero and the CMB piece the same."""
+    fixed, _, fast = setup
+    good = fixed.good
+    for seed in SEEDS:
+        pieces = fast[seed]["sh_term_pieces"]
+        seed_part = fast[seed]["template_terms"][1] - fixed.template_terms[1]
+        np.testing.assert_allclose(
+            seed_part[:, :, good], (pieces["cmb_h"] + pieces["noise_h"])[:, :, good], atol=1e-15
+        )
+        assert rms(pieces["noise_h"][0], good) > 0
+        noiseless = noiseless_fast(fixed, seed)["sh_term_pieces"]
+        assert not np.any(noiseless["noise_h"])
+        np.testing.assert_array_equal(noiseless["cmb_h"], pieces["cmb_h"])
+
+
+@pytest.mark.slow
 def test_seed_part_of_the_s2_term_is_negligible(setup):
     """The neglected 2 s_f x + x^2 is below 3 % of the modelled 2 A_2 h x (measured 2.0 %)."""
     fixed, full, _ = setup

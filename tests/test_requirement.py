@@ -217,3 +217,30 @@ def test_bootstrap_error_is_the_error_of_the_mean():
     assert error == pytest.approx(2.0 / np.sqrt(400), rel=0.15)
     assert bootstrap_error(np.full(20, 3.0), np.mean) == 0.0
     assert np.isnan(bootstrap_error(np.ones(1), np.mean))
+
+
+def test_template_split_shares_sum_to_one_and_drop_the_noise_part(tmp_path):
+    """The requirement stage's template split: the pairs' k sum to the k of their summed
+    BB; without the noise x h pairs the requirement loosens; no split columns: None."""
+    from hwp_tes_systematics.analysis.ilc_residuals import TEMPLATE_PARTS
+    from hwp_tes_systematics.analysis.likelihood import BBModel, fisher_bias
+    from hwp_tes_systematics.stages.requirement import template_split
+
+    ell = np.arange(41)
+    model = BBModel(ell, 1e-18, 1e-16 / (1 + ell), 0.0, 1e-17, 0.5)
+    rng = np.random.default_rng(2)
+    pairs = [(a, b) for i, a in enumerate(TEMPLATE_PARTS) for b in TEMPLATE_PARTS[i:]]
+    paths, total = [], 0.0
+    for seed in range(3):
+        table = {"ell": ell}
+        for a, b in pairs:
+            table[f"bb_{a}_x_{b}_k4"] = rng.uniform(0.5, 1.5) * 1e-17 / (1 + ell)
+            total = total + (1 if a == b else 2) * table[f"bb_{a}_x_{b}_k4"] / 3
+        paths.append(tmp_path / f"seed{seed}.csv")
+        pd.DataFrame(table).to_csv(paths[-1], index=False)
+    split = template_split(paths, model, 6.5e-6)
+    assert sum(split["k_per_k2"].values()) == pytest.approx(fisher_bias(total, model))
+    assert sum(split["fraction_of_k"].values()) == pytest.approx(1.0)
+    assert split["requirement_without_noise_h_per_k"] > np.sqrt(6.5e-6 / fisher_bias(total, model))
+    pd.DataFrame({"ell": ell, "bb_unit_k4": 1e-17}).to_csv(tmp_path / "old.csv", index=False)
+    assert template_split([tmp_path / "old.csv"], model, 6.5e-6) is None

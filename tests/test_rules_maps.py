@@ -101,6 +101,13 @@ def test_map_domain_alms_reproduce_and_equal_the_maps_path(repo, tmp_path, tiny_
     np.testing.assert_array_equal(
         seed0["alm_foreground_reference"], seed1["alm_foreground_reference"]
     )
+    # one template a_lm per detector and the seed's two pieces of the s h term, so the
+    # component separation gives fixed instruments and the template's split
+    assert seed0["alm_x1"].shape[0] == seed0["alm_x1_noise_h"].shape[0] == 2
+    systematic = pd.read_csv(workdir / "results/spectra/seed0/systematic_only.csv")
+    assert np.all(systematic["bb_noise_h_x_noise_h_k4"][2:] > 0)
+    instruments = pd.read_csv(workdir / "results/spectra/seed0/fixed_instruments.csv")
+    assert "bb_cross_instrument19_k3" in instruments
 
     # the same seed through maps files: the HILC's residual spectra agree to round-off
     config = deep_merge(

@@ -104,6 +104,32 @@ def deep_merge(base: dict, override: dict) -> dict:
     return merged
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """yaml.SafeLoader that refuses a key given twice in one mapping (PyYAML keeps the
+    last silently: a setting edited in one place and read from another)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            if key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"key {key!r} given twice", key_node.start_mark
+                )
+            seen.add(key)
+        return super().construct_mapping(node, deep=deep)
+
+
+def read_yaml(path: str | Path) -> dict:
+    """One YAML configuration file as a dict ({} if empty); ConfigError naming the file
+    if it is not valid YAML or gives a key twice."""
+    with open(path) as handle:
+        try:
+            return yaml.load(handle, Loader=_UniqueKeyLoader) or {}
+        except yaml.YAMLError as error:
+            raise ConfigError(f"configuration file {path}: not valid YAML ({error})") from error
+
+
 def load_config(*paths: str | Path) -> dict:
     """Read YAML files, merge them in order, validate and check the result."""
     config: dict = {}
@@ -111,12 +137,7 @@ def load_config(*paths: str | Path) -> dict:
         path = Path(path)
         if not path.is_file():
             raise ConfigError(f"configuration file {path}: not found")
-        with open(path) as handle:
-            try:
-                content = yaml.safe_load(handle) or {}
-            except yaml.YAMLError as error:
-                raise ConfigError(f"configuration file {path}: not valid YAML ({error})") from error
-        config = deep_merge(config, content)
+        config = deep_merge(config, read_yaml(path))
     check_config(config, source=" + ".join(str(p) for p in paths))
     return config
 

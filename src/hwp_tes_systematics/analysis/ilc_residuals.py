@@ -46,6 +46,9 @@ SPECTRA = ("tt", "ee", "bb", "te", "eb", "tb")  # hp.alm2cl order
 # the a_lm a channel contributes to a realization's HILC (ChannelAlms), at the common beam
 ALM_KINDS = ("nosys", "cmb_reference", "foreground_reference", "cmb_input")
 TERM_KINDS = tuple(f"x{j}" for j in range(N_TEMPLATE_TERMS))  # c_j(A) sum_k z_k T^j_k
+# on the map-domain path, a seed's own part of the s h term X^1, in two pieces
+PIECE_KINDS = tuple(f"x1_{piece}" for piece in map_domain.SH_TERM_PIECES)
+TEMPLATE_PARTS = ("fixed", *map_domain.SH_TERM_PIECES)  # the template's split
 
 
 def analysis_mask(observed: list[np.ndarray], settings: dict) -> np.ndarray:
@@ -146,6 +149,16 @@ class ChannelAlms:
                     term[:, seen] = coefficient * template[:, seen]
                     per_detector.append(harmonic.alm(term, fwhm, mask))
                 alms[kind] = np.array(per_detector)
+            for piece, kind in zip(map_domain.SH_TERM_PIECES, PIECE_KINDS, strict=True):
+                if piece in data.get("sh_term_pieces", {}):
+                    alms[kind] = np.array(
+                        [
+                            harmonic.alm(
+                                np.where(seen, 2.0 * a2_k * template, hp.UNSEEN), fwhm, mask
+                            )
+                            for template in data["sh_term_pieces"][piece]
+                        ]
+                    )
         return cls(name, alms, detectors, a2_k, draws)
 
     def term(self, kind: str, draws=None) -> np.ndarray:
@@ -154,7 +167,7 @@ class ChannelAlms:
         default); zeros for a term of a channel without systematics."""
         if kind not in self.alms:
             return np.zeros_like(self.alms["nosys"])
-        if kind not in TERM_KINDS:
+        if kind not in (*TERM_KINDS, *PIECE_KINDS):
             return self.alms[kind]
         draws = self.unit_draws if draws is None else np.asarray(draws, dtype=float)
         return np.tensordot(draws, self.alms[kind], axes=1)
@@ -203,7 +216,7 @@ def read_channel_alms(path, harmonic: HarmonicSettings, mask_sum: float) -> Chan
         attributes = dict(stored.attrs)
         alms = {name[4:]: stored[name][()] for name in stored if name.startswith("alm_")}
         draws = stored["unit_draws"][()]
-    for kind in TERM_KINDS:
+    for kind in (*TERM_KINDS, *PIECE_KINDS):
         if kind in alms and alms[kind].ndim != 3:
             raise ValueError(
                 f"{path}: alm_{kind} has shape {alms[kind].shape}, expected one a_lm per "
@@ -323,6 +336,8 @@ class SeedMaps:
             settings["min_modes_per_channel"],
         )
         kinds = (*ALM_KINDS, *TERM_KINDS)
+        if any(kind in c.alms for c in channels for kind in PIECE_KINDS):
+            kinds = (*kinds, *PIECE_KINDS)
         return cls(
             config=config,
             seed=seed,
@@ -449,13 +464,41 @@ class SeedMaps:
         )
 
     def systematic_spectra(self, nosys_weights: np.ndarray) -> pd.DataFrame:
-        """:func:`systematic_spectra_table` through the no-systematics weights."""
-        return systematic_spectra_table(
+        """:func:`systematic_spectra_table` through the no-systematics weights; on the
+        map-domain path also the template's split (:meth:`template_split_alms`): BB
+        ``bb_<a>_x_<b>_k4`` [K_CMB^2 K^2] of its parts a, b in TEMPLATE_PARTS."""
+        table = systematic_spectra_table(
             self.systematic_term_alms(nosys_weights),
             self.lmax,
             self.fractions,
             self.common_fwhm_arcmin,
         )
+        if PIECE_KINDS[0] not in self.channel_alms:
+            return table
+        parts = self.template_split_alms(nosys_weights)
+        for i, a in enumerate(TEMPLATE_PARTS):
+            for b in TEMPLATE_PARTS[i:]:
+                cl = unit_beam_spectra(
+                    parts[a],
+                    None if a == b else parts[b],
+                    self.lmax,
+                    self.fractions["w2"],
+                    self.common_fwhm_arcmin,
+                )
+                table[f"bb_{a}_x_{b}_k4"] = cl[2]
+        return table
+
+    def template_split_alms(self, weights: np.ndarray) -> dict[str, np.ndarray]:
+        """The systematic at sigma_g1 = 1 1/K through ``weights`` in its TEMPLATE_PARTS
+        (3, nalm) [K_CMB K]: ``fixed`` (the fixed pass's: the seed-independent sky s_f
+        through the s h term, s^2 and h^2), ``cmb_h`` and ``noise_h`` (the seed's CMB and
+        noise through the s h term); they sum to the whole."""
+        total = self.systematic_term_alms(weights).sum(axis=0)
+        parts = {
+            piece: hilc.apply_ilc(self.channel_alms[kind], weights, self.bins, self.lmax)
+            for piece, kind in zip(map_domain.SH_TERM_PIECES, PIECE_KINDS, strict=True)
+        }
+        return {"fixed": total - sum(parts.values()), **parts}
 
 
 def unit_beam_spectra(alm, alm2, lmax: int, w2: float, common_fwhm_arcmin: float) -> np.ndarray:

@@ -77,6 +77,7 @@ from .tod_maps import (
 log = logging.getLogger(__name__)
 
 SH_TERM = TEMPLATE_TERMS.index("s*h")
+SH_TERM_PIECES = ("cmb_h", "noise_h")  # a seed's own part of the s h term
 NOISE_REFERENCE_SEED = -1  # the fixed pass's noise realization: a stream no seed (0, 1, ...) uses
 SHAPING_BIN_WIDTH = 4  # multipoles averaged in the noise shaping
 SHAPING_ITERATIONS = 2  # corrections of the noise shaping for the mask's mode coupling
@@ -463,8 +464,11 @@ def realize_seed(
 ) -> dict[str, np.ndarray]:
     """The maps of one seed from the fixed pass (see the module docstring): nosys,
     template_terms, templates, cmb_reference, foreground_reference (UNSEEN where the
-    fixed pass is not good), as :func:`tod_maps.split_solved_maps` names them, and
-    cmb_input, the seed's CMB map before the filter (the map of ``cmb_alm``, everywhere).
+    fixed pass is not good), as :func:`tod_maps.split_solved_maps` names them,
+    cmb_input, the seed's CMB map before the filter (the map of ``cmb_alm``, everywhere),
+    and the seed's two pieces of the s h term, ``sh_term_pieces`` {"cmb_h", "noise_h"}:
+    (n_det, 3, npix) each, zero off the good pixels (the s h term is the fixed pass's
+    plus these).
     ``operators``: the :class:`SeedOperators` of (fixed, noise_scale), shared by the seeds
     of a channel (built here, filtering up to ``lmax``, if None)."""
     nside = hp.npix2nside(fixed.good.size)
@@ -485,11 +489,12 @@ def realize_seed(
     nosys = np.full_like(fixed.nosys, hp.UNSEEN)
     nosys[:, good] = fixed.nosys[:, good] + cmb_filtered[:, good] + noise[:, good]
     terms = fixed.template_terms.copy()
+    pieces = {name: np.zeros_like(terms[SH_TERM]) for name in SH_TERM_PIECES}
     for k, h_k in enumerate(operators.h_matrices):  # the s h term gets the seed's part
         cmb_h = np.einsum("pij,jp->ip", h_k, cmb[:, good])
-        terms[SH_TERM, k][:, good] += operators.solve(cmb_h) + filtered_noise(
-            c[k][:, good], fixed.noise_h_shaping
-        )
+        pieces["cmb_h"][k][:, good] = operators.solve(cmb_h)
+        pieces["noise_h"][k][:, good] = filtered_noise(c[k][:, good], fixed.noise_h_shaping)
+        terms[SH_TERM, k][:, good] += pieces["cmb_h"][k][:, good] + pieces["noise_h"][k][:, good]
     templates = np.where(good, templates_from_terms(terms, a2_k_cmb), hp.UNSEEN)
     return {
         "nosys": nosys,
@@ -498,6 +503,7 @@ def realize_seed(
         "cmb_reference": np.where(good, cmb_filtered, hp.UNSEEN),
         "foreground_reference": fixed.foreground_reference,
         "cmb_input": cmb,
+        "sh_term_pieces": pieces,
     }
 
 

@@ -44,10 +44,11 @@ from ..analysis.fixed_instruments import (
     fixed_instrument_estimator,
     n_instruments,
 )
-from ..analysis.ilc_residuals import systematic_bb
+from ..analysis.ilc_residuals import TEMPLATE_PARTS, systematic_bb
 from ..analysis.likelihood import (
     ANALYSES,
     analysis_transfer,
+    fisher_bias,
     fisher_bias_per_ell,
     fisher_information_per_ell,
     model_from_noise_table,
@@ -142,6 +143,13 @@ def run(
     fixed = fixed_instruments_summary(
         instrument_csvs, model, budget, analysis, systematic_only, fig_fixed_instruments
     )
+    systematic_only["template_split"] = split = template_split(systematic_csvs, model, budget)
+    if split is not None:
+        log.info(
+            "the template's split, shares of k: %s; without noise x h: sigma_g1 < %.3e 1/K",
+            ", ".join(f"{pair} {share:.2f}" for pair, share in split["fraction_of_k"].items()),
+            split["requirement_without_noise_h_per_k"],
+        )
     headline = {
         "definition": "the systematic's own power in the paper's convention: sigma_g1 where "
         "the mean over seeds of the 68 %-point shift reaches the budget; error: bootstrap "
@@ -287,6 +295,35 @@ def run(
         inconsistent=None if check["consistent"] else f"{analysis}: fails in {failing}",
     )
     plot_a2_scaling(systematic_only["by_a2_scale"], budget, fig_a2_scaling)
+
+
+def template_split(systematic_csvs, model, budget: float) -> dict | None:
+    """Where the systematic's own power comes from (map-domain path): the Fisher bias k
+    [K^2] of the seeds' mean BB of each pair of the template's parts (fixed: the
+    seed-independent sky through the nonlinearity; cmb_h, noise_h: the seed's CMB and noise
+    through the s h term), the share of each, and the requirement without the noise x h
+    part (what cross-spectra of data splits, whose noise is independent, would leave)."""
+    tables = [pd.read_csv(path) for path in systematic_csvs]
+    size = model.ell.size
+    pairs = [(a, b) for i, a in enumerate(TEMPLATE_PARTS) for b in TEMPLATE_PARTS[i:]]
+    if not tables or f"bb_{pairs[0][0]}_x_{pairs[0][1]}_k4" not in tables[0]:
+        return None
+    k = {}
+    for a, b in pairs:
+        mean = np.mean([t[f"bb_{a}_x_{b}_k4"].to_numpy()[:size] for t in tables], axis=0)
+        k[f"{a}_x_{b}"] = (1 if a == b else 2) * fisher_bias(mean, model)
+    total = sum(k.values())
+    without_noise = sum(value for pair, value in k.items() if "noise_h" not in pair)
+    return {
+        "definition": "k [K^2] of each pair of the template's parts (crosses counted "
+        "twice), from the seeds' mean BB through the no-systematics weights; they sum to k",
+        "k_per_k2": k,
+        "fraction_of_k": {pair: value / total for pair, value in k.items()},
+        "k_without_noise_h_per_k2": without_noise,
+        "requirement_without_noise_h_per_k": requirement_sigma(without_noise, budget)
+        if without_noise > 0
+        else float("nan"),
+    }
 
 
 def fixed_instruments_summary(
