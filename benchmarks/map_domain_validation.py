@@ -306,6 +306,8 @@ def main() -> None:
     )
     print("|---|---|---|---|---|---|---|")
     for channel, (noise, template) in channels["tod"].items():
+        if channel not in channels["map_domain"]:  # no fixed pass of this channel
+            continue
         other_noise, other_template = channels["map_domain"][channel]
         template_ratio = other_template / template if template > 0 else float("nan")
         print(
