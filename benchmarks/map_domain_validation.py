@@ -227,6 +227,22 @@ def print_seed_part_pieces(pieces: dict) -> None:
             print(f"| {name}, {label} | " + " | ".join(f"{r:.3f}" for r in ratios) + " |")
 
 
+def print_per_seed(biases: dict) -> None:
+    """Each seed's seed-part k_c on both paths, and the ratio of their variances over
+    seeds (the map domain's draws should scatter as the TOD's)."""
+    print("\n| channel, path | seed part k_c [K^2] per seed | std / mean |")
+    print("|---|---|---|")
+    for name in dict.fromkeys(name for name, _ in biases):
+        for path in ("tod", "map_domain"):
+            values = biases[(name, path)]["seed_part"]
+            listed = ", ".join(f"{v:.3g}" for v in values)
+            print(f"| {name}, {path} | {listed} | {np.std(values, ddof=1) / np.mean(values):.3f} |")
+        ratio = np.var(biases[(name, "tod")]["seed_part"], ddof=1) / np.var(
+            biases[(name, "map_domain")]["seed_part"], ddof=1
+        )
+        print(f"| {name}, variance TOD / map domain | {ratio:.2f} | |")
+
+
 def print_band_header(title: str, bands) -> None:
     """A Markdown table's header: ``title``, then one column per multipole band (lo, hi)."""
     print(f"\n| {title} | " + " | ".join(f"ell {a}-{b - 1}" for a, b in bands) + " |")
@@ -285,6 +301,11 @@ def main() -> None:
         metavar=("FIRST", "LAST"),
         help="compare the realizations FIRST..LAST (default: 0 to simulation.seeds - 1), "
         "e.g. held-out TOD seeds",
+    )
+    parser.add_argument(
+        "--per-seed",
+        action="store_true",
+        help="also list each seed's seed-part k_c on both paths (their scatter)",
     )
     parser.add_argument(
         "--noise-model",
@@ -346,6 +367,8 @@ def main() -> None:
             label = f"{name}, {'whole template' if key == 'total' else 'seed part'}"
             tod_k = biases[(name, "tod")][key]
             print(compared(label, tod_k, biases[(name, "map_domain")][key]))
+    if arguments.per_seed:
+        print_per_seed(biases)
     if arguments.split:
         print_seed_part_pieces(
             seed_part_pieces(arguments.tod, arguments.map_domain, md_config, model, seeds)
