@@ -49,17 +49,7 @@ def unit_g1_draws(
 ) -> np.ndarray:
     """z_k ~ N(0, 1), one per detector from the stream ("g1", channel, seed, detector), or
     (``per="pair"``) one shared by all detectors from the stream ("g1", channel, seed, "pair")."""
-    if per not in G1_PER:
-        raise ValueError(f"per = {per!r}: expected one of {G1_PER}")
-    if per == "pair":
-        z = seeding.rng(master_seed, "g1", channel, seed, "pair").standard_normal()
-        return np.full(len(detectors), z)
-    return np.array(
-        [
-            seeding.rng(master_seed, "g1", channel, seed, name).standard_normal()
-            for name in detectors
-        ]
-    )
+    return _g1_draws(master_seed, (channel, seed), detectors, per)
 
 
 def instrument_g1_draws(
@@ -70,16 +60,19 @@ def instrument_g1_draws(
     "pair"), independent of every seed's own draws (:func:`unit_g1_draws`). A fixed
     instrument's g1 over many skies and noise draws separates the bias a given focal
     plane carries (the mean) from the scatter it adds."""
+    return _g1_draws(master_seed, (channel, "instrument", instrument), detectors, per)
+
+
+def _g1_draws(master_seed: int, stream: tuple, detectors, per: str) -> np.ndarray:
+    """One N(0, 1) per detector from ("g1", *stream, detector), or (``per="pair"``) one
+    from ("g1", *stream, "pair") shared by all detectors."""
     if per not in G1_PER:
         raise ValueError(f"per = {per!r}: expected one of {G1_PER}")
-    names = ["pair"] * len(detectors) if per == "pair" else list(detectors)
+    if per == "pair":
+        z = seeding.rng(master_seed, "g1", *stream, "pair").standard_normal()
+        return np.full(len(detectors), z)
     return np.array(
-        [
-            seeding.rng(
-                master_seed, "g1", channel, "instrument", instrument, name
-            ).standard_normal()
-            for name in names
-        ]
+        [seeding.rng(master_seed, "g1", *stream, name).standard_normal() for name in detectors]
     )
 
 
