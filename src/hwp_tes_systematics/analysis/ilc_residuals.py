@@ -39,7 +39,7 @@ from ..simulation import map_domain
 from ..simulation.maps_file import read_channel_maps
 from ..sky import harmonics
 from . import hilc, spectra
-from .systematics import unit_g1_draws
+from .systematics import instrument_g1_draws, unit_g1_draws
 
 N_TEMPLATE_TERMS = 3  # s^2, s h, h^2
 SPECTRA = ("tt", "ee", "bb", "te", "eb", "tb")  # hp.alm2cl order
@@ -180,12 +180,16 @@ class ChannelAlms:
         return sum(self.alms[kind] for kind in TERM_KINDS)
 
 
-def _unit_draws(config: dict, name: str, seed: int, detectors: list[str]) -> np.ndarray:
-    """The unit g1 draws z_k of a channel's detectors (zeros outside the systematics channels)."""
+def _unit_draws(
+    config: dict, name: str, seed: int, detectors: list[str], draw=unit_g1_draws
+) -> np.ndarray:
+    """The unit g1 draws z_k of a channel's detectors (zeros outside the systematics
+    channels): the seed's own (``draw`` = :func:`systematics.unit_g1_draws`), or with
+    :func:`systematics.instrument_g1_draws` and ``seed`` the instrument's number."""
     if name not in config["instrument"]["systematics_channels"]:
         return np.zeros(len(detectors))
     per = config["requirement"]["g1_per"]
-    return np.asarray(unit_g1_draws(config["master_seed"], name, seed, detectors, per), float)
+    return np.asarray(draw(config["master_seed"], name, seed, detectors, per), float)
 
 
 def _input_cmb_map(config: dict, seed: int, fwhm_arcmin: float, npix: int) -> np.ndarray:
@@ -410,6 +414,14 @@ class SeedMaps:
                 for kind in TERM_KINDS
             ]
         )
+
+    def instrument_draws(self, instrument: int) -> list[np.ndarray]:
+        """The unit g1 draws of fixed instrument ``instrument``, one array per channel
+        (zeros on the channels without systematics)."""
+        return [
+            _unit_draws(self.config, name, instrument, detectors, instrument_g1_draws)
+            for name, detectors in zip(self.names, self.detectors, strict=True)
+        ]
 
     def instrument_template_alms(self, draws: list[np.ndarray], weights: np.ndarray):
         """(3, nalm) the systematic at sigma_g1 = 1 1/K of one instrument [K_CMB K]: the

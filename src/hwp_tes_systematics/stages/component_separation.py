@@ -17,7 +17,7 @@ import h5py
 import numpy as np
 
 from ..analysis.ilc_residuals import SeedMaps
-from ..analysis.systematics import NOSYS, instrument_g1_draws, sigma_of_case
+from ..analysis.systematics import NOSYS, sigma_of_case
 from ..io import atomic_path, write_csv
 from ..sky import map_metadata
 
@@ -52,29 +52,12 @@ def run(
     write_csv(seed_maps.systematic_spectra(nosys["weights"]), systematic_csv)
     log.info("seed %d: wrote the systematic-only spectra %s", seed, systematic_csv)
     if instruments_csv is not None:
-        instruments = [
-            instrument_draws(config, seed_maps, index) for index in range(fixed_instruments)
-        ]
+        instruments = [seed_maps.instrument_draws(index) for index in range(fixed_instruments)]
         table = seed_maps.instrument_spectra(nosys, instruments)
         write_csv(table, instruments_csv)
         log.info(
             "seed %d: %d fixed instruments, wrote %s", seed, fixed_instruments, instruments_csv
         )
-
-
-def instrument_draws(config: dict, seed_maps: SeedMaps, instrument: int) -> list[np.ndarray]:
-    """The unit g1 draws of fixed instrument ``instrument``, one array per channel of the
-    realization (zeros on the channels without systematics)."""
-    per = config["requirement"]["g1_per"]
-    draws = []
-    for name, detectors in zip(seed_maps.names, seed_maps.detectors, strict=True):
-        if name in config["instrument"]["systematics_channels"]:
-            draws.append(
-                instrument_g1_draws(config["master_seed"], name, instrument, detectors, per)
-            )
-        else:
-            draws.append(np.zeros(len(detectors)))
-    return draws
 
 
 def write_case(config: dict, seed_maps: SeedMaps, case: str, out_h5: str) -> dict:
