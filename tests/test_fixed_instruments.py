@@ -112,3 +112,29 @@ def test_requirement_stage_summarises_and_draws_the_instruments(tmp_path):
     empty = tmp_path / "empty.csv"
     pd.DataFrame({"ell": model.ell}).to_csv(empty, index=False)
     assert fixed_instruments_summary([empty], model, 6.5e-6, "paper_recipe", own, None) is None
+
+
+def test_the_68_percent_convention_matches_the_likelihood_at_the_crossing():
+    """delta r_68 = 2 sigma b68 + sigma^2 k68 from one shift per term: at the returned
+    requirement the 68 % point of the whole spectrum (no-systematics residual + 2 sigma
+    cross + sigma^2 auto), found numerically, has moved by the budget; the linear term
+    scales linearly (the regime the coefficients rest on)."""
+    from hwp_tes_systematics.analysis.likelihood import fraction_point_shift
+
+    model = _model()
+    rng = np.random.default_rng(5)
+    tables = _tables(model, [5e-3, 0.0], 40, 1e-4, rng)
+    c_res = model.n_ell + model.c_lens  # a no-systematics residual the model describes
+    budget = 6.5e-6
+    result = fi.fixed_instrument_estimator(tables, model, budget, c_res_nosys=c_res)
+    assert result["fraction_point"]["linearity_check"] == pytest.approx(1.0, abs=0.01)
+    for index, row in enumerate(result["instruments"]):
+        sigma = row["requirement_68_per_k"]
+        cross = np.mean([t[fi.CROSS.format(index=index)] for t in tables], axis=0)
+        auto = np.mean([t[fi.AUTO.format(index=index)] for t in tables], axis=0)
+        (shift,) = fraction_point_shift(c_res, 2 * sigma * cross + sigma**2 * auto, model, [1.0])
+        assert abs(shift) == pytest.approx(budget, rel=0.02)
+        # the 68 % point moves less than the Fisher peak per unit spectrum here (r >= 0)
+        assert 0 < row["k68_per_k2"] < row["k_per_k2"] * 1.5
+    strong = result["instruments"][0]
+    assert strong["requirement_68_per_k"] < strong["requirement_68_quadratic_only_per_k"]

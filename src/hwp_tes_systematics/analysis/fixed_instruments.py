@@ -19,6 +19,12 @@ consistent with zero means the instrument's linear term is below what the seeds
 resolve, and the requirement then bounds rather than measures it (|b_i| includes that
 error; ``requirement_debiased_per_k`` uses sqrt(max(b_i^2 - se_i^2, 0))). The
 per-seed scatter of 2 sigma b_i,s is not a bias: it widens r like noise (beside sigma_r).
+
+The paper's convention, the shift of the 68 % point of L(r), is linear in the added
+spectrum wherever the budget is small beside sigma_r (the likelihood's linear regime):
+delta r_68(sigma) = 2 sigma b68_i + sigma^2 k68_i, each coefficient one numerical shift
+of the 68 % point (:func:`likelihood.fraction_point_shift`) of the seeds' mean
+no-systematics residual (:func:`fraction_point_terms`); the same budget crossing follows.
 """
 
 from __future__ import annotations
@@ -26,7 +32,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from .likelihood import fisher_bias
+from .likelihood import fisher_bias, fraction_point_shift
 
 CROSS = "bb_cross_instrument{index}_k3"
 CROSS_UNFILTERED = "bb_cross_unfiltered_instrument{index}_k3"
@@ -91,11 +97,46 @@ def instrument_biases(tables: list[pd.DataFrame], model, unfiltered: bool = Fals
     return rows
 
 
+def fraction_point_terms(
+    tables: list[pd.DataFrame],
+    c_res_nosys,
+    model,
+    unfiltered: bool = False,
+    sigma_ref: float = 1e-3,
+) -> tuple[list[tuple[float, float]], float]:
+    """([(b68, k68) per instrument], linearity): the 68 %-point shift's coefficients,
+    delta r_68(sigma) = 2 sigma b68 + sigma^2 k68, of the seeds' mean cross and auto
+    spectra added to ``c_res_nosys`` (the seeds' mean no-systematics residual), each the
+    shift at ``sigma_ref`` [1/K] divided by 2 sigma_ref or sigma_ref^2. ``linearity``:
+    instrument 0's linear shift at 3 sigma_ref over 3 times its shift at sigma_ref (1 in
+    the linear regime this rests on)."""
+    size = model.ell.size
+    terms, linearity = [], float("nan")
+    for index in range(n_instruments(tables[0])):
+        cross = np.mean([t[_column(index, unfiltered)].to_numpy()[:size] for t in tables], axis=0)
+        auto = np.mean([t[AUTO.format(index=index)].to_numpy()[:size] for t in tables], axis=0)
+        (linear,) = fraction_point_shift(c_res_nosys, 2 * sigma_ref * cross, model, [1.0])
+        (quadratic,) = fraction_point_shift(c_res_nosys, auto, model, [sigma_ref])
+        terms.append((linear / (2 * sigma_ref), quadratic / sigma_ref**2))
+        if index == 0:
+            (tripled,) = fraction_point_shift(  # 3 times the added spectrum
+                c_res_nosys, 2 * sigma_ref * cross, model, [np.sqrt(3.0)]
+            )
+            linearity = tripled / (3 * linear) if linear else float("nan")
+    return terms, linearity
+
+
 def fixed_instrument_estimator(
-    tables: list[pd.DataFrame], model, budget: float, unfiltered: bool = False
+    tables: list[pd.DataFrame],
+    model,
+    budget: float,
+    unfiltered: bool = False,
+    c_res_nosys=None,
 ) -> dict:
     """The requirement of each fixed instrument (:func:`budget_sigma` of its b and k),
-    beside its quadratic term alone, and their spread over instruments."""
+    beside its quadratic term alone, and their spread over instruments; with
+    ``c_res_nosys`` (the seeds' mean no-systematics residual) the same in the paper's
+    68 %-point convention (:func:`fraction_point_terms`)."""
     rows = instrument_biases(tables, model, unfiltered)
     for row in rows:
         b, error, k = row["b_per_k"], row["b_error_per_k"], row["k_per_k2"]
@@ -104,6 +145,34 @@ def fixed_instrument_estimator(
         debiased = np.sign(b) * np.sqrt(max(b * b - error * error, 0.0)) if error > 0 else b
         row["requirement_debiased_per_k"] = budget_sigma(debiased, k, budget)
         row["requirement_quadratic_only_per_k"] = float(np.sqrt(budget / k))
+    fraction_point = None
+    if c_res_nosys is not None:
+        terms, linearity = fraction_point_terms(tables, c_res_nosys, model, unfiltered)
+        for row, (b68, k68) in zip(rows, terms, strict=True):
+            t = row["t_linear"]
+            debiased = (  # b68's error is b68 / t, the Fisher term's relative error
+                np.sign(b68) * np.sqrt(max(b68 * b68 * (1 - 1 / t**2), 0.0))
+                if np.isfinite(t) and t != 0
+                else b68
+            )
+            row["b68_per_k"], row["k68_per_k2"] = b68, k68
+            row["requirement_68_per_k"] = budget_sigma(b68, k68, budget)
+            row["requirement_68_debiased_per_k"] = budget_sigma(debiased, k68, budget)
+            row["requirement_68_quadratic_only_per_k"] = float(np.sqrt(budget / k68))
+        fraction_point = {
+            "definition": "the same in the paper's convention: delta r_68 = 2 sigma b68 + "
+            "sigma^2 k68, the shifts of the 68 % point of L(r) for the seeds' mean spectra "
+            "(linear regime: budget << sigma_r); debiased with the Fisher term's t",
+            "linearity_check": linearity,
+            **{
+                f"{name}_median_per_k": float(np.median([row[key] for row in rows]))
+                for name, key in (
+                    ("requirement", "requirement_68_per_k"),
+                    ("requirement_debiased", "requirement_68_debiased_per_k"),
+                    ("quadratic_only", "requirement_68_quadratic_only_per_k"),
+                )
+            },
+        }
     with_linear = np.array([row["requirement_sigma_g1_per_k"] for row in rows])
     debiased = np.array([row["requirement_debiased_per_k"] for row in rows])
     quadratic = np.array([row["requirement_quadratic_only_per_k"] for row in rows])
@@ -123,6 +192,7 @@ def fixed_instrument_estimator(
         "quadratic_only_of_mean_k_per_k": float(np.sqrt(budget / k_mean)),
         "fraction_linear_resolved": float(np.mean(np.abs(t) > 2.0)),
         "chi2_linear": float(np.sum(t**2)),
+        "fraction_point": fraction_point,
         "instruments": rows,
     }
 
