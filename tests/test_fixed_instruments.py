@@ -138,3 +138,17 @@ def test_the_68_percent_convention_matches_the_likelihood_at_the_crossing():
         assert 0 < row["k68_per_k2"] < row["k_per_k2"] * 1.5
     strong = result["instruments"][0]
     assert strong["requirement_68_per_k"] < strong["requirement_68_quadratic_only_per_k"]
+
+
+def test_split_half_correlation_tells_a_real_linear_term_from_noise():
+    """b from the even seeds against b from the odd seeds: instruments whose cross spectra
+    have different true means correlate; zero-mean cross spectra (estimation noise only)
+    do not."""
+    model = _model()
+    rng = np.random.default_rng(6)
+    real = rng.normal(scale=5e-3, size=30)
+    tables = _tables(model, real, 20, 1e-3, rng, n_instruments=30)
+    assert fi.split_half_correlation(tables, model)["pearson_r"] > 0.9
+    null = fi.split_half_correlation(_tables(model, np.zeros(30), 20, 1e-3, rng, 30), model)
+    assert abs(null["pearson_r"]) < 0.6 and null["p_value"] > 1e-3
+    assert np.isnan(fi.split_half_correlation(tables[:3], model)["pearson_r"])

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 import pandas as pd
+import scipy.stats
 
 from .likelihood import fisher_bias, fraction_point_shift
 
@@ -126,6 +127,23 @@ def fraction_point_terms(
     return terms, linearity
 
 
+def split_half_correlation(tables: list[pd.DataFrame], model, unfiltered: bool = False) -> dict:
+    """Whether the instruments' linear terms are real: b_i from the even seeds against b_i
+    from the odd seeds, Pearson's correlation over the instruments and its two-sided p
+    value (a linear term the seeds resolve correlates; estimation noise does not). NaN
+    with fewer than four seeds or three instruments."""
+    result = {"pearson_r": float("nan"), "p_value": float("nan"), "halves": "even, odd seeds"}
+    if len(tables) < 4 or n_instruments(tables[0]) < 3:
+        return result
+    even, odd = (
+        np.array([row["b_per_k"] for row in instrument_biases(half, model, unfiltered)])
+        for half in (tables[0::2], tables[1::2])
+    )
+    test = scipy.stats.pearsonr(even, odd)
+    result.update(pearson_r=float(test.statistic), p_value=float(test.pvalue))
+    return result
+
+
 def fixed_instrument_estimator(
     tables: list[pd.DataFrame],
     model,
@@ -192,6 +210,7 @@ def fixed_instrument_estimator(
         "quadratic_only_of_mean_k_per_k": float(np.sqrt(budget / k_mean)),
         "fraction_linear_resolved": float(np.mean(np.abs(t) > 2.0)),
         "chi2_linear": float(np.sum(t**2)),
+        "linear_split_half": split_half_correlation(tables, model, unfiltered),
         "fraction_point": fraction_point,
         "instruments": rows,
     }

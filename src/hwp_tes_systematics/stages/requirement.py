@@ -360,13 +360,15 @@ def fixed_instruments_summary(
     log.info(
         "fixed instruments (%d, %d seeds): requirement with the linear term median %.3e "
         "1/K (16-84 %%: %.3e-%.3e), own power alone %.3e; linear term resolved (|t| > 2) "
-        "in %.0f %% of the instruments",
+        "in %.0f %% of the instruments, even/odd seeds' b correlate by r = %.2f (p %.2g)",
         fixed["n_instruments"],
         len(tables),
         fixed["requirement_median_per_k"],
         *fixed["requirement_16_84_per_k"],
         fixed["quadratic_only_median_per_k"],
         100 * fixed["fraction_linear_resolved"],
+        fixed["linear_split_half"]["pearson_r"],
+        fixed["linear_split_half"]["p_value"],
     )
     if fixed["fraction_point"] is not None:
         log.info(
