@@ -118,7 +118,7 @@ def fraction_point_terms(
         auto = np.mean([t[AUTO.format(index=index)].to_numpy()[:size] for t in tables], axis=0)
         (linear,) = fraction_point_shift(c_res_nosys, 2 * sigma_ref * cross, model, [1.0])
         (quadratic,) = fraction_point_shift(c_res_nosys, auto, model, [sigma_ref])
-        terms.append((linear / (2 * sigma_ref), quadratic / sigma_ref**2))
+        terms.append((float(linear / (2 * sigma_ref)), float(quadratic / sigma_ref**2)))
         if index == 0:
             (tripled,) = fraction_point_shift(  # 3 times the added spectrum
                 c_res_nosys, 2 * sigma_ref * cross, model, [np.sqrt(3.0)]
