@@ -113,8 +113,14 @@ def run(
     if extension is not None:
         extension = dict(extension)
         extension["model"] = model
+    nosys_residuals = np.array(  # (seeds, ell) the no-systematics residual BB of the analysis
+        [
+            residual_bb(pd.read_csv(path), analysis, settings["lmax"], path)
+            for path in nosys_spectra_csvs
+        ]
+    )
     check, distribution = model_check(
-        config, model, noise, nosys_spectra_csvs, systematic_csvs, fig_ell_distribution
+        config, model, noise, nosys_residuals, systematic_csvs, fig_ell_distribution
     )
     table = delta_r_table(likelihoods)
     grid_summary = summarise(table)
@@ -147,7 +153,7 @@ def run(
         analysis,
         systematic_only,
         fig_fixed_instruments,
-        nosys_spectra_csvs,
+        nosys_residuals.mean(axis=0) if len(nosys_residuals) else None,
     )
     systematic_only["template_split"] = split = template_split(systematic_csvs, model, budget)
     if split is not None:
@@ -339,23 +345,16 @@ def fixed_instruments_summary(
     analysis: str,
     systematic_only: dict,
     figure,
-    nosys_spectra_csvs=(),
+    c_res_nosys=None,
 ) -> dict | None:
     """:func:`fixed_instruments.fixed_instrument_estimator` of the seeds' tables (None
-    without instruments), logged and drawn beside the study's own k sigma^2; with the
-    seeds' no-systematics spectra also in the paper's 68 %-point convention."""
+    without instruments), logged and drawn beside the study's own k sigma^2; with
+    ``c_res_nosys``, the seeds' mean no-systematics residual BB, also in the paper's
+    68 %-point convention."""
     tables = [pd.read_csv(path) for path in instrument_csvs or []]
     if not tables or n_instruments(tables[0]) == 0:
         return None
     unfiltered = analysis == "paper_literal"
-    lmax = int(model.ell[-1])
-    c_res_nosys = (
-        np.mean(
-            [residual_bb(pd.read_csv(p), analysis, lmax, p) for p in nosys_spectra_csvs], axis=0
-        )
-        if nosys_spectra_csvs
-        else None
-    )
     fixed = fixed_instrument_estimator(tables, model, budget, unfiltered, c_res_nosys)
     log.info(
         "fixed instruments (%d, %d seeds): requirement with the linear term median %.3e "
@@ -397,13 +396,14 @@ def model_check(
     config: dict,
     model,
     noise: pd.DataFrame,
-    nosys_spectra_csvs: list[str],
+    residuals: np.ndarray,
     systematic_csvs: list[str],
     fig_ell_distribution: str,
 ) -> tuple[dict, dict]:
     """(:func:`consistency.check_model` of the analysis, the information and the bias
-    per bin), and their figure. ``noise``: the noise model table. The bias is that of
-    the mean over seeds of the systematic's BB at sigma_g1 = 1."""
+    per bin), and their figure. ``noise``: the noise model table; ``residuals``: (seeds,
+    ell) the no-systematics residual BB of the analysis. The bias is that of the mean over
+    seeds of the systematic's BB at sigma_g1 = 1."""
     settings = config["likelihood"]
     analysis, lmax = settings["model"], settings["lmax"]
     data_transfer = sky_transfer_bb(noise, lmax)
@@ -412,9 +412,6 @@ def model_check(
     model_transfer = analysis_transfer(noise, lmax, analysis)
     if model_transfer is None:
         model_transfer = np.ones(lmax + 1)
-    residuals = np.array(
-        [residual_bb(pd.read_csv(path), analysis, lmax, path) for path in nosys_spectra_csvs]
-    )
     check = consistency.check_model(base, model_transfer, data_transfer, data_sem, residuals)
     c_sys = np.mean(
         [systematic_bb(pd.read_csv(path).iloc[: lmax + 1], 1.0) for path in systematic_csvs],
