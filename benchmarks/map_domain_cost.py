@@ -27,7 +27,11 @@ import time
 import healpy as hp
 import numpy as np
 
-from hwp_tes_systematics.analysis.ilc_residuals import ChannelAlms, HarmonicSettings
+from hwp_tes_systematics.analysis.ilc_residuals import (
+    ChannelAlms,
+    HarmonicSettings,
+    fixed_term_alms,
+)
 from hwp_tes_systematics.config import deep_merge, default_config_path, load_config
 from hwp_tes_systematics.instrument.channels import load_channel
 from hwp_tes_systematics.simulation import map_domain
@@ -127,7 +131,8 @@ def seed_costs(
     nside: int, filter_lmax: int | None, seeds: int = 2, analysis_lmax=None, map2alm_iter=3
 ) -> None:
     """Prints what the ``map_domain_maps`` job of a one-year channel costs at ``nside``:
-    the shared operators (noise factors, M^-1, H_k: once per channel) and each seed (CMB
+    the shared operators (noise factors, M^-1, H_k, the fixed template terms' a_lm: once
+    per channel) and each seed (CMB
     draw to the beam's band limit and map products, the noise shaped up to
     ``filter_lmax``), as the workflow's ``map_domain_maps`` does, on a synthetic
     full-sky fixed pass."""
@@ -158,17 +163,20 @@ def seed_costs(
         fwhm = load_channel(name).fwhm_arcmin
         started = time.perf_counter()
         operators = map_domain.SeedOperators(fixed, 1.0, filter_lmax)
+        # as the map_domain_alms job: the fixed pass's term a_lm once, each seed without
+        # its full terms (the foreground reference's a_lm, once too, left out here)
+        known = fixed_term_alms(config, name, fixed, 0.264, mask, harmonic)
         factors_s = time.perf_counter() - started
         started = time.perf_counter()
         reduce_s = 0.0
         for seed in range(seeds):
             cmb_alm, band = map_domain.band_limited_seed_cmb(lmax, 0.0, 1, seed, fwhm)
             maps = map_domain.realize_seed(
-                fixed, cmb_alm, band, 0.264, 1.0, np.random.default_rng, operators
+                fixed, cmb_alm, band, 0.264, 1.0, np.random.default_rng, operators, False
             )
             reduced = time.perf_counter()
             maps["attrs"] = {"detectors": ["a", "b"][: 2 if carries else 1], "a2_k_cmb": 0.264}
-            ChannelAlms.from_maps(config, seed, name, maps, mask, harmonic)
+            ChannelAlms.from_maps(config, seed, name, maps, mask, harmonic, known)
             reduce_s += time.perf_counter() - reduced
         per_seed = (time.perf_counter() - started) / seeds
         kind = "with systematics" if carries else "without"

@@ -212,6 +212,21 @@ def test_resolution_overlays_share_one_fixed_pass(repo, monkeypatch):
         check_config(deep_merge(config, {"simulation": {"realizations": "tod"}}))
 
 
+def test_both_map_makers_overlay_shares_one_pass_at_the_run_nside(repo, monkeypatch):
+    """config/both_map_makers.yaml bins the run's own nside with 60 s baselines and
+    without in one pass; no_baselines.yaml after it picks the second analysis."""
+    from hwp_tes_systematics.config import analysis_variant, fixed_pass_variants
+
+    monkeypatch.chdir(repo)
+    files = ["config/config.yaml", "config/one_year.yaml", "config/both_map_makers.yaml"]
+    with_baselines = load_config(*files)
+    without = load_config(*files, "config/no_baselines.yaml")
+    assert fixed_pass_variants(with_baselines) == [(64, 60.0), (64, None)]
+    assert fixed_pass_variants(without) == fixed_pass_variants(with_baselines)
+    assert analysis_variant(with_baselines) != analysis_variant(without)
+    check_config(without)
+
+
 def test_channels_without_systematics_can_be_sampled_slower(repo, monkeypatch):
     """simulation.sampling_rate_without_systematics_hz applies to the channels outside
     instrument.systematics_channels only; null leaves every channel at sampling_rate_hz."""

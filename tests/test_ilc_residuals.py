@@ -12,6 +12,8 @@ from hwp_tes_systematics.analysis.ilc_residuals import SeedMaps, systematic_bb, 
 from hwp_tes_systematics.analysis.likelihood import BBModel, fisher_bias, fit_r
 from hwp_tes_systematics.analysis.systematics import case_names, maps_for_sigma
 from hwp_tes_systematics.config import deep_merge, load_config
+from hwp_tes_systematics.simulation import map_domain
+from hwp_tes_systematics.simulation.mapmaking import MATRIX_ENTRIES
 from hwp_tes_systematics.simulation.maps_file import read_channel_maps
 from hwp_tes_systematics.simulation.tod_maps import templates_from_terms
 from hwp_tes_systematics.stages import component_separation
@@ -269,3 +271,80 @@ def test_template_split_sums_to_the_systematic(synthetic):
     )
     np.testing.assert_allclose(summed, table["bb_unit_k4"], rtol=1e-9, atol=1e-30)
     assert np.all(table["bb_noise_h_x_noise_h_k4"][2:] > 0)
+
+
+def synthetic_fixed_pass(nside: int, rng) -> map_domain.FixedMaps:
+    """A map-domain fixed pass of two detectors on a random sky: HWPSS moments from eight
+    random HWP angles per pixel, random template terms, a few pixels not good."""
+
+    npix, lmax = hp.nside2npix(nside), 3 * nside - 1
+    moments = np.zeros((2, npix, 3, 6))
+    for k in range(2):
+        for _ in range(8):
+            chi = rng.uniform(0, 2 * np.pi, npix)
+            a = np.stack([np.ones(npix), np.cos(4 * chi), np.sin(4 * chi)])
+            for entry, (i, j) in enumerate(MATRIX_ENTRIES):
+                for weight in range(3):
+                    moments[k, :, weight, entry] += np.cos(2 * chi) ** weight * a[i] * a[j]
+    good = np.ones(npix, bool)
+    good[rng.choice(npix, 20, replace=False)] = False
+    scales = np.array([1e-6, 1e-4, 1e-3])[:, None, None, None]
+    return map_domain.FixedMaps(
+        nosys=rng.normal(size=(3, npix)) * 1e-6,
+        template_terms=rng.normal(size=(3, 2, 3, npix)) * scales,
+        foreground_reference=rng.normal(size=(3, npix)) * 1e-7,
+        transfer=np.full((3, lmax + 1), 0.8),
+        noise_shaping=np.full((3, lmax + 1), 0.9),
+        noise_h_shaping=np.full((3, lmax + 1), 0.4),
+        matrix=moments[:, :, 0].sum(axis=0).T.copy(),
+        moments=moments,
+        hits=np.full(npix, 16.0),
+        condition=np.full(npix, 2.0),
+        good=good,
+        carries_systematics=True,
+    )
+
+
+def test_seed_alms_from_the_fixed_terms_equal_those_of_the_full_terms(synthetic):
+    """A map-domain seed made without its template terms, with the fixed pass's term a_lm
+    transformed once (ilc_residuals.fixed_term_alms), gives the a_lm of the seed made with
+    them, to round-off (the a_lm are linear in the maps); without the fixed term a_lm it
+    is refused by name."""
+    from hwp_tes_systematics.analysis import ilc_residuals as ir
+
+    config, paths = synthetic
+    seed_maps = SeedMaps.load(config, 0, paths)
+    harmonic = ir.HarmonicSettings.from_config(config)
+    a2_k = CHANNELS["M1-140"]
+    fixed = synthetic_fixed_pass(NSIDE, np.random.default_rng(11))
+    mask = np.where(fixed.good, seed_maps.mask, 0.0)
+    lmax = 3 * NSIDE - 1
+    cmb_alm = map_domain.seed_cmb_alm(lmax, 0.01, 7, 0, 30.0)
+    known = ir.fixed_term_alms(config, "M1-140", fixed, a2_k, mask, harmonic)
+    made = {}
+    for full_terms in (True, False):
+        maps = map_domain.realize_seed(
+            fixed,
+            cmb_alm,
+            lmax,
+            a2_k,
+            1.0,
+            lambda k: np.random.default_rng([3, k]),
+            None,
+            full_terms,
+        )
+        assert ("template_terms" in maps) == full_terms
+        maps["attrs"] = {"detectors": ["det_a", "det_b"], "a2_k_cmb": a2_k}
+        given = {} if full_terms else dict(known)
+        made[full_terms] = ir.ChannelAlms.from_maps(
+            config, 0, "M1-140", maps, mask, harmonic, given
+        )
+    full, shared = made[True].alms, made[False].alms
+    assert set(full) == set(shared)
+    assert ir.FIXED_SH_KIND not in shared
+    for kind, alm in full.items():
+        scale = np.abs(alm).max()
+        assert scale > 0, kind
+        np.testing.assert_allclose(shared[kind], alm, rtol=0, atol=1e-12 * scale, err_msg=kind)
+    with pytest.raises(ValueError, match="missing.*x1_fixed"):
+        ir.ChannelAlms.from_maps(config, 0, "M1-140", maps, mask, harmonic, {})

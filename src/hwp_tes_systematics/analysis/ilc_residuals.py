@@ -49,6 +49,9 @@ TERM_KINDS = tuple(f"x{j}" for j in range(N_TEMPLATE_TERMS))  # c_j(A) sum_k z_k
 # on the map-domain path, a seed's own part of the s h term X^1, in two pieces
 PIECE_KINDS = tuple(f"x1_{piece}" for piece in map_domain.SH_TERM_PIECES)
 TEMPLATE_PARTS = ("fixed", *map_domain.SH_TERM_PIECES)  # the template's split
+# a map-domain channel's fixed-pass part of X^1 (a seed's X^1 is it plus the seed's pieces):
+# given to ChannelAlms.from_maps with the other known a_lm, never stored
+FIXED_SH_KIND = "x1_fixed"
 
 
 def analysis_mask(observed: list[np.ndarray], settings: dict) -> np.ndarray:
@@ -125,13 +128,17 @@ class ChannelAlms:
         template_terms, cmb_reference, foreground_reference, attrs; and cmb_input, the
         seed's unfiltered CMB map, if the maps were made in memory: otherwise drawn again).
         ``known``: a_lm already computed for this channel's maps (e.g. the
-        foreground_reference, the same for every seed of a fixed pass), used as given."""
+        foreground_reference, the same for every seed of a fixed pass), used as given.
+        Maps without ``template_terms`` (a map-domain seed made with ``full_terms=False``)
+        take X^0, X^2 and the fixed part of X^1 from ``known`` (:func:`fixed_term_alms`)
+        and add the seed's pieces to X^1: the a_lm are linear in the maps."""
         fwhm = cfg.channel(config, name).fwhm_arcmin
         detectors = [str(d) for d in data["attrs"]["detectors"]]
         a2_k = float(data["attrs"]["a2_k_cmb"])
         draws = _unit_draws(config, name, seed, detectors)
         unseen = data["nosys"] == hp.UNSEEN
-        alms = dict(known or {})
+        known = known or {}
+        alms = {kind: alm for kind, alm in known.items() if kind != FIXED_SH_KIND}
         alms["nosys"] = harmonic.alm(data["nosys"], fwhm, mask)
         for kind in ("cmb_reference", "foreground_reference"):
             if kind not in alms:
@@ -142,23 +149,25 @@ class ChannelAlms:
         alms["cmb_input"] = harmonic.alm(np.where(unseen, hp.UNSEEN, cmb_input), fwhm, mask)
         if np.any(draws):
             seen = ~unseen[0]
-            for kind, coefficient in zip(TERM_KINDS, (1.0, 2.0 * a2_k, a2_k**2), strict=True):
-                per_detector = []
-                for template in data["template_terms"][int(kind[1:])]:
-                    term = np.full_like(data["nosys"], hp.UNSEEN)
-                    term[:, seen] = coefficient * template[:, seen]
-                    per_detector.append(harmonic.alm(term, fwhm, mask))
-                alms[kind] = np.array(per_detector)
+            pieces = data.get("sh_term_pieces", {})
             for piece, kind in zip(map_domain.SH_TERM_PIECES, PIECE_KINDS, strict=True):
-                if piece in data.get("sh_term_pieces", {}):
-                    alms[kind] = np.array(
-                        [
-                            harmonic.alm(
-                                np.where(seen, 2.0 * a2_k * template, hp.UNSEEN), fwhm, mask
-                            )
-                            for template in data["sh_term_pieces"][piece]
-                        ]
+                if piece in pieces:
+                    alms[kind] = _term_alms(pieces[piece], 2.0 * a2_k, seen, fwhm, mask, harmonic)
+            if "template_terms" in data:
+                coefficients = _term_coefficients(a2_k)
+                for terms, coefficient, kind in zip(
+                    data["template_terms"], coefficients, TERM_KINDS, strict=True
+                ):
+                    alms[kind] = _term_alms(terms, coefficient, seen, fwhm, mask, harmonic)
+            else:
+                needed = (*TERM_KINDS[::2], FIXED_SH_KIND, *PIECE_KINDS)
+                missing = [kind for kind in needed if kind not in known and kind not in alms]
+                if missing:
+                    raise ValueError(
+                        f"{name} seed {seed}: maps without template_terms need the fixed "
+                        f"pass's term a_lm and the seed's pieces; missing {missing}"
                     )
+                alms[TERM_KINDS[1]] = known[FIXED_SH_KIND] + sum(alms[k] for k in PIECE_KINDS)
         return cls(name, alms, detectors, a2_k, draws)
 
     def term(self, kind: str, draws=None) -> np.ndarray:
@@ -178,6 +187,41 @@ class ChannelAlms:
         if TERM_KINDS[0] not in self.alms:
             return np.zeros((len(self.detectors), *self.alms["nosys"].shape), complex)
         return sum(self.alms[kind] for kind in TERM_KINDS)
+
+
+def _term_coefficients(a2_k: float) -> tuple[float, float, float]:
+    """c_j(A_2) = (1, 2 A_2, A_2^2) of the terms s^2, s h, h^2 [K^0, K, K^2]."""
+    return 1.0, 2.0 * a2_k, a2_k**2
+
+
+def _term_alms(templates, coefficient, seen, fwhm_arcmin, mask, harmonic) -> np.ndarray:
+    """(n_det, 3, nalm) a_lm of coefficient x each detector's (3, npix) template, UNSEEN
+    off ``seen``, at the common beam on ``mask``."""
+    alms = []
+    for template in templates:
+        term = np.full(template.shape, hp.UNSEEN)
+        term[:, seen] = coefficient * template[:, seen]
+        alms.append(harmonic.alm(term, fwhm_arcmin, mask))
+    return np.array(alms)
+
+
+def fixed_term_alms(
+    config: dict, name: str, fixed: map_domain.FixedMaps, a2_k: float, mask, harmonic
+) -> dict[str, np.ndarray]:
+    """The a_lm of a map-domain channel's template terms that every seed shares, once per
+    channel: X^0 and X^2 per detector (a seed keeps the fixed pass's s^2 and h^2 terms)
+    and FIXED_SH_KIND, the fixed pass's part of X^1 ({} for a channel without
+    systematics). Given to :meth:`ChannelAlms.from_maps` as ``known`` with a seed's maps
+    made without their terms, it saves six transforms per seed of an MFT/HFT pair."""
+    if not fixed.carries_systematics:
+        return {}
+    fwhm = cfg.channel(config, name).fwhm_arcmin
+    coefficients = _term_coefficients(a2_k)
+    kinds = (TERM_KINDS[0], FIXED_SH_KIND, TERM_KINDS[2])
+    return {
+        kind: _term_alms(fixed.template_terms[j], coefficients[j], fixed.good, fwhm, mask, harmonic)
+        for j, kind in enumerate(kinds)
+    }
 
 
 def _unit_draws(

@@ -461,6 +461,7 @@ def realize_seed(
     noise_scale: float,
     rng_of_detector,
     operators: SeedOperators | None = None,
+    full_terms: bool = True,
 ) -> dict[str, np.ndarray]:
     """The maps of one seed from the fixed pass (see the module docstring): nosys,
     template_terms, templates, cmb_reference, foreground_reference (UNSEEN where the
@@ -470,7 +471,9 @@ def realize_seed(
     (n_det, 3, npix) each, zero off the good pixels (the s h term is the fixed pass's
     plus these).
     ``operators``: the :class:`SeedOperators` of (fixed, noise_scale), shared by the seeds
-    of a channel (built here, filtering up to ``lmax``, if None)."""
+    of a channel (built here, filtering up to ``lmax``, if None). ``full_terms`` False
+    leaves out template_terms and templates (the fixed pass's terms plus the pieces: the
+    seeds' a_lm take the fixed part's once, :func:`ilc_residuals.fixed_term_alms`)."""
     nside = hp.npix2nside(fixed.good.size)
     good = fixed.good
     operators = operators or SeedOperators(fixed, noise_scale, lmax)
@@ -488,23 +491,24 @@ def realize_seed(
     noise[:, good] = filtered_noise(b[:, good], fixed.noise_shaping)
     nosys = np.full_like(fixed.nosys, hp.UNSEEN)
     nosys[:, good] = fixed.nosys[:, good] + cmb_filtered[:, good] + noise[:, good]
-    terms = fixed.template_terms.copy()
-    pieces = {name: np.zeros_like(terms[SH_TERM]) for name in SH_TERM_PIECES}
+    pieces = {name: np.zeros_like(fixed.template_terms[SH_TERM]) for name in SH_TERM_PIECES}
     for k, h_k in enumerate(operators.h_matrices):  # the s h term gets the seed's part
         cmb_h = np.einsum("pij,jp->ip", h_k, cmb[:, good])
         pieces["cmb_h"][k][:, good] = operators.solve(cmb_h)
         pieces["noise_h"][k][:, good] = filtered_noise(c[k][:, good], fixed.noise_h_shaping)
-        terms[SH_TERM, k][:, good] += pieces["cmb_h"][k][:, good] + pieces["noise_h"][k][:, good]
-    templates = np.where(good, templates_from_terms(terms, a2_k_cmb), hp.UNSEEN)
-    return {
+    maps = {
         "nosys": nosys,
-        "template_terms": terms,
-        "templates": templates,
         "cmb_reference": np.where(good, cmb_filtered, hp.UNSEEN),
         "foreground_reference": fixed.foreground_reference,
         "cmb_input": cmb,
         "sh_term_pieces": pieces,
     }
+    if full_terms:
+        terms = fixed.template_terms.copy()
+        terms[SH_TERM] += pieces["cmb_h"] + pieces["noise_h"]
+        maps["template_terms"] = terms
+        maps["templates"] = np.where(good, templates_from_terms(terms, a2_k_cmb), hp.UNSEEN)
+    return maps
 
 
 class ChannelSeeds:
@@ -581,7 +585,8 @@ class ChannelSeeds:
 
         return rng_of_detector
 
-    def maps(self, seed: int) -> dict:
+    def maps(self, seed: int, full_terms: bool = True) -> dict:
+        """The maps of ``seed`` (:func:`realize_seed`; ``full_terms`` passed on)."""
         simulation, master_seed = self.config["simulation"], self.config["master_seed"]
         cmb_alm, band = band_limited_seed_cmb(
             self.lmax, simulation["cmb_r"], master_seed, seed, self.fwhm_arcmin
@@ -594,6 +599,7 @@ class ChannelSeeds:
             simulation["noise_scale"],
             self.noise_generator(seed),
             self.operators,
+            full_terms,
         )
         maps["attrs"] = {**self.attributes, "seed": seed, "realization": "map_domain"}
         return maps

@@ -140,13 +140,18 @@ def run_seeds(
             f"{channel_seeds.fixed.good.size}"
         )
     harmonic = ilc_residuals.HarmonicSettings.from_config(config)
-    known = {}  # the foreground reference is the fixed pass's: its a_lm are every seed's
+    # what every seed shares, transformed once: the fixed pass's template terms (a seed
+    # adds its pieces to the s h term) and, after the first seed, the foreground reference
+    a2_k_cmb = float(channel_seeds.attributes["a2_k_cmb"])
+    known = ilc_residuals.fixed_term_alms(
+        config, channel_name, channel_seeds.fixed, a2_k_cmb, mask, harmonic
+    )
     for seed, out_h5 in zip(seeds, out_h5s, strict=True):
-        maps = channel_seeds.maps(seed)
+        maps = channel_seeds.maps(seed, full_terms=False)
         alms = ilc_residuals.ChannelAlms.from_maps(
             config, seed, channel_name, maps, mask, harmonic, known
         )
-        known = {"foreground_reference": alms.alms["foreground_reference"]}
+        known["foreground_reference"] = alms.alms["foreground_reference"]
         ilc_residuals.write_channel_alms(
             out_h5, alms, ilc_residuals.alms_attributes(seed, harmonic, mask)
         )
