@@ -6,7 +6,6 @@ import pytest
 
 from hwp_tes_systematics.analysis import consistency
 from hwp_tes_systematics.analysis import likelihood as lk
-from hwp_tes_systematics.stages.residual_spectra import measured_transfer
 
 LMAX = 128
 F_SKY = 0.65
@@ -99,7 +98,7 @@ def test_a_residual_holding_the_filtered_cmb_fails_the_power_check(base):
 def test_measured_transfer_is_the_ratio_of_the_seed_sums():
     cross = np.array([[0.0, 0.0, 2.0, 1.0], [0.0, 0.0, 4.0, 3.0]])
     auto = np.array([[0.0, 0.0, 4.0, 2.0], [0.0, 0.0, 4.0, 2.0]])
-    transfer, sem = measured_transfer(cross, auto)
+    transfer, sem = lk.measured_transfer(cross, auto)
     np.testing.assert_allclose(transfer, [1.0, 1.0, 0.75, 1.0])
     np.testing.assert_allclose(sem, [0.0, 0.0, 0.25, 0.5])  # ratios (0.5, 1), (0.5, 1.5)
 
@@ -146,3 +145,57 @@ def test_fraction_point_shift_tends_to_the_fisher_shift_when_sigma_r_is_large(ba
     shift = lk.fraction_point_shift(c_res, c_sys, base, sigma)[0]
     fisher = lk.fisher_bias(c_sys, base, r=r_in) * sigma[0] ** 2
     assert shift == pytest.approx(fisher, rel=0.05)
+
+
+def seed_tables(model, rng, noise_scale_of_seed, n_seeds=N_SEEDS):
+    """Residual spectra tables of the no-systematics seeds (the columns the noise model and
+    the check read): noise N_ell x noise_scale_of_seed(seed) with chi^2 scatter, no
+    foreground residual, the sky filtered below NOTCH_ELL (input CMB BB = C_lens)."""
+    import pandas as pd
+
+    transfer = filtered_transfer(model.ell)
+    tables = []
+    for seed, draw in enumerate(noise_draws(model, rng, n_seeds)):
+        noise = draw * noise_scale_of_seed(seed)
+        tables.append(
+            pd.DataFrame(
+                {
+                    "ell": model.ell,
+                    "bb_noise_residual_k2": noise,
+                    "bb_foreground_residual_k2": np.zeros_like(noise),
+                    "bb_residual_k2": noise,
+                    "bb_cmb_input_k2": model.c_lens,
+                    "bb_cmb_recovered_x_input_k2": transfer * model.c_lens,
+                    "fsky_eff": model.f_sky,
+                }
+            )
+        )
+    return tables
+
+
+def test_held_out_check_fails_when_the_seeds_do_not_share_a_noise_model(base, repo):
+    """The check on held-out seeds (stages.requirement.held_out_check) passes seeds drawn
+    from one noise model and fails seeds whose noise alternates by 30 % between even and
+    odd seeds, which the check on all seeds cannot see (its model is their mean)."""
+    from hwp_tes_systematics.config import load_config
+    from hwp_tes_systematics.stages.requirement import held_out_check
+
+    config = load_config(repo / "config/config.yaml")
+    config["likelihood"].update({"model": "transfer_in_model", "lmin": 2, "lmax": LMAX})
+    rng = np.random.default_rng(4)
+    shared = held_out_check(config, seed_tables(base, rng, lambda seed: 1.0))
+    assert shared["consistent"], shared["splits"]
+    alternating = seed_tables(base, rng, lambda seed: 1.3 if seed % 2 else 1.0)
+    held_out = held_out_check(config, alternating)
+    assert not held_out["consistent"]
+    assert all(not split["consistent"] for split in held_out["splits"])
+    noise = lk.noise_model(alternating)
+    in_sample = consistency.check_model(
+        lk.model_from_noise_table(noise, 2, LMAX, "paper_recipe"),
+        lk.analysis_transfer(noise, LMAX, "transfer_in_model"),
+        lk.sky_transfer_bb(noise, LMAX),
+        noise["sky_transfer_bb_sem"].to_numpy(),
+        [table["bb_residual_k2"].to_numpy() for table in alternating],
+    )
+    assert in_sample["consistent"]
+    assert held_out_check(config, alternating[:3]) is None

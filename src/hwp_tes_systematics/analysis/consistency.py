@@ -59,12 +59,26 @@ def _differs(difference: float, error: float, reference: float, floor: float = 0
     return bool(abs(difference) > N_SIGMA * error and abs(difference) > tolerance)
 
 
+def _weighted_sem(weight: np.ndarray, sem: np.ndarray) -> float:
+    """Standard error of the weight-averaged bin from independent per-ell errors."""
+    return float(np.sqrt(np.sum((weight * sem) ** 2)) / weight.sum())
+
+
+def _bin_mean_sem(per_seed: np.ndarray, modes: np.ndarray) -> tuple[float, float]:
+    """Mean over seeds of the (2 ell + 1)-weighted bin average, and its standard error."""
+    binned = per_seed @ modes / modes.sum()
+    sem = float(binned.std(ddof=1) / np.sqrt(binned.size)) if binned.size > 1 else 0.0
+    return float(binned.mean()), sem
+
+
 def check_model(
     base_model: BBModel,
     model_transfer,
     data_transfer,
     data_transfer_sem,
     residual_per_seed,
+    model_noise_per_seed=None,
+    model_transfer_sem=None,
 ) -> dict:
     """The per-bin comparison of the module docstring.
 
@@ -73,7 +87,10 @@ def check_model(
     by (ones for the paper's recipe); ``data_transfer``, ``data_transfer_sem``: the
     measured T_data(ell) and its standard error, all on ``base_model.ell``;
     ``residual_per_seed``: (n_seeds, n_ell) the no-systematics residual BB [K^2] that
-    the analysis fits, one row per seed. Returns {"consistent", "failing_bins",
+    the analysis fits, one row per seed. ``model_noise_per_seed`` ((n, n_ell), N + C_FGres
+    of each seed the model was measured on) and ``model_transfer_sem`` (per ell): when
+    the model comes from other seeds than the data (:func:`held_out`), its own standard
+    errors, added in quadrature to the data's. Returns {"consistent", "failing_bins",
     "bins": [{"ell": [first, last], "model_transfer", "data_transfer",
     "data_transfer_sem", "model_bb_k2", "data_bb_k2", "data_bb_sem_k2",
     "data_over_model", "sky_consistent", "power_consistent"}], "criterion"}.
@@ -90,6 +107,12 @@ def check_model(
     data_transfer_sem = np.asarray(data_transfer_sem, dtype=float)
     c_lens = model.c_lens
     noise = model.n_ell + model.c_fg_res
+    model_noise = None if model_noise_per_seed is None else np.atleast_2d(model_noise_per_seed)
+    model_transfer_sem = (
+        np.zeros_like(model_transfer)
+        if model_transfer_sem is None
+        else np.asarray(model_transfer_sem, dtype=float)
+    )
     rows = []
     for first, last in bins(model.lmin, model.lmax):
         where = (model.ell >= first) & (model.ell <= last)
@@ -97,20 +120,23 @@ def check_model(
         lens_weight = modes * c_lens[where]
         t_model = float(np.sum(lens_weight * model_transfer[where]) / lens_weight.sum())
         t_data = float(np.sum(lens_weight * data_transfer[where]) / lens_weight.sum())
-        t_sem = float(
-            np.sqrt(np.sum((lens_weight * data_transfer_sem[where]) ** 2)) / lens_weight.sum()
-        )
+        t_sem = _weighted_sem(lens_weight, data_transfer_sem[where])
+        t_model_sem = _weighted_sem(lens_weight, model_transfer_sem[where])
         lens_b = float(lens_weight.sum() / modes.sum())
         model_bb = t_model * lens_b + float(np.sum(modes * noise[where]) / modes.sum())
-        per_seed = residual[:, where] @ modes / modes.sum()
-        residual_mean = float(per_seed.mean())
-        residual_sem = float(per_seed.std(ddof=1) / np.sqrt(n_seeds)) if n_seeds > 1 else 0.0
+        residual_mean, residual_sem = _bin_mean_sem(residual[:, where], modes)
         data_bb = t_data * lens_b + residual_mean
         data_sem = float(np.hypot(residual_sem, t_sem * lens_b))
+        model_sem = t_model_sem * lens_b
+        if model_noise is not None:
+            model_sem = float(np.hypot(model_sem, _bin_mean_sem(model_noise[:, where], modes)[1]))
         sky_ok = not _differs(
-            t_model - t_data, t_sem, max(abs(t_model), abs(t_data)), SKY_TRANSFER_FLOOR
+            t_model - t_data,
+            float(np.hypot(t_sem, t_model_sem)),
+            max(abs(t_model), abs(t_data)),
+            SKY_TRANSFER_FLOOR,
         )
-        power_ok = not _differs(data_bb - model_bb, data_sem, model_bb)
+        power_ok = not _differs(data_bb - model_bb, float(np.hypot(data_sem, model_sem)), model_bb)
         rows.append(
             {
                 "ell": [int(first), int(last)],
@@ -120,6 +146,7 @@ def check_model(
                 "model_bb_k2": model_bb,
                 "data_bb_k2": data_bb,
                 "data_bb_sem_k2": data_sem,
+                "model_bb_sem_k2": model_sem,
                 "data_over_model": data_bb / model_bb if model_bb > 0 else float("nan"),
                 "sky_consistent": sky_ok,
                 "power_consistent": power_ok,

@@ -14,10 +14,10 @@ from __future__ import annotations
 import logging
 
 import h5py
-import numpy as np
 import pandas as pd
 
 from .. import sky
+from ..analysis import likelihood
 from ..analysis.ilc_residuals import residual_spectra_table
 from ..analysis.systematics import NOSYS, sigma_of_case
 from ..figures.results import plot_residual_spectra
@@ -48,40 +48,8 @@ def run(hilc_h5: str, out_csv: str) -> None:
     log.info("wrote %s", out_csv)
 
 
-def noise_model(nosys_spectra_csvs: list[str]) -> pd.DataFrame:
-    """N_ell and C_FGres [K^2]: means over seeds of the no-systematics BB residuals; and
-    the sky's measured end-to-end BB transfer T_ell (filters, binning, mask, HILC):
-    mean over seeds of C(recovered CMB, input CMB) over the mean of C(input CMB), with
-    the standard error of the per-seed ratios (``sky_transfer_bb_sem``; 1 and 0 below
-    ell = 2, where polarization has no power)."""
-    tables = [pd.read_csv(path) for path in nosys_spectra_csvs]
-    out = pd.DataFrame({"ell": tables[0]["ell"]})
-    out["n_ell_bb_k2"] = np.mean([t["bb_noise_residual_k2"] for t in tables], axis=0)
-    out["c_fg_res_bb_k2"] = np.mean([t["bb_foreground_residual_k2"] for t in tables], axis=0)
-    if all("bb_cmb_input_k2" in t for t in tables):
-        cross = np.array([t["bb_cmb_recovered_x_input_k2"] for t in tables])
-        auto = np.array([t["bb_cmb_input_k2"] for t in tables])
-        transfer, sem = measured_transfer(cross, auto)
-        out["sky_transfer_bb"] = transfer
-        out["sky_transfer_bb_sem"] = sem
-    out["fsky_eff"] = float(np.mean([t["fsky_eff"].iloc[0] for t in tables]))
-    out["n_seeds"] = len(tables)
-    return out
-
-
-def measured_transfer(cross: np.ndarray, auto: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """T_ell = sum_seeds cross / sum_seeds auto, and the standard error of the mean of the
-    per-seed ratios; (n_seeds, n_ell) in, T = 1 and error 0 where the input has no power."""
-    total = auto.sum(axis=0)
-    transfer = np.ones(total.size)
-    np.divide(cross.sum(axis=0), total, out=transfer, where=total > 0)
-    ratios = np.divide(cross, auto, out=np.ones_like(cross), where=auto > 0)
-    sem = ratios.std(axis=0, ddof=1) / np.sqrt(len(ratios)) if len(ratios) > 1 else 0.0 * total
-    return transfer, np.where(total > 0, sem, 0.0)
-
-
 def run_noise_model(nosys_spectra_csvs: list[str], out_csv: str) -> None:
-    write_csv(noise_model(nosys_spectra_csvs), out_csv)
+    write_csv(likelihood.noise_model(nosys_spectra_csvs), out_csv)
     log.info("wrote %s from %d seeds", out_csv, len(nosys_spectra_csvs))
 
 
