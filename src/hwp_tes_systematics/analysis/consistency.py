@@ -89,8 +89,8 @@ def check_model(
     ``residual_per_seed``: (n_seeds, n_ell) the no-systematics residual BB [K^2] that
     the analysis fits, one row per seed. ``model_noise_per_seed`` ((n, n_ell), N + C_FGres
     of each seed the model was measured on) and ``model_transfer_sem`` (per ell): when
-    the model comes from other seeds than the data (:func:`held_out`), its own standard
-    errors, added in quadrature to the data's. Returns {"consistent", "failing_bins",
+    the model comes from other seeds than the data (``stages.requirement.held_out_check``),
+    its own standard errors, added in quadrature to the data's. Returns {"consistent", "failing_bins",
     "bins": [{"ell": [first, last], "model_transfer", "data_transfer",
     "data_transfer_sem", "model_bb_k2", "data_bb_k2", "data_bb_sem_k2",
     "data_over_model", "sky_consistent", "power_consistent"}], "criterion"}.

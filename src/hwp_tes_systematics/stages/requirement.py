@@ -407,6 +407,36 @@ def fixed_instruments_summary(
     return fixed
 
 
+def compare_model_with_data(
+    settings: dict, model_noise, data_noise, residuals, model_noise_per_seed=None
+) -> tuple[dict, np.ndarray, np.ndarray]:
+    """(:func:`consistency.check_model`, the model's T_ell, the data's T_ell) of the
+    analysis ``settings`` (config likelihood) with its model from the noise table
+    ``model_noise`` and the data's transfer from ``data_noise`` (the same table when model
+    and data come from the same seeds); ``model_noise_per_seed`` given (other seeds than
+    the data's), the model's own errors are added: its N + C_FGres per seed and, when
+    the analysis carries the transfer, that transfer's error."""
+    analysis, lmax = settings["model"], settings["lmax"]
+    model_transfer = analysis_transfer(model_noise, lmax, analysis)
+    errors = {}
+    if model_noise_per_seed is not None:
+        errors["model_noise_per_seed"] = model_noise_per_seed
+        if model_transfer is not None:
+            errors["model_transfer_sem"] = model_noise["sky_transfer_bb_sem"].to_numpy()[: lmax + 1]
+    if model_transfer is None:
+        model_transfer = np.ones(lmax + 1)
+    data_transfer = sky_transfer_bb(data_noise, lmax)
+    check = consistency.check_model(
+        model_from_noise_table(model_noise, settings["lmin"], lmax, "paper_recipe"),
+        model_transfer,
+        data_transfer,
+        data_noise["sky_transfer_bb_sem"].to_numpy()[: lmax + 1],
+        residuals,
+        **errors,
+    )
+    return check, model_transfer, data_transfer
+
+
 def held_out_check(config: dict, nosys_tables: list[pd.DataFrame]) -> dict | None:
     """The model check with the model measured on other seeds than the data: the seeds
     split into even and odd positions, the noise model (N_ell, C_FGres, the sky's
@@ -418,28 +448,22 @@ def held_out_check(config: dict, nosys_tables: list[pd.DataFrame]) -> dict | Non
     if len(nosys_tables) < 4:
         return None
     settings = config["likelihood"]
-    analysis, lmin, lmax = settings["model"], settings["lmin"], settings["lmax"]
+    analysis, lmax = settings["model"], settings["lmax"]
     halves = (nosys_tables[0::2], nosys_tables[1::2])
     results = []
     for name, (model_half, data_half) in zip(
         ("even -> odd", "odd -> even"), (halves, halves[::-1]), strict=True
     ):
-        model_noise = noise_model(model_half)
-        data_noise = noise_model(data_half)
-        transfer = analysis_transfer(model_noise, lmax, analysis)
-        transfer_sem = model_noise["sky_transfer_bb_sem"].to_numpy()[: lmax + 1]
-        check = consistency.check_model(
-            model_from_noise_table(model_noise, lmin, lmax, "paper_recipe"),
-            np.ones(lmax + 1) if transfer is None else transfer,
-            sky_transfer_bb(data_noise, lmax),
-            data_noise["sky_transfer_bb_sem"].to_numpy()[: lmax + 1],
+        check, _, _ = compare_model_with_data(
+            settings,
+            noise_model(model_half),
+            noise_model(data_half),
             [residual_bb(table, analysis, lmax) for table in data_half],
             model_noise_per_seed=[
                 table["bb_noise_residual_k2"].to_numpy()[: lmax + 1]
                 + table["bb_foreground_residual_k2"].to_numpy()[: lmax + 1]
                 for table in model_half
             ],
-            model_transfer_sem=np.zeros(lmax + 1) if transfer is None else transfer_sem,
         )
         results.append(
             {
@@ -472,14 +496,10 @@ def model_check(
     ell) the no-systematics residual BB of the analysis. The bias is that of the mean over
     seeds of the systematic's BB at sigma_g1 = 1."""
     settings = config["likelihood"]
-    analysis, lmax = settings["model"], settings["lmax"]
-    data_transfer = sky_transfer_bb(noise, lmax)
-    data_sem = noise["sky_transfer_bb_sem"].to_numpy()[: lmax + 1]
-    base = model_from_noise_table(noise, settings["lmin"], lmax, "paper_recipe")
-    model_transfer = analysis_transfer(noise, lmax, analysis)
-    if model_transfer is None:
-        model_transfer = np.ones(lmax + 1)
-    check = consistency.check_model(base, model_transfer, data_transfer, data_sem, residuals)
+    lmax = settings["lmax"]
+    check, model_transfer, data_transfer = compare_model_with_data(
+        settings, noise, noise, residuals
+    )
     c_sys = np.mean(
         [systematic_bb(pd.read_csv(path).iloc[: lmax + 1], 1.0) for path in systematic_csvs],
         axis=0,
