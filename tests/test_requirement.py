@@ -1,6 +1,8 @@
 """Requirement on sigma_g1: delta r, summaries over seeds, quadratic and power-law fits,
 edge cases, and the Fig. 8 figure."""
 
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -139,6 +141,48 @@ def test_plot_requirement(tmp_path):
     assert not list(path.parent.glob(".*tmp*"))  # written atomically, no leftovers
 
 
+def test_plot_requirement_labels_cover_nothing(tmp_path, monkeypatch):
+    """Fig. 8: every requirement's value is in the legend, below the axes; no text inside
+    the data area (where it could cover a point, a line or another label)."""
+    from hwp_tes_systematics.figures import results
+
+    drawn = {}
+
+    def keep(figure, path):
+        figure.canvas.draw()
+        drawn["figure"] = figure
+
+    monkeypatch.setattr(results, "save_figure", keep)
+    mean = 1e-4 * (SIGMAS / 0.1) ** 0.5
+    results.plot_requirement(
+        SIGMAS,
+        mean,
+        0.3 * mean,
+        rq.fit_quadratic(SIGMAS, mean),
+        0.5,
+        rq.DELTA_R_BUDGET,
+        None,
+        tmp_path / "fig8.png",
+        invalid_reason="the points do not follow sigma^2: exponent 0.50",
+        crossing=rq.budget_crossing(SIGMAS, mean),
+        quadratic_threshold=1e-4,
+        systematic_only=(SIGMAS, K_PAPER * SIGMAS**2, 0.1 * K_PAPER * SIGMAS**2, K_PAPER, 2e-3),
+        fraction_point=(SIGMAS, 0.5 * K_PAPER * SIGMAS**2, 2.8e-3),
+    )
+    figure = drawn["figure"]
+    (axis,) = figure.axes
+    assert len(axis.texts) == 0  # nothing written over the data
+    legend = axis.get_legend()
+    labels = [text.get_text() for text in legend.get_texts()]
+    for value in ("0.002", "0.0028", f"{rq.budget_crossing(SIGMAS, mean):.2g}"):
+        assert any(f"sigma_g1 < {value} K^-1" in label for label in labels), value
+    renderer = figure.canvas.get_renderer()
+    axes_box = axis.get_window_extent(renderer)
+    legend_box = legend.get_window_extent(renderer)
+    assert legend_box.y1 < axes_box.y0  # the legend lies below the axes
+    assert figure.bbox.contains(legend_box.x0, legend_box.y0)  # and inside the figure
+
+
 def test_regime_accepts_sigma_squared_and_flags_other_exponents():
     sigma_r = 1e-2
     quadratic = rq.assess_quadratic_regime(SIGMAS, 1e-3 * (SIGMAS / 0.1) ** 2, sigma_r)
@@ -244,3 +288,20 @@ def test_template_split_shares_sum_to_one_and_drop_the_noise_part(tmp_path):
     assert split["requirement_without_noise_h_per_k"] > np.sqrt(6.5e-6 / fisher_bias(total, model))
     pd.DataFrame({"ell": ell, "bb_unit_k4": 1e-17}).to_csv(tmp_path / "old.csv", index=False)
     assert template_split([tmp_path / "old.csv"], model, 6.5e-6) is None
+
+
+def test_figure8_command_redraws_a_committed_run(tmp_path, capsys):
+    """``python -m hwp_tes_systematics figure8`` redraws Fig. 8 from a run's files (the
+    committed one-year run), and names the file when it is not a requirement.json."""
+    from hwp_tes_systematics.cli import main
+
+    run = Path(__file__).parents[1] / "docs" / "one_year"
+    out = tmp_path / "fig8.png"
+    assert main(["figure8", str(run / "requirement.json"), "--out", str(out)]) == 0
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    not_json = tmp_path / "notes.txt"
+    not_json.write_text("not a requirement")
+    assert main(["figure8", str(not_json), "--out", str(tmp_path / "x.png")]) == 2
+    assert "notes.txt" in capsys.readouterr().err
+    assert main(["figure8", str(tmp_path / "absent.json"), "--out", str(out)]) == 2
+    assert "absent.json" in capsys.readouterr().err

@@ -2,6 +2,8 @@
 
 config-reference                      print the configuration reference (Markdown)
 effect-catalog                        print the diagnosis's effect catalog (Markdown)
+figure8 REQUIREMENT.json --out PNG    redraw Fig. 8 from a run's requirement.json and
+                                      the delta_r.csv beside it
 diagnose RECORDING.h5 --sky SKY.fits [--config FILE] --out DIR
                                       locate, name, fit and report what the
                                       simulation left out of a recording
@@ -81,6 +83,38 @@ def run_diagnose(
     return diagnose(head, sky_path, a2_k, out_dir=out_dir, **options)
 
 
+def redraw_figure8(requirement_json: str, delta_r_csv: str | None, out_png: str) -> int:
+    """Fig. 8 from a run's requirement.json and delta r table; 2 with a message naming the
+    file when one is missing or is not what the requirement stage writes."""
+    import json
+    from pathlib import Path
+
+    import pandas as pd
+
+    from .analysis.requirement import plot_requirement_from_results
+
+    requirement_path = Path(requirement_json)
+    table_path = (
+        requirement_path.with_name("delta_r.csv") if delta_r_csv is None else Path(delta_r_csv)
+    )
+    try:
+        output = json.loads(requirement_path.read_text())
+        table = pd.read_csv(table_path)
+        written = plot_requirement_from_results(output, table, out_png)
+    except FileNotFoundError as error:
+        print(f"figure8: no such file: {error.filename}", file=sys.stderr)
+        return 2
+    except (KeyError, ValueError) as error:
+        print(
+            f"figure8: {requirement_path} and {table_path} are not a requirement stage's "
+            f"requirement.json and delta_r.csv ({type(error).__name__}: {error})",
+            file=sys.stderr,
+        )
+        return 2
+    print(written)
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m hwp_tes_systematics",
@@ -92,6 +126,16 @@ def main(argv: list[str] | None = None) -> int:
     commands.add_parser(
         "effect-catalog", help="print the diagnosis's effect catalog (Markdown), from the code"
     )
+    figure8 = commands.add_parser(
+        "figure8",
+        help="redraw Fig. 8 (delta r versus sigma_g1) from a run's requirement.json and the "
+        "delta_r.csv beside it (e.g. a committed run under docs/)",
+    )
+    figure8.add_argument("requirement", help="a run's results/requirement.json")
+    figure8.add_argument(
+        "--delta-r", default=None, help="its delta r table (default: delta_r.csv beside it)"
+    )
+    figure8.add_argument("--out", required=True, help="the PNG to write")
     diagnose = commands.add_parser(
         "diagnose", help="find, name and fit what the simulation left out of a recording"
     )
@@ -149,6 +193,8 @@ def main(argv: list[str] | None = None) -> int:
 
         sys.stdout.write(effect_catalog_markdown())
         return 0
+    if arguments.command == "figure8":
+        return redraw_figure8(arguments.requirement, arguments.delta_r, arguments.out)
 
     from .io import setup_logging
 

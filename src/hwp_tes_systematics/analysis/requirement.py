@@ -34,12 +34,15 @@ the tensor modes widens the likelihood), and the fitted exponent exceeds 2.
 from __future__ import annotations
 
 import logging
+import os
 import warnings
 from collections.abc import Mapping
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
+from ..figures.results import plot_requirement
 from .ilc_residuals import SeedMaps
 from .likelihood import fit_r_common_grid, residual_bb
 from .systematics import NOSYS
@@ -527,3 +530,54 @@ def systematic_only_estimator(likelihoods: list[dict], budget: float, sigma_r: f
         else "the budget is not small next to sigma_r: the linear bias does not apply",
         "by_a2_scale": by_scale,
     }
+
+
+def plot_requirement_from_results(output: Mapping, table, path: str | os.PathLike) -> Path:
+    """Fig. 8 from a run's files: ``output`` the requirement stage's requirement.json (a
+    dict), ``table`` its delta_r.csv (a DataFrame: sigma_g1, delta_r,
+    delta_r_systematic_only per seed). What the stage draws; also redraws a committed
+    run's figure without its inputs (``python -m hwp_tes_systematics figure8``)."""
+    missing = {"sigma_g1", "delta_r", "delta_r_systematic_only"} - set(table.columns)
+    if missing:
+        raise ValueError(f"delta r table: missing columns {sorted(missing)}")
+    summary = summarise(table)
+    systematic = summarise(
+        table.dropna(subset=["delta_r_systematic_only"]).assign(
+            delta_r=lambda t: t["delta_r_systematic_only"]
+        )
+    )
+    regime = output["regime"]
+    only = output["systematic_only"]
+    fraction_point = only["fraction_point"]
+    check = output["consistency"]
+    failing = ", ".join(f"ell {first}-{last}" for first, last in check["failing_bins"])
+    fit = output["power_law_fit"]
+    return plot_requirement(
+        summary["sigma_g1"].to_numpy(),
+        summary["mean_delta_r"].to_numpy(),
+        summary["std_delta_r"].to_numpy(),
+        regime["k_per_k2"],
+        fit["exponent"],
+        output["delta_r_budget"],
+        output["requirement_sigma_g1_per_k"],
+        path,
+        exponent_sigma=fit["exponent_sigma"],
+        invalid_reason=None if regime["valid"] else regime["reason"],
+        quadratic_threshold=regime["quadratic_threshold_delta_r"],
+        crossing=output["budget_crossing"]["sigma_g1_per_k"],
+        systematic_only=(
+            systematic["sigma_g1"].to_numpy(),
+            systematic["mean_delta_r"].to_numpy(),
+            systematic["std_delta_r"].to_numpy(),
+            only["k_per_k2"],
+            only["requirement_sigma_g1_per_k"],
+        ),
+        fraction_point=(
+            fraction_point["sigma_g1_per_k"],
+            fraction_point["mean_delta_r"],
+            fraction_point["requirement_sigma_g1_per_k"],
+        ),
+        inconsistent=None
+        if check["consistent"]
+        else f"{output['headline']['model']}: fails in {failing}",
+    )

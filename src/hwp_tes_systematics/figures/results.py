@@ -30,21 +30,18 @@ def log_axis_yerr(value, std) -> list[np.ndarray]:
     return [np.minimum(std, 0.999 * value), std]
 
 
-def mark_requirement(
-    axis, requirement: float, budget: float, color: str, va: str, height: float = 1.0
-) -> None:
-    """A dotted vertical line at the requirement and its value written at ``height`` x
-    the budget (distinct heights keep several marks from overlapping)."""
-    axis.axvline(requirement, color=color, linestyle=":", linewidth=1.5)
-    axis.text(
+def mark_requirement(axis, requirement: float, budget: float, color: str, name: str) -> None:
+    """A dotted vertical line at the requirement and a diamond where it meets the budget;
+    its value goes to the legend (``name: sigma_g1 < value``), not into the data area,
+    so that no label covers a point, a line or another label."""
+    axis.axvline(
         requirement,
-        budget * height,
-        f"  sigma_g1 < {requirement:.2g} K^-1",
         color=color,
-        va=va,
-        ha="left",
-        fontsize="small",
+        linestyle=":",
+        linewidth=1.5,
+        label=f"{name}: sigma_g1 < {requirement:.2g} K^-1",
     )
+    axis.plot([requirement], [budget], "D", color=color, markersize=6, zorder=5)
 
 
 def plot_likelihoods(
@@ -114,10 +111,11 @@ def plot_requirement(
     clipped so the lower end stays > 0 on the log axis); dashed: the quadratic fit
     k sigma^2 (k in K^2); solid black: the ``budget`` (paper: 6.5e-6,
     ``requirement.DELTA_R_BUDGET``); the requirement sigma (None: sqrt(budget / k))
-    marked by a vertical line and its value; the free power-law exponent (and
-    ``exponent_sigma``, if given) in the legend. Points with sigma <= 0 or mean <= 0 are
+    marked by a vertical line and a diamond on the budget, its value in the legend
+    (:func:`mark_requirement`: no label inside the axes can cover a point); the free
+    power-law exponent (and ``exponent_sigma``, if given) in the legend. Points with sigma <= 0 or mean <= 0 are
     not drawn. ``invalid_reason``: the sigma^2 model does not describe the points; the
-    reason is written on the figure. ``systematic_only``: (sigma, mean, std, k,
+    reason is written in the legend. ``systematic_only``: (sigma, mean, std, k,
     requirement) of the systematic-only estimator, drawn in a second colour.
     ``quadratic_threshold``: the delta r below which the paper's estimator is quadratic
     (0.1 sigma_r), a dotted grey line. ``crossing``: the sigma at which the points reach
@@ -156,8 +154,7 @@ def plot_requirement(
     span = [crossing if show_crossing else requirement, *sigma]
     if systematic_only is not None:
         span += [systematic_only[4], *systematic_only[0]]
-    # room on the right for the requirements' labels, written right of their lines
-    x = np.logspace(np.log10(np.min(span)) - 0.3, np.log10(np.max(span)) + 0.7, 200)
+    x = np.logspace(np.log10(np.min(span)) - 0.3, np.log10(np.max(span)) + 0.3, 200)
     label = "paper's estimator: " if systematic_only is not None else ""
     axis.plot(
         x, k * x**2, "--", color="C0", label=f"{label}quadratic fit k sigma^2, k = {k:.3g} K^2"
@@ -175,7 +172,7 @@ def plot_requirement(
             label="systematic only (no-systematics weights, Fisher bias; +- std)",
         )
         axis.plot(x, sys_k * x**2, "-", color="C2", alpha=0.6, label=f"k = {sys_k:.3g} K^2")
-        mark_requirement(axis, sys_requirement, budget, "C2", "top", height=0.5)
+        mark_requirement(axis, sys_requirement, budget, "C2", "requirement, Fisher peak shift")
     if fraction_point is not None:
         fp_sigma, fp_mean, fp_requirement = fraction_point
         fp_sigma, fp_mean = np.asarray(fp_sigma), np.asarray(fp_mean)
@@ -189,35 +186,24 @@ def plot_requirement(
             label="systematic only, 68 % point shift (the paper's delta r)",
         )
         if np.isfinite(fp_requirement):
-            mark_requirement(axis, fp_requirement, budget, "C1", "bottom", height=2.0)
+            mark_requirement(axis, fp_requirement, budget, "C1", "requirement, 68 % point")
     axis.axhline(budget, color="k", linestyle="-", label=f"budget delta r = {budget:.2g}")
     if show_crossing:
-        axis.axvline(crossing, color="C0", linestyle=":", linewidth=1.5)
-        axis.text(
-            crossing,
-            budget * 0.7,
-            f"sigma_g1 < {crossing:.2g} K^-1  \n(budget crossing)  ",
-            color="C0",
-            va="top",
-            ha="right",
-            fontsize="small",
-        )
+        mark_requirement(axis, crossing, budget, "C0", "paper's estimator, budget crossing")
     else:
-        mark_requirement(axis, requirement, budget, "C3", "top")
+        mark_requirement(axis, requirement, budget, "C3", "paper's estimator, quadratic fit")
     axis.set_xscale("log")
     axis.set_yscale("log")
     axis.set_xlim(x[0], x[-1])
     axis.set_xlabel("sigma_g1 [K^-1]")
     axis.set_ylabel("mean delta r over seeds" if systematic_only else "mean delta r")
     if quadratic_threshold is not None:
-        axis.axhline(quadratic_threshold, color="gray", linestyle=":", linewidth=1.0)
-        axis.text(
-            x[0],
+        axis.axhline(
             quadratic_threshold,
-            " 0.1 sigma_r: quadratic regime below",
             color="gray",
-            va="bottom",
-            fontsize="x-small",
+            linestyle=":",
+            linewidth=1.0,
+            label="0.1 sigma_r: the quadratic regime lies below",
         )
     axis.set_title("Bias on r versus the nonlinearity spread")
     if inconsistent is not None:
@@ -235,26 +221,19 @@ def plot_requirement(
             bbox={"facecolor": "white", "edgecolor": "C3", "alpha": 0.8},
         )
     axis.grid(alpha=0.3, which="both")
-    # below the axes: inside, it would cover the points and the requirements' labels
-    axis.legend(fontsize="x-small", loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=2)
     if invalid_reason is not None:
-        axis.text(
-            0.98,
-            0.03,
-            "paper's estimator: sigma^2 does NOT describe the points,\n"
-            + textwrap.fill(invalid_reason, 60)
+        note = (
+            "paper's estimator: sigma^2 does NOT describe the points, "
+            + invalid_reason
             + (
-                "\nmarked instead: where the points cross the budget (no model)"
+                "; marked instead: where the points cross the budget (no model)"
                 if show_crossing
-                else "\nits requirement (red) is not valid"
-            ),
-            transform=axis.transAxes,
-            ha="right",
-            va="bottom",
-            fontsize="small",
-            color="C3",
-            bbox={"facecolor": "white", "edgecolor": "C3", "alpha": 0.9},
+                else "; its quadratic requirement (red) is not valid"
+            )
         )
+        axis.plot([], [], " ", label=textwrap.fill(note, 55))
+    # below the axes: inside, it would cover the points
+    axis.legend(fontsize="x-small", loc="upper center", bbox_to_anchor=(0.5, -0.12), ncol=2)
     save_figure(figure, path)
     return path
 

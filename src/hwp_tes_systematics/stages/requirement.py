@@ -62,6 +62,7 @@ from ..analysis.requirement import (
     fit_power_law,
     fraction_point_estimator,
     paper_estimator,
+    plot_requirement_from_results,
     requirement_sigma,
     summarise,
     systematic_only_estimator,
@@ -71,7 +72,6 @@ from ..figures.results import (
     plot_ell_distribution,
     plot_fixed_instruments,
     plot_likelihoods,
-    plot_requirement,
 )
 from ..io import atomic_path, write_csv
 
@@ -294,33 +294,7 @@ def run(
     curves = {case: np.array(v["likelihood"]) for case, v in first["cases"].items()}
     r68 = {case: v["r_fraction"] for case, v in first["cases"].items()}
     plot_likelihoods(grid, curves, r68, fig_likelihoods, fraction=first["fraction"])
-    plot_requirement(
-        sigma,
-        mean,
-        summary["std_delta_r"].to_numpy(),
-        k,
-        exponent,
-        budget,
-        requirement,
-        fig_requirement,
-        exponent_sigma=exponent_sigma,
-        invalid_reason=None if regime["valid"] else regime["reason"],
-        quadratic_threshold=regime["quadratic_threshold_delta_r"],
-        crossing=crossing["sigma_g1_per_k"],
-        systematic_only=(
-            systematic_summary["sigma_g1"].to_numpy(),
-            systematic_summary["mean_delta_r"].to_numpy(),
-            systematic_summary["std_delta_r"].to_numpy(),
-            systematic_only["k_per_k2"],
-            systematic_only["requirement_sigma_g1_per_k"],
-        ),
-        fraction_point=(
-            fraction_point["sigma_g1_per_k"],
-            fraction_point["mean_delta_r"],
-            fraction_point["requirement_sigma_g1_per_k"],
-        ),
-        inconsistent=None if check["consistent"] else f"{analysis}: fails in {failing}",
-    )
+    plot_requirement_from_results(output, table, fig_requirement)
     plot_a2_scaling(systematic_only["by_a2_scale"], budget, fig_a2_scaling)
 
 
