@@ -136,17 +136,22 @@ def test_shipped_configurations_merge_over_the_default(repo, monkeypatch, name):
     assert config["simulation"]["duration_days"] == 365.25
 
 
-def test_no_baselines_overlay_merges_after_one_year(repo, monkeypatch):
-    """config/no_baselines.yaml, given after one_year.yaml, only switches the baselines off."""
+@pytest.mark.parametrize(
+    ("overlay", "baseline_length_s"),
+    [("config/no_baselines.yaml", None), ("config/one_day_offsets.yaml", 86400.0)],
+)
+def test_offset_overlays_merge_after_one_year(repo, monkeypatch, overlay, baseline_length_s):
+    """config/no_baselines.yaml and config/one_day_offsets.yaml, given after one_year.yaml,
+    change only the offsets' removal (none; one per detector per day, i.e. per chunk)."""
     monkeypatch.chdir(repo)
     base = load_config(repo / "config/config.yaml", repo / "config/one_year.yaml")
     overlaid = load_config(
-        repo / "config/config.yaml",
-        repo / "config/one_year.yaml",
-        repo / "config/no_baselines.yaml",
+        repo / "config/config.yaml", repo / "config/one_year.yaml", repo / overlay
     )
     assert base["maps"]["baseline_length_s"] == 60.0
-    assert overlaid["maps"]["baseline_length_s"] is None
+    assert overlaid["maps"]["baseline_length_s"] == baseline_length_s
+    if baseline_length_s is not None:  # one interval per chunk, none shorter
+        assert baseline_length_s == overlaid["simulation"]["chunk_duration_s"]
     overlaid["maps"]["baseline_length_s"] = 60.0
     assert overlaid == base
 
