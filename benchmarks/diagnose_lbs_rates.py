@@ -3,6 +3,7 @@
 
     python benchmarks/diagnose_lbs_rates.py --channels M1-140 H3-402 --hours 6 --seeds 3 \
         --gap-every 3 --out lbs_rates.json
+    python benchmarks/diagnose_lbs_rates.py --combine lbs_rates.json other.json
 
 Each recording: a pair of ``--channels`` simulated with random nominal errors
 (diagnose.testbed.nominal_errors, as the catalog's rates benchmark) and its own noise
@@ -176,7 +177,13 @@ def main() -> None:
     parser.add_argument("--gap-every", type=int, default=3, help="0: no gaps")
     parser.add_argument("--only", nargs="+", choices=sorted(CASES), default=sorted(CASES))
     parser.add_argument("--out", type=Path)
+    parser.add_argument(
+        "--combine", nargs="+", type=Path, metavar="JSON", help="add up the counts of --out files"
+    )
     arguments = parser.parse_args()
+    if arguments.combine:
+        print("\n".join(summary(combine(arguments.combine))))
+        return
     from hwp_tes_systematics.diagnose import testbed as support
 
     counts: dict = {"hours": arguments.hours, "cases": {}}
@@ -195,6 +202,45 @@ def main() -> None:
                     print(summary_line(key, entry), flush=True)
     if arguments.out:
         arguments.out.write_text(json.dumps(counts, indent=1))
+
+
+def combine(paths: list[Path]) -> dict:
+    """The counts of several --out files added up per case (one recording length)."""
+    counts: dict = {"hours": None, "cases": {}}
+    for path in paths:
+        part = json.loads(path.read_text())
+        if counts["hours"] not in (None, part["hours"]):
+            raise SystemExit(
+                f"{path}: {part['hours']} h recordings, the others {counts['hours']} h"
+            )
+        counts["hours"] = part["hours"]
+        for key, tally in part["cases"].items():
+            entry = counts["cases"].setdefault(key, {})
+            for name, value in tally.items():
+                entry[name] = entry.get(name, 0) + value
+    return counts
+
+
+def summary(counts: dict) -> list[str]:
+    """One line per case and amplitude, then the totals against the targets: expected
+    effect ranked first or named >= 90 %, parameter within 3 sigma >= 80 %, false alarms
+    <= 5 %."""
+    lines = [summary_line(key, c) for key, c in sorted(counts["cases"].items())]
+    effects = [c for key, c in counts["cases"].items() if CASES[key.split()[1]][1]]
+    nulls = [c for key, c in counts["cases"].items() if not CASES[key.split()[1]][1]]
+
+    def total(entries, name):
+        return sum(c[name] for c in entries)
+
+    lines.append(
+        f"{counts['hours']:g} h recordings: expected effect ranked first or named "
+        f"{total(effects, 'correct')}/{total(effects, 'n')} (target >= 90 %); parameter "
+        f"within 3 sigma {total(effects, 'within')}/{total(effects, 'param_checked')} "
+        f"(target >= 80 %); false alarms {total(nulls, 'alarm')}/{total(nulls, 'n')} "
+        f"(target <= 5 %); with a gap: {total(effects + nulls, 'gapped')} of "
+        f"{total(effects + nulls, 'n')}"
+    )
+    return lines
 
 
 def summary_line(key: str, c: dict) -> str:

@@ -295,6 +295,33 @@ def test_litebird_sim_injectors_of_the_rates_benchmark(benchmarks):
     assert added.std() > 0
 
 
+def test_lbs_rates_combine_adds_runs_and_checks_the_length(benchmarks, tmp_path):
+    """diagnose_lbs_rates.py --combine: the counts of two runs add up per case, the totals
+    line counts effects and false alarms apart, and runs of different lengths are refused."""
+    import json
+
+    from diagnose_lbs_rates import combine, summary
+
+    def tally(n, correct, within, alarm=0):
+        return {"n": n, "gapped": 1, "reported": correct, "alarm": alarm,
+                "correct": correct, "param_checked": n, "within": within}  # fmt: skip
+
+    first, second, longer = tmp_path / "a.json", tmp_path / "b.json", tmp_path / "c.json"
+    first.write_text(json.dumps({"hours": 6.0, "cases": {
+        "M1-140 nonlinearity 0.001": tally(2, 2, 1), "M1-140 clean 0": tally(2, 0, 0)}}))  # fmt: skip
+    second.write_text(json.dumps({"hours": 6.0, "cases": {
+        "M1-140 nonlinearity 0.001": tally(2, 1, 1), "M1-140 clean 0": tally(2, 0, 0, 1)}}))  # fmt: skip
+    longer.write_text(json.dumps({"hours": 24.0, "cases": {}}))
+    counts = combine([first, second])
+    assert counts["cases"]["M1-140 nonlinearity 0.001"]["n"] == 4
+    assert counts["cases"]["M1-140 nonlinearity 0.001"]["correct"] == 3
+    last = summary(counts)[-1]
+    assert "ranked first or named 3/4" in last and "within 3 sigma 2/4" in last
+    assert "false alarms 1/4" in last
+    with pytest.raises(SystemExit, match="c.json"):
+        combine([first, longer])
+
+
 def test_seed_part_share_splits_a_fixed_pass_template_from_its_seeds(benchmarks, repo, tmp_path):
     """seed_part_share.py: a fixed pass without a template of its own has all of its k_c in
     the seeds' part (share 1); with a strong fixed template the share is small, and the
