@@ -141,6 +141,19 @@ def test_plot_requirement(tmp_path):
     assert not list(path.parent.glob(".*tmp*"))  # written atomically, no leftovers
 
 
+def linear_points_figure(path) -> tuple[tuple, dict]:
+    """plot_requirement's arguments for points that grow as sigma^0.5 (the sigma^2 model
+    invalid, their budget crossing marked) beside a systematic-only estimator."""
+    mean = 1e-4 * (SIGMAS / 0.1) ** 0.5
+    arguments = (SIGMAS, mean, 0.3 * mean, rq.fit_quadratic(SIGMAS, mean), 0.5)
+    options = {
+        "invalid_reason": "the points do not follow sigma^2: exponent 0.50",
+        "crossing": rq.budget_crossing(SIGMAS, mean),
+        "systematic_only": (SIGMAS, K_PAPER * SIGMAS**2, 0.1 * K_PAPER * SIGMAS**2, K_PAPER, 2e-3),
+    }
+    return (*arguments, rq.DELTA_R_BUDGET, None, path), options
+
+
 def test_plot_requirement_labels_cover_nothing(tmp_path, monkeypatch):
     """Fig. 8: every requirement's value is in the legend, below the axes; no text inside
     the data area (where it could cover a point, a line or another label)."""
@@ -153,20 +166,11 @@ def test_plot_requirement_labels_cover_nothing(tmp_path, monkeypatch):
         drawn["figure"] = figure
 
     monkeypatch.setattr(results, "save_figure", keep)
-    mean = 1e-4 * (SIGMAS / 0.1) ** 0.5
+    arguments, options = linear_points_figure(tmp_path / "fig8.png")
     results.plot_requirement(
-        SIGMAS,
-        mean,
-        0.3 * mean,
-        rq.fit_quadratic(SIGMAS, mean),
-        0.5,
-        rq.DELTA_R_BUDGET,
-        None,
-        tmp_path / "fig8.png",
-        invalid_reason="the points do not follow sigma^2: exponent 0.50",
-        crossing=rq.budget_crossing(SIGMAS, mean),
+        *arguments,
+        **options,
         quadratic_threshold=1e-4,
-        systematic_only=(SIGMAS, K_PAPER * SIGMAS**2, 0.1 * K_PAPER * SIGMAS**2, K_PAPER, 2e-3),
         fraction_point=(SIGMAS, 0.5 * K_PAPER * SIGMAS**2, 2.8e-3),
     )
     figure = drawn["figure"]
@@ -174,7 +178,7 @@ def test_plot_requirement_labels_cover_nothing(tmp_path, monkeypatch):
     assert len(axis.texts) == 0  # nothing written over the data
     legend = axis.get_legend()
     labels = [text.get_text() for text in legend.get_texts()]
-    for value in ("0.002", "0.0028", f"{rq.budget_crossing(SIGMAS, mean):.2g}"):
+    for value in ("0.002", "0.0028", f"{options['crossing']:.2g}"):
         assert any(f"sigma_g1 < {value} K^-1" in label for label in labels), value
     renderer = figure.canvas.get_renderer()
     axes_box = axis.get_window_extent(renderer)
@@ -201,21 +205,8 @@ def test_regime_accepts_sigma_squared_and_flags_other_exponents():
 
 
 def test_plot_requirement_says_when_invalid(tmp_path):
-    mean = 1e-4 * (SIGMAS / 0.1) ** 0.5
-    k = rq.fit_quadratic(SIGMAS, mean)
-    path = plot_requirement(
-        SIGMAS,
-        mean,
-        0.3 * mean,
-        k,
-        0.5,
-        rq.DELTA_R_BUDGET,
-        None,
-        tmp_path / "fig8.png",
-        invalid_reason="the points do not follow sigma^2: exponent 0.50",
-        crossing=rq.budget_crossing(SIGMAS, mean),
-        systematic_only=(SIGMAS, K_PAPER * SIGMAS**2, 0.1 * K_PAPER * SIGMAS**2, K_PAPER, 2e-3),
-    )
+    arguments, options = linear_points_figure(tmp_path / "fig8.png")
+    path = plot_requirement(*arguments, **options)
     assert path.stat().st_size > 1000
 
 
