@@ -137,7 +137,7 @@ def test_cmb_part_of_the_sh_term_is_the_hwpss_moment_product(setup):
 @pytest.mark.slow
 def test_seed_part_of_the_sh_term_is_its_two_pieces(setup):
     """A seed's s h term is the fixed pass's plus its two pieces (to rounding); without
-    noise the noise piece is zero and the CMB piece the same."""
+    noise the noise piece is zero and the CMB piece the same (to rounding)."""
     fixed, _, fast = setup
     good = fixed.good
     for seed in SEEDS:
@@ -149,7 +149,9 @@ def test_seed_part_of_the_sh_term_is_its_two_pieces(setup):
         assert rms(pieces["noise_h"][0], good) > 0
         noiseless = noiseless_fast(fixed, seed)["sh_term_pieces"]
         assert not np.any(noiseless["noise_h"])
-        np.testing.assert_array_equal(noiseless["cmb_h"], pieces["cmb_h"])
+        # the same product; einsum's summation order may follow memory alignment, so the
+        # last bits can differ between calls (CI measured 9e-14 relative)
+        np.testing.assert_allclose(noiseless["cmb_h"], pieces["cmb_h"], rtol=1e-12, atol=0)
 
 
 @pytest.mark.slow
