@@ -135,21 +135,8 @@ def one(support, channel, case, amplitude, seed, arguments, folder) -> dict:
     recording = read_recording(path)
     a2 = support.nominal(channel)["a2_k"]
     result = diagnose(recording, support.supplied_sky(errors), a2, figures=False)
+    tally = score(result, case, truth)
     names = [family_of(e["name"]) for e in result["effects"]]
-    accepted = CASES[case][1]
-    top = result["effects"][0] if result["effects"] else None
-    named = bool(top) and bool(accepted & {family_of(n) for n in top.get("look_alikes", [])})
-    correct = bool(names) and (names[0] in accepted or named)
-    if case == "thermal_gain":  # its slow part may be taken as a drift
-        correct = correct or bool(names) and set(names) <= accepted | DRIFTS
-    within = None
-    if truth and correct and names[0] in accepted:
-        effect = result["effects"][0]
-        main = effect["main_parameters"][0]
-        entries = [p for p in effect["parameters"].values() if p["parameter"] == main]
-        within = all(
-            abs(p["value"] - t) < 3 * p["sigma"] for p, t in zip(entries, truth, strict=False)
-        )
     print(
         f"{channel} {case} {amplitude:g} seed {seed}{' (gap)' if gapped else ''}: reported "
         f"{', '.join(names) or '-'}; unexplained {len(result['unexplained'])}; "
@@ -157,14 +144,41 @@ def one(support, channel, case, amplitude, seed, arguments, folder) -> dict:
         file=sys.stderr,
         flush=True,
     )
+    return tally | {"gapped": int(gapped)}
+
+
+def score(result: dict, case: str, truth: list) -> dict:
+    """The tallies of one diagnosis of a ``case`` recording: ``first`` (an accepted effect
+    ranked first), ``look_alike`` (else named as the first effect's look-alike), ``correct``
+    (either, or for the thermal gain only drifts of the gain or HWP emission), ``extra``
+    (an effect outside the accepted ones and their drifts also reported), and the pulls
+    (value - truth) / sigma of the main parameter per detector when ranked first."""
+    names = [family_of(e["name"]) for e in result["effects"]]
+    accepted = CASES[case][1]
+    allowed = accepted | DRIFTS if case == "thermal_gain" else accepted
+    top = result["effects"][0] if result["effects"] else None
+    first = bool(names) and names[0] in accepted
+    named = bool(top) and bool(accepted & {family_of(n) for n in top.get("look_alikes", [])})
+    correct = first or named
+    if case == "thermal_gain":  # its slow part may be taken as a drift
+        correct = correct or bool(names) and set(names) <= allowed
+    pulls = []
+    if truth and first:
+        effect = result["effects"][0]
+        main = effect["main_parameters"][0]
+        entries = [p for p in effect["parameters"].values() if p["parameter"] == main]
+        pulls = [(p["value"] - t) / p["sigma"] for p, t in zip(entries, truth, strict=False)]
     return {
         "n": 1,
-        "gapped": int(gapped),
         "reported": int(bool(names)),
         "alarm": int(bool(result["mismatch_found"])),
         "correct": int(correct),
-        "param_checked": int(within is not None),
-        "within": int(bool(within)),
+        "first": int(first),
+        "look_alike": int(named and not first),
+        "extra": int(bool(accepted) and bool(set(names) - allowed)),
+        "param_checked": int(bool(pulls)),
+        "within": int(bool(pulls) and all(abs(p) < 3 for p in pulls)),
+        "pulls": [round(p, 3) for p in pulls],
     }
 
 
@@ -197,8 +211,7 @@ def main() -> None:
                     for _ in range(arguments.seeds):
                         tally = one(support, channel, case, amplitude, seed, arguments, folder)
                         seed += 1
-                        for name, value in tally.items():
-                            entry[name] = entry.get(name, 0) + value
+                        add(entry, tally)
                     print(summary_line(key, entry), flush=True)
     if arguments.out:
         arguments.out.write_text(json.dumps(counts, indent=1))
@@ -216,9 +229,14 @@ def combine(paths: list[Path]) -> dict:
         counts["hours"] = part["hours"]
         for key, tally in part["cases"].items():
             entry = counts["cases"].setdefault(key, {})
-            for name, value in tally.items():
-                entry[name] = entry.get(name, 0) + value
+            add(entry, tally)
     return counts
+
+
+def add(entry: dict, tally: dict) -> None:
+    """Add ``tally`` into ``entry``: counts summed, lists (pulls) joined."""
+    for name, value in tally.items():
+        entry[name] = entry.get(name, [] if isinstance(value, list) else 0) + value
 
 
 def summary(counts: dict) -> list[str]:
@@ -240,18 +258,36 @@ def summary(counts: dict) -> list[str]:
         f"(target <= 5 %); with a gap: {total(effects + nulls, 'gapped')} of "
         f"{total(effects + nulls, 'n')}"
     )
+    if effects and all("first" in c for c in effects):
+        pulls = np.concatenate([c["pulls"] for c in effects] + [np.zeros(0)])
+        lines[-1] += (
+            f"; ranked first {total(effects, 'first')}, look-alike "
+            f"{total(effects, 'look_alike')}, with an extra effect {total(effects, 'extra')}"
+            + (f"; pulls rms {np.sqrt(np.mean(pulls**2)):.2f}" if pulls.size else "")
+        )
     return lines
 
 
 def summary_line(key: str, c: dict) -> str:
+    """A case's counts; the split into ranked first / look-alike / extra effects and the
+    pulls where the run recorded them (files before session 23 did not)."""
     case = key.split()[1]
     if not CASES[case][1]:
         return f"{key}: false alarms {c['alarm']}/{c['n']} ({c['gapped']} with a gap)"
-    return (
+    line = (
         f"{key}: reported {c['reported']}/{c['n']}, expected ranked first or named "
         f"{c['correct']}/{c['n']}, parameter within 3 sigma {c['within']}/{c['param_checked']} "
         f"({c['gapped']} with a gap)"
     )
+    if "first" in c:
+        line += (
+            f"; ranked first {c['first']}, look-alike {c['look_alike']}, with an extra effect "
+            f"{c['extra']}"
+        )
+    if c.get("pulls"):
+        pulls = np.asarray(c["pulls"])
+        line += f"; pulls mean {pulls.mean():+.2f} rms {np.sqrt(np.mean(pulls**2)):.2f}"
+    return line
 
 
 if __name__ == "__main__":

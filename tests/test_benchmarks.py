@@ -350,3 +350,38 @@ def test_seed_part_share_splits_a_fixed_pass_template_from_its_seeds(benchmarks,
     strong = seed_part_share.seed_part_share(tmp_path / "strong.h5", config, model, 2)
     assert strong["share"] < 0.1
     assert strong["whole"] == pytest.approx(strong["fixed"] + strong["seed_part"], rel=0.1)
+
+
+def test_lbs_rates_score_splits_first_look_alike_extra_and_pulls(benchmarks):
+    """diagnose_lbs_rates.score: an accepted effect ranked first counts as first with its
+    pulls (value - truth) / sigma per detector; named only as the first effect's look-alike
+    it counts as look-alike without pulls; another catalog effect beside it is an extra."""
+    from diagnose_lbs_rates import add, score, summary
+
+    def effect(name, look_alikes=(), values=()):
+        parameters = {f"g1_{k}": {"parameter": "g1", "value": v, "sigma": 1e-4}
+                      for k, v in enumerate(values)}  # fmt: skip
+        return {"name": name, "look_alikes": list(look_alikes), "main_parameters": ["g1"],
+                "parameters": parameters}  # fmt: skip
+
+    truth = [-3e-3, -2e-3]
+    ranked = score({"effects": [effect("tes_nonlinearity", values=[-3.1e-3, -2.5e-3])],
+                    "mismatch_found": True}, "nonlinearity", truth)  # fmt: skip
+    assert (ranked["first"], ranked["look_alike"], ranked["extra"]) == (1, 0, 0)
+    np.testing.assert_allclose(ranked["pulls"], [-1.0, -5.0])
+    assert ranked["param_checked"] == 1 and ranked["within"] == 0  # one pull beyond 3
+    named = score({"effects": [effect("hwpss_harmonics", ["tes_nonlinearity"]),
+                               effect("glitches")], "mismatch_found": True},
+                  "nonlinearity", truth)  # fmt: skip
+    assert (named["correct"], named["first"], named["look_alike"], named["extra"]) == (1, 0, 1, 1)
+    assert named["pulls"] == [] and named["param_checked"] == 0
+    drift = score({"effects": [effect("gain_drift")], "mismatch_found": True},
+                  "thermal_gain", [])  # fmt: skip
+    assert (drift["correct"], drift["first"], drift["extra"]) == (1, 0, 0)
+    entry: dict = {"gapped": 0}
+    for tally in (ranked, named):
+        add(entry, tally)
+    assert entry["n"] == 2 and entry["pulls"] == ranked["pulls"]
+    last = summary({"hours": 6.0, "cases": {"M1-140 nonlinearity 0.003": entry}})[-1]
+    assert "ranked first 1, look-alike 1, with an extra effect 1" in last
+    assert "pulls rms 3.61" in last
