@@ -136,6 +136,10 @@ def one(support, channel, case, amplitude, seed, arguments, folder) -> dict:
     a2 = support.nominal(channel)["a2_k"]
     result = diagnose(recording, support.supplied_sky(errors), a2, figures=False)
     tally = score(result, case, truth)
+    if arguments.keep:  # the whole diagnosis, to read why a recording scored as it did
+        arguments.keep.mkdir(parents=True, exist_ok=True)
+        keep = arguments.keep / f"{channel}_{case}_{amplitude:g}_seed{seed}.json"
+        keep.write_text(result.to_json())
     names = [family_of(e["name"]) for e in result["effects"]]
     print(
         f"{channel} {case} {amplitude:g} seed {seed}{' (gap)' if gapped else ''}: reported "
@@ -191,6 +195,7 @@ def main() -> None:
     parser.add_argument("--gap-every", type=int, default=3, help="0: no gaps")
     parser.add_argument("--only", nargs="+", choices=sorted(CASES), default=sorted(CASES))
     parser.add_argument("--out", type=Path)
+    parser.add_argument("--keep", type=Path, metavar="DIR", help="write each diagnosis.json here")
     parser.add_argument(
         "--combine", nargs="+", type=Path, metavar="JSON", help="add up the counts of --out files"
     )

@@ -78,3 +78,24 @@ def pipeline_settings(simulator, **changes):
         "baseline_length_s": 60.0,
     }
     return PairMapSettings(**(values | changes))
+
+
+def gain_sidebands(
+    n, rate_hz, seed, amplitude_k=0.3, gain_amplitude=6e-3, slope=1.0, carrier_hz=1.3
+):
+    """A gain fluctuation's part of a residual, A g(t) cos(2 pi f_0 t) [K]: g Gaussian with
+    P_g = a^2 (10 mHz / f)^beta (diagnose.fluctuations.gain_psd; rfft variance P_g f_s n / 2)."""
+    import numpy as np
+    import scipy.fft
+
+    from hwp_tes_systematics.diagnose.fluctuations import gain_psd
+
+    rng = np.random.default_rng(seed)
+    freqs = scipy.fft.rfftfreq(n, 1 / rate_hz)
+    power = gain_psd(freqs, gain_amplitude, slope, rate_hz / n) * rate_hz * n / 2
+    power[0] = 0.0
+    modes = np.sqrt(power / 2) * (
+        rng.standard_normal(freqs.size) + 1j * rng.standard_normal(freqs.size)
+    )
+    g = scipy.fft.irfft(modes, n=n)
+    return amplitude_k * g * np.cos(2 * np.pi * carrier_hz * np.arange(n) / rate_hz)

@@ -43,6 +43,37 @@ def test_the_gain_spectrum_and_the_noise_with_its_excess():
     assert noise.net_k_sqrt_s == base.net_k_sqrt_s
 
 
+def test_a_gain_fluctuation_leaves_no_time_segment_unexplained():
+    """The time-segment test (unexplained._segments) on white noise plus strong gain
+    sidebands whitened by their own spectrum: no segment is reported (the variance is the
+    median segment's; the median sample's of chi^2_1 underestimated it for the sidebands'
+    amplitude-modulated carrier and reported every segment, session 23); a burst of noise
+    added to one segment is reported, that one alone."""
+    from types import SimpleNamespace
+
+    import scipy.fft
+    from helpers import gain_sidebands
+
+    from hwp_tes_systematics.diagnose.noise import periodogram_scale
+    from hwp_tes_systematics.diagnose.unexplained import TIME_SEGMENTS, _segments
+
+    rate, n, net = 20.0, 20 * 3600 * 4, 50e-6
+    rng = np.random.default_rng(11)
+    stream = rng.standard_normal(n) * net * math.sqrt(rate)
+    stream += gain_sidebands(n, rate, 12, amplitude_k=0.1, gain_amplitude=3e-2, carrier_hz=1.0)
+    freqs = scipy.fft.rfftfreq(n, 1 / rate)
+    excess = sideband_psd(freqs, 1.0, 0.1, 3e-2, 1.0, rate / n)
+    s = periodogram_scale(n, rate, 1.0) * (2 * net**2 + excess)
+    ctx = SimpleNamespace(
+        n_samples=n, valid=np.ones((1, n), bool), sampling_rate_hz=rate, detector_names=["a"]
+    )
+    assert _segments(scipy.fft.rfft(stream), s, ctx, 0, {}, 1) == []
+    segment = n // TIME_SEGMENTS
+    stream[5 * segment : 6 * segment] += rng.standard_normal(segment) * 3 * net * math.sqrt(rate)
+    found = _segments(scipy.fft.rfft(stream), s, ctx, 0, {}, 1)
+    assert [e["time_range_s"][0] for e in found] == [5 * segment / rate]
+
+
 @pytest.mark.slow
 def test_litebird_sims_thermal_gain_drift_is_a_gain_fluctuation():
     """An M1-140 pair (2 h), litebird_sim's THERMAL_GAIN with sigma_drift 1e-4 (gain rms

@@ -10,6 +10,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import scipy.fft
+from helpers import gain_sidebands
 
 from hwp_tes_systematics.diagnose import (
     diagnose,
@@ -17,6 +18,7 @@ from hwp_tes_systematics.diagnose import (
     simulate_recording,
     write_recording,
 )
+from hwp_tes_systematics.diagnose.fluctuations import WithExcess, sideband_psd
 from hwp_tes_systematics.diagnose.noise import NoiseModel
 from hwp_tes_systematics.diagnose.rolloff import fit_rolloff, rolloff
 from hwp_tes_systematics.diagnose.testbed import MASTER_SEED, nominal, sky_map
@@ -35,7 +37,15 @@ def noise_stream(tau_s: float, seed: int) -> np.ndarray:
     return scipy.fft.irfft(spectrum, n=N)
 
 
-def fitted(streams):
+def held_excess(amplitude_k=0.3, gain_amplitude=6e-3, slope=1.0) -> WithExcess:
+    """The noise of ``noise_stream`` with the sidebands of ``helpers.gain_sidebands`` as its
+    excess."""
+    freqs = scipy.fft.rfftfreq(N, 1 / RATE_HZ)
+    excess = sideband_psd(freqs, 1.3, amplitude_k, gain_amplitude, slope, RATE_HZ / N)
+    return WithExcess(NoiseModel(50e-6, 0.02, 1.0, 1e-5), freqs, excess)
+
+
+def fitted(streams, start=None):
     ctx = SimpleNamespace(
         n_samples=N,
         sampling_rate_hz=RATE_HZ,
@@ -46,7 +56,7 @@ def fitted(streams):
     residual_f = scipy.fft.rfft(np.array(streams), axis=-1)
     used = np.ones(residual_f.shape[1], dtype=bool)
     used[0] = used[-1] = False
-    start = [NoiseModel(50e-6, 0.02, 1.0, 1e-5)] * len(streams)
+    start = start or [NoiseModel(50e-6, 0.02, 1.0, 1e-5)] * len(streams)
     return fit_rolloff(ctx, residual_f, start, used, math.log(2 * used.sum() * len(streams)))
 
 
@@ -61,6 +71,26 @@ def test_the_noise_gives_tau_within_its_error_and_nothing_in_white_noise():
     assert rolloff(RATE_HZ / 2, (4e-3) ** 2) == pytest.approx(
         1 / (1 + (np.pi * RATE_HZ * 4e-3) ** 2)
     )
+
+
+def test_a_gain_fluctuations_sidebands_are_not_a_roll_off():
+    """Issue 29 item 2 (litebird_sim's thermal gain drift reported with a spurious time
+    constant): the sidebands' wings fall away from 2 f_HWP like a roll-off. With them held
+    in the noise (as the pipeline does once gain_fluctuations is taken) no tau is claimed
+    and the white level and knee are the noise's; the same data fitted without them pass
+    the wings for a roll-off or a 1/f, which this test shows the held excess prevents."""
+    streams = [
+        noise_stream(0.0, 5) + gain_sidebands(N, RATE_HZ, 7),
+        noise_stream(0.0, 6) + gain_sidebands(N, RATE_HZ, 7),
+    ]
+    held = fitted(streams, [held_excess()] * 2)
+    assert held.delta_bic > 0  # no roll-off claimed
+    for model in held.noise:
+        assert isinstance(model, WithExcess)  # the excess stays in the noise model
+        assert model.net_k_sqrt_s == pytest.approx(50e-6, rel=0.02)
+        assert 0.01 < model.fknee_hz < 0.04
+    blind = fitted(streams)
+    assert not all(0.01 < m.fknee_hz < 0.04 and m.tau_s == 0 for m in blind.noise)
 
 
 @pytest.mark.slow

@@ -36,7 +36,14 @@ import scipy.fft
 import scipy.optimize
 
 from .model import Context
-from .noise import NoiseModel, line_exclusion_mask, noise_psd, periodogram_scale, rolloff
+from .noise import (
+    NoiseModel,
+    knee_bound_hz,
+    line_exclusion_mask,
+    noise_psd,
+    periodogram_scale,
+    rolloff,
+)
 
 F_REF_HZ = 0.01  # the frequency at which the gain PSD's amplitude a is quoted
 # the likelihood leaves out the modes within this of 2 f_HWP: the deterministic effects
@@ -155,11 +162,12 @@ def fit_fluctuations(
     for m in noise:
         start += [math.log(m.net_k_sqrt_s), math.log(max(m.fknee_hz, 1e-5)), m.alpha]
     start = np.array(start)
+    knee_max_hz = knee_bound_hz(ctx.f_hwp_hz, fs)  # (see there: else the wings pass for 1/f)
     noise_bounds = []
     for k in range(n_det):
         noise_bounds += [
             (start[3 * k] - 5.0, start[3 * k] + 5.0),
-            (math.log(1e-6), math.log(fs / 2)),
+            (math.log(1e-6), math.log(knee_max_hz)),
             (0.05, 6.0),
         ]
     excess_bounds = [(math.log(1e-9), 0.0), SLOPE_BOUNDS, (0.0, 1.0)]

@@ -95,6 +95,16 @@ def fitted_modes(n_samples: int) -> np.ndarray:
     return modes
 
 
+def knee_bound_hz(f_hwp_hz: float, sampling_rate_hz: float) -> float:
+    """The highest 1/f knee a noise refit beside an effect's excess may take: f_HWP
+    (Nyquist without a HWP). A TES behind a spinning HWP whose 1/f reached f_HWP would not
+    modulate the signal out of it; above it a shallow 1/f with its knee at Nyquist passes
+    for a roll-off or for the far wings of a gain fluctuation's sidebands, and leaves the
+    1/f below 10 mHz unfitted."""
+    nyquist = sampling_rate_hz / 2
+    return min(f_hwp_hz, nyquist) if f_hwp_hz > 0 else nyquist
+
+
 def line_exclusion_mask(
     freqs_hz: np.ndarray,
     f_hwp_hz: float,

@@ -361,7 +361,7 @@ def diagnose(
     rolloff = fit_rolloff(
         ctx,
         problem.residual_f - np.array(final.model_f),
-        [getattr(m, "base", m) for m in noise_models],
+        noise_models,  # with a fitted fluctuation's sidebands, held
         problem.modes,
         problem.ln_n_eff,
     )

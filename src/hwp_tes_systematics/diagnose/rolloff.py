@@ -29,6 +29,7 @@ A readout or anti-aliasing filter rolls the noise off too: the report says so.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -40,6 +41,7 @@ from .model import Context
 from .noise import (
     NoiseModel,
     _narrow_bins,
+    knee_bound_hz,
     line_exclusion_mask,
     noise_psd,
     periodogram_scale,
@@ -88,46 +90,89 @@ def fit_rolloff(ctx: Context, residual_f, noise, used: np.ndarray, ln_n_eff: flo
         f, p_bin, m_bin = _narrow_bins(freqs, power.real**2 + power.imag**2, used)
         total = float(m_bin.sum())
         x = (f / nyquist) ** 2
-
-        def objective(theta, f=f, p_bin=p_bin, m_bin=m_bin, total=total, x=x, model=model):
-            """-2 ln L, the white level profiled; theta = (ln f_knee, alpha, v), v = (2 pi
-            f_Nyq tau)^2."""
-            g = _shape(theta, f, x, model)
-            c = float(np.sum(p_bin / g)) / total
-            return 2 * total * (1 + math.log(c)) + 2 * float(np.sum(m_bin * np.log(g)))
-
-        bounds = [(math.log(1e-6), math.log(nyquist)), (0.05, 6.0), (0.0, V_MAX)]
-        start = [math.log(max(model.fknee_hz, 1e-5)), float(np.clip(model.alpha, 0.05, 6.0))]
-        without = scipy.optimize.minimize(
-            lambda t: objective(np.append(t, 0.0)), start, method="L-BFGS-B", bounds=bounds[:2]
+        scale = periodogram_scale(n, fs, float(np.mean(ctx.valid[k])))
+        # a fitted gain fluctuation's sidebands (fluctuations.WithExcess), held: they fall
+        # with the offset from 2 f_HWP and would otherwise pass for a roll-off
+        excess = (
+            scale * np.interp(f, model.freqs_hz, model.excess_psd)
+            if hasattr(model, "excess_psd")
+            else None
         )
-        best = min(
-            (
-                scipy.optimize.minimize(
-                    objective, [*without.x, v0], method="L-BFGS-B", bounds=bounds
-                )
-                for v0 in (0.02, 0.2, 1.0)
-            ),
-            key=lambda result: result.fun,
+        base = getattr(model, "base", model)
+
+        def objective(theta, f=f, p_bin=p_bin, m_bin=m_bin, total=total, x=x, e=excess, base=base):
+            """-2 ln L; theta = (ln f_knee, alpha, v, ln c), v = (2 pi f_Nyq tau)^2, c the
+            white level (profiled without an excess, then theta[3] is unused)."""
+            g = _shape(theta, f, x, base)
+            if e is None:
+                c = float(np.sum(p_bin / g)) / total
+                return 2 * total * (1 + math.log(c)) + 2 * float(np.sum(m_bin * np.log(g)))
+            s = math.exp(theta[3]) * g + e  # the expected periodogram of a mode
+            return 2 * float(np.sum(p_bin / s + m_bin * np.log(s)))
+
+        # beside a held excess the knee stays below f_HWP (noise.knee_bound_hz); without
+        # one a shallow 1/f up to Nyquist is the noise model's only room for a broadband
+        # excess of unknown shape, and a roll-off must beat it
+        knee_max_hz = nyquist if excess is None else knee_bound_hz(ctx.f_hwp_hz, fs)
+        knee = (math.log(1e-6), math.log(knee_max_hz))
+        start = [
+            float(np.clip(math.log(max(base.fknee_hz, 1e-5)), *knee)),
+            float(np.clip(base.alpha, 0.05, 6.0)),
+        ]
+        level = math.log(scale * base.net_k_sqrt_s**2)  # c of S = c g (g: noise_psd at net 1)
+        bounds = [knee, (0.05, 6.0), (0.0, V_MAX), (level - 5.0, level + 5.0)]
+
+        def fit(x0, with_pole, objective=objective, bounds=bounds):
+            """Minimise over (ln f_knee, alpha, [v,] ln c), v held at 0 without the pole."""
+            free = [0, 1, 2, 3] if with_pole else [0, 1, 3]
+
+            def partial(t):
+                theta = np.array([x0[0], x0[1], 0.0, x0[3]])
+                theta[free] = t
+                return objective(theta)
+
+            result = scipy.optimize.minimize(
+                partial,
+                np.asarray(x0)[free],
+                method="L-BFGS-B",
+                bounds=[bounds[i] for i in free],
+            )
+            theta = np.array([x0[0], x0[1], 0.0, x0[3]])
+            theta[free] = result.x
+            return theta, float(result.fun)
+
+        without_x, without_fun = fit([*start, 0.0, level], False)
+        best_x, best_fun = min(
+            (fit([*without_x[:2], v0, without_x[3]], True) for v0 in (0.02, 0.2, 1.0)),
+            key=lambda trial: trial[1],
         )
-        v = float(best.x[2]) if best.fun < without.fun else 0.0
-        delta_chi2 += min(float(best.fun - without.fun), 0.0)
+        # the noise alone again from the joint fit's noise: the pole must not be credited
+        # with what a better-converged noise fit gives
+        again_x, again_fun = fit([*best_x[:2], 0.0, best_x[3]], False)
+        if again_fun < without_fun:
+            without_x, without_fun = again_x, again_fun
+        v = float(best_x[2]) if best_fun < without_fun else 0.0
+        delta_chi2 += min(best_fun - without_fun, 0.0)
+        chosen = best_x if v > 0 else without_x
         # sigma of v from the curvature of -2 ln L along v (the others held)
         h = max(1e-3, 0.05 * v)
-        around = [objective(np.array([*best.x[:2], max(v + d, 0.0)])) for d in (-h, 0.0, h)]
+        around = [
+            objective(np.array([*chosen[:2], max(v + d, 0.0), chosen[3]])) for d in (-h, 0.0, h)
+        ]
         curvature = (around[0] - 2 * around[1] + around[2]) / h**2
         sigma_v = math.sqrt(2.0 / curvature) if curvature > 0 else math.inf
         to_u = 1.0 / (2 * np.pi * nyquist) ** 2  # u = tau^2 = v / (2 pi f_Nyq)^2
         u, sigma_u = v * to_u, sigma_v * to_u
         tau = math.sqrt(u)
-        c = float(np.sum(p_bin / _shape(best.x if v > 0 else [*without.x, 0.0], f, x, model)))
-        scale = periodogram_scale(n, fs, float(np.mean(ctx.valid[k])))
-        knee, slope = (best.x if v > 0 else without.x)[:2]
-        models.append(
-            NoiseModel(
-                math.sqrt(c / total / scale), math.exp(knee), float(slope), model.fmin_hz, tau
-            )
+        if excess is None:
+            c = float(np.sum(p_bin / _shape(chosen, f, x, base))) / total
+        else:
+            c = math.exp(chosen[3])
+        fitted = NoiseModel(
+            math.sqrt(c / scale), math.exp(chosen[0]), float(chosen[1]), base.fmin_hz, tau
         )
+        # a held excess stays in the noise model (fluctuations.WithExcess around the new base)
+        models.append(fitted if excess is None else dataclasses.replace(model, base=fitted))
         taus.append(tau)
         sigmas.append(sigma_u / (2 * tau) if tau > 0 else math.sqrt(sigma_u))
         drops.append(1.0 - float(rolloff(nyquist, u)))

@@ -13,8 +13,8 @@ After the nominal adjustments and the selected effects, the residual r' = record
 * bands of excess broadband power (mean |R_f|^2 / S_f over logarithmic bands, line bins
   excluded) above 5 sigma;
 * time segments (24 equal ones) whose whitened residual variance exceeds the noise by
-  more than 5 sigma (chi^2 per segment against 2 m real dof): a stretch where something
-  happened that no effect models;
+  more than 5 sigma (chi^2 per segment against 2 m real dof, the variance the median
+  segment's): a stretch where something happened that no effect models;
 * transients that recur at one sky position (:func:`.effects.glitches.sky_fixed_groups`:
   within a beam FWHM of each other, over more than one crossing, in any detector): a
   compact source the supplied sky map lacks, reported with its Galactic position, the
@@ -271,8 +271,20 @@ def _segments(residual_f, s, ctx: Context, k: int, tried, workers) -> list[dict]
     whitening[0] = 0.0
     z = scipy.fft.irfft(residual_f * whitening, n=n, workers=workers)
     valid = ctx.valid[k]
-    sigma2 = float(np.median(z[valid] ** 2)) / 0.4549  # median of chi^2_1 = 0.4549
     edges = np.linspace(0, n, TIME_SEGMENTS + 1).astype(int)
+    # the whitened variance: the median segment's (robust to a few segments with events,
+    # and unbiased where the residual is not Gaussian sample by sample, as a gain
+    # fluctuation's sidebands, an amplitude-modulated carrier, are not)
+    sigma2 = float(
+        np.median(
+            [
+                np.mean(z[lo:hi][valid[lo:hi]] ** 2)
+                for lo, hi in itertools.pairwise(edges)
+                if valid[lo:hi].sum() >= 32
+            ]
+            or [np.mean(z[valid] ** 2)]
+        )
+    )
     out = []
     for lo, hi in itertools.pairwise(edges):
         v = valid[lo:hi]
