@@ -22,7 +22,11 @@ reports):
     S(f) = N(f; net, f_knee, alpha) / (1 + (2 pi f)^2 u),
     -2 ln L = sum_f 2 [P_f / S(f) + ln S(f)],
 
-against u = 0 with the noise refitted; Delta BIC = Delta(-2 ln L) + n_det ln N_eff. The roll-off is second order
+against u = 0 with the noise refitted (from its own start and from the joint fit's
+noise, the better kept: the pole is not credited with a better-converged noise fit); a
+fitted gain fluctuation's sidebands E(f) are held in S = N / (1 + ...) + E, the white
+level then a free parameter, since their wings fall away from 2 f_HWP as a roll-off does
+(:mod:`.fluctuations`); Delta BIC = Delta(-2 ln L) + n_det ln N_eff. The roll-off is second order
 in tau (Fisher: a 6 h pair at 31 Hz measures u to ~6e-7 s^2, tau ~2 ms at 5 sigma).
 A readout or anti-aliasing filter rolls the noise off too: the report says so.
 """
