@@ -103,3 +103,10 @@ def test_litebird_sims_thermal_gain_drift_is_a_gain_fluctuation():
     assert 0.7 < parameters["beta"]["value"] < 1.3
     assert 5e-4 < parameters["a"]["value"] < 5e-3
     assert effect["look_alikes"] == ["hwp_emission_fluctuations"]
+    # the noise the final fit weighs with is the detectors' (white + 1/f as simulated, no
+    # pole), not a shallow 1/f with its knee at Nyquist that took the sidebands' wings
+    for detector, final in zip(recording.detectors, result["noise"]["final"], strict=True):
+        assert final["net_k_sqrt_s"] == pytest.approx(detector["net_ukrts"] * 1e-6, rel=0.05)
+        assert 0.5 < final["fknee_hz"] / (detector["fknee_mhz"] * 1e-3) < 2.0
+        assert final["tau_s"] == 0.0
+    assert "as the final fit weighs it" in result.to_markdown()

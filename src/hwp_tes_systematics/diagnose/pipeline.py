@@ -466,6 +466,17 @@ def diagnose(
                 for m in nominal
             ],
             "estimated": [e.as_dict() for e in estimates],
+            # the noise the final fit weighs with (refitted beside the effects found and a
+            # gain fluctuation's sidebands; "estimated" is the recording's before any fit)
+            "final": [
+                {
+                    "net_k_sqrt_s": m.net_k_sqrt_s,
+                    "fknee_hz": m.fknee_hz,
+                    "alpha": m.alpha,
+                    "tau_s": m.tau_s,
+                }
+                for m in (getattr(m, "base", m) for m in noise_models)
+            ],
             "rolloff": rolloff.as_dict(),
         },
         "locate": mismatch.as_dict(),

@@ -247,7 +247,7 @@ def markdown_report(result: dict, figure_files: dict | None = None) -> str:
             f"{format_temperature(line['modulation_before_k'])} ({line['modulation_significance_sigma']:.1f} "
             f"sigma) | {format_temperature(line['amplitude_after_k'])} | {line['significance_after_sigma']:.1f} |"
         )
-    out += ["", "## Noise (configured vs estimated from the residual)", ""]
+    out += ["", "## Noise (configured vs estimated from the residual, then as finally fitted)", ""]
     for nominal, estimated, det in zip(
         result["noise"]["nominal"], result["noise"]["estimated"], rec["detectors"], strict=False
     ):
@@ -256,6 +256,12 @@ def markdown_report(result: dict, figure_files: dict | None = None) -> str:
             f"{nominal['net_k_sqrt_s'] * 1e6:.2f}), f_knee {estimated['fknee_hz'] * 1e3:.3g} mHz "
             f"(configured {nominal['fknee_hz'] * 1e3:.3g}), alpha {estimated['alpha']:.2f} "
             f"(configured {nominal['alpha']:.2f})"
+        )
+    for final, det in zip(result["noise"].get("final", []), rec["detectors"], strict=False):
+        out.append(
+            f"- {det}, as the final fit weighs it (beside the effects found): NET "
+            f"{final['net_k_sqrt_s'] * 1e6:.2f} uK sqrt(s), f_knee {final['fknee_hz'] * 1e3:.3g} "
+            f"mHz, alpha {final['alpha']:.2f}"
         )
     if figure_files:
         out += ["", "## Figures", ""]

@@ -273,14 +273,21 @@ def combine_segments(
         for index, result in enumerate(results)
         for line in result["lines"]
     ]
-    estimated = [
-        {
-            key: float(np.median([r["noise"]["estimated"][k][key] for r in results]))
-            for key, value in first["noise"]["estimated"][k].items()
-            if isinstance(value, (int, float))
-        }
-        for k in range(len(first["noise"]["estimated"]))
-    ]
+
+    def median_noise(which: str) -> list[dict]:
+        """The segments' median of each number of ``noise[which]``, per detector."""
+        return [
+            {
+                key: float(np.median([r["noise"][which][k][key] for r in results]))
+                for key, value in first["noise"][which][k].items()
+                if isinstance(value, (int, float))
+            }
+            for k in range(len(first["noise"][which]))
+        ]
+
+    noise = {"nominal": first["noise"]["nominal"], "estimated": median_noise("estimated")}
+    if all("final" in r["noise"] for r in results):
+        noise["final"] = median_noise("final")
     return {
         "mismatch_found": any(r["mismatch_found"] for r in results),
         "effects": effects,
@@ -294,7 +301,7 @@ def combine_segments(
         "requirement_check": requirement_check,
         "steps": steps,
         "lines": lines,
-        "noise": {"nominal": first["noise"]["nominal"], "estimated": estimated},
+        "noise": noise,
         "recording": recording,
         "segments": [
             {
