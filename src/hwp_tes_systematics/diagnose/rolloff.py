@@ -126,9 +126,10 @@ def fit_rolloff(ctx: Context, residual_f, noise, used: np.ndarray, ln_n_eff: flo
         level = math.log(scale * base.net_k_sqrt_s**2)  # c of S = c g (g: noise_psd at net 1)
         bounds = [knee, (0.05, 6.0), (0.0, V_MAX), (level - 5.0, level + 5.0)]
 
-        def fit(x0, with_pole, objective=objective, bounds=bounds):
-            """Minimise over (ln f_knee, alpha, [v,] ln c), v held at 0 without the pole."""
-            free = [0, 1, 2, 3] if with_pole else [0, 1, 3]
+        def fit(x0, with_pole, objective=objective, bounds=bounds, excess=excess):
+            """Minimise over (ln f_knee, alpha, [v,] [ln c]): v held at 0 without the pole,
+            ln c only beside an excess (profiled otherwise)."""
+            free = [0, 1] + ([2] if with_pole else []) + ([3] if excess is not None else [])
 
             def partial(t):
                 theta = np.array([x0[0], x0[1], 0.0, x0[3]])

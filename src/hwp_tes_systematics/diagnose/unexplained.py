@@ -272,26 +272,21 @@ def _segments(residual_f, s, ctx: Context, k: int, tried, workers) -> list[dict]
     z = scipy.fft.irfft(residual_f * whitening, n=n, workers=workers)
     valid = ctx.valid[k]
     edges = np.linspace(0, n, TIME_SEGMENTS + 1).astype(int)
+    # (lo, hi, valid samples, sum of z^2) of the segments with enough samples
+    segments = [
+        (lo, hi, int(valid[lo:hi].sum()), float(np.sum(z[lo:hi][valid[lo:hi]] ** 2)))
+        for lo, hi in itertools.pairwise(edges)
+        if valid[lo:hi].sum() >= 32
+    ]
     # the whitened variance: the median segment's (robust to a few segments with events,
     # and unbiased where the residual is not Gaussian sample by sample, as a gain
     # fluctuation's sidebands, an amplitude-modulated carrier, are not)
     sigma2 = float(
-        np.median(
-            [
-                np.mean(z[lo:hi][valid[lo:hi]] ** 2)
-                for lo, hi in itertools.pairwise(edges)
-                if valid[lo:hi].sum() >= 32
-            ]
-            or [np.mean(z[valid] ** 2)]
-        )
+        np.median([total / m for _, _, m, total in segments] or [np.mean(z[valid] ** 2)])
     )
     out = []
-    for lo, hi in itertools.pairwise(edges):
-        v = valid[lo:hi]
-        m = int(v.sum())
-        if m < 32:
-            continue
-        chi2 = float(np.sum(z[lo:hi][v] ** 2) / sigma2)
+    for lo, hi, m, total in segments:
+        chi2 = total / sigma2
         significance = (chi2 - m) / math.sqrt(2 * m)
         if significance > MIN_SIGMA:
             out.append(
