@@ -229,7 +229,15 @@ def fit_fluctuations(
         for rho in ((0.0, 0.5, 0.95) if pair else (0.0,))
     ]
     _, log_a, slope, rho = min(grid)
-    best = minimise(np.concatenate([without.x, [log_a, slope, rho]]), True)
+    # jointly from the noise alone's optimum and from the given noise (the noise alone,
+    # made to take the sidebands, can sit in a corner, e.g. alpha at its bound)
+    best = min(
+        (
+            minimise(np.concatenate([noise_x, [log_a, slope, rho]]), True)
+            for noise_x in (without.x, start)
+        ),
+        key=lambda result: result.fun,
+    )
     # the noise alone again from the joint fit's noise: a gain must not be credited with
     # what a better-converged noise fit gives
     again = minimise(best.x[:n_noise], False)

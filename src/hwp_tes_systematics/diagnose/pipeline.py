@@ -283,14 +283,11 @@ def diagnose(
     # here on: white + 1/f alone would pass it for a ~1 Hz knee and leave excess bands
     modes = fitted_modes(residual.shape[1])
     residual_f = scipy.fft.rfft(residual, axis=-1, workers=workers)  # locate's and FitProblem's too
-    early = fit_rolloff(
-        ctx,
-        residual_f,
-        noise_models,
-        modes,
-        math.log(2 * modes.sum() * ctx.n_detectors),
-    )
-    if early.delta_bic < delta_bic_threshold:
+    ln_n_eff = math.log(2 * modes.sum() * ctx.n_detectors)
+    early = fit_rolloff(ctx, residual_f, noise_models, modes, ln_n_eff)
+    if early.delta_bic < delta_bic_threshold and not _sidebands_fit_better(
+        ctx, early, residual_f, noise_models, modes, ln_n_eff
+    ):
         noise_models = adjusted.noise = early.noise
     mismatch = locate(ctx, residual, noise_models, nominal, workers=workers, residual_f=residual_f)
 
@@ -365,6 +362,24 @@ def diagnose(
         problem.modes,
         problem.ln_n_eff,
     )
+    if rolloff.delta_bic >= delta_bic_threshold and any(
+        getattr(m, "base", m).tau_s > 0 for m in noise_models
+    ):
+        # the early roll-off is not confirmed beside the effects and a fluctuation's sidebands
+        # (whose wings fall away from 2 f_HWP as a pole does): the noise loses its pole, and a
+        # fitted fluctuation is fitted again beside the noise without it
+        noise_models = rolloff.noise_without
+        adjusted.noise = [getattr(m, "base", m) for m in noise_models]
+        if fluctuation is not None:
+            fluctuation = fit_fluctuations(
+                ctx,
+                problem.residual_f - np.array(final.model_f),
+                adjusted.noise,
+                problem.modes,
+                problem.ln_n_eff,
+            )
+            noise_models = fluctuation.noise
+            adjusted.noise = fluctuation.base_noise
 
     ties = {  # named as the report names them (a member by its family)
         name: sorted({reported_name(n) for n in others})
@@ -508,3 +523,13 @@ def diagnose(
             figures=figures,
         )
     return result
+
+
+def _sidebands_fit_better(ctx, early, residual_f, noise_models, modes, ln_n_eff) -> bool:
+    """Whether a gain fluctuation's 2f sidebands (:mod:`.fluctuations`) explain the residual
+    better in BIC than the early roll-off does: their wings fall away from 2 f_HWP as a
+    pole rolls the noise off, and a pole taken for them (up to its bound, ~46 ms, with the
+    white level collapsing beneath) corrupts every later noise fit. The fluctuation itself
+    is tested after the effects are fitted; here it only stops the pole."""
+    sidebands = fit_fluctuations(ctx, residual_f, noise_models, modes, ln_n_eff)
+    return sidebands.delta_bic < early.delta_bic

@@ -53,7 +53,7 @@ from .noise import (
 )
 from .nominal import NOISE_FMIN_SPINS
 
-V_MAX = 20.0  # bound of (2 pi f_Nyquist tau)^2: at 31 Hz, tau <= 23 ms
+V_MAX = 20.0  # bound of (2 pi f_Nyquist tau)^2: at 31 Hz, tau <= 46 ms
 
 
 @dataclass
@@ -67,6 +67,7 @@ class RolloffFit:
     band_hz: tuple[float, float]
     drop_at_nyquist: np.ndarray  # 1 - |H(f_s / 2)|^2 per detector
     noise: list  # NoiseModel per detector: white + 1/f through the fitted pole
+    noise_without: list  # the same refitted with no pole (tau = 0)
 
     def as_dict(self) -> dict:
         return {
@@ -87,7 +88,7 @@ def fit_rolloff(ctx: Context, residual_f, noise, used: np.ndarray, ln_n_eff: flo
     used = used & ~line_exclusion_mask(freqs, ctx.f_hwp_hz, ctx.f_spin_hz, max(3 * fs / n, 2e-4))
     used &= freqs > NOISE_FMIN_SPINS * ctx.f_spin_hz
     nyquist = fs / 2
-    taus, sigmas, drops, models = [], [], [], []
+    taus, sigmas, drops, models, models_without = [], [], [], [], []
     delta_chi2 = 0.0
     for k, model in enumerate(noise):
         power = np.asarray(residual_f[k])
@@ -173,11 +174,24 @@ def fit_rolloff(ctx: Context, residual_f, noise, used: np.ndarray, ln_n_eff: flo
             c = float(np.sum(p_bin / _shape(chosen, f, x, base))) / total
         else:
             c = math.exp(chosen[3])
-        fitted = NoiseModel(
-            math.sqrt(c / scale), math.exp(chosen[0]), float(chosen[1]), base.fmin_hz, tau
+        c_without = (
+            float(np.sum(p_bin / _shape(without_x, f, x, base))) / total
+            if excess is None
+            else math.exp(without_x[3])
         )
-        # a held excess stays in the noise model (fluctuations.WithExcess around the new base)
-        models.append(fitted if excess is None else dataclasses.replace(model, base=fitted))
+        for theta, level_c, tau_k, out in (
+            (chosen, c, tau, models),
+            (without_x, c_without, 0.0, models_without),
+        ):
+            fitted = NoiseModel(
+                math.sqrt(level_c / scale),
+                math.exp(theta[0]),
+                float(theta[1]),
+                base.fmin_hz,
+                tau_k,
+            )
+            # a held excess stays in the model (fluctuations.WithExcess around the new base)
+            out.append(fitted if excess is None else dataclasses.replace(model, base=fitted))
         taus.append(tau)
         sigmas.append(sigma_u / (2 * tau) if tau > 0 else math.sqrt(sigma_u))
         drops.append(1.0 - float(rolloff(nyquist, u)))
@@ -190,6 +204,7 @@ def fit_rolloff(ctx: Context, residual_f, noise, used: np.ndarray, ln_n_eff: flo
         band_hz=(NOISE_FMIN_SPINS * ctx.f_spin_hz, nyquist),
         drop_at_nyquist=np.array(drops),
         noise=models,
+        noise_without=models_without,
     )
 
 
