@@ -133,3 +133,43 @@ def test_demodulation_removes_the_offset_leakage_of_the_binned_solve(pair):
     demodulated_rms = np.sqrt(np.mean(demodulated_hh[:, 1:, good] ** 2))
     assert binned_rms > 1e-3, binned_rms  # per-cent leakage of the 0.5 DC term
     assert demodulated_rms < 1e-4 * binned_rms, (demodulated_rms, binned_rms)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("baseline_length_s", [None, 60.0])
+def test_a_demodulated_extra_binning_is_the_demodulated_map_maker(pair, baseline_length_s):
+    """The fixed pass's demodulated map-maker (an ExtraBinning beside the binned one, with
+    the calibration TODs) bins the same demodulated streams as ``accumulate(...,
+    demodulated=)``: equal maps to rounding; its white-noise equations hold the binned
+    solve's M."""
+    from hwp_tes_systematics.simulation.tod_maps import Calibration, ExtraBinning
+
+    npix = hp.nside2npix(NSIDE)
+    rng = np.random.default_rng(3)
+    sky = rng.normal(size=(3, npix)) * 1e-5
+    settings = PairMapSettings(
+        master_seed=1,
+        seed=0,
+        nside=NSIDE,
+        plan=pair.plan,
+        a2_k_cmb=0.1,
+        notch_width_divisor=100.0,
+        notch_margin_s=300.0,
+        max_condition_number=100.0,
+        noise_scale=0.0,
+        baseline_length_s=baseline_length_s,
+    )
+    n_tods = 1 + 3 * pair.n_detectors
+    reference = DemodulatedEquations(NSIDE, n_tods)
+    direct = accumulate(pair, settings, sky, demodulated=reference)
+    extra = ExtraBinning(NSIDE, baseline_length_s, demodulated=True)
+    calibration = Calibration(NSIDE, (sky,), 77, hwpss_noise=True)
+    beside = accumulate(pair, settings, sky, calibration=calibration, extra_binnings=(extra,))
+    np.testing.assert_allclose(extra.equations.solve(), reference.solve(), rtol=1e-9, atol=1e-15)
+    np.testing.assert_array_equal(extra.equations.hits, reference.hits)
+    np.testing.assert_allclose(extra.matrix_equations.matrix, direct.matrix, rtol=1e-12)
+    np.testing.assert_allclose(beside.matrix, direct.matrix, rtol=1e-12)
+    assert extra.calibration_equations.n_tods == 1 + calibration.n_noise_tods  # filtered
+    np.testing.assert_array_equal(extra.calibration_equations.hits, reference.hits)
+    assert extra.white_equations.n_tods == calibration.n_noise_tods
+    assert np.all(extra.white_equations.hits == extra.matrix_equations.hits)

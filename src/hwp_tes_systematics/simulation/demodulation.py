@@ -117,6 +117,13 @@ class DemodulatedEquations:
                 self.rhs[index],
             )
 
+    def reorder(self, source: np.ndarray) -> None:
+        """Pixel p takes the numbers of pixel ``source[p]`` (a change of ordering)."""
+        self.weight = self.weight[source]
+        self.pol_weight = self.pol_weight[source]
+        self.rhs = self.rhs[:, :, source]
+        self.hits = self.hits[source]
+
     def solve(self) -> np.ndarray:
         """(n_tods, 3, npix) I, Q, U maps; pixels without samples are UNSEEN."""
         maps = np.full((self.n_tods, 3, self.npix), hp.UNSEEN)

@@ -160,6 +160,14 @@ class ExtraBinning:
     moments: PixelMoments | None = None
     equations: NormalEquations | None = None
     calibration_equations: NormalEquations | None = None
+    # HWP demodulation + low-pass (:mod:`demodulation`) instead of the binned solve: then
+    # ``equations`` and ``calibration_equations`` (the filtered calibration TODs) are
+    # DemodulatedEquations, ``white_equations`` bins the unfiltered noise TODs (the white
+    # reference of the noise shaping) and ``matrix_equations`` the binned solve's M of
+    # every chunk (the white noise the seeds draw), both NormalEquations
+    demodulated: bool = False
+    white_equations: NormalEquations | None = None
+    matrix_equations: NormalEquations | None = None
 
 
 def filter_both_offsets(unfiltered, pointing, simulator, settings) -> dict[bool, np.ndarray]:
@@ -333,12 +341,22 @@ def accumulate(
         raise ValueError("accumulate: demodulated maps of calibration TODs are not supported")
     if demodulated is not None and extra_binnings:
         raise ValueError("accumulate: demodulated maps with extra binnings are not supported")
+    if any(e.demodulated for e in extra_binnings) and settings.notch_width_divisor is None:
+        raise ValueError("accumulate: a demodulated extra binning needs the notch's margins")
     n_det = simulator.n_detectors
     linear = g1_per_k is None
     n_terms = len(TEMPLATE_TERMS) if linear and template_terms else 0
     n_binned = 1 + n_terms + len(references_iqu_k)  # rows of the stack binned in ``equations``
     equations = NormalEquations(settings.nside, 1 + n_terms * n_det + len(references_iqu_k))
     for extra in extra_binnings:
+        if extra.demodulated:
+            extra.equations = DemodulatedEquations(extra.nside, equations.n_tods)
+            extra.matrix_equations = NormalEquations(extra.nside, 0)
+            if calibration is not None:
+                n_filtered = calibration.equations.n_tods - calibration.n_noise_tods
+                extra.calibration_equations = DemodulatedEquations(extra.nside, n_filtered)
+                extra.white_equations = NormalEquations(extra.nside, calibration.n_noise_tods)
+            continue
         extra.equations = NormalEquations(extra.nside, equations.n_tods)
         if calibration is not None:
             extra.calibration_equations = NormalEquations(extra.nside, calibration.equations.n_tods)
@@ -435,6 +453,21 @@ def accumulate(
         )
         for extra in extra_binnings:
             offset = extra.baseline_length_s is not None
+            if extra.demodulated:
+                _bin_demodulated(
+                    extra,
+                    calibrating,
+                    pixels_of[extra.nside],
+                    pointing,
+                    inner,
+                    (weights, simulator.pol_efficiency),
+                    (rows, owners),
+                    (notched_of[offset], calibration_of[offset], unfiltered_noise),
+                    (settings.plan.sampling_rate_hz, simulator.channel.hwp_frequency_hz),
+                    settings.threads,
+                    clock,
+                )
+                continue
             stacks = [notched_of[offset], calibration_of[offset]]
             stacks = [None if stack is None else stack[..., inner] for stack in stacks]
             if offset:  # copies: the baselines are removed in place
@@ -516,12 +549,61 @@ def _bin_chunk(target, calibration_target, pixels, angles, binned, filtered, cal
         calibration_target.add(pixels, *angles, [*calibration, *noise])
 
 
+def _bin_demodulated(
+    extra, calibrating, pixels, pointing, inner, detector, binned, stacks, rates, threads, clock
+) -> None:
+    """Bin a chunk into a demodulated extra binning: the filtered TOD stack (with margins,
+    demodulated then cut to ``inner``; baselines, if any, off the intensity stream only),
+    on calibration chunks the filtered calibration TODs likewise and the unfiltered noise
+    TODs binned as they are, and M of every chunk. ``detector``: (weights,
+    pol_efficiency); ``binned``: (rows, owners); ``stacks``: (filtered, calibration
+    filtered, unfiltered noise); ``rates``: (sampling rate, f_HWP) [Hz]."""
+    weights, pol_efficiency = detector
+    rows, owners = binned
+    filtered, calibration_filtered, unfiltered_noise = stacks
+    sampling_rate_hz, f_hwp_hz = rates
+    cos_2alpha, sin_2alpha = pointing.cos_2alpha[:, inner], pointing.sin_2alpha[:, inner]
+    hwp_angle_rad = pointing.hwp_angle_rad[inner]
+    samples = baseline_samples(extra.baseline_length_s, sampling_rate_hz)
+    todo = [(filtered, extra.equations, rows, owners)]
+    if calibrating:
+        n_filtered = extra.calibration_equations.n_tods
+        todo.append((calibration_filtered, extra.calibration_equations, range(n_filtered), None))
+    for stack, target, stack_rows, stack_owners in todo:
+        with clock("demodulation"):
+            streams = demodulate(stack, pointing.hwp_angle_rad, sampling_rate_hz, f_hwp_hz, threads)
+            streams = streams[..., inner]
+            remove_baselines(streams[0], samples)
+        with clock("binning"):
+            target.add(
+                pixels,
+                cos_2alpha,
+                sin_2alpha,
+                hwp_angle_rad,
+                weights,
+                pol_efficiency,
+                [streams[:, row] for row in stack_rows],
+                stack_owners,
+            )
+        del streams
+    with clock("binning"):
+        empty = np.empty((0, *pixels.shape))
+        extra.matrix_equations.add(
+            pixels, cos_2alpha, sin_2alpha, weights, pol_efficiency, empty, rows=[]
+        )
+        if calibrating:
+            extra.white_equations.add(
+                pixels, cos_2alpha, sin_2alpha, weights, pol_efficiency, unfiltered_noise
+            )
+
+
 def _nest_to_ring(equations, moments, calibration, extra_binnings) -> None:
     """Reorder every accumulation of :func:`accumulate` from NESTED to RING pixels (each
     pixel's numbers unchanged: the same additions in the same order)."""
     targets = [equations, moments] + [calibration.equations if calibration else None]
     for extra in extra_binnings:
         targets += [extra.equations, extra.moments, extra.calibration_equations]
+        targets += [extra.white_equations, extra.matrix_equations]
     done = set()
     for target in targets:
         if target is None or id(target) in done:
