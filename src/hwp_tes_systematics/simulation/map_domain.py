@@ -256,7 +256,8 @@ def fixed_passes(
     measure_lmax: int | None = None,
     extra_variants=(),
     noise_realizations: int = 1,
-) -> dict[tuple[int, float | None], FixedMaps]:
+    demodulated_variants=(),
+) -> dict[tuple, FixedMaps]:
     """{(nside, baseline length): FixedMaps} of the seed-independent TOD pass of one
     channel (see the module docstring): no CMB, no noise; the sky (``foreground_iqu_k``,
     and ``transfer_alm``, beam-smoothed, band ``lmax``, scanned alone to measure T_ell)
@@ -287,6 +288,15 @@ def fixed_passes(
         ExtraBinning(nside, baseline, moments=moments_of[nside])
         for nside, baseline in extra_variants
     ]
+    demodulated = [
+        ExtraBinning(nside, baseline, moments=moments_of.get(nside), demodulated=True)
+        for nside, baseline in (tuple(v) for v in demodulated_variants)
+    ]
+    if any(e.moments is None and carries_systematics for e in demodulated):
+        raise ValueError(
+            f"demodulated variants {list(demodulated_variants)}: each needs a binned variant "
+            "of its resolution in the pass (their HWPSS moments are shared)"
+        )
     noiseless = dataclasses.replace(settings, noise_scale=0.0)
     calibration = Calibration(
         settings.nside,
@@ -304,7 +314,7 @@ def fixed_passes(
         template_terms=carries_systematics,
         moments=moments_of[settings.nside],
         calibration=calibration,
-        extra_binnings=tuple(extras),
+        extra_binnings=tuple(extras + demodulated),
     )
     binned = [(primary, equations, calibration.equations, moments_of[settings.nside])]
     binned += [
@@ -332,7 +342,71 @@ def fixed_passes(
             calibration.kinds,
         )
         log.info("fixed pass variant nside %d, baselines %s: solved", nside, baseline)
+    for extra in demodulated:
+        band = min(lmax, 3 * extra.nside - 1)
+        reference = hp.alm2map(
+            hp.resize_alm(transfer_alm, lmax, lmax, band, band),
+            extra.nside,
+            lmax=band,
+            pixwin=False,
+        )
+        results[(extra.nside, extra.baseline_length_s, "demodulated")] = _solve_demodulated(
+            simulator,
+            settings,
+            extra,
+            reference,
+            carries_systematics,
+            min(measure_lmax, band),
+            calibration.kinds,
+        )
+        log.info(
+            "fixed pass variant nside %d, baselines %s, demodulated: solved",
+            extra.nside,
+            extra.baseline_length_s,
+        )
     return results
+
+
+def _solve_demodulated(
+    simulator, settings, extra, transfer_input, carries_systematics, measure_lmax, kinds
+) -> FixedMaps:
+    """FixedMaps of a demodulated map-maker (:class:`tod_maps.ExtraBinning` with
+    ``demodulated``): its maps; good where it has samples and the binned solve's M (the
+    white noise the seeds draw, :class:`BinnedNoise`) is well conditioned; T_ell of the
+    reference CMB through the filter and the demodulation; S_ell and S^h_ell of its
+    filtered, demodulated noise maps against the same noise binned unfiltered."""
+    _, condition, binned_good = solve_maps(extra.matrix_equations, settings.max_condition_number)
+    good = binned_good & (extra.equations.hits > 0)
+    maps = extra.equations.solve()
+    maps[:, :, ~good] = hp.UNSEEN
+    solved = split_solved_maps(
+        maps, simulator.n_detectors, settings.a2_k_cmb, template_terms=carries_systematics
+    )
+    (foreground_reference,) = solved["references"]
+    transfer_output, *filtered = extra.calibration_equations.solve()
+    unfiltered, _, white_good = solve_maps(extra.white_equations, settings.max_condition_number)
+    calibrated = white_good & (extra.calibration_equations.hits > 0)
+    filtered = np.asarray(filtered)
+    shapings = [
+        measure_noise_shaping(
+            filtered[kind::kinds], unfiltered[kind::kinds], calibrated, measure_lmax
+        )
+        for kind in range(kinds)
+    ]
+    return FixedMaps(
+        nosys=solved["nosys"],
+        template_terms=solved["template_terms"],
+        foreground_reference=foreground_reference,
+        transfer=measure_transfer(transfer_output, transfer_input, calibrated, measure_lmax),
+        noise_shaping=shapings[0],
+        noise_h_shaping=shapings[1] if kinds == 2 else np.zeros(0),
+        matrix=extra.matrix_equations.matrix,
+        moments=extra.moments.values if carries_systematics else np.zeros(0),
+        hits=extra.equations.hits,
+        condition=condition,
+        good=good,
+        carries_systematics=carries_systematics,
+    )
 
 
 def _solve_fixed_pass(
