@@ -50,6 +50,22 @@ def pair():
     return m1_140_pair(3 * 3600.0, 3 * 3600.0, NSIDE)
 
 
+def noiseless_settings(pair, baseline_length_s):
+    """The pair's map-making settings without noise, A_2 = 0.1 K, the paper's notch."""
+    return PairMapSettings(
+        master_seed=1,
+        seed=0,
+        nside=NSIDE,
+        plan=pair.plan,
+        a2_k_cmb=0.1,
+        notch_width_divisor=100.0,
+        notch_margin_s=300.0,
+        max_condition_number=100.0,
+        noise_scale=0.0,
+        baseline_length_s=baseline_length_s,
+    )
+
+
 def demodulated_map(pair, sky):
     """Scan ``sky`` over the pair's three hours, demodulate, low-pass, bin: (maps, seen)."""
     rate = pair.plan.sampling_rate_hz
@@ -108,18 +124,7 @@ def test_demodulation_removes_the_offset_leakage_of_the_binned_solve(pair):
     (a per-detector DC term A_2^2 / 2 and a 4f line) leaks into the binned Q/U through
     the HWP-angle coverage; the demodulated maps of the same filtered TODs hold < 1e-4 of it (measured
     1.7e-8 against 1.7e-2 K^2 per unit A_2^2)."""
-    settings = PairMapSettings(
-        master_seed=1,
-        seed=0,
-        nside=NSIDE,
-        plan=pair.plan,
-        a2_k_cmb=0.1,
-        notch_width_divisor=100.0,
-        notch_margin_s=300.0,
-        max_condition_number=100.0,
-        noise_scale=0.0,
-        baseline_length_s=None,
-    )
+    settings = noiseless_settings(pair, baseline_length_s=None)
     demodulated = DemodulatedEquations(NSIDE, 1 + 3 * pair.n_detectors)
     equations = accumulate(
         pair, settings, np.zeros((3, hp.nside2npix(NSIDE))), demodulated=demodulated
@@ -147,18 +152,7 @@ def test_a_demodulated_extra_binning_is_the_demodulated_map_maker(pair, baseline
     npix = hp.nside2npix(NSIDE)
     rng = np.random.default_rng(3)
     sky = rng.normal(size=(3, npix)) * 1e-5
-    settings = PairMapSettings(
-        master_seed=1,
-        seed=0,
-        nside=NSIDE,
-        plan=pair.plan,
-        a2_k_cmb=0.1,
-        notch_width_divisor=100.0,
-        notch_margin_s=300.0,
-        max_condition_number=100.0,
-        noise_scale=0.0,
-        baseline_length_s=baseline_length_s,
-    )
+    settings = noiseless_settings(pair, baseline_length_s)
     n_tods = 1 + 3 * pair.n_detectors
     reference = DemodulatedEquations(NSIDE, n_tods)
     direct = accumulate(pair, settings, sky, demodulated=reference)

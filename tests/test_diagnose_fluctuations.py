@@ -74,6 +74,24 @@ def test_a_gain_fluctuation_leaves_no_time_segment_unexplained():
     assert [e["time_range_s"][0] for e in found] == [5 * segment / rate]
 
 
+def with_thermal_drift(recording, sigma_drift: float, detector_seeds) -> None:
+    """Apply litebird_sim's THERMAL_GAIN drift (one focal-plane group for the pair,
+    detector_mismatch 0.1) to ``recording.tod`` in place, each detector's draw from its
+    seed in ``detector_seeds``."""
+    params = lbs.GainDriftParams(
+        drift_type=lbs.GainDriftType.THERMAL_GAIN,
+        sigma_drift=sigma_drift,
+        detector_mismatch=0.1,
+    )
+    lbs.apply_gaindrift_to_tod(
+        recording.tod,
+        recording.sampling_rate_hz,
+        params,
+        focalplane_attr=np.array(["wafer", "wafer"]),
+        dets_random=[np.random.default_rng(seed) for seed in detector_seeds],
+    )
+
+
 @pytest.mark.slow
 def test_litebird_sims_thermal_gain_drift_is_a_gain_fluctuation():
     """An M1-140 pair (2 h), litebird_sim's THERMAL_GAIN with sigma_drift 1e-4 (gain rms
@@ -81,16 +99,7 @@ def test_litebird_sims_thermal_gain_drift_is_a_gain_fluctuation():
     that of litebird_sim's 1/f (alpha_drift = 1), HWP emission named as look-alike (six
     hours: gain_fluctuations alone; in two its slow part can also pass as a drift)."""
     recording = simulate.simulate_recording(CHANNEL, 2.0, MASTER_SEED, 93, sky_map(), A2_K, [])
-    params = lbs.GainDriftParams(
-        drift_type=lbs.GainDriftType.THERMAL_GAIN, sigma_drift=1e-4, detector_mismatch=0.1
-    )
-    lbs.apply_gaindrift_to_tod(
-        recording.tod,
-        recording.sampling_rate_hz,
-        params,
-        focalplane_attr=np.array(["wafer", "wafer"]),
-        dets_random=[np.random.default_rng(5), np.random.default_rng(6)],
-    )
+    with_thermal_drift(recording, 1e-4, (5, 6))
     result = diagnose(recording, sky_map(), A2_K, figures=False)
     names = result.effect_names
     assert "gain_fluctuations" in names, (names, [u["text"][:120] for u in result["unexplained"]])
@@ -124,16 +133,7 @@ def test_a_strong_thermal_drift_leaves_no_pole_and_no_band_in_the_noise():
 
     a2 = nominal("H3-402")["a2_k"]
     recording = simulate.simulate_recording("H3-402", 2.0, MASTER_SEED, 94, sky_map(), a2, [])
-    params = lbs.GainDriftParams(
-        drift_type=lbs.GainDriftType.THERMAL_GAIN, sigma_drift=3e-4, detector_mismatch=0.1
-    )
-    lbs.apply_gaindrift_to_tod(
-        recording.tod,
-        recording.sampling_rate_hz,
-        params,
-        focalplane_attr=np.array(["wafer", "wafer"]),
-        dets_random=[np.random.default_rng(7), np.random.default_rng(8)],
-    )
+    with_thermal_drift(recording, 3e-4, (7, 8))
     result = diagnose(recording, sky_map(), a2, figures=False)
     assert "gain_fluctuations" in result.effect_names, result.effect_names
     assert result["unexplained"] == [], [u["text"][:160] for u in result["unexplained"]]

@@ -316,12 +316,9 @@ def diagnose(
             break
         # a fluctuating gain is an excess noise in the 2f sidebands (:mod:`.fluctuations`):
         # tested on this residual; if taken, everything is selected again with it
+        remaining_f = problem.residual_f - np.array(final.model_f)
         fluctuation = fit_fluctuations(
-            ctx,
-            problem.residual_f - np.array(final.model_f),
-            noise_models,
-            problem.modes,
-            problem.ln_n_eff,
+            ctx, remaining_f, noise_models, problem.modes, problem.ln_n_eff
         )
         if fluctuation.delta_bic < delta_bic_threshold:
             noise_models = fluctuation.noise
@@ -331,22 +328,19 @@ def diagnose(
         fluctuation = None
         if not final.selected:
             break
-        refit, covariances, change = refit_noise(
-            ctx, problem.residual_f - np.array(final.model_f), noise_models
-        )
+        refit, covariances, change = refit_noise(ctx, remaining_f, noise_models)
         if change < NOISE_REFIT_CHANGE:
             break
         noise_models = refit
         adjusted.noise, adjusted.noise_covariance = refit, covariances
         previous = final.selected  # checked first with the new weights, then extended
+    remaining_f = problem.residual_f - np.array(final.model_f)  # of the final fit
+
+    def fluctuation_beside(noise):
+        return fit_fluctuations(ctx, remaining_f, noise, problem.modes, problem.ln_n_eff)
+
     if fluctuation is not None:  # its parameters on the final residual
-        fluctuation = fit_fluctuations(
-            ctx,
-            problem.residual_f - np.array(final.model_f),
-            fluctuation.base_noise,
-            problem.modes,
-            problem.ln_n_eff,
-        )
+        fluctuation = fluctuation_beside(fluctuation.base_noise)
         if fluctuation.delta_bic < delta_bic_threshold:
             noise_models = fluctuation.noise
             adjusted.noise = fluctuation.base_noise
@@ -357,7 +351,7 @@ def diagnose(
     # the time constant's one signature the lines lack: the noise's roll-off (:mod:`.rolloff`)
     rolloff = fit_rolloff(
         ctx,
-        problem.residual_f - np.array(final.model_f),
+        remaining_f,
         noise_models,  # with a fitted fluctuation's sidebands, held
         problem.modes,
         problem.ln_n_eff,
@@ -371,13 +365,7 @@ def diagnose(
         noise_models = rolloff.noise_without
         adjusted.noise = [getattr(m, "base", m) for m in noise_models]
         if fluctuation is not None:
-            fluctuation = fit_fluctuations(
-                ctx,
-                problem.residual_f - np.array(final.model_f),
-                adjusted.noise,
-                problem.modes,
-                problem.ln_n_eff,
-            )
+            fluctuation = fluctuation_beside(adjusted.noise)
             noise_models = fluctuation.noise
             adjusted.noise = fluctuation.base_noise
 

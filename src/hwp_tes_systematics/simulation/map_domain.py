@@ -321,15 +321,18 @@ def fixed_passes(
         ((e.nside, e.baseline_length_s), e.equations, e.calibration_equations, e.moments)
         for e in extras
     ]
-    results = {}
-    for (nside, baseline), variant_equations, calibration_equations, moments in binned:
+
+    def reference_at(nside):
+        """(the reference CMB map at a map-maker's resolution, its band)."""
         band = min(lmax, 3 * nside - 1)
         if nside == settings.nside:
-            reference = transfer_input
-        else:
-            reference = hp.alm2map(
-                hp.resize_alm(transfer_alm, lmax, lmax, band, band), nside, lmax=band, pixwin=False
-            )
+            return transfer_input, band
+        alm = hp.resize_alm(transfer_alm, lmax, lmax, band, band)
+        return hp.alm2map(alm, nside, lmax=band, pixwin=False), band
+
+    results = {}
+    for (nside, baseline), variant_equations, calibration_equations, moments in binned:
+        reference, band = reference_at(nside)
         results[(nside, baseline)] = _solve_fixed_pass(
             simulator,
             settings,
@@ -343,13 +346,7 @@ def fixed_passes(
         )
         log.info("fixed pass variant nside %d, baselines %s: solved", nside, baseline)
     for extra in demodulated:
-        band = min(lmax, 3 * extra.nside - 1)
-        reference = hp.alm2map(
-            hp.resize_alm(transfer_alm, lmax, lmax, band, band),
-            extra.nside,
-            lmax=band,
-            pixwin=False,
-        )
+        reference, band = reference_at(extra.nside)
         results[(extra.nside, extra.baseline_length_s, "demodulated")] = _solve_demodulated(
             simulator,
             settings,
@@ -379,33 +376,21 @@ def _solve_demodulated(
     good = binned_good & (extra.equations.hits > 0)
     maps = extra.equations.solve()
     maps[:, :, ~good] = hp.UNSEEN
-    solved = split_solved_maps(
-        maps, simulator.n_detectors, settings.a2_k_cmb, template_terms=carries_systematics
-    )
-    (foreground_reference,) = solved["references"]
     transfer_output, *filtered = extra.calibration_equations.solve()
     unfiltered, _, white_good = solve_maps(extra.white_equations, settings.max_condition_number)
     calibrated = white_good & (extra.calibration_equations.hits > 0)
-    filtered = np.asarray(filtered)
-    shapings = [
-        measure_noise_shaping(
-            filtered[kind::kinds], unfiltered[kind::kinds], calibrated, measure_lmax
-        )
-        for kind in range(kinds)
-    ]
-    return FixedMaps(
-        nosys=solved["nosys"],
-        template_terms=solved["template_terms"],
-        foreground_reference=foreground_reference,
-        transfer=measure_transfer(transfer_output, transfer_input, calibrated, measure_lmax),
-        noise_shaping=shapings[0],
-        noise_h_shaping=shapings[1] if kinds == 2 else np.zeros(0),
-        matrix=extra.matrix_equations.matrix,
-        moments=extra.moments.values if carries_systematics else np.zeros(0),
-        hits=extra.equations.hits,
-        condition=condition,
-        good=good,
-        carries_systematics=carries_systematics,
+    return _fixed_maps(
+        simulator,
+        settings,
+        (maps, condition, good),
+        extra.matrix_equations.matrix,
+        extra.equations.hits,
+        (transfer_output, np.asarray(filtered), unfiltered, calibrated),
+        extra.moments,
+        transfer_input,
+        carries_systematics,
+        measure_lmax,
+        kinds,
     )
 
 
@@ -424,17 +409,52 @@ def _solve_fixed_pass(
     S_ell (and S^h_ell) measured up to ``measure_lmax`` against the reference CMB
     ``transfer_input`` at the map-maker's resolution; ``kinds``: the noise TODs per
     realization (:attr:`tod_maps.Calibration.kinds`: n, and h n with systematics)."""
-    maps, condition, good = solve_maps(equations, settings.max_condition_number)
-    solved = split_solved_maps(
-        maps, simulator.n_detectors, settings.a2_k_cmb, template_terms=carries_systematics
-    )
-    (foreground_reference,) = solved["references"]
+    solution = solve_maps(equations, settings.max_condition_number)
     calibration_maps, _, calibrated = solve_maps(
         calibration_equations, settings.max_condition_number
     )
     transfer_output, *noise_maps = calibration_maps
     # per realization n and, with systematics, h n (``kinds``); all filtered, then unfiltered
     filtered, unfiltered = np.split(np.asarray(noise_maps), 2)
+    return _fixed_maps(
+        simulator,
+        settings,
+        solution,
+        equations.matrix,
+        equations.hits,
+        (transfer_output, filtered, unfiltered, calibrated),
+        moments,
+        transfer_input,
+        carries_systematics,
+        measure_lmax,
+        kinds,
+    )
+
+
+def _fixed_maps(
+    simulator,
+    settings,
+    solution,
+    matrix,
+    hits,
+    calibration,
+    moments,
+    transfer_input,
+    carries_systematics: bool,
+    measure_lmax: int,
+    kinds: int,
+) -> FixedMaps:
+    """FixedMaps from a map-maker's solution (maps (n_tods, 3, npix), condition, good),
+    the binned solve's M and hits, and its calibration maps (the filtered reference CMB,
+    the filtered noise maps, the same noise binned unfiltered, the calibrated pixels):
+    T_ell against ``transfer_input``, S_ell per noise kind (``kinds``), up to
+    ``measure_lmax``."""
+    maps, condition, good = solution
+    transfer_output, filtered, unfiltered, calibrated = calibration
+    solved = split_solved_maps(
+        maps, simulator.n_detectors, settings.a2_k_cmb, template_terms=carries_systematics
+    )
+    (foreground_reference,) = solved["references"]
     shapings = [
         measure_noise_shaping(
             filtered[kind::kinds], unfiltered[kind::kinds], calibrated, measure_lmax
@@ -448,9 +468,9 @@ def _solve_fixed_pass(
         transfer=measure_transfer(transfer_output, transfer_input, calibrated, measure_lmax),
         noise_shaping=shapings[0],
         noise_h_shaping=shapings[1] if kinds == 2 else np.zeros(0),
-        matrix=equations.matrix,
+        matrix=matrix,
         moments=moments.values if carries_systematics else np.zeros(0),
-        hits=equations.hits,
+        hits=hits,
         condition=condition,
         good=good,
         carries_systematics=carries_systematics,

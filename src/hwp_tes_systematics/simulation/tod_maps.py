@@ -430,20 +430,25 @@ def accumulate(
                     calibration_tods, offsets, pointing, simulator, settings
                 )
                 del calibration_tods
-        if demodulated is not None:
-            with clock("demodulation"):
-                streams = demodulate(
-                    notched,
-                    pointing.hwp_angle_rad,
-                    settings.plan.sampling_rate_hz,
-                    simulator.channel.hwp_frequency_hz,
-                    settings.threads,
-                )[..., inner]
-                remove_baselines(streams[0], baseline_samples_of(settings))
         # a term's TOD is binned once per detector, with that detector's samples only
         rows = _rows_of(n_terms, n_det, equations.n_tods)
         owners = [None] + [k for _ in range(n_terms) for k in range(n_det)]
         owners += [None] * len(references_iqu_k)
+        rates = (settings.plan.sampling_rate_hz, simulator.channel.hwp_frequency_hz)
+        if demodulated is not None:
+            _demodulate_into(
+                demodulated,
+                notched,
+                (rows, owners),
+                pointing.pixels[:, inner],
+                pointing,
+                inner,
+                (weights, simulator.pol_efficiency),
+                rates,
+                baseline_samples_of(settings),
+                settings.threads,
+                clock,
+            )
 
         angles = (
             pointing.cos_2alpha[:, inner],
@@ -463,7 +468,7 @@ def accumulate(
                     (weights, simulator.pol_efficiency),
                     (rows, owners),
                     (notched_of[offset], calibration_of[offset], unfiltered_noise),
-                    (settings.plan.sampling_rate_hz, simulator.channel.hwp_frequency_hz),
+                    rates,
                     settings.threads,
                     clock,
                 )
@@ -506,19 +511,6 @@ def accumulate(
                 calibration_filtered,
                 unfiltered_noise,
             )
-        if demodulated is not None:
-            with clock("binning"):
-                demodulated.add(
-                    pointing.pixels[:, inner],
-                    pointing.cos_2alpha[:, inner],
-                    pointing.sin_2alpha[:, inner],
-                    pointing.hwp_angle_rad[inner],
-                    weights,
-                    simulator.pol_efficiency,
-                    [streams[:, row] for row in rows],
-                    owners,
-                )
-            del streams
         del filtered, calibration_filtered
         unfiltered_noise = None
         rss_mb = psutil.Process().memory_info().rss / 2**20
@@ -549,52 +541,68 @@ def _bin_chunk(target, calibration_target, pixels, angles, binned, filtered, cal
         calibration_target.add(pixels, *angles, [*calibration, *noise])
 
 
+def _demodulate_into(
+    target, stack, binned, pixels, pointing, inner, detector, rates, samples, threads, clock
+) -> None:
+    """Demodulate a filtered TOD stack (rows, n_det, n, with margins: the low-pass wraps
+    around), keep the ``inner`` samples, remove baselines of ``samples`` (None: none) from
+    the intensity stream only, and bin it into ``target`` (DemodulatedEquations).
+    ``binned``: (rows, owners), TOD i of ``target`` being row ``rows[i]`` (detector
+    ``owners[i]`` only unless None); ``detector``: (weights, pol_efficiency); ``rates``:
+    (sampling rate, f_HWP) [Hz]."""
+    rows, owners = binned
+    weights, pol_efficiency = detector
+    sampling_rate_hz, f_hwp_hz = rates
+    with clock("demodulation"):
+        streams = demodulate(stack, pointing.hwp_angle_rad, sampling_rate_hz, f_hwp_hz, threads)
+        streams = streams[..., inner]
+        remove_baselines(streams[0], samples)
+    with clock("binning"):
+        target.add(
+            pixels,
+            pointing.cos_2alpha[:, inner],
+            pointing.sin_2alpha[:, inner],
+            pointing.hwp_angle_rad[inner],
+            weights,
+            pol_efficiency,
+            [streams[:, row] for row in rows],
+            owners,
+        )
+
+
 def _bin_demodulated(
     extra, calibrating, pixels, pointing, inner, detector, binned, stacks, rates, threads, clock
 ) -> None:
-    """Bin a chunk into a demodulated extra binning: the filtered TOD stack (with margins,
-    demodulated then cut to ``inner``; baselines, if any, off the intensity stream only),
-    on calibration chunks the filtered calibration TODs likewise and the unfiltered noise
-    TODs binned as they are, and M of every chunk. ``detector``: (weights,
-    pol_efficiency); ``binned``: (rows, owners); ``stacks``: (filtered, calibration
-    filtered, unfiltered noise); ``rates``: (sampling rate, f_HWP) [Hz]."""
-    weights, pol_efficiency = detector
-    rows, owners = binned
+    """Bin a chunk into a demodulated extra binning (:func:`_demodulate_into`): the
+    filtered TOD stack, on calibration chunks the filtered calibration TODs likewise and
+    the unfiltered noise TODs binned as they are, and M of every chunk. ``detector``:
+    (weights, pol_efficiency); ``binned``: (rows, owners); ``stacks``: (filtered,
+    calibration filtered, unfiltered noise); ``rates``: (sampling rate, f_HWP) [Hz]."""
     filtered, calibration_filtered, unfiltered_noise = stacks
-    sampling_rate_hz, f_hwp_hz = rates
-    cos_2alpha, sin_2alpha = pointing.cos_2alpha[:, inner], pointing.sin_2alpha[:, inner]
-    hwp_angle_rad = pointing.hwp_angle_rad[inner]
-    samples = baseline_samples(extra.baseline_length_s, sampling_rate_hz)
-    todo = [(filtered, extra.equations, rows, owners)]
+    samples = baseline_samples(extra.baseline_length_s, rates[0])
+    todo = [(extra.equations, filtered, binned)]
     if calibrating:
         n_filtered = extra.calibration_equations.n_tods
-        todo.append((calibration_filtered, extra.calibration_equations, range(n_filtered), None))
-    for stack, target, stack_rows, stack_owners in todo:
-        with clock("demodulation"):
-            streams = demodulate(stack, pointing.hwp_angle_rad, sampling_rate_hz, f_hwp_hz, threads)
-            streams = streams[..., inner]
-            remove_baselines(streams[0], samples)
-        with clock("binning"):
-            target.add(
-                pixels,
-                cos_2alpha,
-                sin_2alpha,
-                hwp_angle_rad,
-                weights,
-                pol_efficiency,
-                [streams[:, row] for row in stack_rows],
-                stack_owners,
-            )
-        del streams
-    with clock("binning"):
-        empty = np.empty((0, *pixels.shape))
-        extra.matrix_equations.add(
-            pixels, cos_2alpha, sin_2alpha, weights, pol_efficiency, empty, rows=[]
+        todo.append((extra.calibration_equations, calibration_filtered, (range(n_filtered), None)))
+    for target, stack, target_rows in todo:
+        _demodulate_into(
+            target,
+            stack,
+            target_rows,
+            pixels,
+            pointing,
+            inner,
+            detector,
+            rates,
+            samples,
+            threads,
+            clock,
         )
+    angles = (pointing.cos_2alpha[:, inner], pointing.sin_2alpha[:, inner], *detector)
+    with clock("binning"):
+        extra.matrix_equations.add(pixels, *angles, np.empty((0, *pixels.shape)), rows=[])
         if calibrating:
-            extra.white_equations.add(
-                pixels, cos_2alpha, sin_2alpha, weights, pol_efficiency, unfiltered_noise
-            )
+            extra.white_equations.add(pixels, *angles, unfiltered_noise)
 
 
 def _nest_to_ring(equations, moments, calibration, extra_binnings) -> None:
