@@ -15,10 +15,11 @@ from hwp_tes_systematics import paths
 from hwp_tes_systematics.config import (
     analysis_variant,
     check_config,
+    demodulated_variants,
     fixed_pass_baselines,
     fixed_pass_nsides,
+    fixed_pass_variant_names,
     fixed_pass_variants,
-    map_variant,
     moments_variant,
     selected_channels,
 )
@@ -35,7 +36,7 @@ wildcard_constraints:
     channel="[LMH][1-4]-[0-9]{3}",
     seed=r"\d+",
     case=r"nosys|sigma[0-9.]+e[-+]?[0-9]+",
-    variant=r"nside[0-9]+_(nobaselines|baselines[0-9.e+-]+s)",
+    variant=r"nside[0-9]+_(nobaselines|baselines[0-9.e+-]+s)(_demodulated)?",
 
 
 include: "workflow/rules/hwp_power.smk"

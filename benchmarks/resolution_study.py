@@ -5,15 +5,17 @@ without baselines, from one set of fixed passes (issue 27).
     python benchmarks/resolution_study.py --out docs/resolution   # only gather the runs
     python benchmarks/resolution_study.py --out docs/resolution --requirements-only
 
-For each map-maker (nside in ``--nsides``, 60 s baselines or none), the workflow's
-configuration is ``--configfile`` (default config/one_year.yaml config/resolution_study.yaml)
-+ ``config/nside<N>.yaml`` (+ ``config/no_baselines.yaml``): with
+For each map-maker (nside in ``--nsides``, 60 s baselines or none, binned or with
+``--map-maker demodulated`` HWP-demodulated), the workflow's configuration is
+``--configfile`` (default config/one_year.yaml config/resolution_study.yaml) +
+``config/nside<N>.yaml`` (+ ``config/no_baselines.yaml``, + ``config/demodulated.yaml``): with
 config/resolution_study.yaml they share one fixed TOD pass per channel
 (simulation.fixed_pass_*), so the first
 run makes the passes and each other only its seeds' a_lm and the analysis. ``--run``
 runs them one after another in this folder (``snakemake --cores N results/requirement.json``)
 and copies each run's small outputs (requirement.json, delta_r.csv, noise_model.csv,
-residual_bb_means.csv, Fig. 8) to ``--out``/<variant>/, with its wall time.
+residual_bb_means.csv, Fig. 8) to ``--out``/<variant>/, with its wall time. The rows
+gathered replace those of the same map-makers in ``--out``'s CSV; the others are kept.
 
 Then, per map-maker: the requirement in both conventions (the 68 %-point shift, the
 paper's, and the Fisher peak shift) with their bootstrap errors, sigma_r, whether the
@@ -57,9 +59,12 @@ KEPT = ("requirement.json", "delta_r.csv", "spectra/noise_model.csv")
 KEPT += ("spectra/residual_bb_means.csv", "figures/fig8_requirement.png")
 
 
-def variant_configs(base: list[str], nside: int, baseline: float | None) -> list[str]:
+def variant_configs(
+    base: list[str], nside: int, baseline: float | None, map_maker: str = "binned"
+) -> list[str]:
     files = [*base, f"config/nside{nside}.yaml"]
-    return files + (["config/no_baselines.yaml"] if baseline is None else [])
+    files += ["config/no_baselines.yaml"] if baseline is None else []
+    return files + (["config/demodulated.yaml"] if map_maker == "demodulated" else [])
 
 
 def run_variant(files: list[str], cores: int, out: Path) -> float:
@@ -150,10 +155,14 @@ def plot(table: pd.DataFrame, channels: list[str], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     figure, (left, right) = plt.subplots(1, 2, figsize=(12, 4.8))
-    styles = {True: "-", False: "--"}
-    for baselines, group in table.groupby("baselines"):
+    styles = {(True, "binned"): "-", (False, "binned"): "--"}
+    styles |= {(True, "demodulated"): "-.", (False, "demodulated"): ":"}
+    table = table.assign(map_maker=table.get("map_maker", "binned"))
+    for (baselines, map_maker), group in table.groupby(["baselines", "map_maker"]):
         group = group.sort_values("nside")
         label = "60 s baselines" if baselines else "no baselines"
+        label += ", demodulated" if map_maker == "demodulated" else ""
+        style = styles[baselines, map_maker]
         for channel, marker in zip(channels, "os^v", strict=False):
             for (first, last), colour in zip(BANDS[::2], ("C0", "C3"), strict=True):
                 column = f"template_bb_{channel}_ell{first}_{last}"
@@ -161,7 +170,7 @@ def plot(table: pd.DataFrame, channels: list[str], path: Path) -> None:
                     left.plot(
                         group["nside"],
                         group[column],
-                        styles[baselines],
+                        style,
                         marker=marker,
                         color=colour,
                         label=f"{channel}, ell {first}-{last}, {label}",
@@ -173,7 +182,7 @@ def plot(table: pd.DataFrame, channels: list[str], path: Path) -> None:
                 group["nside"],
                 group[f"requirement_{key}_per_k"],
                 group[f"requirement_{key}_error_per_k"],
-                fmt=styles[baselines] + marker,
+                fmt=style + marker,
                 color=colour,
                 capsize=3,
                 label=f"{convention}, {label}",
@@ -191,7 +200,7 @@ def plot(table: pd.DataFrame, channels: list[str], path: Path) -> None:
         axis.set_xticks(sorted(table["nside"].unique()))
         axis.get_xaxis().set_major_formatter(matplotlib.ticker.ScalarFormatter())
     left.set_ylabel("template BB of detector 0 [K_CMB^2 K^2]")
-    left.set_title("nonlinearity template (binned map-maker)")
+    left.set_title("nonlinearity template")
     right.set_ylabel("requirement on sigma_g1 [K^-1]")
     right.set_title("requirement (transfer in the model)")
     for axis in (left, right):
@@ -209,6 +218,7 @@ def main() -> None:
     )
     parser.add_argument("--nsides", type=int, nargs="+", default=[512, 256, 128, 64])
     parser.add_argument("--baselines", choices=("both", "with", "without"), default="both")
+    parser.add_argument("--map-maker", choices=("binned", "demodulated"), default="binned")
     parser.add_argument("--channels", nargs="+", default=["M1-140", "H3-402"])
     parser.add_argument("--template-seeds", type=int, default=2)
     parser.add_argument("--out", type=Path, required=True)
@@ -238,7 +248,7 @@ def main() -> None:
     rows = []
     for nside in arguments.nsides:
         for baseline in baselines:
-            files = variant_configs(arguments.configfile, nside, baseline)
+            files = variant_configs(arguments.configfile, nside, baseline, arguments.map_maker)
             config = cfg.load_config("config/config.yaml", *files)
             variant = cfg.analysis_variant(config)
             folder = arguments.out / variant
@@ -246,6 +256,7 @@ def main() -> None:
                 wall_s = run_variant(files, arguments.cores, folder)
                 print(f"{variant}: {wall_s / 60:.1f} min", flush=True)
             row = {"variant": variant, "nside": nside, "baselines": baseline is not None}
+            row["map_maker"] = arguments.map_maker
             if (folder / "requirement.json").exists():
                 row.update(requirement_row(folder))
             else:
@@ -269,9 +280,16 @@ def main() -> None:
         raise SystemExit("no map-maker has results: nothing to gather")
     table = pd.DataFrame(rows)
     arguments.out.mkdir(parents=True, exist_ok=True)
-    table.to_csv(arguments.out / "resolution_study.csv", index=False)
+    gathered = arguments.out / "resolution_study.csv"
+    if gathered.exists():  # keep the rows of the map-makers not gathered now
+        earlier = pd.read_csv(gathered)
+        earlier = earlier.assign(map_maker=earlier.get("map_maker", "binned"))
+        table = pd.concat([earlier[~earlier["variant"].isin(table["variant"])], table])
+        table = table.reset_index(drop=True)
+    table.to_csv(gathered, index=False)
+    document = table.astype(object).where(table.notna(), None).to_dict("records")
     (arguments.out / "resolution_study.json").write_text(
-        json.dumps({"configfiles": arguments.configfile, "rows": rows}, indent=1)
+        json.dumps({"configfiles": arguments.configfile, "rows": document}, indent=1)
     )
     plot(table, arguments.channels, arguments.out / "resolution_study.png")
     columns = ["variant", "sigma_r", "requirement_68_per_k", "requirement_fisher_per_k"]

@@ -232,6 +232,43 @@ def test_both_map_makers_overlay_shares_one_pass_at_the_run_nside(repo, monkeypa
     check_config(without)
 
 
+def test_a_demodulated_analysis_reads_its_own_file_of_the_pass(repo, monkeypatch):
+    """simulation.fixed_pass_demodulated adds a demodulating map-maker per binned one (its
+    own file); maps.map_maker demodulated reads it, and is refused without the pass's
+    demodulated map-makers or a band-limited sky scan (names the keys)."""
+    from hwp_tes_systematics.config import (
+        ConfigError,
+        analysis_variant,
+        deep_merge,
+        fixed_pass_variant_names,
+    )
+
+    monkeypatch.chdir(repo)
+    config = load_config("config/config.yaml", "config/one_year.yaml")
+    demodulated = deep_merge(
+        config,
+        {
+            "simulation": {"fixed_pass_demodulated": True, "sky_scanning": "band_limited"},
+            "maps": {"map_maker": "demodulated"},
+        },
+    )
+    check_config(demodulated)
+    assert fixed_pass_variant_names(demodulated) == [
+        "nside64_baselines60s",
+        "nside64_baselines60s_demodulated",
+    ]
+    assert analysis_variant(demodulated) == "nside64_baselines60s_demodulated"
+    assert fixed_pass_variant_names(config) == ["nside64_baselines60s"]
+    nearest = deep_merge(demodulated, {"simulation": {"sky_scanning": "nearest_pixel"}})
+    with pytest.raises(ConfigError, match="sky_scanning: nearest_pixel"):
+        check_config(nearest)
+    unbinned = deep_merge(demodulated, {"simulation": {"fixed_pass_demodulated": False}})
+    with pytest.raises(ConfigError, match="fixed_pass_demodulated: False"):
+        check_config(unbinned)
+    with pytest.raises(ConfigError, match="needs the notch"):
+        check_config(deep_merge(demodulated, {"notch": {"width_divisor": None}}))
+
+
 def test_channels_without_systematics_can_be_sampled_slower(repo, monkeypatch):
     """simulation.sampling_rate_without_systematics_hz applies to the channels outside
     instrument.systematics_channels only; null leaves every channel at sampling_rate_hz."""

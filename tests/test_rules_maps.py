@@ -141,3 +141,40 @@ def test_map_domain_alms_reproduce_and_equal_the_maps_path(repo, tmp_path, tiny_
     seen = maps0["nosys"][0] != -1.6375e30
     correlation = np.corrcoef(maps0["cmb_reference"][0, seen], full0["cmb_reference"][0, seen])
     assert correlation[0, 1] > 0.5
+
+
+def test_a_demodulated_analysis_runs_from_its_own_fixed_pass_file(repo, tmp_path, tiny_local_run):
+    """config/demodulated.yaml on the tiny map-domain run: one fixed pass per channel
+    writes the binned and the demodulated map-makers' files (the latter pointing to the
+    former for the HWPSS moments, with its own measured T^h of the s h term's CMB part),
+    and the seeds' a_lm and spectra are made from the demodulated one."""
+    import shutil
+
+    import h5py
+
+    tod_workdir, tod_result = tiny_local_run
+    assert tod_result.returncode == 0, tod_result.stderr[-3000:]
+    override = tmp_path / "map_domain.yaml"
+    override.write_text("simulation:\n  realizations: map_domain\n")
+    configs = (
+        "--configfile",
+        str(repo / "tests/configs/tiny.yaml"),
+        str(override),
+        str(repo / "config/demodulated.yaml"),
+    )
+    workdir = make_workdir(repo, tmp_path / "run")
+    for inputs in ("results/inputs", "results/sky"):  # the upstream stages, already run
+        shutil.copytree(tod_workdir / inputs, workdir / inputs)
+    target = "results/spectra/seed0/nosys.csv"
+    result = snakemake(workdir, target, extra=(*configs, "--cores", "2"))
+    assert result.returncode == 0, result.stderr[-3000:]
+    maps = workdir / "results/maps/M1-140"
+    with h5py.File(maps / "fixed_pass_nside16_baselines60s_demodulated.h5") as demodulated:
+        assert demodulated.attrs["map_maker"] == "demodulated"
+        assert demodulated.attrs["sky_scanning"] == "band_limited"
+        assert demodulated.attrs["moments_in"] == "fixed_pass_nside16_baselines60s.h5"
+        transfer = demodulated["cmb_h_transfer"][()]
+    with h5py.File(maps / "fixed_pass_nside16_baselines60s.h5") as binned:
+        assert binned.attrs["map_maker"] == "binned" and binned["cmb_h_transfer"].size == 0
+    assert transfer.shape[0] == 3 and np.abs(transfer[:, 2:]).max() < 1e-3
+    assert (workdir / target).exists()

@@ -201,11 +201,13 @@ def scan_nside(config: dict) -> int:
     return max(fixed_pass_nsides(config))
 
 
-def map_variant(nside: int, baseline_length_s: float | None) -> str:
-    """The name of one map-maker of the fixed pass, e.g. nside64_baselines60s."""
+def map_variant(nside: int, baseline_length_s: float | None, demodulated: bool = False) -> str:
+    """The name of one map-maker of the fixed pass, e.g. nside64_baselines60s, or
+    nside64_nobaselines_demodulated for the HWP-demodulating one."""
+    suffix = "_demodulated" if demodulated else ""
     if baseline_length_s is None:
-        return f"nside{nside}_nobaselines"
-    return f"nside{nside}_baselines{baseline_length_s:g}s"
+        return f"nside{nside}_nobaselines{suffix}"
+    return f"nside{nside}_baselines{baseline_length_s:g}s{suffix}"
 
 
 def fixed_pass_variants(config: dict) -> list[tuple[int, float | None]]:
@@ -215,6 +217,19 @@ def fixed_pass_variants(config: dict) -> list[tuple[int, float | None]]:
     return [(n, b) for n in nsides for b in fixed_pass_baselines(config)]
 
 
+def demodulated_variants(config: dict) -> list[tuple[int, float | None]]:
+    """(nside, baseline length) of every demodulating map-maker of the fixed pass: each of
+    :func:`fixed_pass_variants` with simulation.fixed_pass_demodulated, else none."""
+    return fixed_pass_variants(config) if config["simulation"]["fixed_pass_demodulated"] else []
+
+
+def fixed_pass_variant_names(config: dict) -> list[str]:
+    """The names of every map-maker of the fixed pass (one file each): the binned ones of
+    :func:`fixed_pass_variants`, then the demodulating ones."""
+    binned = [map_variant(*variant) for variant in fixed_pass_variants(config)]
+    return binned + [map_variant(*v, demodulated=True) for v in demodulated_variants(config)]
+
+
 def moments_variant(config: dict, nside: int) -> str:
     """The map-maker of a resolution whose fixed pass file holds that resolution's HWPSS
     moments (its first in :func:`fixed_pass_variants`; the others point to it)."""
@@ -222,8 +237,10 @@ def moments_variant(config: dict, nside: int) -> str:
 
 
 def analysis_variant(config: dict) -> str:
-    """The fixed-pass map-maker the analysis reads: maps.nside and maps.baseline_length_s."""
-    return map_variant(config["maps"]["nside"], config["maps"]["baseline_length_s"])
+    """The fixed-pass map-maker the analysis reads: maps.nside, maps.baseline_length_s and
+    maps.map_maker."""
+    maps = config["maps"]
+    return map_variant(maps["nside"], maps["baseline_length_s"], maps["map_maker"] == "demodulated")
 
 
 def _check_fixed_pass_variants(config: dict, source: str) -> None:
@@ -234,6 +251,32 @@ def _check_fixed_pass_variants(config: dict, source: str) -> None:
             f"{source}: simulation.{given[0]} bins several map-makers in the map-domain fixed "
             "pass; it needs simulation.realizations: map_domain"
         )
+    if simulation["fixed_pass_demodulated"] and simulation["realizations"] != "map_domain":
+        raise ConfigError(
+            f"{source}: simulation.fixed_pass_demodulated bins a demodulating map-maker in the "
+            "map-domain fixed pass; it needs simulation.realizations: map_domain"
+        )
+    if simulation["fixed_pass_demodulated"] and config["notch"]["width_divisor"] is None:
+        raise ConfigError(
+            f"{source}: simulation.fixed_pass_demodulated needs the notch (notch.width_divisor "
+            "not null): the demodulation's low-pass uses its margins"
+        )
+    if maps["map_maker"] == "demodulated":
+        missing = [
+            f"simulation.{key}: {value}"
+            for key, value, wanted in (
+                ("realizations", simulation["realizations"], "map_domain"),
+                ("fixed_pass_demodulated", simulation["fixed_pass_demodulated"], True),
+                ("sky_scanning", simulation["sky_scanning"], "band_limited"),
+            )
+            if value != wanted
+        ]
+        if missing:
+            raise ConfigError(
+                f"{source}: maps.map_maker demodulated needs simulation.realizations "
+                "map_domain, simulation.fixed_pass_demodulated true and "
+                f"simulation.sky_scanning band_limited; got {', '.join(missing)}"
+            )
     if maps["nside"] not in fixed_pass_nsides(config):
         raise ConfigError(
             f"{source}: maps.nside = {maps['nside']} is not among simulation.fixed_pass_nsides "

@@ -45,7 +45,7 @@ def pass_config():
 
 
 # the map-makers of a fixed pass, and the one the analysis reads
-VARIANTS = [map_variant(*variant) for variant in fixed_pass_variants(config)]
+VARIANTS = fixed_pass_variant_names(config)
 ANALYSIS_VARIANT = analysis_variant(config)
 
 
@@ -96,11 +96,16 @@ def fixed_pass_mem_mb(wildcards, attempt):
     reference noise realization beyond the first adds n and h n: 2 TODs in flight, 4
     calibration maps (12 doubles per pixel); 2 GB of interpreter and libraries. The
     nside-512 run (passes at 22704d5, two realizations, one map-maker) peaked at 5.3-5.9
-    GB per MFT/HFT pass against 6.3 GB asked."""
+    GB per MFT/HFT pass against 6.3 GB asked. A demodulating map-maker adds its three
+    streams of every TOD in flight (~30 doubles per detector-sample) and ~1.5 times a
+    binned one's accumulations (an estimate, not yet measured at one year)."""
     offsets = len(set(b is None for b in fixed_pass_baselines(config)))
     extra_realizations = config["simulation"]["noise_reference_realizations"] - 1
-    chunk_mb = 2 * chunk_samples() * 8 * (40 + 2 * 2 * extra_realizations) * offsets
+    demodulated = bool(demodulated_variants(config))
+    per_sample = 40 + 2 * 2 * extra_realizations + 30 * demodulated
+    chunk_mb = 2 * chunk_samples() * 8 * per_sample * offsets
     pixels = sum(12 * nside**2 for nside, _ in fixed_pass_variants(config))
+    pixels *= 2.5 if demodulated else 1.0
     per_pixel = 40 + 12 * extra_realizations
     return int(2000 + chunk_mb / 2**20 + 2 * pixels * per_pixel * 8 / 2**20) * attempt
 

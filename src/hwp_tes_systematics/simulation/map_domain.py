@@ -25,12 +25,18 @@ removal, notch, baselines and binning as the full path (:func:`tod_maps.accumula
 Each seed then costs map operations only:
 
     nosys            = m_f + T CMB_seed + S M^-1 sum_k b_k
-    s h term of k    = (s_f h term of k) + M^-1 H_k CMB_seed + S^h M^-1 c_k
+    s h term of k    = (s_f h term of k) + T^h M^-1 H_k CMB_seed + S^h M^-1 c_k
     cmb_reference    = T CMB_seed
 
 with (b_k, c_k) ~ N(0, noise_scale^2 [[M_k, H_k], [H_k, Q_k]]) the binned white noise and
 binned h n of detector k, drawn jointly per pixel (exact for white noise: b_k = sum w a^T n,
-c_k = sum w a^T h n, var(n) = 1 / w), and T, S applied to the T, E, B a_lm up to
+c_k = sum w a^T h n, var(n) = 1 / w), T^h = 1 for the binned map-maker (the filter's
+action on h CMB is left out, below) and, for HWP demodulation (``demodulated_variants``
+of :func:`fixed_passes`), measured in the pass: the demodulated h x reference CMB against
+M^-1 sum_k H_k of it, ~0 on a band-limited sky (h CMB sits at 2 f_HWP, which
+demodulation moves to 2 and 6 f_HWP and its low-pass removes; a nearest-pixel scan's
+steps put sky power there: ``simulation.sky_scanning``), and T, S, T^h applied to the
+T, E, B a_lm up to
 ``simulation.filter_lmax`` (the map's whole band by default; the analysis reads nothing
 above component_separation lmax, so at nside 512 stopping there saves most transforms).
 What the seeds of a channel share (noise factors, M^-1, H_k) is computed once
@@ -63,6 +69,7 @@ from .. import seeding
 from ..io import atomic_path
 from ..sky import cmb as sky_cmb
 from ..sky import harmonics
+from ..sky.harmonics import BandLimitedSky
 from .mapmaking import PixelMoments, solve_maps, symmetric_matrices
 from .tod_maps import (
     TEMPLATE_TERMS,
@@ -179,6 +186,17 @@ def shaped_noise_map(noise_iqu: np.ndarray, shaping: np.ndarray, good: np.ndarra
     return masked + harmonics.alm2map(change, nside, lmax)
 
 
+def transferred_map(maps_iqu: np.ndarray, transfer: np.ndarray, good: np.ndarray, lmax: int):
+    """(3, npix) alm2map(transfer_ell a_lm) of the map (zero off ``good``), band-limited
+    to ``lmax`` (nothing kept above it: unlike :func:`shaped_noise_map`, for a map that
+    the map-maker does not pass at any ell as the binned one does)."""
+    nside = hp.npix2nside(good.size)
+    masked = np.where(good, maps_iqu, 0.0)
+    alm = harmonics.map2alm(masked, lmax, iter=0 if lmax <= nside else 1)
+    alm = np.array([hp.almxfl(alm[i], transfer[i, : lmax + 1]) for i in range(3)])
+    return harmonics.alm2map(alm, nside, lmax)
+
+
 def filtered_cmb_map(
     cmb_iqu: np.ndarray, alm: np.ndarray, transfer: np.ndarray, lmax: int, filter_lmax: int
 ):
@@ -207,6 +225,9 @@ class FixedMaps:
     condition: np.ndarray
     good: np.ndarray
     carries_systematics: bool
+    # (3, measure_lmax + 1) T^h_ell of the seed's CMB part of the s h term, M^-1 H_k CMB,
+    # through a demodulated map-maker [1]; (0,): the binned map-maker's, taken unfiltered
+    cmb_h_transfer: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
 
     def matrices(self, pixels) -> np.ndarray:
         """(n, 3, 3) M of the pixels."""
@@ -257,6 +278,7 @@ def fixed_passes(
     extra_variants=(),
     noise_realizations: int = 1,
     demodulated_variants=(),
+    band_limited_sky: bool = False,
 ) -> dict[tuple, FixedMaps]:
     """{(nside, baseline length): FixedMaps} of the seed-independent TOD pass of one
     channel (see the module docstring): no CMB, no noise; the sky (``foreground_iqu_k``,
@@ -269,7 +291,11 @@ def fixed_passes(
     S_ell are measured up to ``measure_lmax`` (default ``lmax``; at most 3 nside - 1 of
     each variant): the seeds apply them up to ``simulation.filter_lmax`` only, so
     measuring beyond it (full-band spherical transforms, most of a pass's fixed cost at
-    nside 512) buys nothing."""
+    nside 512) buys nothing. ``demodulated_variants``: (nside, baseline length) of
+    HWP-demodulating map-makers (:class:`tod_maps.ExtraBinning` with ``demodulated``;
+    each needs a binned variant of its resolution), keyed (nside, baseline length,
+    "demodulated"). ``band_limited_sky``: the foreground and the reference CMB scanned
+    as a_lm (:class:`sky.harmonics.BandLimitedSky`) rather than at the nearest pixel."""
     measure_lmax = lmax if measure_lmax is None else measure_lmax
     if not 0 < measure_lmax <= lmax:
         raise ValueError(f"measure_lmax = {measure_lmax} must be in 1..lmax = {lmax}")
@@ -298,19 +324,25 @@ def fixed_passes(
             "of its resolution in the pass (their HWPSS moments are shared)"
         )
     noiseless = dataclasses.replace(settings, noise_scale=0.0)
+    scanned_foreground, scanned_reference = foreground_iqu_k, transfer_input
+    if band_limited_sky:
+        threads = settings.threads
+        scanned_foreground = BandLimitedSky.from_map(foreground_iqu_k, lmax, threads)
+        scanned_reference = BandLimitedSky(transfer_alm, lmax, threads)
     calibration = Calibration(
         settings.nside,
-        (transfer_input,),
+        (scanned_reference,),
         NOISE_REFERENCE_SEED,
         calibration_every_chunks,
         hwpss_noise=carries_systematics,
         noise_realizations=noise_realizations,
+        hwpss_references=carries_systematics and bool(demodulated),
     )
     equations = accumulate(
         simulator,
         noiseless,
-        foreground_iqu_k,
-        references_iqu_k=(foreground_iqu_k,),
+        scanned_foreground,
+        references_iqu_k=(scanned_foreground,),
         template_terms=carries_systematics,
         moments=moments_of[settings.nside],
         calibration=calibration,
@@ -342,7 +374,7 @@ def fixed_passes(
             reference,
             carries_systematics,
             min(measure_lmax, band),
-            calibration.kinds,
+            calibration,
         )
         log.info("fixed pass variant nside %d, baselines %s: solved", nside, baseline)
     for extra in demodulated:
@@ -354,7 +386,7 @@ def fixed_passes(
             reference,
             carries_systematics,
             min(measure_lmax, band),
-            calibration.kinds,
+            calibration,
         )
         log.info(
             "fixed pass variant nside %d, baselines %s, demodulated: solved",
@@ -365,21 +397,25 @@ def fixed_passes(
 
 
 def _solve_demodulated(
-    simulator, settings, extra, transfer_input, carries_systematics, measure_lmax, kinds
+    simulator, settings, extra, transfer_input, carries_systematics, measure_lmax, calibration
 ) -> FixedMaps:
     """FixedMaps of a demodulated map-maker (:class:`tod_maps.ExtraBinning` with
     ``demodulated``): its maps; good where it has samples and the binned solve's M (the
     white noise the seeds draw, :class:`BinnedNoise`) is well conditioned; T_ell of the
     reference CMB through the filter and the demodulation; S_ell and S^h_ell of its
-    filtered, demodulated noise maps against the same noise binned unfiltered."""
+    filtered, demodulated noise maps against the same noise binned unfiltered; with
+    systematics T^h_ell, the demodulated h x CMB reference against the binned map-maker's
+    M^-1 sum_k H_k CMB (:func:`hwpss_cmb_map`), which the seeds' CMB piece of the s h term
+    is made as."""
     _, condition, binned_good = solve_maps(extra.matrix_equations, settings.max_condition_number)
     good = binned_good & (extra.equations.hits > 0)
     maps = extra.equations.solve()
     maps[:, :, ~good] = hp.UNSEEN
-    transfer_output, *filtered = extra.calibration_equations.solve()
+    solved = extra.calibration_equations.solve()
+    transfer_output, filtered = solved[0], solved[calibration.n_reference_tods :]
     unfiltered, _, white_good = solve_maps(extra.white_equations, settings.max_condition_number)
     calibrated = white_good & (extra.calibration_equations.hits > 0)
-    return _fixed_maps(
+    fixed = _fixed_maps(
         simulator,
         settings,
         (maps, condition, good),
@@ -390,8 +426,26 @@ def _solve_demodulated(
         transfer_input,
         carries_systematics,
         measure_lmax,
-        kinds,
+        calibration.kinds,
     )
+    if calibration.hwpss_references:
+        scanned = len(calibration.references_iqu_k)
+        binned = hwpss_cmb_map(fixed, transfer_input)
+        fixed.cmb_h_transfer = measure_transfer(solved[scanned], binned, calibrated, measure_lmax)
+    return fixed
+
+
+def hwpss_cmb_map(fixed: FixedMaps, cmb_iqu: np.ndarray) -> np.ndarray:
+    """(3, npix) M^-1 sum_k H_k CMB on the good pixels (zero elsewhere) [K_CMB]: the binned
+    map of the CMB times the unit HWPSS of every detector (its part of the s h term)."""
+    good = np.flatnonzero(fixed.good)
+    summed = sum(
+        np.einsum("pij,jp->ip", fixed.moment(k, 1, good), cmb_iqu[:, good])
+        for k in range(fixed.moments.shape[0])
+    )
+    binned = np.zeros_like(cmb_iqu)
+    binned[:, good] = np.einsum("pij,jp->ip", np.linalg.inv(fixed.matrices(good)), summed)
+    return binned
 
 
 def _solve_fixed_pass(
@@ -403,17 +457,19 @@ def _solve_fixed_pass(
     transfer_input,
     carries_systematics: bool,
     measure_lmax: int,
-    kinds: int,
+    calibration,
 ) -> FixedMaps:
     """FixedMaps of one map-maker's accumulated equations: the maps solved, T_ell and
     S_ell (and S^h_ell) measured up to ``measure_lmax`` against the reference CMB
-    ``transfer_input`` at the map-maker's resolution; ``kinds``: the noise TODs per
-    realization (:attr:`tod_maps.Calibration.kinds`: n, and h n with systematics)."""
+    ``transfer_input`` at the map-maker's resolution; ``calibration``: the pass's
+    :class:`tod_maps.Calibration` (its reference TODs, then per realization n and, with
+    systematics, h n: :attr:`~tod_maps.Calibration.kinds`)."""
     solution = solve_maps(equations, settings.max_condition_number)
     calibration_maps, _, calibrated = solve_maps(
         calibration_equations, settings.max_condition_number
     )
-    transfer_output, *noise_maps = calibration_maps
+    transfer_output = calibration_maps[0]
+    noise_maps = calibration_maps[calibration.n_reference_tods :]
     # per realization n and, with systematics, h n (``kinds``); all filtered, then unfiltered
     filtered, unfiltered = np.split(np.asarray(noise_maps), 2)
     return _fixed_maps(
@@ -427,7 +483,7 @@ def _solve_fixed_pass(
         transfer_input,
         carries_systematics,
         measure_lmax,
-        kinds,
+        calibration.kinds,
     )
 
 
@@ -587,8 +643,13 @@ def realize_seed(
     nosys[:, good] = fixed.nosys[:, good] + cmb_filtered[:, good] + noise[:, good]
     pieces = {name: np.zeros_like(fixed.template_terms[SH_TERM]) for name in SH_TERM_PIECES}
     for k, h_k in enumerate(operators.h_matrices):  # the s h term gets the seed's part
-        cmb_h = np.einsum("pij,jp->ip", h_k, cmb[:, good])
-        pieces["cmb_h"][k][:, good] = operators.solve(cmb_h)
+        cmb_h = operators.solve(np.einsum("pij,jp->ip", h_k, cmb[:, good]))
+        if fixed.cmb_h_transfer.size:  # a demodulated map-maker: as the fixed pass measured
+            binned = np.zeros_like(fixed.nosys)
+            binned[:, good] = cmb_h
+            cmb_h = transferred_map(binned, fixed.cmb_h_transfer, good, operators.filter_lmax)
+            cmb_h = cmb_h[:, good]
+        pieces["cmb_h"][k][:, good] = cmb_h
         pieces["noise_h"][k][:, good] = filtered_noise(c[k][:, good], fixed.noise_h_shaping)
     maps = {
         "nosys": nosys,

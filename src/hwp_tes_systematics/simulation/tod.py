@@ -29,6 +29,7 @@ import numpy as np
 
 from .. import seeding
 from ..instrument.channels import Channel, open_imo
+from ..sky.harmonics import BandLimitedSky
 from . import data_model
 from .data_model import cache_litebird_sim_kernels, ecliptic_to_galactic, orbit_table
 
@@ -298,9 +299,21 @@ class PairSimulator:
             return np.broadcast_to(pixels, (self.n_detectors, pixels.shape[1]))
         return pixels
 
-    def scan_sky(self, pointing: ChunkPointing, sky_iqu_k: np.ndarray, out=None) -> np.ndarray:
-        """I + rho (Q cos 2 alpha + U sin 2 alpha) at the nearest pixel [K_CMB], (n_det, n),
-        written to ``out`` if given."""
+    def scan_sky(self, pointing: ChunkPointing, sky_iqu_k, out=None) -> np.ndarray:
+        """I + rho (Q cos 2 alpha + U sin 2 alpha) [K_CMB], (n_det, n), written to ``out``
+        if given: of a (3, npix) map at the nearest pixel, or of a
+        :class:`sky.harmonics.BandLimitedSky` at each sample's direction."""
+        if isinstance(sky_iqu_k, BandLimitedSky):
+            directions = 1 if self.shares_direction else self.n_detectors
+            if out is None:
+                out = np.empty(pointing.cos_2alpha.shape)
+            for direction in range(directions):
+                i, q, u = sky_iqu_k.at(pointing.galactic_rad[direction, :, :2])
+                owners = range(self.n_detectors) if self.shares_direction else [direction]
+                for k in owners:
+                    rho = self.pol_efficiency[k]
+                    out[k] = i + rho * (q * pointing.cos_2alpha[k] + u * pointing.sin_2alpha[k])
+            return out
         return data_model.scan(
             pointing.pixels,
             pointing.cos_2alpha,

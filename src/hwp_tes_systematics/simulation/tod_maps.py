@@ -111,7 +111,10 @@ class Calibration:
     after the filter, then the same before it. The filter's transfer and noise shaping
     are ratios of binned maps; the noise's is an expectation, which one realization
     measures poorly at low ell (the notch removes particular TOD modes: two realizations
-    differ by 30 % to 3x at ell 2-11), hence several."""
+    differ by 30 % to 3x at ell 2-11), hence several. With ``hwpss_references`` each
+    reference's product h x reference with the unit HWPSS follows the references (the
+    seed's CMB part of the s h term, as a map-maker other than the binned one sees it:
+    :func:`map_domain.fixed_passes` with demodulated variants)."""
 
     nside: int
     references_iqu_k: tuple
@@ -119,6 +122,7 @@ class Calibration:
     every_chunks: int = 1
     hwpss_noise: bool = False
     noise_realizations: int = 1
+    hwpss_references: bool = False
 
     def __post_init__(self):
         if self.every_chunks < 1:
@@ -127,9 +131,13 @@ class Calibration:
             raise ValueError(
                 f"calibration noise_realizations = {self.noise_realizations}: expected >= 1"
             )
-        self.equations = NormalEquations(
-            self.nside, len(self.references_iqu_k) + 2 * self.n_noise_tods
-        )
+        self.equations = NormalEquations(self.nside, self.n_reference_tods + 2 * self.n_noise_tods)
+
+    @property
+    def n_reference_tods(self) -> int:
+        """The reference TODs: each reference scanned alone, then (``hwpss_references``)
+        each times the unit HWPSS."""
+        return len(self.references_iqu_k) * (2 if self.hwpss_references else 1)
 
     @property
     def kinds(self) -> int:
@@ -201,16 +209,20 @@ def filter_offsets(unfiltered, offsets, pointing, simulator, settings) -> dict:
 
 def calibration_stack(calibration, simulator, settings, pointing, chunk, hwpss, inner, clock):
     """(the chunk's calibration TODs before the filter, (rows, n_det, n) in
-    CALIBRATION_DTYPE: each reference map scanned alone, then per realization n and, with
+    CALIBRATION_DTYPE: each reference map scanned alone, with
+    ``calibration.hwpss_references`` then each times h, then per realization n and, with
     ``calibration.hwpss_noise``, h n; a copy of the noise TODs' ``inner`` samples, to be
     binned unfiltered: the stack is filtered in place)."""
-    n_references = len(calibration.references_iqu_k)
+    n_references = calibration.n_reference_tods
     stack = np.empty(
         (n_references + calibration.n_noise_tods, *hwpss.shape), dtype=CALIBRATION_DTYPE
     )
     with clock("reference scans"):
+        scanned = len(calibration.references_iqu_k)
         for row, reference_iqu_k in enumerate(calibration.references_iqu_k):
             stack[row] = simulator.scan_sky(pointing, reference_iqu_k)
+            if calibration.hwpss_references:  # the reference's part of the s h term
+                np.multiply(stack[row], hwpss, out=stack[scanned + row])
     with clock("noise"):
         for realization in range(calibration.noise_realizations):
             row = n_references + realization * calibration.kinds

@@ -73,3 +73,55 @@ def _quadrature(maps: np.ndarray, nside: int, lmax: int, nthreads: int) -> np.nd
     )
     alm *= 4.0 * np.pi / maps.shape[1]
     return alm
+
+
+# the accuracy asked of the band-limited sky's evaluation: far below the steps that
+# nearest-pixel sampling leaves (~3 % of the sky's rms), at ~0.2-0.4 us per direction
+BAND_LIMITED_EPSILON = 1e-7
+
+
+class BandLimitedSky:
+    """A sky given by its T, E, B a_lm up to ``lmax`` [K_CMB], evaluated at each sample's
+    direction (litebird_sim's ``interpolate_alm``, ducc0's ``synthesis_general``) instead
+    of at the nearest HEALPix pixel. A nearest-pixel TOD steps at every pixel crossing,
+    and the steps have power at every frequency: times the 2 f_HWP HWPSS, their band near
+    2 f_HWP lands at 0 and 4 f_HWP, where a demodulating map-maker reads the sky (at
+    nside 32 the demodulated h x CMB is 40 times that of the band-limited sky, measured).
+    A real TOD's sky band ends where the beam does."""
+
+    def __init__(self, alm: np.ndarray, lmax: int, threads: int = 1):
+        _check_alm(np.asarray(alm), lmax)
+        import litebird_sim as lbs
+
+        self.alm = np.asarray(alm)
+        self.lmax = lmax
+        self.threads = threads
+        self.harmonics = lbs.SphericalHarmonics(
+            np.ascontiguousarray(alm, dtype=np.complex128), lmax=lmax
+        )
+
+    @classmethod
+    def from_map(cls, maps: np.ndarray, lmax: int | None = None, threads: int = 1):
+        """The band-limited sky of (3, npix) I, Q, U maps: their a_lm up to ``lmax``
+        (default 3 nside - 1), three Jacobi iterations."""
+        nside = hp.npix2nside(np.shape(maps)[-1])
+        lmax = 3 * nside - 1 if lmax is None else lmax
+        return cls(map2alm(maps, lmax, iter=3, nthreads=threads), lmax, threads)
+
+    def __add__(self, other: BandLimitedSky) -> BandLimitedSky:
+        if other.lmax != self.lmax:
+            raise ValueError(f"band-limited skies of lmax {self.lmax} and {other.lmax}")
+        return BandLimitedSky(self.alm + other.alm, self.lmax, self.threads)
+
+    def at(self, theta_phi_rad: np.ndarray) -> np.ndarray:
+        """(3, n) I, Q, U [K_CMB] at (n, 2) directions (colatitude, longitude) [rad]."""
+        from litebird_sim.maps_and_harmonics import interpolate_alm
+
+        return np.asarray(
+            interpolate_alm(
+                self.harmonics,
+                np.ascontiguousarray(theta_phi_rad, dtype=np.float64),
+                epsilon=BAND_LIMITED_EPSILON,
+                nthreads=self.threads,
+            )
+        )

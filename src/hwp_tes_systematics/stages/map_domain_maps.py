@@ -33,7 +33,7 @@ def run_fixed_pass(
 ):
     """Simulate the seed-independent TOD of one channel once and write its fixed maps, one
     file per map-maker of the pass (``out_h5s``: {:func:`config.map_variant` name: path},
-    every one of :func:`config.fixed_pass_variants`)."""
+    every one of :func:`config.fixed_pass_variant_names`)."""
     started = time.perf_counter()
     use_threads(threads)
     channel = cfg.channel(config, channel_name)
@@ -41,7 +41,7 @@ def run_fixed_pass(
     kw = pd.read_csv(kw_csv).set_index("channel")
     a2_k_cmb = float(kw.loc[channel_name, "a2_k_cmb"]) if carries_systematics else 0.0
     variants = cfg.fixed_pass_variants(config)
-    names = [cfg.map_variant(*variant) for variant in variants]
+    names = cfg.fixed_pass_variant_names(config)
     if sorted(names) != sorted(out_h5s):
         raise ValueError(
             f"fixed pass of {channel_name}: outputs {sorted(out_h5s)}, variants {names}"
@@ -79,9 +79,12 @@ def run_fixed_pass(
         measure_lmax=config["simulation"]["filter_lmax"] or lmax,  # null: the full band
         extra_variants=extra_variants,
         noise_realizations=config["simulation"]["noise_reference_realizations"],
+        demodulated_variants=cfg.demodulated_variants(config),
+        band_limited_sky=config["simulation"]["sky_scanning"] == "band_limited",
     )
     source = sky.read_sky_header(foreground_fits).get("FGSOURCE", "unknown")
-    for (nside, baseline), fixed in passes.items():
+    for (nside, baseline, *demodulated), fixed in passes.items():
+        name = cfg.map_variant(nside, baseline, bool(demodulated))
         variant_settings = dataclasses.replace(settings, nside=nside, baseline_length_s=baseline)
         attributes = maps_attributes(variant_settings, simulator, fixed.good.mean())
         attributes["foreground_source"] = source
@@ -89,8 +92,10 @@ def run_fixed_pass(
         attributes["noise_reference_realizations"] = config["simulation"][
             "noise_reference_realizations"
         ]
+        attributes["map_maker"] = "demodulated" if demodulated else "binned"
+        attributes["sky_scanning"] = config["simulation"]["sky_scanning"]
         del attributes["seed"]
-        out_h5 = out_h5s[cfg.map_variant(nside, baseline)]
+        out_h5 = out_h5s[name]
         holder = Path(out_h5s[cfg.moments_variant(config, nside)]).name
         shared = None if holder == Path(out_h5).name else holder
         map_domain.write_fixed_maps(out_h5, fixed, attributes, moments_in=shared)
@@ -98,7 +103,7 @@ def run_fixed_pass(
             "%s fixed pass %s: wrote %s (observed %.0f %%; CMB transfer T_BB at ell 2-20, "
             "20-60, 60-128: %.2f, %.2f, %.2f)",
             channel_name,
-            cfg.map_variant(nside, baseline),
+            name,
             out_h5,
             100 * fixed.good.mean(),
             fixed.transfer[2, 2:20].mean(),

@@ -12,6 +12,8 @@ from __future__ import annotations
 import logging
 import time
 
+import healpy as hp
+
 from .. import config as cfg
 from .. import sky
 from ..io import use_threads
@@ -19,6 +21,7 @@ from ..simulation.mapmaking import NormalEquations, solve_maps
 from ..simulation.maps_file import maps_attributes, write_channel_maps
 from ..simulation.tod import PairSimulator
 from ..simulation.tod_maps import PairMapSettings, accumulate, split_solved_maps
+from ..sky.harmonics import BandLimitedSky
 
 log = logging.getLogger(__name__)
 
@@ -54,14 +57,17 @@ def run(
     simulator = PairSimulator.from_config(config, channel, settings.plan, settings.nside, threads)
     foreground = sky.read_sky_map(foreground_fits, nside=settings.nside)
     foreground_source = sky.read_sky_header(foreground_fits).get("FGSOURCE", "unknown")
-    cmb = sky.cmb_map(
-        settings.nside,
-        3 * settings.nside - 1,
-        config["simulation"]["cmb_r"],
-        config["master_seed"],
-        seed,
+    lmax = 3 * settings.nside - 1
+    cmb_alm = sky.smooth_alm(
+        sky.cmb_alm(lmax, config["simulation"]["cmb_r"], config["master_seed"], seed),
         channel.fwhm_arcmin,
-    )
+        lmax,
+    )  # sky.cmb_map's a_lm
+    if config["simulation"]["sky_scanning"] == "band_limited":
+        cmb = BandLimitedSky(cmb_alm, lmax, threads)
+        foreground = BandLimitedSky.from_map(foreground, lmax, threads)
+    else:
+        cmb = hp.alm2map(cmb_alm, settings.nside, lmax=lmax, pixwin=False)
     log.info(
         "%s seed %d: sky ready (foreground: %s); A_2 = %.4g K_CMB; %d chunks",
         channel_name,
