@@ -5,6 +5,7 @@ the map products per seed, measured, then extrapolated to a configuration's grid
         --calibration-every 4
     python benchmarks/map_domain_cost.py --nside 512 --rate 31 --seeds 100   # paper grid
     python benchmarks/map_domain_cost.py --seeds-only --nside 512 --filter-lmax 512
+    python benchmarks/map_domain_cost.py --nside 512 --demodulated --band-limited
 
 For one MFT channel with systematics (M1-140: 7 filtered TODs, HWPSS moments) and one
 LFT channel without (L1-040: 4 TODs), one thread each, kernels compiled first: the fixed
@@ -52,11 +53,15 @@ def measure(
     calibration_every=1,
     filter_lmax=None,
     extra_variants=(),
+    demodulated=False,
+    band_limited=False,
 ):
     """(seconds of the fixed pass of ``days``, seconds per seed); the filter's T_ell and
     S_ell measured up to ``filter_lmax`` (simulation.filter_lmax; None: the full band);
     ``extra_variants``: (nside, baseline length) map-makers binned in the same pass
-    (simulation.fixed_pass_nsides x fixed_pass_baseline_lengths_s), ``nside`` the scan's."""
+    (simulation.fixed_pass_nsides x fixed_pass_baseline_lengths_s), ``nside`` the scan's;
+    ``demodulated``: each also demodulated (simulation.fixed_pass_demodulated);
+    ``band_limited``: the sky scanned from its a_lm (simulation.sky_scanning)."""
     channel = load_channel(name)
     plan = MissionPlan("2032-04-01T00:00:00", days * 86400.0, 86400.0, rate_hz)
     settings = PairMapSettings(
@@ -74,6 +79,7 @@ def measure(
     foreground = np.zeros((3, hp.nside2npix(nside)))
     lmax = 3 * nside - 1
     alm = map_domain.transfer_cmb_alm(lmax, 0.0, 1, channel.fwhm_arcmin)
+    binned = [(nside, settings.baseline_length_s), *extra_variants]
     started = time.perf_counter()
     fixed = map_domain.fixed_passes(
         simulator,
@@ -85,6 +91,8 @@ def measure(
         calibration_every,
         measure_lmax=filter_lmax,
         extra_variants=extra_variants,
+        demodulated_variants=binned if demodulated else (),
+        band_limited_sky=band_limited,
     )[(nside, settings.baseline_length_s)]
     fixed_s = time.perf_counter() - started
     started = time.perf_counter()
@@ -219,6 +227,16 @@ def main() -> None:
         action="store_true",
         help="also bin without baselines in the same pass (fixed_pass_baseline_lengths_s)",
     )
+    parser.add_argument(
+        "--demodulated",
+        action="store_true",
+        help="also bin every map-maker demodulated (simulation.fixed_pass_demodulated)",
+    )
+    parser.add_argument(
+        "--band-limited",
+        action="store_true",
+        help="scan the sky from its a_lm (simulation.sky_scanning: band_limited)",
+    )
     arguments = parser.parse_args()
     baselines = [60.0, None] if arguments.also_without_baselines else [60.0]
     extra = [(n, b) for n in [arguments.nside, *arguments.also_nsides] for b in baselines]
@@ -236,7 +254,8 @@ def main() -> None:
     total_core_s = 0.0
     print(
         f"nside {arguments.nside}, {arguments.rate:g} Hz, {arguments.seeds} seeds, one year, "
-        f"calibration every {arguments.calibration_every} days, further map-makers {extra}"
+        f"calibration every {arguments.calibration_every} days, further map-makers {extra}, "
+        f"demodulated {arguments.demodulated}, band-limited sky {arguments.band_limited}"
     )
     print(
         "| channel | fixed pass [s per day] | once per pass [s] | one year [min] | one seed [s] "
@@ -248,6 +267,7 @@ def main() -> None:
         # (solving the maps, the transfer and noise-shaping spectra)
         point = (name, carries, arguments.nside, arguments.rate)
         settings = (arguments.calibration_every, arguments.filter_lmax, extra)
+        settings += (arguments.demodulated, arguments.band_limited)
         short_s, per_seed = measure(*point, arguments.days, *settings)
         long_s, _ = measure(*point, 2 * arguments.days, *settings)
         per_day = (long_s - short_s) / arguments.days
