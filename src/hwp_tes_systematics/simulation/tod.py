@@ -174,6 +174,7 @@ class PairSimulator:
         self.hwp_rad_per_s = self.instrument.hwp_rpm * 2 * np.pi / 60.0
         quaternions = [np.asarray(d.quat.quats, dtype=float) for d in self.detectors]
         self.shares_direction = all(np.array_equal(q, quaternions[0]) for q in quaternions)
+        self._last_band_limited_scan = (None, None, None)  # sky, chunk, I Q U per direction
         self.scanning = MissionScanningStrategy(imo, release, plan.start_time)
         self.healpix = ducc0.healpix.Healpix_Base(nside, "RING")
         self.orbit = orbit_table(plan.start_time, plan.duration_s)
@@ -307,8 +308,16 @@ class PairSimulator:
             directions = 1 if self.shares_direction else self.n_detectors
             if out is None:
                 out = np.empty(pointing.cos_2alpha.shape)
+            # the same sky scanned again on the same chunk (the fixed pass's foreground
+            # and its reference): the evaluation is most of the cost, so the last is kept
+            # (the sky itself is held, so that a new one is never taken for it)
+            chunk = (pointing.first_sample, pointing.hwp_angle_rad.size)
+            last_sky, last_chunk, values = self._last_band_limited_scan
+            if last_sky is not sky_iqu_k or last_chunk != chunk:
+                values = [sky_iqu_k.at(pointing.galactic_rad[d, :, :2]) for d in range(directions)]
+                self._last_band_limited_scan = (sky_iqu_k, chunk, values)
             for direction in range(directions):
-                i, q, u = sky_iqu_k.at(pointing.galactic_rad[direction, :, :2])
+                i, q, u = values[direction]
                 owners = range(self.n_detectors) if self.shares_direction else [direction]
                 for k in owners:
                     rho = self.pol_efficiency[k]
