@@ -205,3 +205,22 @@ def test_a_demodulated_variant_shares_the_pass_and_measures_its_filter(passes):
         np.testing.assert_allclose(beside.transfer, alone.transfer, rtol=0, atol=1e-6)
         assert beside.cmb_h_transfer.size == 0
     assert fixed.cmb_h_transfer.shape == fixed.transfer.shape
+
+
+def test_demodulated_variants_of_two_resolutions_share_one_demodulation(passes):
+    """Two demodulated map-makers (nside 32 and 16) in one pass demodulate each chunk
+    once for both: the nside-16 one is what a pass demodulating it alone gives (to
+    rounding; the single-precision calibration TODs' spectra to 1e-6)."""
+    _, _, _, arguments = passes
+    key = (COARSE_NSIDE, 60.0, "demodulated")
+    both = map_domain.fixed_passes(
+        *arguments,
+        extra_variants=VARIANTS,
+        demodulated_variants=[(SCAN_NSIDE, 60.0), key[:2]],
+    )[key]
+    alone = map_domain.fixed_passes(
+        *arguments, extra_variants=VARIANTS, demodulated_variants=[key[:2]]
+    )[key]
+    assert_same(both, alone, key)
+    for name in ("transfer", "noise_shaping", "noise_h_shaping", "cmb_h_transfer"):
+        np.testing.assert_allclose(getattr(both, name), getattr(alone, name), rtol=0, atol=1e-6)

@@ -49,12 +49,15 @@ def demodulate(
     tod: np.ndarray, hwp_angle_rad: np.ndarray, sampling_rate_hz: float, f_hwp_hz: float, workers=1
 ) -> np.ndarray:
     """(L d, L(2 d cos 4 chi), L(2 d sin 4 chi)) stacked on a new first axis, for a TOD
-    (any leading shape, time last, with margins: the low-pass wraps around)."""
-    tod = np.asarray(tod, dtype=np.float64)
-    streams = np.empty((3, *tod.shape))
+    (any leading shape, time last, with margins: the low-pass wraps around); a float32
+    TOD (the calibration TODs) is demodulated in single precision, any other in float64."""
+    tod = np.asarray(tod)
+    dtype = np.float32 if tod.dtype == np.float32 else np.float64
+    tod = tod.astype(dtype, copy=False)
+    streams = np.empty((3, *tod.shape), dtype=dtype)
     streams[0] = tod
-    np.multiply(tod, 2.0 * np.cos(4.0 * hwp_angle_rad), out=streams[1])
-    np.multiply(tod, 2.0 * np.sin(4.0 * hwp_angle_rad), out=streams[2])
+    np.multiply(tod, (2.0 * np.cos(4.0 * hwp_angle_rad)).astype(dtype), out=streams[1])
+    np.multiply(tod, (2.0 * np.sin(4.0 * hwp_angle_rad)).astype(dtype), out=streams[2])
     cutoff_hz = CUTOFF_OVER_F_HWP * f_hwp_hz
     half_width_hz = HALF_TRANSITION_OVER_F_HWP * f_hwp_hz
 

@@ -447,20 +447,22 @@ def accumulate(
         owners = [None] + [k for _ in range(n_terms) for k in range(n_det)]
         owners += [None] * len(references_iqu_k)
         rates = (settings.plan.sampling_rate_hz, simulator.channel.hwp_frequency_hz)
+        detector = (weights, simulator.pol_efficiency)
         if demodulated is not None:
-            _demodulate_into(
+            _bin_streams(
                 demodulated,
-                notched,
+                _demodulated_streams(notched, pointing, inner, rates, settings.threads, clock),
                 (rows, owners),
                 pointing.pixels[:, inner],
                 pointing,
                 inner,
-                (weights, simulator.pol_efficiency),
-                rates,
+                detector,
                 baseline_samples_of(settings),
-                settings.threads,
                 clock,
             )
+        # demodulated once per HWP-harmonic fit and stack, whatever the map-makers' nsides
+        streams_of = {}
+        demodulation = (pointing, inner, rates, settings.threads, clock)
 
         angles = (
             pointing.cos_2alpha[:, inner],
@@ -477,11 +479,18 @@ def accumulate(
                     pixels_of[extra.nside],
                     pointing,
                     inner,
-                    (weights, simulator.pol_efficiency),
+                    detector,
                     (rows, owners),
-                    (notched_of[offset], calibration_of[offset], unfiltered_noise),
-                    rates,
-                    settings.threads,
+                    (
+                        _shared_streams(streams_of, "filtered", notched_of[offset], demodulation),
+                        _shared_streams(
+                            streams_of, "calibration", calibration_of[offset], demodulation
+                        )
+                        if calibrating
+                        else None,
+                        unfiltered_noise,
+                    ),
+                    settings.plan.sampling_rate_hz,
                     clock,
                 )
                 continue
@@ -512,6 +521,7 @@ def accumulate(
                 calibration_of[primary_offset][..., inner], samples
             )
         del notched, notched_of, calibration_of
+        streams_of.clear()
         with clock("binning"):
             _bin_chunk(
                 equations,
@@ -553,22 +563,41 @@ def _bin_chunk(target, calibration_target, pixels, angles, binned, filtered, cal
         calibration_target.add(pixels, *angles, [*calibration, *noise])
 
 
-def _demodulate_into(
-    target, stack, binned, pixels, pointing, inner, detector, rates, samples, threads, clock
-) -> None:
-    """Demodulate a filtered TOD stack (rows, n_det, n, with margins: the low-pass wraps
-    around), keep the ``inner`` samples, remove baselines of ``samples`` (None: none) from
-    the intensity stream only, and bin it into ``target`` (DemodulatedEquations).
-    ``binned``: (rows, owners), TOD i of ``target`` being row ``rows[i]`` (detector
-    ``owners[i]`` only unless None); ``detector``: (weights, pol_efficiency); ``rates``:
-    (sampling rate, f_HWP) [Hz]."""
-    rows, owners = binned
-    weights, pol_efficiency = detector
+def _demodulated_streams(stack, pointing, inner, rates, threads, clock) -> np.ndarray:
+    """(3, rows, n_det, n_inner) demodulated streams (L d, L(2 d cos 4 chi), L(2 d sin 4
+    chi)) of a filtered TOD stack (rows, n_det, n, with margins: the low-pass wraps
+    around), its ``inner`` samples kept; ``rates``: (sampling rate, f_HWP) [Hz]."""
     sampling_rate_hz, f_hwp_hz = rates
     with clock("demodulation"):
         streams = demodulate(stack, pointing.hwp_angle_rad, sampling_rate_hz, f_hwp_hz, threads)
-        streams = streams[..., inner]
-        remove_baselines(streams[0], samples)
+    return streams[..., inner]
+
+
+def _shared_streams(cache: dict, kind: str, stack, demodulation) -> np.ndarray:
+    """:func:`_demodulated_streams` of ``stack`` (``demodulation``: its other arguments),
+    computed once per chunk: ``cache`` holds them by (kind, the stack's identity)."""
+    key = (kind, id(stack))
+    if key not in cache:
+        cache[key] = (stack, _demodulated_streams(stack, *demodulation))
+    return cache[key][1]
+
+
+def _bin_streams(target, streams, binned, pixels, pointing, inner, detector, samples, clock):
+    """Bin demodulated streams (:func:`_demodulated_streams`) into ``target``
+    (DemodulatedEquations), baselines of ``samples`` (None: none) removed from a copy of
+    the intensity stream only (the streams may serve other map-makers).
+    ``binned``: (rows, owners), TOD i of ``target`` being row ``rows[i]`` (detector
+    ``owners[i]`` only unless None); ``detector``: (weights, pol_efficiency)."""
+    rows, owners = binned
+    weights, pol_efficiency = detector
+    intensity = streams[0]
+    if samples is not None:
+        intensity = remove_baselines(intensity[list(rows)], samples)
+        tods = [
+            np.stack([intensity[i], streams[1, row], streams[2, row]]) for i, row in enumerate(rows)
+        ]
+    else:
+        tods = [streams[:, row] for row in rows]
     with clock("binning"):
         target.add(
             pixels,
@@ -577,38 +606,28 @@ def _demodulate_into(
             pointing.hwp_angle_rad[inner],
             weights,
             pol_efficiency,
-            [streams[:, row] for row in rows],
+            tods,
             owners,
         )
 
 
 def _bin_demodulated(
-    extra, calibrating, pixels, pointing, inner, detector, binned, stacks, rates, threads, clock
+    extra, calibrating, pixels, pointing, inner, detector, binned, streams, rate_hz, clock
 ) -> None:
-    """Bin a chunk into a demodulated extra binning (:func:`_demodulate_into`): the
-    filtered TOD stack, on calibration chunks the filtered calibration TODs likewise and
-    the unfiltered noise TODs binned as they are, and M of every chunk. ``detector``:
-    (weights, pol_efficiency); ``binned``: (rows, owners); ``stacks``: (filtered,
-    calibration filtered, unfiltered noise); ``rates``: (sampling rate, f_HWP) [Hz]."""
-    filtered, calibration_filtered, unfiltered_noise = stacks
-    samples = baseline_samples(extra.baseline_length_s, rates[0])
+    """Bin a chunk into a demodulated extra binning (:func:`_bin_streams`): the filtered
+    TODs' demodulated streams, on calibration chunks the filtered calibration TODs' too
+    and the unfiltered noise TODs binned as they are, and M of every chunk. ``detector``:
+    (weights, pol_efficiency); ``binned``: (rows, owners); ``streams``: (the filtered
+    TODs' streams, the calibration TODs' streams, the unfiltered noise TODs)."""
+    filtered, calibration_filtered, unfiltered_noise = streams
+    samples = baseline_samples(extra.baseline_length_s, rate_hz)
     todo = [(extra.equations, filtered, binned)]
     if calibrating:
         n_filtered = extra.calibration_equations.n_tods
         todo.append((extra.calibration_equations, calibration_filtered, (range(n_filtered), None)))
-    for target, stack, target_rows in todo:
-        _demodulate_into(
-            target,
-            stack,
-            target_rows,
-            pixels,
-            pointing,
-            inner,
-            detector,
-            rates,
-            samples,
-            threads,
-            clock,
+    for target, target_streams, target_rows in todo:
+        _bin_streams(
+            target, target_streams, target_rows, pixels, pointing, inner, detector, samples, clock
         )
     angles = (pointing.cos_2alpha[:, inner], pointing.sin_2alpha[:, inner], *detector)
     with clock("binning"):
