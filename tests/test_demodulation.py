@@ -114,6 +114,7 @@ def test_demodulation_recovers_a_noise_free_polarised_sky(pair):
     maps, seen, binned, good = demodulated_map(pair, smooth)
     error = maps[1:, seen] - smooth[1:, seen]
     relative = np.sqrt(np.mean(error**2) / np.mean(smooth[1:, seen] ** 2))
+    print(f"smooth polarised sky: Q/U error {relative:.2%} rms")
     assert relative < 0.04, relative
     np.testing.assert_allclose(binned[1:, good], smooth[1:, good], atol=1e-12)
 
@@ -123,7 +124,7 @@ def test_demodulation_removes_the_offset_leakage_of_the_binned_solve(pair):
     """On the paper-literal path (no baselines) the h^2 term of the nonlinearity
     (a per-detector DC term A_2^2 / 2 and a 4f line) leaks into the binned Q/U through
     the HWP-angle coverage; the demodulated maps of the same filtered TODs hold < 1e-4 of it (measured
-    1.7e-8 against 1.7e-2 K^2 per unit A_2^2)."""
+    1.7e-8 against 9.6e-3 K^2 per unit A_2^2, on the pixels both see)."""
     settings = noiseless_settings(pair, baseline_length_s=None)
     demodulated = DemodulatedEquations(NSIDE, 1 + 3 * pair.n_detectors)
     equations = accumulate(
@@ -134,8 +135,10 @@ def test_demodulation_removes_the_offset_leakage_of_the_binned_solve(pair):
     demodulated_hh = split_solved_maps(demodulated.solve(), pair.n_detectors, 0.1)[
         "template_terms"
     ][2]
-    binned_rms = np.sqrt(np.mean(binned_hh[:, 1:, good] ** 2))
-    demodulated_rms = np.sqrt(np.mean(demodulated_hh[:, 1:, good] ** 2))
+    both = good & (demodulated.hits > 0)  # a few pixels have no demodulated (decimated) sample
+    binned_rms = np.sqrt(np.mean(binned_hh[:, 1:, both] ** 2))
+    demodulated_rms = np.sqrt(np.mean(demodulated_hh[:, 1:, both] ** 2))
+    print(f"h^2 term Q/U rms: binned {binned_rms:.2g}, demodulated {demodulated_rms:.2g}")
     assert binned_rms > 1e-3, binned_rms  # per-cent leakage of the 0.5 DC term
     assert demodulated_rms < 1e-4 * binned_rms, (demodulated_rms, binned_rms)
 

@@ -25,6 +25,7 @@ constant there, in the HWP frame, and reaches the map rotated by beta.
 
 from __future__ import annotations
 
+import ducc0
 import healpy as hp
 import numba
 import numpy as np
@@ -45,12 +46,33 @@ def lowpass_transfer(freqs_hz, cutoff_hz: float, half_width_hz: float) -> np.nda
     return 0.5 * (1.0 + np.cos(np.pi * x))
 
 
+def decimation_factor(sampling_rate_hz: float, f_hwp_hz: float) -> int:
+    """The sample stride D at which the demodulated streams are kept: floor(f_s / 4 f_HWP),
+    at least 1. The low-pass leaves nothing above f_HWP, so streams sampled at f_s / D
+    (Nyquist >= 2 f_HWP) are the same band-limited signals (as sotodlib's demodulation then
+    downsampling), and their binning and inverse transforms cost 1 / D."""
+    return max(1, int(sampling_rate_hz // (4.0 * f_hwp_hz)))
+
+
 def demodulate(
-    tod: np.ndarray, hwp_angle_rad: np.ndarray, sampling_rate_hz: float, f_hwp_hz: float, workers=1
+    tod: np.ndarray,
+    hwp_angle_rad: np.ndarray,
+    sampling_rate_hz: float,
+    f_hwp_hz: float,
+    workers=1,
+    decimation: int = 1,
 ) -> np.ndarray:
     """(L d, L(2 d cos 4 chi), L(2 d sin 4 chi)) stacked on a new first axis, for a TOD
-    (any leading shape, time last, with margins: the low-pass wraps around); a float32
+    (any leading shape, time last, with margins: the low-pass wraps around), at samples
+    0, D, 2 D, ... (D = ``decimation``; the low-pass must end below f_s / 2 D); a float32
     TOD (the calibration TODs) is demodulated in single precision, any other in float64."""
+    cutoff_hz = CUTOFF_OVER_F_HWP * f_hwp_hz
+    half_width_hz = HALF_TRANSITION_OVER_F_HWP * f_hwp_hz
+    if decimation > 1 and cutoff_hz + half_width_hz > sampling_rate_hz / (2 * decimation):
+        raise ValueError(
+            f"demodulation decimation {decimation}: the low-pass reaches {cutoff_hz + half_width_hz:.3g} "
+            f"Hz, above the decimated Nyquist frequency {sampling_rate_hz / (2 * decimation):.3g} Hz"
+        )
     tod = np.asarray(tod)
     dtype = np.float32 if tod.dtype == np.float32 else np.float64
     tod = tod.astype(dtype, copy=False)
@@ -58,15 +80,37 @@ def demodulate(
     streams[0] = tod
     np.multiply(tod, (2.0 * np.cos(4.0 * hwp_angle_rad)).astype(dtype), out=streams[1])
     np.multiply(tod, (2.0 * np.sin(4.0 * hwp_angle_rad)).astype(dtype), out=streams[2])
-    cutoff_hz = CUTOFF_OVER_F_HWP * f_hwp_hz
-    half_width_hz = HALF_TRANSITION_OVER_F_HWP * f_hwp_hz
 
     def transfer_on_grid(n_fft):
         return lowpass_transfer(
             np.arange(n_fft // 2 + 1) * (sampling_rate_hz / n_fft), cutoff_hz, half_width_hz
         )
 
-    return apply_transfer(streams, transfer_on_grid, workers)
+    if decimation == 1:
+        return apply_transfer(streams, transfer_on_grid, workers)
+    return _lowpass_decimated(streams, transfer_on_grid, decimation, workers)
+
+
+def _lowpass_decimated(streams, transfer_on_grid, decimation: int, workers: int) -> np.ndarray:
+    """irfft(L rfft(x)) at samples 0, D, 2 D, ...: the forward transform at a length
+    n_fft divisible by D, the inverse at n_fft / D from the spectrum's first n_fft / 2 D + 1
+    bins (L is zero beyond them), so the result is the low-passed TOD itself, decimated."""
+    n_samples = streams.shape[-1]
+    n_short = ducc0.fft.good_size(-(-n_samples // decimation), True)
+    n_fft = n_short * decimation
+    padded = np.zeros((*streams.shape[:-1], n_fft), dtype=streams.dtype)
+    padded[..., :n_samples] = streams
+    axis = (padded.ndim - 1,)
+    spectrum = ducc0.fft.r2c(padded, axes=axis, nthreads=workers)
+    del padded
+    low = transfer_on_grid(n_fft)[: n_short // 2 + 1].astype(streams.dtype)
+    kept = spectrum[..., : n_short // 2 + 1] * low
+    del spectrum
+    decimated = ducc0.fft.c2r(
+        kept, axes=axis, lastsize=n_short, forward=False, inorm=0, nthreads=workers
+    )
+    decimated *= 1.0 / n_fft  # the inverse of the full-length transform
+    return decimated[..., : -(-n_samples // decimation)]
 
 
 class DemodulatedEquations:

@@ -27,7 +27,7 @@ from tqdm import tqdm
 
 from ..timing import StageClock
 from .baselines import baseline_samples, remove_baselines
-from .demodulation import DemodulatedEquations, demodulate
+from .demodulation import DemodulatedEquations, decimation_factor, demodulate
 from .hwpss_removal import offset_residual, remove_hwp_harmonics
 from .mapmaking import NormalEquations, PixelMoments
 from .notch import apply_notch, chunk_span
@@ -563,17 +563,23 @@ def _bin_chunk(target, calibration_target, pixels, angles, binned, filtered, cal
         calibration_target.add(pixels, *angles, [*calibration, *noise])
 
 
-def _demodulated_streams(stack, pointing, inner, rates, threads, clock) -> np.ndarray:
-    """(3, rows, n_det, n_inner) demodulated streams (L d, L(2 d cos 4 chi), L(2 d sin 4
+def _demodulated_streams(stack, pointing, inner, rates, threads, clock) -> tuple:
+    """(streams, picked): the demodulated streams (L d, L(2 d cos 4 chi), L(2 d sin 4
     chi)) of a filtered TOD stack (rows, n_det, n, with margins: the low-pass wraps
-    around), its ``inner`` samples kept; ``rates``: (sampling rate, f_HWP) [Hz]."""
+    around) at every D-th sample (:func:`demodulation.decimation_factor`) within the
+    ``inner`` ones, (3, rows, n_det, n_kept), and ``picked``, the slice of the inner
+    samples they are at; ``rates``: (sampling rate, f_HWP) [Hz]."""
     sampling_rate_hz, f_hwp_hz = rates
+    stride = decimation_factor(sampling_rate_hz, f_hwp_hz)
     with clock("demodulation"):
-        streams = demodulate(stack, pointing.hwp_angle_rad, sampling_rate_hz, f_hwp_hz, threads)
-    return streams[..., inner]
+        streams = demodulate(
+            stack, pointing.hwp_angle_rad, sampling_rate_hz, f_hwp_hz, threads, stride
+        )
+    first, stop = -(-inner.start // stride), -(-inner.stop // stride)  # ceilings
+    return streams[..., first:stop], slice(first * stride - inner.start, None, stride)
 
 
-def _shared_streams(cache: dict, kind: str, stack, demodulation) -> np.ndarray:
+def _shared_streams(cache: dict, kind: str, stack, demodulation) -> tuple:
     """:func:`_demodulated_streams` of ``stack`` (``demodulation``: its other arguments),
     computed once per chunk: ``cache`` holds them by (kind, the stack's identity)."""
     key = (kind, id(stack))
@@ -582,17 +588,19 @@ def _shared_streams(cache: dict, kind: str, stack, demodulation) -> np.ndarray:
     return cache[key][1]
 
 
-def _bin_streams(target, streams, binned, pixels, pointing, inner, detector, samples, clock):
-    """Bin demodulated streams (:func:`_demodulated_streams`) into ``target``
-    (DemodulatedEquations), baselines of ``samples`` (None: none) removed from a copy of
-    the intensity stream only (the streams may serve other map-makers).
+def _bin_streams(target, demodulated, binned, pixels, pointing, inner, detector, samples, clock):
+    """Bin demodulated streams (:func:`_demodulated_streams`: (streams, picked)) into
+    ``target`` (DemodulatedEquations) at their samples, baselines of ``samples`` (None:
+    none; in full-rate samples) removed from a copy of the intensity stream only (the
+    streams may serve other map-makers). ``pixels``: of the inner samples;
     ``binned``: (rows, owners), TOD i of ``target`` being row ``rows[i]`` (detector
     ``owners[i]`` only unless None); ``detector``: (weights, pol_efficiency)."""
+    streams, picked = demodulated
     rows, owners = binned
     weights, pol_efficiency = detector
-    intensity = streams[0]
     if samples is not None:
-        intensity = remove_baselines(intensity[list(rows)], samples)
+        per_baseline = max(1, round(samples / picked.step))
+        intensity = remove_baselines(streams[0][list(rows)], per_baseline)
         tods = [
             np.stack([intensity[i], streams[1, row], streams[2, row]]) for i, row in enumerate(rows)
         ]
@@ -600,10 +608,10 @@ def _bin_streams(target, streams, binned, pixels, pointing, inner, detector, sam
         tods = [streams[:, row] for row in rows]
     with clock("binning"):
         target.add(
-            pixels,
-            pointing.cos_2alpha[:, inner],
-            pointing.sin_2alpha[:, inner],
-            pointing.hwp_angle_rad[inner],
+            pixels[:, picked],
+            pointing.cos_2alpha[:, inner][:, picked],
+            pointing.sin_2alpha[:, inner][:, picked],
+            pointing.hwp_angle_rad[inner][picked],
             weights,
             pol_efficiency,
             tods,
