@@ -40,6 +40,16 @@ class NormalEquations:
         self.pixel_rhs = np.zeros((self.npix, n_tods, 3))
         self.hits = np.zeros(self.npix, dtype=np.int64)
 
+    def subset(self, tods) -> NormalEquations:
+        """The equations of the TODs ``tods`` (indices) alone: matrix and hits shared (not
+        copied), right-hand sides copied."""
+        chosen = list(tods)
+        subset = NormalEquations.__new__(NormalEquations)
+        subset.nside, subset.npix, subset.n_tods = self.nside, self.npix, len(chosen)
+        subset.pixel_matrix, subset.hits = self.pixel_matrix, self.hits
+        subset.pixel_rhs = self.pixel_rhs[:, chosen, :]
+        return subset
+
     @property
     def matrix(self) -> np.ndarray:
         """(6, npix) view, MATRIX_ENTRIES order."""

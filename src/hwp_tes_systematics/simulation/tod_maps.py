@@ -360,18 +360,23 @@ def accumulate(
     n_terms = len(TEMPLATE_TERMS) if linear and template_terms else 0
     n_binned = 1 + n_terms + len(references_iqu_k)  # rows of the stack binned in ``equations``
     equations = NormalEquations(settings.nside, 1 + n_terms * n_det + len(references_iqu_k))
-    for extra in extra_binnings:
-        if extra.demodulated:
-            extra.equations = DemodulatedEquations(extra.nside, equations.n_tods)
-            extra.matrix_equations = NormalEquations(extra.nside, 0)
-            if calibration is not None:
-                n_filtered = calibration.equations.n_tods - calibration.n_noise_tods
-                extra.calibration_equations = DemodulatedEquations(extra.nside, n_filtered)
-                extra.white_equations = NormalEquations(extra.nside, calibration.n_noise_tods)
-            continue
+    # the binned map-makers first: a demodulated one takes M and the unfiltered noise
+    # from the binned one of its resolution (the same samples), or bins its own
+    binned_of = {settings.nside: (equations, calibration.equations if calibration else None)}
+    for extra in (e for e in extra_binnings if not e.demodulated):
         extra.equations = NormalEquations(extra.nside, equations.n_tods)
         if calibration is not None:
             extra.calibration_equations = NormalEquations(extra.nside, calibration.equations.n_tods)
+        binned_of.setdefault(extra.nside, (extra.equations, extra.calibration_equations))
+    for extra in (e for e in extra_binnings if e.demodulated):
+        extra.equations = DemodulatedEquations(extra.nside, equations.n_tods)
+        if calibration is not None:
+            n_filtered = calibration.equations.n_tods - calibration.n_noise_tods
+            extra.calibration_equations = DemodulatedEquations(extra.nside, n_filtered)
+        if extra.nside not in binned_of:
+            extra.matrix_equations = NormalEquations(extra.nside, 0)
+            if calibration is not None:
+                extra.white_equations = NormalEquations(extra.nside, calibration.n_noise_tods)
     nested = settings.nside >= NESTED_FROM_NSIDE
     primary_offset = settings.baseline_length_s is not None
     offsets = {primary_offset} | {e.baseline_length_s is not None for e in extra_binnings}
@@ -541,6 +546,14 @@ def accumulate(
             on_chunk(inner.stop - inner.start, rss_mb)
     if nested:
         _nest_to_ring(equations, moments, calibration, extra_binnings)
+    for extra in extra_binnings:
+        if extra.demodulated and extra.matrix_equations is None:
+            binned, binned_calibration = binned_of[extra.nside]
+            extra.matrix_equations = binned.subset([])
+            if binned_calibration is not None:  # its last TODs: the noise unfiltered
+                n_tods = binned_calibration.n_tods
+                unfiltered = range(n_tods - calibration.n_noise_tods, n_tods)
+                extra.white_equations = binned_calibration.subset(unfiltered)
     log.info(
         "%s seed %d: peak RSS during chunks %.0f MB; time per stage: %s",
         simulator.channel.name,
@@ -624,7 +637,9 @@ def _bin_demodulated(
 ) -> None:
     """Bin a chunk into a demodulated extra binning (:func:`_bin_streams`): the filtered
     TODs' demodulated streams, on calibration chunks the filtered calibration TODs' too
-    and the unfiltered noise TODs binned as they are, and M of every chunk. ``detector``:
+    and, unless a binned map-maker of its nside holds them (``matrix_equations`` None
+    until the end), the unfiltered noise TODs binned as they are and M of every chunk.
+    ``detector``:
     (weights, pol_efficiency); ``binned``: (rows, owners); ``streams``: (the filtered
     TODs' streams, the calibration TODs' streams, the unfiltered noise TODs)."""
     filtered, calibration_filtered, unfiltered_noise = streams
@@ -637,6 +652,8 @@ def _bin_demodulated(
         _bin_streams(
             target, target_streams, target_rows, pixels, pointing, inner, detector, samples, clock
         )
+    if extra.matrix_equations is None:  # shared with the binned map-maker of its nside
+        return
     angles = (pointing.cos_2alpha[:, inner], pointing.sin_2alpha[:, inner], *detector)
     with clock("binning"):
         extra.matrix_equations.add(pixels, *angles, np.empty((0, *pixels.shape)), rows=[])
