@@ -191,6 +191,7 @@ def test_a_demodulated_variant_shares_the_pass_and_measures_its_filter(passes):
     binned = together[(SCAN_NSIDE, 60.0)]
     np.testing.assert_allclose(fixed.matrix, binned.matrix, rtol=1e-12)
     np.testing.assert_allclose(fixed.moments, binned.moments, rtol=1e-12)
+    np.testing.assert_array_equal(fixed.hits, binned.hits)  # every sample's, not every D-th
     assert fixed.good.sum() > 0.9 * binned.good.sum()
     assert np.all(np.isfinite(fixed.transfer)) and np.all(np.isfinite(fixed.noise_shaping))
     both = fixed.good & binned.good

@@ -420,7 +420,8 @@ def _solve_demodulated(
         settings,
         (maps, condition, good),
         extra.matrix_equations.matrix,
-        extra.equations.hits,
+        extra.matrix_equations.hits,  # every sample's, as the binned map-maker's (the
+        # demodulated streams are binned at every D-th: tod_maps._demodulated_streams)
         (transfer_output, np.asarray(filtered), unfiltered, calibrated),
         extra.moments,
         transfer_input,
