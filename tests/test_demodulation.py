@@ -135,7 +135,7 @@ def test_demodulation_removes_the_offset_leakage_of_the_binned_solve(pair):
     demodulated_hh = split_solved_maps(demodulated.solve(), pair.n_detectors, 0.1)[
         "template_terms"
     ][2]
-    both = good & (demodulated.hits > 0)  # a few pixels have no demodulated (decimated) sample
+    both = good & (demodulated.hits > 0)  # the pixels both map-makers saw
     binned_rms = np.sqrt(np.mean(binned_hh[:, 1:, both] ** 2))
     demodulated_rms = np.sqrt(np.mean(demodulated_hh[:, 1:, both] ** 2))
     print(f"h^2 term Q/U rms: binned {binned_rms:.2g}, demodulated {demodulated_rms:.2g}")
@@ -199,3 +199,26 @@ def test_a_band_limited_sky_leaves_no_hwpss_product_in_the_demodulated_streams(p
         leaked[name] = np.sqrt(np.mean(middle**2)) / np.std(tod)
     assert leaked["nearest"] > 1e-2, leaked
     assert leaked["band-limited"] < 1e-4, leaked
+
+
+def test_decimated_demodulation_is_the_demodulation_at_every_dth_sample():
+    """demodulate(decimation=D) with D = decimation_factor (7 at 19 Hz, f_HWP 0.65 Hz):
+    the full-rate streams at samples 0, D, 2 D, ... to 1e-6 of their amplitude 1,200 s
+    from the ends (the low-pass's wrap-around differs with the padded length: measured
+    1e-7); a stride beyond the low-pass's Nyquist limit is refused."""
+    from hwp_tes_systematics.simulation.demodulation import decimation_factor
+
+    rate_hz, f_hwp_hz = 19.0, 0.65
+    n = 100_003
+    chi = 2 * np.pi * f_hwp_hz * np.arange(n) / rate_hz + 0.3
+    tod = np.random.default_rng(1).normal(size=(2, n))
+    stride = decimation_factor(rate_hz, f_hwp_hz)
+    assert stride == 7
+    full = demodulate(tod, chi, rate_hz, f_hwp_hz)[..., ::stride]
+    decimated = demodulate(tod, chi, rate_hz, f_hwp_hz, decimation=stride)
+    assert decimated.shape == full.shape
+    edge = int(1200 * rate_hz) // stride
+    difference = np.abs(decimated - full)[..., edge:-edge].max()
+    assert difference < 1e-6 * np.abs(full).max(), difference
+    with pytest.raises(ValueError, match="decimated Nyquist"):
+        demodulate(tod, chi, rate_hz, f_hwp_hz, decimation=20)

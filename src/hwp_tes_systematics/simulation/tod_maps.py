@@ -41,6 +41,12 @@ log = logging.getLogger(__name__)
 NESTED_FROM_NSIDE = 256
 # the terms of d^2 = s^2 + 2 A_2 s h + A_2^2 h^2 binned separately (see the module docstring)
 TEMPLATE_TERMS = ("s*s", "s*h", "h*h")
+# Bin the demodulated streams at every D-th sample (demodulation.decimation_factor)? The
+# streams are the same band-limited signals, but the map's noise then follows the
+# decimated hits: at nside 32, one day, D = 7, the seeds' E/B noise at ell 2-24 went from
+# +17 % to +32 % of the full path's, and at nside 512 seven samples at 19 Hz are a pixel
+# crossing. Off until validated at the resolutions it would serve (issue 27).
+DECIMATE_DEMODULATED = False
 # the calibration TODs (a reference map, noise realizations) are filtered in single
 # precision: they measure ratios of spectra, which a relative rounding of ~1e-7 cannot
 # move, and their FFTs take half the time (measured: 31 against 66 ns per row-sample)
@@ -579,11 +585,11 @@ def _bin_chunk(target, calibration_target, pixels, angles, binned, filtered, cal
 def _demodulated_streams(stack, pointing, inner, rates, threads, clock) -> tuple:
     """(streams, picked): the demodulated streams (L d, L(2 d cos 4 chi), L(2 d sin 4
     chi)) of a filtered TOD stack (rows, n_det, n, with margins: the low-pass wraps
-    around) at every D-th sample (:func:`demodulation.decimation_factor`) within the
-    ``inner`` ones, (3, rows, n_det, n_kept), and ``picked``, the slice of the inner
-    samples they are at; ``rates``: (sampling rate, f_HWP) [Hz]."""
+    around) at the ``inner`` samples, or at every D-th of them with DECIMATE_DEMODULATED
+    (:func:`demodulation.decimation_factor`), (3, rows, n_det, n_kept), and ``picked``,
+    the slice of the inner samples they are at; ``rates``: (sampling rate, f_HWP) [Hz]."""
     sampling_rate_hz, f_hwp_hz = rates
-    stride = decimation_factor(sampling_rate_hz, f_hwp_hz)
+    stride = decimation_factor(sampling_rate_hz, f_hwp_hz) if DECIMATE_DEMODULATED else 1
     with clock("demodulation"):
         streams = demodulate(
             stack, pointing.hwp_angle_rad, sampling_rate_hz, f_hwp_hz, threads, stride
