@@ -645,9 +645,8 @@ def _bin_demodulated(
     TODs' demodulated streams, on calibration chunks the filtered calibration TODs' too
     and, unless a binned map-maker of its nside holds them (``matrix_equations`` None
     until the end), the unfiltered noise TODs binned as they are and M of every chunk.
-    ``detector``:
-    (weights, pol_efficiency); ``binned``: (rows, owners); ``streams``: (the filtered
-    TODs' streams, the calibration TODs' streams, the unfiltered noise TODs)."""
+    ``detector``: (weights, pol_efficiency); ``binned``: (rows, owners); ``streams``: (the
+    filtered TODs' streams, the calibration TODs' streams, the unfiltered noise TODs)."""
     filtered, calibration_filtered, unfiltered_noise = streams
     samples = baseline_samples(extra.baseline_length_s, rate_hz)
     todo = [(extra.equations, filtered, binned)]

@@ -12,11 +12,10 @@ from __future__ import annotations
 import logging
 import time
 
-import healpy as hp
-
 from .. import config as cfg
 from .. import sky
 from ..io import use_threads
+from ..simulation.map_domain import seed_cmb_alm
 from ..simulation.mapmaking import NormalEquations, solve_maps
 from ..simulation.maps_file import maps_attributes, write_channel_maps
 from ..simulation.tod import PairSimulator
@@ -58,16 +57,12 @@ def run(
     foreground = sky.read_sky_map(foreground_fits, nside=settings.nside)
     foreground_source = sky.read_sky_header(foreground_fits).get("FGSOURCE", "unknown")
     lmax = 3 * settings.nside - 1
-    cmb_alm = sky.smooth_alm(
-        sky.cmb_alm(lmax, config["simulation"]["cmb_r"], config["master_seed"], seed),
-        channel.fwhm_arcmin,
-        lmax,
-    )  # sky.cmb_map's a_lm
-    if config["simulation"]["sky_scanning"] == "band_limited":
-        cmb = BandLimitedSky(cmb_alm, lmax, threads)
+    cmb_draw = (lmax, config["simulation"]["cmb_r"], config["master_seed"], seed)
+    if config["simulation"]["sky_scanning"] == "band_limited":  # the same draw, as a_lm
+        cmb = BandLimitedSky(seed_cmb_alm(*cmb_draw, channel.fwhm_arcmin), lmax, threads)
         foreground = BandLimitedSky.from_map(foreground, lmax, threads)
     else:
-        cmb = hp.alm2map(cmb_alm, settings.nside, lmax=lmax, pixwin=False)
+        cmb = sky.cmb_map(settings.nside, *cmb_draw, channel.fwhm_arcmin)
     log.info(
         "%s seed %d: sky ready (foreground: %s); A_2 = %.4g K_CMB; %d chunks",
         channel_name,
