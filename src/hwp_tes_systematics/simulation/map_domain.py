@@ -28,6 +28,10 @@ Each seed then costs map operations only:
     s h term of k    = (s_f h term of k) + T^h M^-1 H_k CMB_seed + S^h M^-1 c_k
     cmb_reference    = T CMB_seed
 
+and, for a demodulated map-maker only, the s^2 term of k gets the seed's 2 s_f CMB_seed
+as detector k's share of T^s P(s_f, CMB_seed) (:func:`static_sky_product`,
+:func:`demodulated_shares`; T^s measured in the pass),
+
 with (b_k, c_k) ~ N(0, noise_scale^2 [[M_k, H_k], [H_k, Q_k]]) the binned white noise and
 binned h n of detector k, drawn jointly per pixel (exact for white noise: b_k = sum w a^T n,
 c_k = sum w a^T h n, var(n) = 1 / w), T^h = 1 for the binned map-maker (the filter's
@@ -50,8 +54,9 @@ Approximated, and measured against the full path (tests/test_map_domain.py,
 benchmarks/map_domain_validation.py): the filter as multipole functions (an
 along-scan filter; good on a large observed sky, poor on a few hours' stripe); white
 noise (the 1/f part is left out: it reaches I, not Q/U, with a HWP); the filter's
-action on h CMB (7-13 % of that part); the seed part of the s^2 term, 2 s_f x + x^2
-(2 % of the s h part: s_f is the dipole and foregrounds, mK, against A_2 = 0.16-3.8 K).
+action on h CMB (7-13 % of that part); for the binned map-maker, the seed part of the
+s^2 term, 2 s_f x + x^2 (2 % of the s h part: s_f is the dipole and foregrounds, mK,
+against A_2 = 0.16-3.8 K; demodulation removes the s h part's sky and keeps it).
 """
 
 from __future__ import annotations
@@ -70,7 +75,7 @@ from ..io import atomic_path
 from ..sky import cmb as sky_cmb
 from ..sky import harmonics
 from ..sky.harmonics import BandLimitedSky
-from .mapmaking import PixelMoments, solve_maps, symmetric_matrices
+from .mapmaking import MATRIX_ENTRIES, PixelMoments, solve_maps, symmetric_matrices
 from .tod_maps import (
     TEMPLATE_TERMS,
     Calibration,
@@ -228,6 +233,12 @@ class FixedMaps:
     # (3, measure_lmax + 1) T^h_ell of the seed's CMB part of the s h term, M^-1 H_k CMB,
     # through a demodulated map-maker [1]; (0,): the binned map-maker's, taken unfiltered
     cmb_h_transfer: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+    # (3, measure_lmax + 1) T^s_ell of the seed's CMB part of the s^2 term through a
+    # demodulated map-maker, against the pixel product of static_sky_product [1]; (0,):
+    # left out (the binned map-maker's: 2 % of its s h part)
+    cmb_s_transfer: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+    # (3, npix) s_f = foreground + dipole binned unfiltered [K_CMB]; (0,) without T^s
+    static_sky: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
 
     def matrices(self, pixels) -> np.ndarray:
         """(n, 3, 3) M of the pixels."""
@@ -336,7 +347,7 @@ def fixed_passes(
         calibration_every_chunks,
         hwpss_noise=carries_systematics,
         noise_realizations=noise_realizations,
-        hwpss_references=carries_systematics and bool(demodulated),
+        template_references=carries_systematics and bool(demodulated),
     )
     equations = accumulate(
         simulator,
@@ -348,6 +359,9 @@ def fixed_passes(
         calibration=calibration,
         extra_binnings=tuple(extras + demodulated),
     )
+    static_sky = None
+    if calibration.static_sky is not None:
+        static_sky = static_sky_map(calibration.static_sky, foreground_iqu_k)
     binned = [(primary, equations, calibration.equations, moments_of[settings.nside])]
     binned += [
         ((e.nside, e.baseline_length_s), e.equations, e.calibration_equations, e.moments)
@@ -387,6 +401,7 @@ def fixed_passes(
             carries_systematics,
             min(measure_lmax, band),
             calibration,
+            static_sky,
         )
         log.info(
             "fixed pass variant nside %d, baselines %s, demodulated: solved",
@@ -397,7 +412,14 @@ def fixed_passes(
 
 
 def _solve_demodulated(
-    simulator, settings, extra, transfer_input, carries_systematics, measure_lmax, calibration
+    simulator,
+    settings,
+    extra,
+    transfer_input,
+    carries_systematics,
+    measure_lmax,
+    calibration,
+    static_sky=None,
 ) -> FixedMaps:
     """FixedMaps of a demodulated map-maker (:class:`tod_maps.ExtraBinning` with
     ``demodulated``): its maps; good where it has samples and the binned solve's M (the
@@ -406,7 +428,10 @@ def _solve_demodulated(
     filtered, demodulated noise maps against the same noise binned unfiltered; with
     systematics T^h_ell, the demodulated h x CMB reference against the binned map-maker's
     M^-1 sum_k H_k CMB (:func:`hwpss_cmb_map`), which the seeds' CMB piece of the s h term
-    is made as."""
+    is made as, and T^s_ell, the demodulated 2 s_f x CMB reference against the pixel
+    product of ``static_sky`` (s_f binned unfiltered at the pass's resolution, UNSEEN
+    where not solved; here degraded to the map-maker's) and the reference
+    (:func:`static_sky_product`), which the seeds' CMB piece of the s^2 term is made as."""
     _, condition, binned_good = solve_maps(extra.matrix_equations, settings.max_condition_number)
     good = binned_good & (extra.equations.hits > 0)
     maps = extra.equations.solve()
@@ -429,11 +454,62 @@ def _solve_demodulated(
         measure_lmax,
         calibration.kinds,
     )
-    if calibration.hwpss_references:
+    if calibration.template_references:
         scanned = len(calibration.references_iqu_k)
         binned = hwpss_cmb_map(fixed, transfer_input)
         fixed.cmb_h_transfer = measure_transfer(solved[scanned], binned, calibrated, measure_lmax)
+        static = hp.ud_grade(static_sky, extra.nside)  # averages the solved sub-pixels
+        fixed.static_sky = np.where(static == hp.UNSEEN, 0.0, static)
+        product = static_sky_product(fixed.static_sky, transfer_input)
+        fixed.cmb_s_transfer = measure_transfer(
+            solved[2 * scanned], product, calibrated, measure_lmax
+        )
     return fixed
+
+
+def static_sky_map(binned, foreground_iqu_k: np.ndarray) -> np.ndarray:
+    """(3, npix) s_f as its pixel products need it [K_CMB]: I the pixel's weighted mean of
+    the TOD s_f = foreground + dipole (``binned``: its NormalEquations, unfiltered; the
+    dipole changes with the orbit), Q and U the foreground map's (the dipole has none; a
+    binned solve's Q, U would carry the intensity's sub-pixel gradients, measured 6x the
+    foreground's at nside 32); UNSEEN where no sample fell."""
+    weight = binned.matrix[MATRIX_ENTRIES.index((0, 0))]
+    seen = binned.hits > 0
+    static = np.array(foreground_iqu_k, dtype=float)
+    static[0] = np.where(seen, binned.rhs[0, 0] / np.where(seen, weight, 1.0), hp.UNSEEN)
+    static[1:, ~seen] = hp.UNSEEN
+    return static
+
+
+def demodulated_shares(fixed: FixedMaps, pixels) -> np.ndarray:
+    """(n_det, 3, n) detector k's share of a demodulated map of a sky signal at the pixels
+    [1]: sum_k w / sum w for I, sum_k w rho^2 / sum w rho^2 for Q and U (the demodulated
+    map-maker's per-pixel averages, :mod:`demodulation`), read from M_k and M (their
+    I-I entry and the trace of their Q/U block)."""
+    ii, qq, uu = (MATRIX_ENTRIES.index(entry) for entry in ((0, 0), (1, 1), (2, 2)))
+    moments = fixed.moments[:, pixels, 0]  # (n_det, n, 6) M_k
+    total = fixed.matrix[:, pixels]  # (6, n) M
+    share_i = moments[..., ii] / total[ii]
+    share_p = (moments[..., qq] + moments[..., uu]) / (total[qq] + total[uu])
+    return np.stack([share_i, share_p, share_p], axis=1)
+
+
+def static_sky_product(static_iqu: np.ndarray, cmb_iqu: np.ndarray) -> np.ndarray:
+    """(3, npix) the map a map-maker makes of 2 s_f x when s_f and x are constant in a
+    pixel and its HWP angles are uniform [K_CMB^2]: with s = I + rho (Q cos 4 chi' + U sin
+    4 chi') (chi' the HWP angle in the sky frame), the product's parts at 0 and 4 chi':
+    I = 2 I_f I_x + rho^2 (Q_f Q_x + U_f U_x), Q = 2 (I_f Q_x + I_x Q_f), U = 2 (I_f U_x
+    + I_x U_f), here with rho^2 = 1 (the measured T^s_ell carries the rest; the 8 chi'
+    part is lost to the binning)."""
+    i_f, q_f, u_f = static_iqu
+    i_x, q_x, u_x = cmb_iqu
+    return np.array(
+        [
+            2.0 * i_f * i_x + q_f * q_x + u_f * u_x,
+            2.0 * (i_f * q_x + i_x * q_f),
+            2.0 * (i_f * u_x + i_x * u_f),
+        ]
+    )
 
 
 def hwpss_cmb_map(fixed: FixedMaps, cmb_iqu: np.ndarray) -> np.ndarray:
@@ -584,6 +660,11 @@ class SeedOperators:
         self.inverse = np.linalg.inv(fixed.matrices(good))  # (n_good, 3, 3) M^-1 [K^2]
         n_det = fixed.moments.shape[0] if fixed.carries_systematics else 0
         self.h_matrices = [fixed.moment(k, 1, good) for k in range(n_det)]  # H_k [K^-2]
+        # (n_det, 3, n_good) the detectors' shares of a demodulated map [1], for the s^2
+        # term's CMB part (if modelled)
+        self.demodulated_shares = (
+            demodulated_shares(fixed, good) if fixed.cmb_s_transfer.size else np.zeros(0)
+        )
         self.filter_lmax = filter_lmax
 
     def solve(self, vectors: np.ndarray) -> np.ndarray:
@@ -620,7 +701,10 @@ def realize_seed(
     cmb_input, the seed's CMB map before the filter (the map of ``cmb_alm``, everywhere),
     and the seed's two pieces of the s h term, ``sh_term_pieces`` {"cmb_h", "noise_h"}:
     (n_det, 3, npix) each, zero off the good pixels (the s h term is the fixed pass's
-    plus these).
+    plus these). Where the fixed pass measured T^s (a demodulated map-maker), "cmb_h"
+    also carries the seed's CMB part of the s^2 term, M^-1 M_k T^s P(s_f, CMB) with P of
+    :func:`static_sky_product`, divided by 2 A_2 (the s h term's coefficient in the
+    template): the template is the same, and its seed part stays in two pieces.
     ``operators``: the :class:`SeedOperators` of (fixed, noise_scale), shared by the seeds
     of a channel (built here, filtering up to ``lmax``, if None). ``full_terms`` False
     leaves out template_terms and templates (the fixed pass's terms plus the pieces: the
@@ -652,6 +736,12 @@ def realize_seed(
             cmb_h = cmb_h[:, good]
         pieces["cmb_h"][k][:, good] = cmb_h
         pieces["noise_h"][k][:, good] = filtered_noise(c[k][:, good], fixed.noise_h_shaping)
+    if operators.demodulated_shares.size and a2_k_cmb:  # the s^2 term's CMB part, in s h units
+        product = static_sky_product(fixed.static_sky, cmb)
+        # T^s up to filter_lmax, the product kept as it is above (as the sky's T_ell)
+        product = shaped_noise_map(product, fixed.cmb_s_transfer, good, operators.filter_lmax)
+        for k, share in enumerate(operators.demodulated_shares):
+            pieces["cmb_h"][k][:, good] += share * product[:, good] / (2.0 * a2_k_cmb)
     maps = {
         "nosys": nosys,
         "cmb_reference": np.where(good, cmb_filtered, hp.UNSEEN),

@@ -117,10 +117,12 @@ class Calibration:
     after the filter, then the same before it. The filter's transfer and noise shaping
     are ratios of binned maps; the noise's is an expectation, which one realization
     measures poorly at low ell (the notch removes particular TOD modes: two realizations
-    differ by 30 % to 3x at ell 2-11), hence several. With ``hwpss_references`` each
-    reference's product h x reference with the unit HWPSS follows the references (the
-    seed's CMB part of the s h term, as a map-maker other than the binned one sees it:
-    :func:`map_domain.fixed_passes` with demodulated variants)."""
+    differ by 30 % to 3x at ell 2-11), hence several. With ``template_references`` the
+    references' parts of the template follow them, as a map-maker other than the binned
+    one sees them (:func:`map_domain.fixed_passes` with demodulated variants): each
+    reference times the unit HWPSS, h x (the seed's CMB in the s h term), then each times
+    twice the pass's own noiseless signal, 2 s_f x (the seed's CMB in the s^2 term); and
+    ``static_sky`` bins s_f unfiltered (the map 2 s_f x is predicted from)."""
 
     nside: int
     references_iqu_k: tuple
@@ -128,7 +130,7 @@ class Calibration:
     every_chunks: int = 1
     hwpss_noise: bool = False
     noise_realizations: int = 1
-    hwpss_references: bool = False
+    template_references: bool = False
 
     def __post_init__(self):
         if self.every_chunks < 1:
@@ -138,12 +140,13 @@ class Calibration:
                 f"calibration noise_realizations = {self.noise_realizations}: expected >= 1"
             )
         self.equations = NormalEquations(self.nside, self.n_reference_tods + 2 * self.n_noise_tods)
+        self.static_sky = NormalEquations(self.nside, 1) if self.template_references else None
 
     @property
     def n_reference_tods(self) -> int:
-        """The reference TODs: each reference scanned alone, then (``hwpss_references``)
-        each times the unit HWPSS."""
-        return len(self.references_iqu_k) * (2 if self.hwpss_references else 1)
+        """The reference TODs: each reference scanned alone, then (``template_references``)
+        each times the unit HWPSS h, then each times 2 s_f."""
+        return len(self.references_iqu_k) * (3 if self.template_references else 1)
 
     @property
     def kinds(self) -> int:
@@ -213,12 +216,15 @@ def filter_offsets(unfiltered, offsets, pointing, simulator, settings) -> dict:
     return filter_both_offsets(unfiltered, pointing, simulator, settings)
 
 
-def calibration_stack(calibration, simulator, settings, pointing, chunk, hwpss, inner, clock):
+def calibration_stack(
+    calibration, simulator, settings, pointing, chunk, hwpss, signal, inner, clock
+):
     """(the chunk's calibration TODs before the filter, (rows, n_det, n) in
     CALIBRATION_DTYPE: each reference map scanned alone, with
-    ``calibration.hwpss_references`` then each times h, then per realization n and, with
-    ``calibration.hwpss_noise``, h n; a copy of the noise TODs' ``inner`` samples, to be
-    binned unfiltered: the stack is filtered in place)."""
+    ``calibration.template_references`` then each times h and each times 2 ``signal``
+    (the pass's s_f), then per realization n and, with ``calibration.hwpss_noise``, h n;
+    a copy of the noise TODs' ``inner`` samples, to be binned unfiltered: the stack is
+    filtered in place)."""
     n_references = calibration.n_reference_tods
     stack = np.empty(
         (n_references + calibration.n_noise_tods, *hwpss.shape), dtype=CALIBRATION_DTYPE
@@ -227,8 +233,9 @@ def calibration_stack(calibration, simulator, settings, pointing, chunk, hwpss, 
         scanned = len(calibration.references_iqu_k)
         for row, reference_iqu_k in enumerate(calibration.references_iqu_k):
             stack[row] = simulator.scan_sky(pointing, reference_iqu_k)
-            if calibration.hwpss_references:  # the reference's part of the s h term
-                np.multiply(stack[row], hwpss, out=stack[scanned + row])
+            if calibration.template_references:  # the reference's parts of the template
+                np.multiply(stack[row], hwpss, out=stack[scanned + row])  # of s h
+                np.multiply(stack[row], 2.0 * signal, out=stack[2 * scanned + row])  # of s^2
     with clock("noise"):
         for realization in range(calibration.noise_realizations):
             row = n_references + realization * calibration.kinds
@@ -361,6 +368,11 @@ def accumulate(
         raise ValueError("accumulate: demodulated maps with extra binnings are not supported")
     if any(e.demodulated for e in extra_binnings) and settings.notch_width_divisor is None:
         raise ValueError("accumulate: a demodulated extra binning needs the notch's margins")
+    if calibration is not None and calibration.template_references and settings.noise_scale:
+        raise ValueError(
+            "accumulate: the calibration's template references take the TOD as s_f, "
+            f"which needs a noiseless pass (noise_scale = {settings.noise_scale})"
+        )
     n_det = simulator.n_detectors
     linear = g1_per_k is None
     n_terms = len(TEMPLATE_TERMS) if linear and template_terms else 0
@@ -434,15 +446,25 @@ def accumulate(
                 np.square(hwpss, out=unfiltered[3])
             elif not linear:
                 tod += np.asarray(g1_per_k)[:, None] * tod**2
-            del tod, signal
+            del tod
         with clock("reference scans"):
             for index, reference_iqu_k in enumerate(references_iqu_k, start=1 + n_terms):
                 simulator.scan_sky(pointing, reference_iqu_k, out=unfiltered[index])
         if calibrating:
             calibration_tods, unfiltered_noise = calibration_stack(
-                calibration, simulator, settings, pointing, chunk, hwpss, inner, clock
+                calibration, simulator, settings, pointing, chunk, hwpss, signal, inner, clock
             )
-        del hwpss
+            if calibration.static_sky is not None:  # s_f as it is, binned
+                with clock("binning"):
+                    calibration.static_sky.add(
+                        pixels_of[settings.nside],
+                        pointing.cos_2alpha[:, inner],
+                        pointing.sin_2alpha[:, inner],
+                        weights,
+                        simulator.pol_efficiency,
+                        [signal[:, inner]],
+                    )
+        del hwpss, signal
         with clock("2f removal + notch"):
             notched_of = filter_offsets(unfiltered, offsets, pointing, simulator, settings)
             notched = notched_of[primary_offset]
@@ -669,7 +691,9 @@ def _bin_demodulated(
 def _nest_to_ring(equations, moments, calibration, extra_binnings) -> None:
     """Reorder every accumulation of :func:`accumulate` from NESTED to RING pixels (each
     pixel's numbers unchanged: the same additions in the same order)."""
-    targets = [equations, moments] + [calibration.equations if calibration else None]
+    targets = [equations, moments]
+    if calibration is not None:
+        targets += [calibration.equations, calibration.static_sky]
     for extra in extra_binnings:
         targets += [extra.equations, extra.moments, extra.calibration_equations]
         targets += [extra.white_equations, extra.matrix_equations]
