@@ -29,8 +29,10 @@ Each seed then costs map operations only:
     cmb_reference    = T CMB_seed
 
 and, for a demodulated map-maker only, the s^2 term of k gets the seed's 2 s_f CMB_seed
-as detector k's share of T^s P(s_f, CMB_seed) (:func:`static_sky_product`,
-:func:`demodulated_shares`; T^s measured in the pass),
+as detector k's share of S^s P(s_f, CMB_seed) (:func:`static_sky_product`,
+:func:`demodulated_shares`; S^s, a shaping as S, measured in the pass: a transfer T^s
+of cross spectra gave 48-76 % of the full path's B power at 30 days, as the filter's
+E-to-B mixing is no transfer; benchmarks/s2_seed_part_validation.py),
 
 with (b_k, c_k) ~ N(0, noise_scale^2 [[M_k, H_k], [H_k, Q_k]]) the binned white noise and
 binned h n of detector k, drawn jointly per pixel (exact for white noise: b_k = sum w a^T n,
@@ -233,11 +235,12 @@ class FixedMaps:
     # (3, measure_lmax + 1) T^h_ell of the seed's CMB part of the s h term, M^-1 H_k CMB,
     # through a demodulated map-maker [1]; (0,): the binned map-maker's, taken unfiltered
     cmb_h_transfer: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
-    # (3, measure_lmax + 1) T^s_ell of the seed's CMB part of the s^2 term through a
-    # demodulated map-maker, against the pixel product of static_sky_product [1]; (0,):
-    # left out (the binned map-maker's: 2 % of its s h part)
-    cmb_s_transfer: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
-    # (3, npix) s_f = foreground + dipole binned unfiltered [K_CMB]; (0,) without T^s
+    # (3, measure_lmax + 1) S^s_ell, the shaping (as noise_shaping) of the seed's CMB
+    # part of the s^2 term by the filter and a demodulated map-maker, from the pixel
+    # product of static_sky_product [1]; (0,): left out (the binned map-maker's: 2 % of
+    # its s h part)
+    cmb_s_shaping: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+    # (3, npix) s_f = foreground + dipole, as static_sky_map makes it [K_CMB]; (0,) without S^s
     static_sky: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
 
     def matrices(self, pixels) -> np.ndarray:
@@ -428,7 +431,7 @@ def _solve_demodulated(
     filtered, demodulated noise maps against the same noise binned unfiltered; with
     systematics T^h_ell, the demodulated h x CMB reference against the binned map-maker's
     M^-1 sum_k H_k CMB (:func:`hwpss_cmb_map`), which the seeds' CMB piece of the s h term
-    is made as, and T^s_ell, the demodulated 2 s_f x CMB reference against the pixel
+    is made as, and S^s_ell, the demodulated 2 s_f x CMB reference's shaping from the pixel
     product of ``static_sky`` (s_f binned unfiltered at the pass's resolution, UNSEEN
     where not solved; here degraded to the map-maker's) and the reference
     (:func:`static_sky_product`), which the seeds' CMB piece of the s^2 term is made as."""
@@ -461,7 +464,7 @@ def _solve_demodulated(
         static = hp.ud_grade(static_sky, extra.nside)  # averages the solved sub-pixels
         fixed.static_sky = np.where(static == hp.UNSEEN, 0.0, static)
         product = static_sky_product(fixed.static_sky, transfer_input)
-        fixed.cmb_s_transfer = measure_transfer(
+        fixed.cmb_s_shaping = measure_noise_shaping(
             solved[2 * scanned], product, calibrated, measure_lmax
         )
     return fixed
@@ -499,7 +502,7 @@ def static_sky_product(static_iqu: np.ndarray, cmb_iqu: np.ndarray) -> np.ndarra
     pixel and its HWP angles are uniform [K_CMB^2]: with s = I + rho (Q cos 4 chi' + U sin
     4 chi') (chi' the HWP angle in the sky frame), the product's parts at 0 and 4 chi':
     I = 2 I_f I_x + rho^2 (Q_f Q_x + U_f U_x), Q = 2 (I_f Q_x + I_x Q_f), U = 2 (I_f U_x
-    + I_x U_f), here with rho^2 = 1 (the measured T^s_ell carries the rest; the 8 chi'
+    + I_x U_f), here with rho^2 = 1 (the measured S^s_ell carries the rest; the 8 chi'
     part is lost to the binning)."""
     i_f, q_f, u_f = static_iqu
     i_x, q_x, u_x = cmb_iqu
@@ -663,7 +666,7 @@ class SeedOperators:
         # (n_det, 3, n_good) the detectors' shares of a demodulated map [1], for the s^2
         # term's CMB part (if modelled)
         self.demodulated_shares = (
-            demodulated_shares(fixed, good) if fixed.cmb_s_transfer.size else np.zeros(0)
+            demodulated_shares(fixed, good) if fixed.cmb_s_shaping.size else np.zeros(0)
         )
         self.filter_lmax = filter_lmax
 
@@ -701,8 +704,9 @@ def realize_seed(
     cmb_input, the seed's CMB map before the filter (the map of ``cmb_alm``, everywhere),
     and the seed's two pieces of the s h term, ``sh_term_pieces`` {"cmb_h", "noise_h"}:
     (n_det, 3, npix) each, zero off the good pixels (the s h term is the fixed pass's
-    plus these). Where the fixed pass measured T^s (a demodulated map-maker), "cmb_h"
-    also carries the seed's CMB part of the s^2 term, M^-1 M_k T^s P(s_f, CMB) with P of
+    plus these). Where the fixed pass measured S^s (a demodulated map-maker), "cmb_h"
+    also carries the seed's CMB part of the s^2 term, detector k's share
+    (:func:`demodulated_shares`) of S^s P(s_f, CMB) with P of
     :func:`static_sky_product`, divided by 2 A_2 (the s h term's coefficient in the
     template): the template is the same, and its seed part stays in two pieces.
     ``operators``: the :class:`SeedOperators` of (fixed, noise_scale), shared by the seeds
@@ -738,8 +742,8 @@ def realize_seed(
         pieces["noise_h"][k][:, good] = filtered_noise(c[k][:, good], fixed.noise_h_shaping)
     if operators.demodulated_shares.size and a2_k_cmb:  # the s^2 term's CMB part, in s h units
         product = static_sky_product(fixed.static_sky, cmb)
-        # T^s up to filter_lmax, the product kept as it is above (as the sky's T_ell)
-        product = shaped_noise_map(product, fixed.cmb_s_transfer, good, operators.filter_lmax)
+        # shaped by S^s up to filter_lmax, kept as it is above (as the noise by S)
+        product = shaped_noise_map(product, fixed.cmb_s_shaping, good, operators.filter_lmax)
         for k, share in enumerate(operators.demodulated_shares):
             pieces["cmb_h"][k][:, good] += share * product[:, good] / (2.0 * a2_k_cmb)
     maps = {
