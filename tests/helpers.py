@@ -99,3 +99,50 @@ def gain_sidebands(
     )
     g = scipy.fft.irfft(modes, n=n)
     return amplitude_k * g * np.cos(2 * np.pi * carrier_hz * np.arange(n) / rate_hz)
+
+
+def qu_rms(maps, good) -> float:
+    """The rms of a (3, npix) map's Q and U over the pixels ``good``."""
+    import numpy as np
+
+    return float(np.sqrt(np.mean(maps[1:, good] ** 2)))
+
+
+def sh_noise_ratio(full, noisy, noiseless, noise_scale, seeds, detector, good) -> float:
+    """The s h term's noise of ``detector`` (its noisy minus noiseless term, Q/U rms,
+    mean over ``seeds``), map domain over full path: ``full`` {(seed, noise scale): the
+    full path's maps}, ``noisy``, ``noiseless`` {seed: the map domain's maps}."""
+    import numpy as np
+
+    def noise(maps, quiet):
+        return qu_rms(
+            maps["template_terms"][1, detector] - quiet["template_terms"][1, detector], good
+        )
+
+    simulated = np.mean([noise(full[s, noise_scale], full[s, 0.0]) for s in seeds])
+    drawn = np.mean([noise(noisy[s], noiseless[s]) for s in seeds])
+    return drawn / simulated
+
+
+def map_noise_band_ratios(full, noisy, fixed, noise_scale, seeds, lmax, bands):
+    """(n_bands, 2) the map's E and B noise power per multipole band (nosys minus the CMB
+    reference and the fixed pass's nosys, on the fixed pass's good pixels, mean over
+    ``seeds``), map domain (``noisy`` {seed: maps}) over full path (``full``)."""
+    import healpy as hp
+    import numpy as np
+
+    good = fixed.good
+
+    def spectrum(nosys, cmb_reference):
+        noise = np.where(good, nosys - cmb_reference - fixed.nosys, 0.0)
+        return hp.anafast(noise, lmax=lmax)[1:3]
+
+    simulated = np.mean(
+        [
+            spectrum(full[s, noise_scale]["nosys"], full[s, noise_scale]["references"][0])
+            for s in seeds
+        ],
+        axis=0,
+    )
+    drawn = np.mean([spectrum(noisy[s]["nosys"], noisy[s]["cmb_reference"]) for s in seeds], axis=0)
+    return np.array([drawn[:, a:b].sum(axis=1) / simulated[:, a:b].sum(axis=1) for a, b in bands])

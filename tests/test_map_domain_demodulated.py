@@ -13,7 +13,14 @@ import dataclasses
 import healpy as hp
 import numpy as np
 import pytest
-from helpers import m1_140_a2_k, m1_140_pair, pipeline_settings
+from helpers import (
+    m1_140_a2_k,
+    m1_140_pair,
+    map_noise_band_ratios,
+    pipeline_settings,
+    qu_rms,
+    sh_noise_ratio,
+)
 
 from hwp_tes_systematics import seeding, sky
 from hwp_tes_systematics.instrument.channels import load_channel
@@ -93,10 +100,6 @@ def fast(fixed, seed, noise_scale):
     )
 
 
-def rms(maps, good):
-    return float(np.sqrt(np.mean(maps[1:, good] ** 2)))
-
-
 def test_demodulated_fixed_pass_is_the_full_path_without_cmb_and_noise(setup):
     """Linearity: the noiseless full path minus its CMB reference is the fixed nosys map
     (measured to 1.4e-17 K of 7.6e-4 K)."""
@@ -125,8 +128,8 @@ def test_demodulation_removes_the_cmb_part_of_the_sh_term_as_measured(setup):
             simulated = full[seed, 0.0]["template_terms"][1, k] - fixed.template_terms[1, k]
             predicted = fast(s_h_only, seed, 0.0)["sh_term_pieces"]["cmb_h"][k]
             unfiltered = fast(binned, seed, 0.0)["sh_term_pieces"]["cmb_h"][k]
-            assert rms(simulated, good) < 1e-4 * rms(unfiltered, good), (seed, k)
-            assert rms(predicted, good) < 1e-4 * rms(unfiltered, good), (seed, k)
+            assert qu_rms(simulated, good) < 1e-4 * qu_rms(unfiltered, good), (seed, k)
+            assert qu_rms(predicted, good) < 1e-4 * qu_rms(unfiltered, good), (seed, k)
 
 
 def test_seed_part_of_the_template_matches_the_full_path(setup):
@@ -168,49 +171,14 @@ def test_noise_of_demodulated_template_and_map_match_the_full_path(setup):
     spectra within 25 % per multipole band (measured -13 % to +17 %; S from one reference
     realization, whose own scatter at ell 2-11 is 30 % to 3x)."""
     fixed, full = setup
-    good = fixed.good
     noiseless = {s: fast(fixed, s, 0.0) for s in SEEDS}
     noisy = {s: fast(fixed, s, NOISE_SCALE) for s in SEEDS}
     for k in range(2):
-        simulated = np.mean(
-            [
-                rms(
-                    full[s, NOISE_SCALE]["template_terms"][1, k]
-                    - full[s, 0.0]["template_terms"][1, k],
-                    good,
-                )
-                for s in SEEDS
-            ]
-        )
-        drawn = np.mean(
-            [
-                rms(noisy[s]["template_terms"][1, k] - noiseless[s]["template_terms"][1, k], good)
-                for s in SEEDS
-            ]
-        )
-        print(f"s h term noise of detector {k}, drawn over simulated: {drawn / simulated:.3f}")
-        assert abs(drawn / simulated - 1) < 0.15, (k, drawn / simulated)
-
-    def noise_spectrum(nosys, cmb_reference):
-        noise = np.where(good, nosys - cmb_reference - fixed.nosys, 0.0)
-        return hp.anafast(noise, lmax=LMAX)[1:3] / good.mean()
-
-    simulated = np.mean(
-        [
-            noise_spectrum(full[s, NOISE_SCALE]["nosys"], full[s, NOISE_SCALE]["references"][0])
-            for s in SEEDS
-        ],
-        axis=0,
-    )
-    drawn = np.mean(
-        [noise_spectrum(noisy[s]["nosys"], noisy[s]["cmb_reference"]) for s in SEEDS], axis=0
-    )
-    ratios = np.array(
-        [
-            drawn[:, first:last].sum(axis=1) / simulated[:, first:last].sum(axis=1)
-            for first, last in ((2, 24), (24, 48), (48, 96))
-        ]
-    )
+        ratio = sh_noise_ratio(full, noisy, noiseless, NOISE_SCALE, SEEDS, k, fixed.good)
+        print(f"s h term noise of detector {k}, drawn over simulated: {ratio:.3f}")
+        assert abs(ratio - 1) < 0.15, (k, ratio)
+    bands = ((2, 24), (24, 48), (48, 96))
+    ratios = map_noise_band_ratios(full, noisy, fixed, NOISE_SCALE, SEEDS, LMAX, bands)
     print("E/B noise, drawn over simulated, per band:", ratios.round(3).tolist())
     assert np.all(np.abs(ratios - 1) < 0.25), ratios
 
