@@ -50,6 +50,28 @@ def pair_setup(
     return simulator, settings, sky_map
 
 
+def fixed_pass_setup(channel_name, days, nside, rate_hz, a2_k_cmb, baseline_length_s, seed=1):
+    """(simulator, settings) of a map-domain fixed pass of ``days`` of one pair at
+    ``rate_hz``, the sky scanned at ``nside``, with config/config.yaml's notch (width
+    4 f_HWP / 100, 1200 s margins) and condition limit; master seed ``seed``."""
+    from hwp_tes_systematics.simulation.map_domain import NOISE_REFERENCE_SEED
+
+    channel = load_channel(channel_name)
+    plan = MissionPlan(START_TDB, days * 86400.0, 86400.0, rate_hz)
+    settings = PairMapSettings(
+        master_seed=seed,
+        seed=NOISE_REFERENCE_SEED,
+        nside=nside,
+        plan=plan,
+        a2_k_cmb=a2_k_cmb,
+        notch_width_divisor=100.0,
+        notch_margin_s=1200.0,
+        max_condition_number=100.0,
+        baseline_length_s=baseline_length_s,
+    )
+    return PairSimulator(channel, plan, nside, noise_model="keshner"), settings
+
+
 def warm_up(channel_name, nside, threads, noise_model):
     """Compile the numba kernels and load litebird_sim's caches on a 10-minute run."""
     simulator, settings, sky_map = pair_setup(channel_name, 600.0, nside, threads, noise_model)

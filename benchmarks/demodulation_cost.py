@@ -20,11 +20,10 @@ import time
 
 import healpy as hp
 import numpy as np
+from common import A2_K_CMB, fixed_pass_setup
 
 from hwp_tes_systematics.instrument.channels import load_channel
 from hwp_tes_systematics.simulation import map_domain
-from hwp_tes_systematics.simulation.tod import MissionPlan, PairSimulator
-from hwp_tes_systematics.simulation.tod_maps import PairMapSettings
 
 
 def main() -> None:
@@ -37,20 +36,10 @@ def main() -> None:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     logging.getLogger("hwp_tes_systematics.simulation.map_domain").setLevel(logging.WARNING)
     channel = load_channel(arguments.channel)
-    plan = MissionPlan("2032-04-01T00:00:00", arguments.days * 86400.0, 86400.0, arguments.rate)
     scan_nside = arguments.nsides[0]
-    settings = PairMapSettings(
-        master_seed=1,
-        seed=map_domain.NOISE_REFERENCE_SEED,
-        nside=scan_nside,
-        plan=plan,
-        a2_k_cmb=0.264,
-        notch_width_divisor=100.0,
-        notch_margin_s=1200.0,
-        max_condition_number=100.0,
-        baseline_length_s=None,
+    simulator, settings = fixed_pass_setup(
+        arguments.channel, arguments.days, scan_nside, arguments.rate, A2_K_CMB, None
     )
-    simulator = PairSimulator(channel, plan, scan_nside, noise_model="keshner")
     lmax = 3 * scan_nside - 1
     foreground = np.zeros((3, hp.nside2npix(scan_nside)))
     transfer_alm = map_domain.transfer_cmb_alm(lmax, 0.0, 1, channel.fwhm_arcmin)

@@ -27,6 +27,7 @@ import time
 
 import healpy as hp
 import numpy as np
+from common import A2_K_CMB, fixed_pass_setup
 
 from hwp_tes_systematics.analysis.ilc_residuals import (
     ChannelAlms,
@@ -37,8 +38,6 @@ from hwp_tes_systematics.config import deep_merge, default_config_path, load_con
 from hwp_tes_systematics.instrument.channels import load_channel
 from hwp_tes_systematics.simulation import map_domain
 from hwp_tes_systematics.simulation.mapmaking import MATRIX_ENTRIES
-from hwp_tes_systematics.simulation.tod import MissionPlan, PairSimulator
-from hwp_tes_systematics.simulation.tod_maps import PairMapSettings
 
 CHANNELS = {"M1-140": (True, 10), "L1-040": (False, 12)}  # (systematics, channels like it)
 YEAR_DAYS = 365.25
@@ -63,19 +62,8 @@ def measure(
     ``demodulated``: each also demodulated (simulation.fixed_pass_demodulated);
     ``band_limited``: the sky scanned from its a_lm (simulation.sky_scanning)."""
     channel = load_channel(name)
-    plan = MissionPlan("2032-04-01T00:00:00", days * 86400.0, 86400.0, rate_hz)
-    settings = PairMapSettings(
-        master_seed=1,
-        seed=map_domain.NOISE_REFERENCE_SEED,
-        nside=nside,
-        plan=plan,
-        a2_k_cmb=0.264 if carries_systematics else 0.0,
-        notch_width_divisor=100.0,
-        notch_margin_s=1200.0,
-        max_condition_number=100.0,
-        baseline_length_s=60.0,
-    )
-    simulator = PairSimulator(channel, plan, nside, noise_model="keshner")
+    a2_k_cmb = A2_K_CMB if carries_systematics else 0.0
+    simulator, settings = fixed_pass_setup(name, days, nside, rate_hz, a2_k_cmb, 60.0)
     foreground = np.zeros((3, hp.nside2npix(nside)))
     lmax = 3 * nside - 1
     alm = map_domain.transfer_cmb_alm(lmax, 0.0, 1, channel.fwhm_arcmin)

@@ -28,15 +28,14 @@ from pathlib import Path
 
 import healpy as hp
 import numpy as np
+from common import fixed_pass_setup
 
 from hwp_tes_systematics import sky
 from hwp_tes_systematics.diagnose.testbed import nominal
 from hwp_tes_systematics.instrument.channels import load_channel
 from hwp_tes_systematics.simulation import map_domain
 from hwp_tes_systematics.simulation.demodulation import DemodulatedEquations
-from hwp_tes_systematics.simulation.tod import MissionPlan, PairSimulator
 from hwp_tes_systematics.simulation.tod_maps import (
-    PairMapSettings,
     accumulate,
     split_solved_maps,
     templates_from_terms,
@@ -69,19 +68,10 @@ def main(argv=None) -> None:
     started = time.perf_counter()
     nside, lmax = args.nside, 3 * args.nside - 1
     channel = load_channel(args.channel)
-    plan = MissionPlan("2032-04-01T00:00:00", args.days * 86400.0, 86400.0, args.rate_hz)
-    simulator = PairSimulator(channel, plan, nside, noise_model="keshner")
     a2_k_cmb = nominal(args.channel)["a2_k"]
-    settings = PairMapSettings(
-        master_seed=MASTER_SEED,
-        seed=map_domain.NOISE_REFERENCE_SEED,
-        nside=nside,
-        plan=plan,
-        a2_k_cmb=a2_k_cmb,
-        notch_width_divisor=100.0,  # the paper's notch (config/config.yaml)
-        notch_margin_s=1200.0,
-        max_condition_number=100.0,
-        baseline_length_s=None,  # config/resolution_study_demodulated.yaml
+    # no baselines, as config/resolution_study_demodulated.yaml
+    simulator, settings = fixed_pass_setup(
+        args.channel, args.days, nside, args.rate_hz, a2_k_cmb, None, seed=MASTER_SEED
     )
     foreground = sky.read_sky_map(args.foreground)
     if hp.npix2nside(foreground.shape[-1]) != nside:  # band-limited to the map's band
