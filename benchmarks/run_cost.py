@@ -33,11 +33,10 @@ SEED_SCALED = {"component_separation", "residual_spectra", "likelihood", "map_do
 SEED_SCALED |= {"pair_maps"}
 
 
-def benchmark_figures(run: Path) -> tuple[dict[str, float], dict[str, float]]:
-    """({rule: largest max_rss over its jobs [GB]}, {rule: summed cpu_time [h]}) from
-    results/benchmarks (a job's file holds one row per run of it: the last is kept)."""
+def benchmark_figures(root: Path) -> tuple[dict[str, float], dict[str, float]]:
+    """({rule: largest max_rss over its jobs [GB]}, {rule: summed cpu_time [h]}) from a
+    run's benchmark folder (a job's file holds one row per run of it: the last is kept)."""
     peaks, cpu_h = {}, collections.defaultdict(float)
-    root = run / "results" / "benchmarks"
     for path in root.rglob("*.tsv"):
         rule = path.parent.name if path.parent != root else path.stem
         last = pd.read_csv(path, sep="\t").iloc[-1]
@@ -57,6 +56,12 @@ def main() -> None:
     parser.add_argument(
         "--log", type=Path, nargs="+", help="Snakemake log(s), one per part (default: the latest)"
     )
+    parser.add_argument(
+        "--benchmarks",
+        type=Path,
+        help="the benchmark files (default: the run's results/benchmarks; a copy, when a "
+        "later run in the same folder rewrote them)",
+    )
     parser.add_argument("--cores", type=int, default=2)
     parser.add_argument("--wall-hours", type=float, help="target: wall time of the run")
     parser.add_argument("--job-memory-gb", type=float, help="target: peak memory of any job")
@@ -71,7 +76,9 @@ def main() -> None:
     per_rule = collections.defaultdict(list)
     for job in jobs:
         per_rule[job["rule"]].append((job["end"] - job["start"], job["threads"]))
-    peaks, cpu_h = benchmark_figures(arguments.run)
+    peaks, cpu_h = benchmark_figures(
+        arguments.benchmarks or arguments.run / "results" / "benchmarks"
+    )
     seeds = arguments.seeds or len(per_rule.get("component_separation", [])) or 1
     names = ", ".join(log.name for log in logs)
     print(f"run {arguments.run} (log {names}), {len(jobs)} jobs, {seeds} seeds")
