@@ -124,6 +124,15 @@ def test_fraction_point_shift_is_the_likelihoods_own(base):
     assert np.all(np.diff(shift) > 0)
 
 
+def test_fraction_point_shift_stops_where_no_grid_holds_the_pair(base):
+    """A shift of ~1e9 Fisher widths fits no grid: that sigma and the larger ones are
+    NaN, the smaller ones computed (the paper's model without transfer, no baselines)."""
+    c_sys = 2e-3 * base.c_gw_r1 * (base.ell / 50.0)
+    shift = lk.fraction_point_shift(base.n_ell, c_sys, base, [0.1, 1e6, 1e7])
+    assert np.isfinite(shift[0]) and shift[0] > 0
+    assert np.all(np.isnan(shift[1:]))
+
+
 def test_fraction_point_shift_is_quadratic_at_small_sigma_and_beyond_the_fisher_shift(base):
     """Near r = 0 the 68 % point moves more than the peak (the likelihood is one-sided):
     quadratic in sigma at small sigma, with a ratio to the Fisher shift above 1."""

@@ -644,7 +644,10 @@ def fraction_point_shift(
     cancels in the difference. Found numerically through eq. (1): the quadratic law at
     small sigma is a check, not an assumption. ``stop_above``: once a shift exceeds it,
     the larger sigmas are not computed (NaN): far beyond the budget the likelihood would
-    need ever finer and wider grids for nothing."""
+    need ever finer and wider grids for nothing. A sigma whose pair no grid of
+    :func:`adaptive_r_grid` can hold (a shift of many thousand Fisher widths: the paper's
+    model without the notch's transfer, where sigma_r is ~1e-4) ends the scan the same
+    way, with a warning."""
     sigmas = np.asarray(sigmas, dtype=float)
     if np.any(np.diff(sigmas) <= 0):
         raise ValueError("sigmas: expected ascending values")
@@ -652,9 +655,13 @@ def fraction_point_shift(
     c_sys_unit = _as_spectrum("c_sys_unit", c_sys_unit, model.ell.size)
     shifts = np.full(sigmas.size, np.nan)
     for index, sigma in enumerate(sigmas):
-        nosys, contaminated = fit_r_common_grid(
-            [c_res_nosys, c_res_nosys + sigma**2 * c_sys_unit], model, fraction=fraction
-        )
+        try:
+            nosys, contaminated = fit_r_common_grid(
+                [c_res_nosys, c_res_nosys + sigma**2 * c_sys_unit], model, fraction=fraction
+            )
+        except ValueError as error:
+            log.warning("fraction_point_shift: stopped at sigma = %.3g (NaN on): %s", sigma, error)
+            break
         shifts[index] = contaminated.r_fraction - nosys.r_fraction
         if stop_above is not None and shifts[index] > stop_above:
             break
