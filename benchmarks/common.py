@@ -19,6 +19,22 @@ START_TDB = "2032-04-01T00:00:00"
 A2_K_CMB = 0.264  # M1-140 HWPSS amplitude of the default config (results/inputs/kw_conversion.csv)
 
 
+def paper_settings(plan, nside, a2_k_cmb, **changes) -> PairMapSettings:
+    """PairMapSettings with config/config.yaml's notch (width 4 f_HWP / 100, 1200 s
+    margins) and condition limit, master seed MASTER_SEED, seed SEED; ``changes`` override."""
+    values = {
+        "master_seed": MASTER_SEED,
+        "seed": SEED,
+        "nside": nside,
+        "plan": plan,
+        "a2_k_cmb": a2_k_cmb,
+        "notch_width_divisor": 100.0,
+        "notch_margin_s": 1200.0,
+        "max_condition_number": 100.0,
+    }
+    return PairMapSettings(**(values | changes))
+
+
 def pair_setup(
     channel_name="M1-140",
     duration_s=86400.0,
@@ -33,18 +49,7 @@ def pair_setup(
     use_threads(threads)
     channel = load_channel(channel_name)
     plan = MissionPlan(START_TDB, duration_s, min(chunk_s, duration_s), channel.sampling_rate_hz)
-    settings = PairMapSettings(
-        master_seed=MASTER_SEED,
-        seed=SEED,
-        nside=nside,
-        plan=plan,
-        a2_k_cmb=A2_K_CMB,
-        notch_width_divisor=100.0,
-        notch_margin_s=1200.0,
-        max_condition_number=100.0,
-        noise_scale=noise_scale,
-        threads=threads,
-    )
+    settings = paper_settings(plan, nside, A2_K_CMB, noise_scale=noise_scale, threads=threads)
     simulator = PairSimulator(channel, plan, nside, threads=threads, noise_model=noise_model)
     sky_map = sky.cmb_map(nside, 3 * nside - 1, 0.0, MASTER_SEED, SEED, channel.fwhm_arcmin)
     return simulator, settings, sky_map
@@ -52,21 +57,18 @@ def pair_setup(
 
 def fixed_pass_setup(channel_name, days, nside, rate_hz, a2_k_cmb, baseline_length_s, seed=1):
     """(simulator, settings) of a map-domain fixed pass of ``days`` of one pair at
-    ``rate_hz``, the sky scanned at ``nside``, with config/config.yaml's notch (width
-    4 f_HWP / 100, 1200 s margins) and condition limit; master seed ``seed``."""
+    ``rate_hz``, the sky scanned at ``nside`` (:func:`paper_settings`, master seed
+    ``seed``)."""
     from hwp_tes_systematics.simulation.map_domain import NOISE_REFERENCE_SEED
 
     channel = load_channel(channel_name)
     plan = MissionPlan(START_TDB, days * 86400.0, 86400.0, rate_hz)
-    settings = PairMapSettings(
+    settings = paper_settings(
+        plan,
+        nside,
+        a2_k_cmb,
         master_seed=seed,
         seed=NOISE_REFERENCE_SEED,
-        nside=nside,
-        plan=plan,
-        a2_k_cmb=a2_k_cmb,
-        notch_width_divisor=100.0,
-        notch_margin_s=1200.0,
-        max_condition_number=100.0,
         baseline_length_s=baseline_length_s,
     )
     return PairSimulator(channel, plan, nside, noise_model="keshner"), settings
