@@ -422,7 +422,7 @@ def _solve_demodulated(
     carries_systematics,
     measure_lmax,
     calibration,
-    static_sky=None,
+    static_sky,
 ) -> FixedMaps:
     """FixedMaps of a demodulated map-maker (:class:`tod_maps.ExtraBinning` with
     ``demodulated``): its maps; good where it has samples and the binned solve's M (the
@@ -432,8 +432,8 @@ def _solve_demodulated(
     systematics T^h_ell, the demodulated h x CMB reference against the binned map-maker's
     M^-1 sum_k H_k CMB (:func:`hwpss_cmb_map`), which the seeds' CMB piece of the s h term
     is made as, and S^s_ell, the demodulated 2 s_f x CMB reference's shaping from the pixel
-    product of ``static_sky`` (s_f binned unfiltered at the pass's resolution, UNSEEN
-    where not solved; here degraded to the map-maker's) and the reference
+    product of ``static_sky`` (:func:`static_sky_map` at the pass's resolution, None
+    without template references; here degraded to the map-maker's) and the reference
     (:func:`static_sky_product`), which the seeds' CMB piece of the s^2 term is made as."""
     _, condition, binned_good = solve_maps(extra.matrix_equations, settings.max_condition_number)
     good = binned_good & (extra.equations.hits > 0)
