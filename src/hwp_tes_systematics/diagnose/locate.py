@@ -20,7 +20,9 @@ and precession terms only when resolved, >= 2 frequency bins) within 3 bins
 combination's frequency ("offset_hz" is how far the periodogram peak was). The
 dipole sits at f_spin and its precession sidebands, so "2 f_HWP +- f_spin" are the
 HWPSS x dipole intermodulation lines. Excess bands: the mean of |R_f|^2 / S_nom,f over
-logarithmic bands (line bins excluded) against 1 +- 1/sqrt(m).
+logarithmic bands (line bins excluded); for noise it is the mean of m unit exponentials,
+Gamma(m, 1/m), whose tail (not the Gaussian 1 +- 1/sqrt(m), which at m ~ 20 calls a
+4 sigma excess 5 sigma) gives the band's probability, corrected for the bands tested.
 
 HWP angle (:func:`hwp_profile`). Residual averaged in 64 bins of chi (per detector),
 and the amplitudes of n = 1..8 harmonics A_n cos(n chi - phi_n) by least squares on
@@ -48,6 +50,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 import scipy.fft
 import scipy.signal
+import scipy.special
 import scipy.stats
 
 from .effects.glitches import GlitchEvent, find_transients
@@ -278,7 +281,11 @@ def excess_bands(
     per_decade: int = 3,
     min_sigma: float = 5.0,
 ) -> list[dict]:
-    """Bands where the residual power exceeds the configured noise: mean |R|^2/S_nom vs 1."""
+    """Bands where the residual power exceeds the noise S_nom: the mean ratio
+    x = mean |R_f|^2 / S_nom,f over a band's m modes is Gamma(m, 1/m) for noise, so the
+    band's tail probability is p = Q(m, m x) (regularised upper incomplete gamma);
+    ``significance_sigma`` is the look-elsewhere corrected one, p x the bands tested
+    (``local_significance_sigma`` without), and a band is kept above ``min_sigma``."""
     ratio = (residual_f.real**2 + residual_f.imag**2) / np.maximum(s_nom, 1e-300)
     positive = freqs[use]
     if positive.size == 0:
@@ -288,14 +295,17 @@ def excess_bands(
         np.log10(positive.max()) + 1e-9,
         max(2, int(per_decade * np.log10(positive.max() / positive.min())) + 2),
     )
-    out = []
+    tested = []  # (lo, hi, modes, mean ratio, tail probability)
     for lo, hi in itertools.pairwise(edges):
         band = use & (freqs >= lo) & (freqs < hi)
         m = int(band.sum())
         if m < 10:
             continue
         mean = float(ratio[band].mean())
-        significance = (mean - 1.0) * math.sqrt(m)
+        tested.append((lo, hi, m, mean, float(scipy.special.gammaincc(m, m * mean))))
+    out = []
+    for lo, hi, m, mean, p in tested:
+        significance = p_to_sigma(min(1.0, len(tested) * p))
         if significance > min_sigma:
             out.append(
                 {
@@ -304,6 +314,7 @@ def excess_bands(
                     "f_hi_hz": float(hi),
                     "power_ratio": mean,
                     "significance_sigma": significance,
+                    "local_significance_sigma": p_to_sigma(p),
                     "n_modes": m,
                 }
             )

@@ -11,7 +11,8 @@ After the nominal adjustments and the selected effects, the residual r' = record
   TOLERATED as the small unknown sky residual (a nominal adjustment) when its amplitude is
   below ``SKY_TOLERANCE`` (10 %) of the nominal sky + dipole signal at that frequency;
 * bands of excess broadband power (mean |R_f|^2 / S_f over logarithmic bands, line bins
-  excluded) above 5 sigma;
+  excluded) above 5 sigma, from its Gamma tail with the look-elsewhere correction over
+  the bands tested (:func:`.locate.excess_bands`);
 * time segments (24 equal ones) whose whitened residual variance exceeds the noise by
   more than 5 sigma (chi^2 per segment against 2 m real dof, the variance the median
   segment's): a stretch where something happened that no effect models;
