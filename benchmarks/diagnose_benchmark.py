@@ -218,6 +218,7 @@ def _one(support, effects, seed, settings, folder, with_errors=False):
         hours=settings.hours,
         name=f"r{seed}.h5",
         channel=settings.channel,
+        a2_k=support.A2_K,  # M1-140's A_2 on any --channel, the diagnosis told the same
     )
     result = diagnose(recording, support.supplied_sky(errors), support.A2_K, figures=False)
     names = [e["name"] for e in result["effects"]] or ["-"]

@@ -150,7 +150,9 @@ def test_4f_line_out_of_phase_with_a_nonlinearity_is_a_harmonic(tmp_path):
     other half was left unexplained."""
     errors = nominal_errors(np.random.default_rng(505))
     line = ("hwpss_harmonics", {"c4": 15e-6, "s4": 15e-6})
-    recording, _ = recorded_with_errors(tmp_path, [line], 10_505, errors, channel="L1-040")
+    recording, _ = recorded_with_errors(
+        tmp_path, [line], 10_505, errors, channel="L1-040", a2_k=A2_K
+    )
     result = run_with(recording, errors)
     assert result.effect_names == ["hwpss_harmonics"], result.effect_names
     assert result["effects"][0]["members"] == ["hwpss_harmonic_4"]
@@ -309,3 +311,18 @@ def test_common_mode_gain_drift_is_told_by_the_dipole(tmp_path):
     top = result["effects"][0]
     assert within(top["parameters"]["g1[common]"], 1e-2)
     assert any("swapped" in step["note"] for step in result["steps"]), result["steps"]
+
+
+def test_recordings_of_another_channel_carry_its_own_hwpss(tmp_path):
+    """An H3-402 recording holds H3-402's A_2 (3.8 K, 14 times M1-140's) times 1 + the
+    error drawn: the rates benchmark diagnoses it against that channel's nominal A_2."""
+    from hwp_tes_systematics.diagnose.testbed import nominal
+
+    errors = nominal_errors(np.random.default_rng(402))
+    recording, _ = recorded_with_errors(tmp_path, [], 4020, errors, hours=0.1, channel="H3-402")
+    chi = recording.hwp_angle_rad
+    design = np.stack([np.ones_like(chi), np.cos(2 * chi), np.sin(2 * chi)], axis=1)
+    for k in range(2):
+        _, c2, s2 = np.linalg.lstsq(design, recording.tod[k], rcond=None)[0]
+        true = nominal("H3-402")["a2_k"] * (1 + errors["a2_relative"][k]) * (1 + errors["gain"][k])
+        assert abs(math.hypot(c2, s2) / true - 1) < 0.01, (math.hypot(c2, s2), true)

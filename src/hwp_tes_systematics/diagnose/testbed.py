@@ -90,12 +90,13 @@ def nominal_errors(rng: np.random.Generator, n_det: int = 2, scale: float = 1.0)
     }
 
 
-def error_effects(errors: dict, detectors: list[dict]) -> list:
-    """The nominal errors as injected effects: 2f amplitude/phase, gain, noise level."""
-    a2_true = A2_K * (1.0 + errors["a2_relative"])
+def error_effects(errors: dict, detectors: list[dict], a2_k: float = A2_K) -> list:
+    """The nominal errors as injected effects: 2f amplitude/phase about the nominal
+    ``a2_k`` [K], gain, noise level."""
+    a2_true = a2_k * (1.0 + errors["a2_relative"])
     phase = np.radians(errors["phase_deg"])
     # A_2 cos x + c2 cos x + s2 sin x = A_2 (1 + e) cos(x - phase)
-    c2 = a2_true * np.cos(phase) - A2_K
+    c2 = a2_true * np.cos(phase) - a2_k
     s2 = a2_true * np.sin(phase)
     net = [d["net_ukrts"] * f for d, f in zip(detectors, errors["net_factor"], strict=True)]
     fknee = [d["fknee_mhz"] * f for d, f in zip(detectors, errors["fknee_factor"], strict=True)]
@@ -112,14 +113,14 @@ def supplied_sky(errors: dict) -> np.ndarray:
     return errors["sky_scale"] * sky_map() + errors["sky_residual"] * other
 
 
-def _on_true_hwpss(name: str, params: dict, a2_true: np.ndarray, errors: dict):
+def _on_true_hwpss(name: str, params: dict, a2_true: np.ndarray, errors: dict, a2_k: float):
     """An effect of the HWPSS acts on the recording's TRUE HWPSS: a modulation modulates
     it; a drift of the HWP temperature is a relative drift of its emission, so c_j in K
-    (given for the nominal A_2) scales with each detector's true A_2."""
+    (given for the nominal A_2, ``a2_k``) scales with each detector's true A_2."""
     if name == "hwpss_sine_modulation":
         return name, dict(params, a2_k=a2_true, hwpss_phase_rad=np.radians(errors["phase_deg"]))
     if name == "hwp_temperature_drift":
-        relative = a2_true / A2_K
+        relative = a2_true / a2_k
         return name, {p: np.asarray(v, dtype=float) * relative for p, v in params.items()}
     return name, params
 
@@ -132,28 +133,33 @@ def recorded_with_errors(
     hours: float = 2.0,
     name: str = "rec.h5",
     channel: str = CHANNEL,
+    a2_k: float | None = None,
 ):
     """Like :func:`recorded`, with the nominal ``errors`` in the recording (not in the model).
 
-    The recording is simulated with the true A_2, phase, gain, noise and polarisation
-    angles; the file carries the nominal polarisation angles and the detector offsets.
+    The recording is simulated with the true A_2 (the nominal ``a2_k`` [K_CMB], default
+    the channel's, :func:`nominal`, times 1 + the error), phase, gain, noise and
+    polarisation angles; the file carries the nominal polarisation angles and the
+    detector offsets. Diagnose it against the same nominal ``a2_k``.
     """
     from .simulate import _simulated_base
 
+    a2_k = nominal(channel)["a2_k"] if a2_k is None else float(a2_k)
+
     simulator = _simulated_base(channel, float(hours), "2032-04-01T00:00:00", NSIDE)[0]
     detectors = [{"net_ukrts": d.net_ukrts, "fknee_mhz": d.fknee_mhz} for d in simulator.detectors]
-    a2_true = A2_K * (1.0 + errors["a2_relative"])
-    effects = [_on_true_hwpss(name, params, a2_true, errors) for name, params in effects]
+    a2_true = a2_k * (1.0 + errors["a2_relative"])
+    effects = [_on_true_hwpss(name, params, a2_true, errors, a2_k) for name, params in effects]
     # the optical signal first (the true 2f HWPSS, then the effects), the detector's gain
     # error on all of it, then the noise
-    a2_error, gain_error, noise_error = error_effects(errors, detectors)
+    a2_error, gain_error, noise_error = error_effects(errors, detectors, a2_k)
     recording = simulate_recording(
         channel,
         hours,
         MASTER_SEED,
         noise_seed,
         sky_map(),
-        A2_K,
+        a2_k,
         [a2_error, *effects, gain_error, noise_error],
         pol_angle_offsets_rad=np.radians(errors["pol_angle_deg"]),
     )
