@@ -97,15 +97,17 @@ def fixed_pass_mem_mb(wildcards, attempt):
     calibration maps (12 doubles per pixel); 2 GB of interpreter and libraries. The
     nside-512 run (passes at 22704d5, two realizations, one map-maker) peaked at 5.3-5.9
     GB per MFT/HFT pass against 6.3 GB asked. A demodulating map-maker adds its three
-    streams of every TOD in flight (~30 doubles per detector-sample) and ~1.5 times a
-    binned one's accumulations (an estimate, not yet measured at one year)."""
+    streams of every TOD in flight (~30 doubles per detector-sample) and ~0.6 times a
+    binned one's accumulations: the one-year demodulated pass at nside 512-64
+    (H1-280, session 27) peaked at 8.0 GB against 8.9 GB asked (11.2 GB with the
+    factor 2.5 estimated before, which let one such pass run at a time on 20 GB)."""
     offsets = len(set(b is None for b in fixed_pass_baselines(config)))
     extra_realizations = config["simulation"]["noise_reference_realizations"] - 1
     demodulated = bool(demodulated_variants(config))
     per_sample = 40 + 2 * 2 * extra_realizations + 30 * demodulated
     chunk_mb = 2 * chunk_samples() * 8 * per_sample * offsets
     pixels = sum(12 * nside**2 for nside, _ in fixed_pass_variants(config))
-    pixels *= 2.5 if demodulated else 1.0
+    pixels *= 1.6 if demodulated else 1.0
     per_pixel = 40 + 12 * extra_realizations
     return int(2000 + chunk_mb / 2**20 + 2 * pixels * per_pixel * 8 / 2**20) * attempt
 
