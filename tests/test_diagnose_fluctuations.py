@@ -141,3 +141,29 @@ def test_a_strong_thermal_drift_leaves_no_pole_and_no_band_in_the_noise():
     effect = result.effect("gain_fluctuations")
     slope = next(p for p in effect["parameters"].values() if p["parameter"] == "beta")
     assert abs(slope["value"] - 1.0) < 3 * slope["sigma"] + 0.02, slope
+
+
+def test_the_pair_determinant_stays_positive_where_the_sidebands_dwarf_the_noise():
+    """det [[N_A + E_A, C], [C*, N_B + E_B]] as a sum of non-negative terms: equal to the
+    direct product minus |C|^2 where that is accurate, and positive at rho = 1 with
+    sidebands 1e18 times the noise, where the direct difference rounds to <= 0 (the
+    "invalid value in log" of H3-402's thermal drift)."""
+    from hwp_tes_systematics.diagnose.fluctuations import pair_determinant
+
+    rng = np.random.default_rng(5)
+    noise = [rng.uniform(1, 2, 2000), rng.uniform(1, 2, 2000)]
+    scales = [1.0, 0.7]
+
+    def direct(lower, upper, rho, d_psi):
+        total = [noise[k] + scales[k] * (lower + upper) for k in range(2)]
+        coherent = np.abs(lower * np.exp(1j * d_psi) + upper * np.exp(-1j * d_psi)) ** 2
+        return total[0] * total[1] - rho**2 * scales[0] * scales[1] * coherent
+
+    lower, upper = rng.uniform(0, 3, 2000), rng.uniform(0, 3, 2000)
+    stable = pair_determinant(noise, scales, lower, upper, 0.6, 0.7)
+    assert np.allclose(stable, direct(lower, upper, 0.6, 0.7), rtol=1e-12)
+    lower, upper = rng.uniform(0, 1e18, 2000), rng.uniform(0, 1e18, 2000)
+    assert np.any(direct(lower, upper, 1.0, 0.0) <= 0)
+    stable = pair_determinant(noise, scales, lower, upper, 1.0, 0.0)
+    assert np.all(stable > 0)
+    assert np.allclose(stable, noise[0] * noise[1] + (noise[0] * 0.7 + noise[1]) * (lower + upper))

@@ -117,6 +117,24 @@ def carrier_phases(ctx: Context, carrier_hz: float) -> np.ndarray:
     return np.angle(ctx.carrier @ phase)
 
 
+def pair_determinant(noise, excess_scales, lower, upper, rho, d_psi):
+    """det of the pair's 2 x 2 covariance per mode, [[N_A + E_A, C], [C*, N_B + E_B]],
+    E_k = e_k (L + U), C = rho sqrt(e_A e_B) (L e^{i dpsi} + U e^{-i dpsi}), written as a
+    sum of non-negative terms, N_A N_B + N_A E_B + E_A N_B + e_A e_B [(1 - rho^2) (L + U)^2
+    + 2 rho^2 L U (1 - cos 2 dpsi)], so that it stays positive where the sidebands exceed
+    the noise by many orders and rho = 1 (the difference E_A E_B - |C|^2 rounds to <= 0)."""
+    excess = [e * (lower + upper) for e in excess_scales]
+    coherent = (1 - rho**2) * (lower + upper) ** 2 + 2 * rho**2 * lower * upper * (
+        1 - math.cos(2 * d_psi)
+    )
+    return (
+        noise[0] * noise[1]
+        + noise[0] * excess[1]
+        + excess[0] * noise[1]
+        + excess_scales[0] * excess_scales[1] * coherent
+    )
+
+
 def fit_fluctuations(
     ctx: Context,
     residual_f,
@@ -183,33 +201,31 @@ def fit_fluctuations(
                 * poles[k]
             )
         if not with_excess:
-            return total, None
+            return total, None, None
         log_a, slope, rho = theta[n_noise:]
         lower = gain_psd(f - carrier, math.exp(log_a), slope, resolution)
         upper = gain_psd(f + carrier, math.exp(log_a), slope, resolution)
-        for k in range(n_det):
-            total[k] = total[k] + scales[k] * carriers[k] ** 2 / 4 * (lower + upper)
-        c = None
+        excess_scales = [scales[k] * carriers[k] ** 2 / 4 for k in range(n_det)]
+        c = det = None
         if pair:
             d_psi = psi[0] - psi[1]
             c = (
                 rho
-                * math.sqrt(scales[0] * scales[1])
-                * carriers[0]
-                * carriers[1]
-                / 4
+                * math.sqrt(excess_scales[0] * excess_scales[1])
                 * (lower * np.exp(1j * d_psi) + upper * np.exp(-1j * d_psi))
             )
-        return total, c
+            det = pair_determinant(total, excess_scales, lower, upper, rho, d_psi)
+        for k in range(n_det):
+            total[k] = total[k] + excess_scales[k] * (lower + upper)
+        return total, c, det
 
     def minus_two_ln_l(theta, with_excess: bool):
-        total, c = spectra(theta, with_excess)
+        total, c, det = spectra(theta, with_excess)
         if c is None:
             return sum(
                 2 * float(np.sum(power[k] / total[k] + counts * np.log(total[k])))
                 for k in range(n_det)
             )
-        det = total[0] * total[1] - (c.real**2 + c.imag**2)
         quadratic = (total[1] * power[0] + total[0] * power[1] - 2 * (c * cross).real) / det
         return 2 * float(np.sum(counts * np.log(det) + quadratic))
 
