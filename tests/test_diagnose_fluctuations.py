@@ -167,3 +167,17 @@ def test_the_pair_determinant_stays_positive_where_the_sidebands_dwarf_the_noise
     stable = pair_determinant(noise, scales, lower, upper, 1.0, 0.0)
     assert np.all(stable > 0)
     assert np.allclose(stable, noise[0] * noise[1] + (noise[0] * 0.7 + noise[1]) * (lower + upper))
+
+
+def test_the_curvature_of_a_parameter_at_its_bound_is_taken_inside():
+    """-2 ln L = (rho - 0.9)^2 / 0.05^2, undefined beyond rho = 1: at the bound the second
+    difference moves inside and still gives sigma = 0.05 (centred, it read NaN)."""
+    from hwp_tes_systematics.diagnose.fluctuations import _curvature_sigmas
+
+    def minus_two_ln_l(p):
+        return (p[0] - 0.9) ** 2 / 0.05**2 if p[0] <= 1.0 else math.nan
+
+    (sigma,) = _curvature_sigmas(minus_two_ln_l, np.array([1.0]), (0.01,), [(0.0, 1.0)])
+    assert math.isclose(sigma, 0.05, rel_tol=1e-9)
+    (sigma,) = _curvature_sigmas(minus_two_ln_l, np.array([0.9]), (0.01,), [(0.0, 1.0)])
+    assert math.isclose(sigma, 0.05, rel_tol=1e-9)

@@ -262,6 +262,7 @@ def fit_fluctuations(
         lambda p: minus_two_ln_l(np.concatenate([best.x[:n_noise], p]), True),
         best.x[n_noise:],
         steps=(0.02, 0.02, 0.01),
+        bounds=excess_bounds,
     )
     amplitude, slope, rho = (
         math.exp(best.x[n_noise]),
@@ -314,15 +315,23 @@ def _binned(f, carrier_hz, powers, cross, relative_width=0.005):
     return mean_f, counts, summed, cross
 
 
-def _curvature_sigmas(function, x, steps):
-    """1-sigma of each parameter from the diagonal curvature of -2 ln L (sigma^2 = 2 / f'')."""
+def _curvature_sigmas(function, x, steps, bounds=None):
+    """1-sigma of each parameter from the diagonal curvature of -2 ln L (sigma^2 = 2 / f''),
+    the second difference of step h centred on x, or moved inside by h where x + h or
+    x - h would leave ``bounds`` (a parameter at its bound, as rho = 1 for a gain common to
+    the detectors: beyond it the pair's covariance is not positive)."""
     sigmas = []
-    f0 = function(x)
     for i, h in enumerate(steps):
-        up, down = x.copy(), x.copy()
+        lower, upper = bounds[i] if bounds is not None else (-math.inf, math.inf)
+        centre = x.copy()
+        if centre[i] + h > upper:
+            centre[i] = upper - h
+        elif centre[i] - h < lower:
+            centre[i] = lower + h
+        up, down = centre.copy(), centre.copy()
         up[i] += h
         down[i] -= h
-        curvature = (function(up) - 2 * f0 + function(down)) / h**2
+        curvature = (function(up) - 2 * function(centre) + function(down)) / h**2
         sigmas.append(math.sqrt(2.0 / curvature) if curvature > 0 else math.inf)
     return sigmas
 
