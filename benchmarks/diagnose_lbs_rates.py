@@ -8,8 +8,8 @@
 Each recording: a pair of ``--channels`` simulated with random nominal errors
 (diagnose.testbed.nominal_errors, as the catalog's rates benchmark) about the channel's
 nominal A_2 (the one the diagnosis is told; before 2026-11-28 every channel's recording
-held M1-140's 0.26 K) and its own noise seed, then ONE of these applied to its TOD by litebird_sim's functions (the diagnosis is
-told nothing):
+held M1-140's 0.26 K) and its own noise seed, then ONE of these applied to its TOD by
+litebird_sim's functions (the diagnosis is told nothing):
 
 * ``nonlinearity``: ``non_linearity.apply_quadratic_nonlin_for_one_detector`` with g1 per
   detector drawn by litebird_sim (NonLinParams loc = the amplitude, scale 10 % of it);

@@ -123,10 +123,9 @@ def pair_determinant(noise, excess_scales, lower, upper, rho, d_psi):
     sum of non-negative terms, N_A N_B + N_A E_B + E_A N_B + e_A e_B [(1 - rho^2) (L + U)^2
     + 2 rho^2 L U (1 - cos 2 dpsi)], so that it stays positive where the sidebands exceed
     the noise by many orders and rho = 1 (the difference E_A E_B - |C|^2 rounds to <= 0)."""
-    excess = [e * (lower + upper) for e in excess_scales]
-    coherent = (1 - rho**2) * (lower + upper) ** 2 + 2 * rho**2 * lower * upper * (
-        1 - math.cos(2 * d_psi)
-    )
+    both = lower + upper
+    excess = [e * both for e in excess_scales]
+    coherent = (1 - rho**2) * both**2 + 2 * rho**2 * lower * upper * (1 - math.cos(2 * d_psi))
     return (
         noise[0] * noise[1]
         + noise[0] * excess[1]
@@ -321,17 +320,16 @@ def _curvature_sigmas(function, x, steps, bounds=None):
     x - h would leave ``bounds`` (a parameter at its bound, as rho = 1 for a gain common to
     the detectors: beyond it the pair's covariance is not positive)."""
     sigmas = []
+    f_x = function(x)
     for i, h in enumerate(steps):
         lower, upper = bounds[i] if bounds is not None else (-math.inf, math.inf)
         centre = x.copy()
-        if centre[i] + h > upper:
-            centre[i] = upper - h
-        elif centre[i] - h < lower:
-            centre[i] = lower + h
+        centre[i] = min(max(x[i], lower + h), upper - h)
+        f_centre = f_x if centre[i] == x[i] else function(centre)
         up, down = centre.copy(), centre.copy()
         up[i] += h
         down[i] -= h
-        curvature = (function(up) - 2 * function(centre) + function(down)) / h**2
+        curvature = (function(up) - 2 * f_centre + function(down)) / h**2
         sigmas.append(math.sqrt(2.0 / curvature) if curvature > 0 else math.inf)
     return sigmas
 

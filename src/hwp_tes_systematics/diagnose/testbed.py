@@ -90,7 +90,7 @@ def nominal_errors(rng: np.random.Generator, n_det: int = 2, scale: float = 1.0)
     }
 
 
-def error_effects(errors: dict, detectors: list[dict], a2_k: float = A2_K) -> list:
+def error_effects(errors: dict, detectors: list[dict], a2_k: float) -> list:
     """The nominal errors as injected effects: 2f amplitude/phase about the nominal
     ``a2_k`` [K], gain, noise level."""
     a2_true = a2_k * (1.0 + errors["a2_relative"])
