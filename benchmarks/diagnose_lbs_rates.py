@@ -123,8 +123,16 @@ def one(support, channel, case, amplitude, seed, arguments, folder) -> dict:
     rng = np.random.default_rng([seed, 29])
     errors = support.nominal_errors(rng)
     name = f"lbs{seed}.h5"
+    a2 = support.nominal(channel)["a2_k"]  # the recording is simulated about it, and told it
     recording, _ = support.recorded_with_errors(
-        Path(folder), [], 20_000 + seed, errors, hours=arguments.hours, name=name, channel=channel
+        Path(folder),
+        [],
+        20_000 + seed,
+        errors,
+        hours=arguments.hours,
+        name=name,
+        channel=channel,
+        a2_k=a2,
     )
     truth = inject(case, amplitude, recording, rng)
     gapped = arguments.gap_every > 0 and seed % arguments.gap_every == 0
@@ -134,7 +142,6 @@ def one(support, channel, case, amplitude, seed, arguments, folder) -> dict:
     with h5py.File(path, "r+") as handle:  # the injected TOD back into the file
         handle["tod"][...] = recording.tod
     recording = read_recording(path)
-    a2 = support.nominal(channel)["a2_k"]
     result = diagnose(recording, support.supplied_sky(errors), a2, figures=False)
     tally = score(result, case, truth)
     if arguments.keep:  # the whole diagnosis, to read why a recording scored as it did
@@ -195,6 +202,12 @@ def main() -> None:
     parser.add_argument("--first-seed", type=int, default=1)
     parser.add_argument("--gap-every", type=int, default=3, help="0: no gaps")
     parser.add_argument("--only", nargs="+", choices=sorted(CASES), default=sorted(CASES))
+    parser.add_argument(
+        "--amplitudes",
+        nargs="+",
+        type=float,
+        help="a ladder of amplitudes instead of each case's own (e.g. g1 [1/K] for nonlinearity)",
+    )
     parser.add_argument("--out", type=Path)
     parser.add_argument("--keep", type=Path, metavar="DIR", help="write each diagnosis.json here")
     parser.add_argument(
@@ -211,7 +224,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as folder:
         for channel in arguments.channels:
             for case in arguments.only:
-                for amplitude in CASES[case][0]:
+                for amplitude in arguments.amplitudes or CASES[case][0]:
                     key = f"{channel} {case} {amplitude:g}"
                     entry = counts["cases"].setdefault(key, {})
                     for _ in range(arguments.seeds):

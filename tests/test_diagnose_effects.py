@@ -12,7 +12,9 @@ nominal adjustments with the right values, not as effects.
 from __future__ import annotations
 
 import math
+import shutil
 
+import h5py
 import numpy as np
 import pytest
 
@@ -228,3 +230,43 @@ def test_electrothermal_tes_is_diagnosed_as_nonlinearity(tmp_path):
         assert g1["value"] == pytest.approx(expected["g1_per_k"], rel=0.10, abs=3 * g1["sigma"])
         assert g2["value"] == pytest.approx(expected["g2_per_k2"], rel=0.10, abs=3 * g2["sigma"])
         assert np.sign(g1["value"]) == np.sign(expected["g1_per_k"])
+
+
+def test_strong_nonlinearity_fitted_on_the_pre_nonlinearity_signal(tmp_path):
+    """H3-402 (A_2 = 3.8 K) with nominal errors and g1 A_2 ~ 0.04, injected last as
+    litebird_sim does (d + g1 d^2 on the recorded TOD). The adjusted nominal model holds the
+    nonlinearity's DC and 2f terms; a template d_nom^2 built on it is off by ~1e-3 of the
+    4f line (thousands of chi^2 at this S/N: a free 4f line + intensity coupling won, and g1
+    was 0.3 % = 30 sigma off). Rebuilt on the pre-nonlinearity model it is exact."""
+    from hwp_tes_systematics.diagnose import diagnose
+    from hwp_tes_systematics.diagnose.recording import read_recording
+    from hwp_tes_systematics.diagnose.testbed import (
+        nominal,
+        nominal_errors,
+        recorded_with_errors,
+        supplied_sky,
+    )
+
+    channel = "H3-402"
+    errors = nominal_errors(np.random.default_rng(2913))
+    recording, _ = recorded_with_errors(
+        tmp_path, [], 2913, errors, hours=1.0, name="clean.h5", channel=channel
+    )
+    g1 = np.array([-0.0105, -0.0095])  # 1/K
+    shutil.copy(tmp_path / "clean.h5", tmp_path / "nl.h5")
+    with h5py.File(tmp_path / "nl.h5", "r+") as f:
+        f["tod"][...] = recording.tod + g1[:, None] * recording.tod**2
+    result = diagnose(
+        read_recording(tmp_path / "nl.h5"),
+        supplied_sky(errors),
+        nominal(channel)["a2_k"],
+        figures=False,
+    )
+    # nothing else: no free 4f line, and no gain fluctuation reported with Delta BIC > 0
+    # (one was, when the early roll-off it sat beside was dropped)
+    assert result.effect_names == ["tes_nonlinearity"], [
+        (e["name"], e["delta_bic"]) for e in result["effects"]
+    ]
+    for k in range(2):
+        fitted = result.parameter("tes_nonlinearity", "g1", k)
+        assert abs(fitted["value"] - g1[k]) < 3 * fitted["sigma"], (fitted, g1[k])

@@ -366,8 +366,11 @@ def diagnose(
         adjusted.noise = [getattr(m, "base", m) for m in noise_models]
         if fluctuation is not None:
             fluctuation = fluctuation_beside(adjusted.noise)
-            noise_models = fluctuation.noise
-            adjusted.noise = fluctuation.base_noise
+            if fluctuation.delta_bic < delta_bic_threshold:
+                noise_models = fluctuation.noise
+                adjusted.noise = fluctuation.base_noise
+            else:  # the pole's wings were what it took: neither is kept
+                fluctuation = None
 
     ties = {  # named as the report names them (a member by its family)
         name: sorted({reported_name(n) for n in others})
