@@ -78,17 +78,9 @@ def main(argv=None) -> None:
         foreground = hp.alm2map(hp.map2alm(foreground, lmax=lmax), nside, lmax=lmax)
     fwhm = channel.fwhm_arcmin
     transfer_alm = map_domain.transfer_cmb_alm(lmax, 0.0, MASTER_SEED, fwhm)
-    key = (nside, None, "demodulated")
-    fixed = map_domain.fixed_passes(
-        simulator,
-        settings,
-        foreground,
-        transfer_alm,
-        True,
-        lmax,
-        demodulated_variants=[key[:2]],
-        band_limited_sky=True,
-    )[key]
+    fixed = map_domain.fixed_pass(
+        simulator, settings, foreground, transfer_alm, True, lmax, demodulated=True
+    )
     print(f"fixed pass: {time.perf_counter() - started:.0f} s", flush=True)
 
     theta, _ = hp.pix2ang(nside, np.arange(hp.nside2npix(nside)))

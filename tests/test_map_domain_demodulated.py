@@ -2,7 +2,7 @@
 
 One M1-140 pair, 1 day at nside 32 and 19 Hz, the sky scanned band-limited
 (``simulation.sky_scanning: band_limited``, as a demodulated analysis requires): the
-fixed pass's demodulated variant (``fixed_passes(demodulated_variants=...)``) plus each
+fixed pass's demodulated variant (``fixed_pass(..., demodulated=True)``) plus each
 seed's map products (:func:`map_domain.realize_seed`) must give what
 ``accumulate(demodulated=...)`` gives seed by seed, as tests/test_map_domain.py checks
 for the binned map-maker. The tolerances are stated with the measured values.
@@ -60,17 +60,9 @@ def setup():
     transfer_alm = map_domain.transfer_cmb_alm(
         LMAX, 0.0, MASTER_SEED, load_channel("M1-140").fwhm_arcmin
     )
-    key = (NSIDE, settings.baseline_length_s, "demodulated")
-    fixed = map_domain.fixed_passes(
-        simulator,
-        settings,
-        foreground,
-        transfer_alm,
-        True,
-        LMAX,
-        demodulated_variants=[key[:2]],
-        band_limited_sky=True,
-    )[key]
+    fixed = map_domain.fixed_pass(
+        simulator, settings, foreground, transfer_alm, True, LMAX, demodulated=True
+    )
     scanned_foreground = BandLimitedSky.from_map(foreground, LMAX)
     full = {}
     for seed in SEEDS:

@@ -262,12 +262,14 @@ def fixed_pass(
     calibration_every_chunks: int = 1,
     measure_lmax: int | None = None,
     noise_realizations: int = 1,
+    demodulated: bool = False,
 ) -> FixedMaps:
     """The seed-independent TOD pass of one channel (see the module docstring), binned at
     ``settings.nside`` with ``settings.baseline_length_s``: :func:`fixed_passes` with
-    that one map-maker."""
+    that one map-maker; with ``demodulated`` its demodulated maps (the band-limited sky
+    scanned, as the demodulated map-maker needs)."""
     primary = (settings.nside, settings.baseline_length_s)
-    return fixed_passes(
+    passes = fixed_passes(
         simulator,
         settings,
         foreground_iqu_k,
@@ -277,7 +279,10 @@ def fixed_pass(
         calibration_every_chunks,
         measure_lmax,
         noise_realizations=noise_realizations,
-    )[primary]
+        demodulated_variants=[primary] if demodulated else (),
+        band_limited_sky=demodulated,
+    )
+    return passes[(*primary, "demodulated")] if demodulated else passes[primary]
 
 
 def fixed_passes(
