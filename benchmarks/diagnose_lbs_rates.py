@@ -4,6 +4,8 @@
     python benchmarks/diagnose_lbs_rates.py --channels M1-140 H3-402 --hours 6 --seeds 3 \
         --gap-every 3 --out lbs_rates.json
     python benchmarks/diagnose_lbs_rates.py --combine lbs_rates.json other.json
+    python benchmarks/diagnose_lbs_rates.py --channels H3-402 --only nonlinearity \
+        --amplitudes 0.002 0.005 0.01 0.02 --seeds 3 --first-seed 2101   # a ladder
 
 Each recording: a pair of ``--channels`` simulated with random nominal errors
 (diagnose.testbed.nominal_errors, as the catalog's rates benchmark) about the channel's

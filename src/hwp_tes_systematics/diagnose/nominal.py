@@ -29,7 +29,13 @@ sky, the dipole and any slow drift of them would pass for a steep 1/f), to the r
 before the sky
 residual is removed (binning also removes 1/f noise and would bias the knee low; a sky
 residual left in can only raise the fitted noise), line bins excluded. Two
-passes (linear fit -> offsets, sky residual -> noise -> linear fit again). The linear
+passes (linear fit -> offsets, sky residual -> noise -> linear fit again). The HWP
+lines at n f_HWP (n = 1, 3..8: cos n chi, sin n chi) are fitted beside the linear terms
+and not kept: missing physics (below) is found by the effects, but unmodelled it drove
+the polarised sky's scale, whose template is modulated at 4 f_HWP (an 80 mK 4f line on
+H3-402: a broad excess at 3-5 Hz, the noise fitted at twice its level); the noise is
+fitted without them too (a line off its Fourier bin leaks far beyond the excluded
+bins), and the adjustments' covariance is marginalised over them. The linear
 adjustments are then refitted jointly with every candidate effect (:mod:`.fit`), so an
 effect never has to compete with a nominal error.
 
@@ -84,6 +90,10 @@ SKY_RESIDUAL_NSIDE = 0
 NOISE_FMIN_SPINS = 2.0  # the noise is fitted above 2 f_spin (extrapolated below)
 REPORT_NSIDE = 8  # resolution of the reported sky-residual rms
 PASSES = 2
+# HWP lines fitted beside the adjustments and not kept (effects find them later): an
+# unmodelled line (a nonlinearity's 80 mK 4f on H3-402) otherwise drives the polarised sky's
+# scale (its template is modulated at 4 f_HWP), whose sky structure then fills 3-5 Hz
+NUISANCE_HARMONICS = np.array([1, 3, 4, 5, 6, 7, 8])
 
 
 class NominalAdjustments(Effect):
@@ -153,6 +163,12 @@ def _sky_residual(residual, valid, pixels, npix):
     return sky, hits, sky[pixels] * valid
 
 
+def hwp_lines(hwp_angle_rad: np.ndarray) -> np.ndarray:
+    """cos n chi, sin n chi for the HWP harmonics n in NUISANCE_HARMONICS, (2 m, n)."""
+    phases = np.multiply.outer(NUISANCE_HARMONICS, np.asarray(hwp_angle_rad, dtype=float))
+    return np.concatenate([np.cos(phases), np.sin(phases)])
+
+
 def fit_nominal(
     ctx: Context,
     tod: np.ndarray,
@@ -183,6 +199,8 @@ def fit_nominal(
     covariance = np.zeros((n_det, n_par, n_par))
     offsets = np.zeros(n_det)
     sky_map = hits = None
+    lines = hwp_lines(ctx.hwp_angle_rad)
+    line_values = np.zeros((n_det, lines.shape[0]))
     for _ in range(PASSES):
         for k in range(n_det):
             # weights from the CONFIGURED noise: a noise fitted to a residual that still
@@ -190,10 +208,15 @@ def fit_nominal(
             # would pull the linearisation point of the effects with it
             s = scale[k] * noise_start[k].psd(freqs)
             w = np.where(modes, 1.0 / np.maximum(s, 1e-300), 0.0)
-            gram = cross(templates_f[k], templates_f[k], w)
-            values[k], covariance[k] = solve_normal(
-                gram, cross(templates_f[k], residual0_f[k] - sky_f[k], w)
+            # the HWP lines beside them, as nuisances (module docstring)
+            bank = np.concatenate(
+                [templates_f[k], scipy.fft.rfft(lines * valid[k], axis=-1, workers=workers)]
             )
+            solution, full_covariance = solve_normal(
+                cross(bank, bank, w), cross(bank, residual0_f[k] - sky_f[k], w)
+            )
+            values[k], line_values[k] = solution[:n_par], solution[n_par:]
+            covariance[k] = full_covariance[:n_par, :n_par]
         residual1 = residual0 - np.einsum("kj,kjn->kn", values, templates) * valid
         offsets = np.array([residual1[k][valid[k]].mean() for k in range(n_det)])
         residual1 = np.where(valid, residual1 - offsets[:, None], 0.0)
@@ -202,7 +225,10 @@ def fit_nominal(
             sky_f = scipy.fft.rfft(sky_tod, axis=-1, workers=workers)
         # the noise is fitted BEFORE the sky residual is removed: binning in pixels would
         # also remove 1/f noise (a destriper) and bias the knee low
-        residual1_f = scipy.fft.rfft(residual1, axis=-1, workers=workers)
+        # the noise without the lines too: an unmodelled one leaks far beyond its bins
+        residual1_f = scipy.fft.rfft(
+            residual1 - (line_values @ lines) * valid, axis=-1, workers=workers
+        )
         noise, noise_cov, _ = refit_noise(ctx, residual1_f, noise)
 
     offset_sigmas = np.array(
