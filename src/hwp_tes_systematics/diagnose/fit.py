@@ -96,7 +96,8 @@ GLITCH_THRESHOLD_SIGMA = 5.0
 BACKFIT_PASSES = 4
 # with the nonlinearity composed: its templates converge by ~2 g1 A_2 per rebuild
 # (g1 A_2 = 0.04: 0.3 % of g1, then 0.02 %, ...) until the cross term is below
-# Delta chi^2 = 0.01; six passes reach that from a ~1e4 first rebuild
+# Delta chi^2 = 0.01 (estimated ~6 passes from a cross term of ~1e4; the H3-402 tests at
+# g1 A_2 = 0.04 converge within the eight)
 COMPOSED_PASSES = 8
 # an offset fitted with the effects when samples are flagged (not reported)
 GAP_OFFSET = "gap_offset"
