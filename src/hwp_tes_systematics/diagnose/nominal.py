@@ -30,7 +30,7 @@ before the sky
 residual is removed (binning also removes 1/f noise and would bias the knee low; a sky
 residual left in can only raise the fitted noise), line bins excluded. Two
 passes (linear fit -> offsets, sky residual -> noise -> linear fit again). The HWP
-lines at n f_HWP (n = 1, 3..8: cos n chi, sin n chi) are fitted beside the linear terms
+lines at n f_HWP (n = 1, 3..8: the HWPSS harmonics' templates) are fitted beside the linear terms
 and not kept: missing physics (below) is found by the effects, but unmodelled it drove
 the polarised sky's scale, whose template is modulated at 4 f_HWP (an 80 mK 4f line on
 H3-402: a broad excess at 3-5 Hz, the noise fitted at twice its level); the noise is
@@ -76,6 +76,7 @@ import numpy as np
 import scipy.fft
 
 from .effects import Effect
+from .effects.hwpss import harmonic_templates
 from .linalg import cross, solve_normal
 from .locate import coarse_pixels
 from .model import Context
@@ -163,12 +164,6 @@ def _sky_residual(residual, valid, pixels, npix):
     return sky, hits, sky[pixels] * valid
 
 
-def hwp_lines(hwp_angle_rad: np.ndarray) -> np.ndarray:
-    """cos n chi, sin n chi for the HWP harmonics n in NUISANCE_HARMONICS, (2 m, n)."""
-    phases = np.multiply.outer(NUISANCE_HARMONICS, np.asarray(hwp_angle_rad, dtype=float))
-    return np.concatenate([np.cos(phases), np.sin(phases)])
-
-
 def fit_nominal(
     ctx: Context,
     tod: np.ndarray,
@@ -199,8 +194,8 @@ def fit_nominal(
     covariance = np.zeros((n_det, n_par, n_par))
     offsets = np.zeros(n_det)
     sky_map = hits = None
-    lines = hwp_lines(ctx.hwp_angle_rad)
-    line_values = np.zeros((n_det, lines.shape[0]))
+    lines = harmonic_templates(ctx, NUISANCE_HARMONICS)  # (n_det, 2 m, n)
+    line_values = np.zeros(lines.shape[:2])
     for _ in range(PASSES):
         for k in range(n_det):
             # weights from the CONFIGURED noise: a noise fitted to a residual that still
@@ -210,7 +205,7 @@ def fit_nominal(
             w = np.where(modes, 1.0 / np.maximum(s, 1e-300), 0.0)
             # the HWP lines beside them, as nuisances (module docstring)
             bank = np.concatenate(
-                [templates_f[k], scipy.fft.rfft(lines * valid[k], axis=-1, workers=workers)]
+                [templates_f[k], scipy.fft.rfft(lines[k] * valid[k], axis=-1, workers=workers)]
             )
             solution, full_covariance = solve_normal(
                 cross(bank, bank, w), cross(bank, residual0_f[k] - sky_f[k], w)
@@ -227,7 +222,9 @@ def fit_nominal(
         # also remove 1/f noise (a destriper) and bias the knee low
         # the noise without the lines too: an unmodelled one leaks far beyond its bins
         residual1_f = scipy.fft.rfft(
-            residual1 - (line_values @ lines) * valid, axis=-1, workers=workers
+            residual1 - np.einsum("kj,kjn->kn", line_values, lines) * valid,
+            axis=-1,
+            workers=workers,
         )
         noise, noise_cov, _ = refit_noise(ctx, residual1_f, noise)
 
