@@ -23,10 +23,12 @@ model describes the data, the paper estimator's crossing; and per channel of
 ``--channels`` the total template of detector 0 (sum of the three terms of d^2 at the
 channel's A_2, each seed's maps made again from the fixed pass as the map_domain_alms job
 makes them) as BB pseudo-spectra on its observed pixels in ell 2-12, 13-40, 41-128,
-mean over ``--template-seeds`` seeds. Why it moves: per resolution, the pixel size, the
-time a detector takes to cross a pixel (spin rate x sin(spin-boresight angle), PTEP
-scanning) and the HWP turns in that time, and the crossings per observed pixel (hits
-over samples per crossing, from the fixed pass). Writes ``resolution_study.json``,
+mean over ``--template-seeds`` seeds, and the same for each term of its fixed part (no
+seed; columns ``fixed_ss``, ``fixed_sh``, ``fixed_hh``: T_ss, 2 A_2 T_sh, A_2^2 T_hh).
+Why it moves: per resolution, the pixel size, the time a detector takes to cross a pixel
+(spin rate x sin(spin-boresight angle), PTEP scanning) and the HWP turns in that time,
+and the crossings per observed pixel (hits over samples per crossing, from the fixed
+pass). Writes ``resolution_study.json``,
 ``resolution_study.csv`` and ``resolution_study.png``.
 """
 
@@ -46,8 +48,10 @@ import pandas as pd
 from hwp_tes_systematics import config as cfg
 from hwp_tes_systematics.analysis.spectra import pseudo_spectra
 from hwp_tes_systematics.simulation.map_domain import ChannelSeeds, read_fixed_field
+from hwp_tes_systematics.simulation.tod_maps import TEMPLATE_TERMS
 
 BANDS = ((2, 12), (13, 40), (41, 128))
+TERM_LABELS = {"s*s": "ss", "s*h": "sh", "h*h": "hh"}  # column names of the template's terms
 SPIN_RATE_HZ = 3.0 / 3600  # PTEP: 3 spin rotations per hour (litebird_sim's scanning_parameters)
 SPIN_BORESIGHT_DEG = 50.0  # PTEP: angle between the spin axis and the boresight (MFT/HFT)
 PAPER_REQUIREMENT = 2e-3  # K^-1, Micheli et al. 2024
@@ -122,18 +126,30 @@ def with_requirements(table: pd.DataFrame, out: Path) -> pd.DataFrame:
     return table
 
 
-def template_bands(config: dict, fixed_h5: Path, seeds: int) -> list[float]:
-    """Mean over seeds of detector 0's total template BB [K_CMB^2 K^2] per BANDS."""
+def band_means(map_iqu: np.ndarray, good: np.ndarray) -> list[float]:
+    """BB pseudo-spectrum of a map on its ``good`` pixels (over the observed fraction)
+    averaged over each of BANDS."""
+    lmax = BANDS[-1][1]
+    alm = hp.map2alm(np.where(good, map_iqu, 0.0), lmax=lmax, iter=0)
+    bb = pseudo_spectra(alm, lmax, good.mean())[2]
+    return [float(bb[first : last + 1].mean()) for first, last in BANDS]
+
+
+def template_bands(config: dict, fixed_h5: Path, seeds: int) -> tuple[list[float], dict]:
+    """Mean over seeds of detector 0's total template BB [K_CMB^2 K^2] per BANDS, and the
+    BB per BANDS of each term of its fixed part (no seed: foregrounds and dipole),
+    ``s*s`` (T_ss), ``s*h`` (2 A_2 T_sh) and ``h*h`` (A_2^2 T_hh), by term name."""
     channel_seeds = ChannelSeeds.from_run(config, fixed_h5)
     good = channel_seeds.fixed.good
-    lmax = BANDS[-1][1]
-    spectra = []
-    for seed in range(seeds):
-        template = np.where(good, channel_seeds.maps(seed)["templates"][0], 0.0)
-        alm = hp.map2alm(template, lmax=lmax, iter=0)
-        spectra.append(pseudo_spectra(alm, lmax, good.mean())[2])
-    mean = np.mean(spectra, axis=0)
-    return [float(mean[first : last + 1].mean()) for first, last in BANDS]
+    spectra = [band_means(channel_seeds.maps(seed)["templates"][0], good) for seed in range(seeds)]
+    a2_k_cmb = float(channel_seeds.attributes["a2_k_cmb"])
+    terms = channel_seeds.fixed.template_terms[:, 0]  # detector 0's three terms
+    scales = (1.0, 2.0 * a2_k_cmb, a2_k_cmb**2)
+    fixed_terms = {
+        name: band_means(scale * term, good)
+        for name, scale, term in zip(TEMPLATE_TERMS, scales, terms, strict=True)
+    }
+    return list(np.mean(spectra, axis=0)), fixed_terms
 
 
 def crossing_numbers(fixed_h5: Path, nside: int, hwp_hz: float, rate_hz: float) -> dict:
@@ -269,9 +285,12 @@ def main() -> None:
                 fixed_h5 = Path(f"results/maps/{channel}/fixed_pass_{variant}.h5")
                 if not fixed_h5.exists():
                     continue
-                bands = template_bands(config, fixed_h5, arguments.template_seeds)
+                bands, fixed_terms = template_bands(config, fixed_h5, arguments.template_seeds)
                 for (first, last), value in zip(BANDS, bands, strict=True):
                     row[f"template_bb_{channel}_ell{first}_{last}"] = value
+                for term, term_bands in fixed_terms.items():
+                    for (first, last), value in zip(BANDS, term_bands, strict=True):
+                        row[f"fixed_{TERM_LABELS[term]}_bb_{channel}_ell{first}_{last}"] = value
                 hwp_hz = cfg.channel(config, channel).hwp_frequency_hz
                 rate_hz = config["simulation"]["sampling_rate_hz"]
                 for key, value in crossing_numbers(fixed_h5, nside, hwp_hz, rate_hz).items():
