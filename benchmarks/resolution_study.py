@@ -28,8 +28,8 @@ seed; columns ``fixed_ss``, ``fixed_sh``, ``fixed_hh``: T_ss, 2 A_2 T_sh, A_2^2 
 Why it moves: per resolution, the pixel size, the time a detector takes to cross a pixel
 (spin rate x sin(spin-boresight angle), PTEP scanning) and the HWP turns in that time,
 and the crossings per observed pixel (hits over samples per crossing, from the fixed
-pass). Writes ``resolution_study.json``,
-``resolution_study.csv`` and ``resolution_study.png``.
+pass). Writes ``resolution_study.json``, ``resolution_study.csv`` and
+``resolution_study.png``.
 """
 
 from __future__ import annotations
@@ -48,10 +48,9 @@ import pandas as pd
 from hwp_tes_systematics import config as cfg
 from hwp_tes_systematics.analysis.spectra import pseudo_spectra
 from hwp_tes_systematics.simulation.map_domain import ChannelSeeds, read_fixed_field
-from hwp_tes_systematics.simulation.tod_maps import TEMPLATE_TERMS
+from hwp_tes_systematics.simulation.tod_maps import TEMPLATE_TERMS, term_weights
 
 BANDS = ((2, 12), (13, 40), (41, 128))
-TERM_LABELS = {"s*s": "ss", "s*h": "sh", "h*h": "hh"}  # column names of the template's terms
 SPIN_RATE_HZ = 3.0 / 3600  # PTEP: 3 spin rotations per hour (litebird_sim's scanning_parameters)
 SPIN_BORESIGHT_DEG = 50.0  # PTEP: angle between the spin axis and the boresight (MFT/HFT)
 PAPER_REQUIREMENT = 2e-3  # K^-1, Micheli et al. 2024
@@ -142,12 +141,11 @@ def template_bands(config: dict, fixed_h5: Path, seeds: int) -> tuple[list[float
     channel_seeds = ChannelSeeds.from_run(config, fixed_h5)
     good = channel_seeds.fixed.good
     spectra = [band_means(channel_seeds.maps(seed)["templates"][0], good) for seed in range(seeds)]
-    a2_k_cmb = float(channel_seeds.attributes["a2_k_cmb"])
+    weights = term_weights(float(channel_seeds.attributes["a2_k_cmb"]))
     terms = channel_seeds.fixed.template_terms[:, 0]  # detector 0's three terms
-    scales = (1.0, 2.0 * a2_k_cmb, a2_k_cmb**2)
     fixed_terms = {
-        name: band_means(scale * term, good)
-        for name, scale, term in zip(TEMPLATE_TERMS, scales, terms, strict=True)
+        name: band_means(weight * term, good)
+        for name, weight, term in zip(TEMPLATE_TERMS, weights, terms, strict=True)
     }
     return list(np.mean(spectra, axis=0)), fixed_terms
 
@@ -290,7 +288,8 @@ def main() -> None:
                     row[f"template_bb_{channel}_ell{first}_{last}"] = value
                 for term, term_bands in fixed_terms.items():
                     for (first, last), value in zip(BANDS, term_bands, strict=True):
-                        row[f"fixed_{TERM_LABELS[term]}_bb_{channel}_ell{first}_{last}"] = value
+                        label = term.replace("*", "")  # s*h -> sh
+                        row[f"fixed_{label}_bb_{channel}_ell{first}_{last}"] = value
                 hwp_hz = cfg.channel(config, channel).hwp_frequency_hz
                 rate_hz = config["simulation"]["sampling_rate_hz"]
                 for key, value in crossing_numbers(fixed_h5, nside, hwp_hz, rate_hz).items():

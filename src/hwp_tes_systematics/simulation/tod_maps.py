@@ -714,10 +714,17 @@ def _rows_of(n_terms: int, n_det: int, n_tods: int) -> list[int]:
     return rows + list(range(1 + n_terms, 1 + n_terms + n_tods - len(rows)))
 
 
+def term_weights(a2_k_cmb: float) -> tuple[float, float, float]:
+    """The weights of the TEMPLATE_TERMS in T_k = T_ss + 2 A_2 T_sh + A_2^2 T_hh: (1, 2 A_2,
+    A_2^2); A_2 [K_CMB]."""
+    return 1.0, 2.0 * a2_k_cmb, a2_k_cmb**2
+
+
 def templates_from_terms(terms: np.ndarray, a2_k_cmb: float) -> np.ndarray:
     """T_k = T_ss + 2 A_2 T_sh + A_2^2 T_hh [K_CMB^2], (n_det, 3, npix) from the terms
-    (3, n_det, 3, npix) in TEMPLATE_TERMS order; A_2 [K_CMB]."""
-    return terms[0] + 2.0 * a2_k_cmb * terms[1] + a2_k_cmb**2 * terms[2]
+    (3, n_det, 3, npix) in TEMPLATE_TERMS order (:func:`term_weights`); A_2 [K_CMB]."""
+    _, sh_weight, hh_weight = term_weights(a2_k_cmb)
+    return terms[0] + sh_weight * terms[1] + hh_weight * terms[2]
 
 
 def split_solved_maps(
