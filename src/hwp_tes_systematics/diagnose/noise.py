@@ -9,7 +9,9 @@ frequency, alpha the slope and fmin the frequency below which the spectrum flatt
 (kept at its configured value).
 
 Robust estimate (:func:`estimate_noise`): Welch PSD with MEDIAN averaging over Hann
-segments (a line or a transient in a few segments does not pull it), frequencies near
+segments with no invalid sample (a line or a transient in a few segments does not pull it;
+a segment cut by a gap would: the gap's edges cut the residual's lines and offset, whose
+leakage fills the band), frequencies near
 the known lines (n f_HWP +- m f_spin, n <= 8, |m| <= 3) excluded, averaged in
 logarithmic frequency bins and fitted in log space, ln P(f_b) against ln P-hat_b with
 weights m_b (the number of Welch bins averaged); the uncertainties are the
@@ -154,6 +156,52 @@ def welch_segment(n_samples: int) -> int:
     return int(max(256, 2 ** math.floor(math.log2(max(n_samples // 8, 256)))))
 
 
+MIN_WELCH_SEGMENTS = 5  # whole valid segments the median is taken over (fewer: shorter segments)
+
+
+def median_bias(n_segments: int) -> float:
+    """E[median] / E[mean] of n exponential variates (a periodogram bin's distribution):
+    1 + sum_{i=1}^{(n-1)//2} (1/(2i+1) - 1/(2i)), the factor scipy's median Welch divides by."""
+    i = 2 * np.arange(1, (n_segments - 1) // 2 + 1)
+    return float(1 + np.sum(1.0 / (i + 1) - 1.0 / i))
+
+
+def valid_welch(
+    residual: np.ndarray, sampling_rate_hz: float, valid: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """Median Welch PSD [K^2/Hz] over the Hann segments (half overlap) with no invalid sample:
+    (freqs, psd, segment). The segment is about n / 8 samples, halved until at least
+    MIN_WELCH_SEGMENTS whole segments are valid (down to 256 samples); if none is, every
+    segment is used."""
+    n = residual.size
+    segment = min(welch_segment(n), n)
+    while True:
+        starts = np.arange(0, n - segment + 1, segment // 2)
+        if valid is None:
+            whole = np.ones(starts.size, dtype=bool)
+        else:
+            invalid_before = np.concatenate([[0], np.cumsum(~np.asarray(valid, dtype=bool))])
+            whole = invalid_before[starts + segment] == invalid_before[starts]
+        if whole.sum() >= min(MIN_WELCH_SEGMENTS, starts.size) or segment <= 256:
+            break
+        segment //= 2
+    if not whole.any():
+        whole[:] = True
+    freqs, _, power = scipy.signal.spectrogram(
+        residual,
+        fs=sampling_rate_hz,
+        window="hann",
+        nperseg=segment,
+        noverlap=segment // 2,
+        detrend="constant",
+        scaling="density",
+        mode="psd",
+    )
+    used = whole[: power.shape[1]]
+    psd = np.median(power[:, used], axis=1) / median_bias(int(used.sum()))
+    return freqs, psd, segment
+
+
 def _log_bins(freqs, values, weights, per_decade=40):
     positive = freqs > 0
     freqs, values, weights = freqs[positive], values[positive], weights[positive]
@@ -183,19 +231,7 @@ def estimate_noise(
 ) -> NoiseEstimate:
     """Robust white + 1/f fit to the Welch (median) PSD of one detector's residual."""
     residual = np.asarray(residual, dtype=float)
-    n = residual.size
-    valid_fraction = 1.0 if valid is None else max(float(np.mean(valid)), 1e-3)
-    segment = min(welch_segment(n), n)
-    freqs, psd = scipy.signal.welch(
-        residual,
-        fs=sampling_rate_hz,
-        window="hann",
-        nperseg=segment,
-        noverlap=segment // 2,
-        detrend="constant",
-        average="median",
-    )
-    psd = psd / valid_fraction
+    freqs, psd, segment = valid_welch(residual, sampling_rate_hz, valid)
     resolution = sampling_rate_hz / segment
     exclude = line_exclusion_mask(freqs, f_hwp_hz, f_spin_hz, 3 * resolution)
     used = (freqs > 1.5 * resolution) & (freqs < 0.98 * sampling_rate_hz / 2) & ~exclude

@@ -152,6 +152,10 @@ class NominalFit:
     sky_residual_pixels: int
     context: Context = field(repr=False)
     base: Context = field(repr=False)
+    # valid x the fitted HWP lines n f_HWP (n = 1, 3..8; NUISANCE_HARMONICS), not kept in the
+    # model: subtracted from the residual only where its noise is fitted (a strong line cut by
+    # a gap, or off its Fourier bin, leaks far beyond its excluded bins)
+    nuisance_lines_tod: np.ndarray = field(repr=False, default=None)
 
 
 def _sky_residual(residual, valid, pixels, npix):
@@ -221,11 +225,8 @@ def fit_nominal(
         # the noise is fitted BEFORE the sky residual is removed: binning in pixels would
         # also remove 1/f noise (a destriper) and bias the knee low
         # the noise without the lines too: an unmodelled one leaks far beyond its bins
-        residual1_f = scipy.fft.rfft(
-            residual1 - np.einsum("kj,kjn->kn", line_values, lines) * valid,
-            axis=-1,
-            workers=workers,
-        )
+        line_tod = np.einsum("kj,kjn->kn", line_values, lines) * valid
+        residual1_f = scipy.fft.rfft(residual1 - line_tod, axis=-1, workers=workers)
         noise, noise_cov, _ = refit_noise(ctx, residual1_f, noise)
 
     offset_sigmas = np.array(
@@ -258,6 +259,7 @@ def fit_nominal(
         sky_residual_pixels=pixels_used if subtracted else 0,
         context=adjusted,
         base=ctx,
+        nuisance_lines_tod=line_tod,
     )
 
 

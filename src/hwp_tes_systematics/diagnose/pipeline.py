@@ -284,11 +284,16 @@ def diagnose(
     modes = fitted_modes(residual.shape[1])
     residual_f = scipy.fft.rfft(residual, axis=-1, workers=workers)  # locate's and FitProblem's too
     ln_n_eff = math.log(2 * modes.sum() * ctx.n_detectors)
-    early = fit_rolloff(ctx, residual_f, noise_models, modes, ln_n_eff)
+    # fitted before any effect, on the residual without the HWP lines: a strong line (the
+    # 4f of a nonlinearity, 21 mK on H3-402 at g1 = 3e-3) cut by a gap leaks over the whole
+    # band and passed for a pole of 27 ms, which corrupted every later noise fit
+    line_free_f = residual_f - scipy.fft.rfft(adjusted.nuisance_lines_tod, axis=-1, workers=workers)
+    early = fit_rolloff(ctx, line_free_f, noise_models, modes, ln_n_eff)
     if early.delta_bic < delta_bic_threshold and not _sidebands_fit_better(
-        ctx, early, residual_f, noise_models, modes, ln_n_eff
+        ctx, early, line_free_f, noise_models, modes, ln_n_eff
     ):
         noise_models = adjusted.noise = early.noise
+    del line_free_f
     mismatch = locate(ctx, residual, noise_models, nominal, workers=workers, residual_f=residual_f)
 
     # The noise was fitted before any effect was removed: a strong effect leaks power
