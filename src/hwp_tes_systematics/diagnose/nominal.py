@@ -28,8 +28,9 @@ noise is the maximum-Whittle-likelihood white + 1/f fit, above 2 f_spin (below, 
 sky, the dipole and any slow drift of them would pass for a steep 1/f), to the residual
 before the sky
 residual is removed (binning also removes 1/f noise and would bias the knee low; a sky
-residual left in can only raise the fitted noise), line bins excluded. Two
-passes (linear fit -> offsets, sky residual -> noise -> linear fit again). The HWP
+residual left in can only raise the fitted noise), line bins excluded. With a sky
+residual, two passes (linear fit -> offsets, sky residual -> noise -> linear fit again);
+without (the default), one. The HWP
 lines at n f_HWP (n = 1, 3..8: the HWPSS harmonics' templates) are fitted beside the linear terms
 and not kept: missing physics (below) is found by the effects, but unmodelled it drove
 the polarised sky's scale, whose template is modulated at 4 f_HWP (an 80 mK 4f line on
@@ -200,7 +201,9 @@ def fit_nominal(
     sky_map = hits = None
     lines = harmonic_templates(ctx, NUISANCE_HARMONICS)  # (n_det, 2 m, n)
     line_values = np.zeros(lines.shape[:2])
-    for _ in range(PASSES):
+    # the weights (the configured noise) and, without a sky residual, the data do not change
+    # between passes: a second pass would repeat the first
+    for _ in range(PASSES if pixels is not None else 1):
         for k in range(n_det):
             # weights from the CONFIGURED noise: a noise fitted to a residual that still
             # holds a strong effect (its leakage over the circular FFT) can be far off and
