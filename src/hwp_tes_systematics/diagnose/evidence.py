@@ -15,7 +15,7 @@ import numpy as np
 import scipy.fft
 
 from .locate import dc_offset, drifts, hwp_profile, line_at
-from .noise import periodogram_scale
+from .noise import independent_fraction, periodogram_scale
 
 
 class Evidence:
@@ -59,7 +59,7 @@ class Evidence:
             )
             s = scale * self.noise[k].psd(freqs)
             weights = np.zeros(freqs.size)
-            weights[1:-1] = 1.0 / s[1:-1]
+            weights[1:-1] = independent_fraction(ctx.valid[k]) / s[1:-1]  # noise module
             residual_f = scipy.fft.rfft(self.residual[k], workers=self.workers)
             self._drifts[k] = {
                 d["quantity"]: d for d in drifts(residual_f, ctx, k, weights, self.workers)

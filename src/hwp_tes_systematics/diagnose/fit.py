@@ -5,14 +5,17 @@ masked residual r = valid x (recording - d_nom), M_f the rfft of the masked mode
 selected effects and S_f = P(f) n f_s v / 2 the expected periodogram of the noise
 (:mod:`.noise`), the Whittle likelihood gives
 
-    chi^2 = sum_k sum_f 2 |R_f - M_f|^2 / S_f,
+    chi^2 = sum_k v_k sum_f 2 |R_f - M_f|^2 / S_f,
 
-over the modes f != 0, f_Nyquist (the DC mode is left out: an offset is a nuisance).
+over the modes f != 0, f_Nyquist (the DC mode is left out: an offset is a nuisance),
+v_k the detector's fraction of valid samples: a gap correlates the modes, n of them hold
+n v independent ones (:func:`.noise.independent_fraction`), and for white noise this
+chi^2 is the time-domain one over the valid samples.
 With the noise weights S the ordinary chi^2 of the whitened Fourier coefficients, two real
 degrees of freedom per mode (the noise is a nominal adjustment, fitted before the effects
 and refitted on the residual of the best fit by :mod:`.pipeline`; the fit takes it as
 given: ``with_noise``). N_eff = the number of real Fourier
-degrees of freedom used (2 per mode per detector) is the sample size of the
+degrees of freedom used (2 v_k per mode per detector) is the sample size of the
 
     BIC = chi^2 + k ln N_eff,
 
@@ -89,7 +92,7 @@ from .effects import (
 )
 from .linalg import cross, realify, share_across_detectors, solve_normal
 from .model import Context
-from .noise import NoiseModel, fitted_modes, periodogram_scale
+from .noise import NoiseModel, fitted_modes, independent_fraction, periodogram_scale
 
 DELTA_BIC_THRESHOLD = SELECTION_THRESHOLD  # effects.base: the effects read it too
 GLITCH_THRESHOLD_SIGMA = 5.0
@@ -172,10 +175,11 @@ class FitProblem:
         self.n_det = ctx.n_detectors
         self.freqs = scipy.fft.rfftfreq(n, 1.0 / fs)
         self.modes = modes = fitted_modes(n)
-        self.n_eff = int(2 * modes.sum() * self.n_det)
-        self.ln_n_eff = math.log(self.n_eff)
         self.valid = np.asarray(ctx.valid, dtype=bool)
         self.valid_fraction = self.valid.mean(axis=1)
+        self.independent = [independent_fraction(v) for v in self.valid]  # v_k
+        self.n_eff = int(2 * modes.sum() * sum(self.independent))
+        self.ln_n_eff = math.log(self.n_eff)
         self.scale = [periodogram_scale(n, fs, v) for v in self.valid_fraction]
         if residual_f is None:
             residual = np.where(self.valid, tod - ctx.d_nom, 0.0)
@@ -238,7 +242,10 @@ class FitProblem:
         """Noise weights and the normal equations of the whole bank (linear fits take sub-blocks)."""
         self.nominal_noise = list(nominal_noise)
         self.s_nom = [self.scale[k] * nominal_noise[k].psd(self.freqs) for k in range(self.n_det)]
-        self.w_nom = [self.weights(s) for s in self.s_nom]
+        # v_k / S_f: a gapped detector's chi^2 counts its independent modes (module docstring)
+        self.w_nom = [
+            self.weights(s) * v for s, v in zip(self.s_nom, self.independent, strict=True)
+        ]
         size = self.bank.shape[1]
         self.gram_nom, self.rhs_nom, self.yy_nom = [], [], []
         for k in range(self.n_det):

@@ -38,6 +38,7 @@ import scipy.optimize
 from .model import Context
 from .noise import (
     NoiseModel,
+    independent_fraction,
     knee_bound_hz,
     line_exclusion_mask,
     noise_psd,
@@ -256,9 +257,11 @@ def fit_fluctuations(
     # the noise alone again from the joint fit's noise: a gain must not be credited with
     # what a better-converged noise fit gives
     again = minimise(best.x[:n_noise], False)
-    delta_chi2 = float(best.fun - min(without.fun, again.fun))
+    # v: the independent modes per mode of the pair's gapped periodograms (noise module)
+    independent = float(np.mean([independent_fraction(valid) for valid in ctx.valid]))
+    delta_chi2 = independent * float(best.fun - min(without.fun, again.fun))
     sigmas = _curvature_sigmas(
-        lambda p: minus_two_ln_l(np.concatenate([best.x[:n_noise], p]), True),
+        lambda p: independent * minus_two_ln_l(np.concatenate([best.x[:n_noise], p]), True),
         best.x[n_noise:],
         steps=(0.02, 0.02, 0.01),
         bounds=excess_bounds,

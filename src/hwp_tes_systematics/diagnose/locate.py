@@ -56,7 +56,13 @@ import scipy.stats
 from .effects.glitches import GlitchEvent, find_transients
 from .linalg import whitened_lstsq
 from .model import Context
-from .noise import NoiseModel, fitted_modes, line_exclusion_mask, periodogram_scale
+from .noise import (
+    NoiseModel,
+    fitted_modes,
+    independent_fraction,
+    line_exclusion_mask,
+    periodogram_scale,
+)
 
 FIVE_SIGMA_P = float(scipy.stats.norm.sf(5.0))
 MAX_LINES = 25
@@ -280,12 +286,17 @@ def excess_bands(
     detector: str,
     per_decade: int = 3,
     min_sigma: float = 5.0,
+    valid_fraction: float = 1.0,
 ) -> list[dict]:
     """Bands where the residual power exceeds the noise S_nom: the mean ratio
     x = mean |R_f|^2 / S_nom,f over a band's m modes is Gamma(m, 1/m) for noise, so the
     band's tail probability is p = Q(m, m x) (regularised upper incomplete gamma);
     ``significance_sigma`` is the look-elsewhere corrected one, p x the bands tested
-    (``local_significance_sigma`` without), and a band is kept above ``min_sigma``."""
+    (``local_significance_sigma`` without), and a band is kept above ``min_sigma``.
+
+    With a fraction v of the samples valid the modes are correlated through the mask's
+    spectrum W: sum_f' |W(f - f')|^2 / W(0)^2 = 1 / v (Parseval), so a band of m modes
+    holds m v independent ones and m is replaced by m v (``valid_fraction`` = v)."""
     ratio = (residual_f.real**2 + residual_f.imag**2) / np.maximum(s_nom, 1e-300)
     positive = freqs[use]
     if positive.size == 0:
@@ -302,7 +313,10 @@ def excess_bands(
         if m < 10:
             continue
         mean = float(ratio[band].mean())
-        tested.append((lo, hi, m, mean, float(scipy.special.gammaincc(m, m * mean))))
+        independent = m * min(max(valid_fraction, 1e-3), 1.0)
+        tested.append(
+            (lo, hi, m, mean, float(scipy.special.gammaincc(independent, independent * mean)))
+        )
     out = []
     for lo, hi, m, mean, p in tested:
         significance = p_to_sigma(min(1.0, len(tested) * p))
@@ -581,7 +595,12 @@ def locate(
         sigma_samples.append(sigma_sample)
         mismatch.lines += find_lines(residual[k], ctx, k, noise)
         mismatch.excess_bands += excess_bands(
-            residual_f[k], freqs, s_nom, modes & ~lines_mask, name
+            residual_f[k],
+            freqs,
+            s_nom,
+            modes & ~lines_mask,
+            name,
+            valid_fraction=independent_fraction(ctx.valid[k]),
         )
         centres, profile, sigma, harmonics = hwp_profile(residual[k], ctx, k, sigma_sample)
         mismatch.profiles[name] = (centres, profile, sigma)

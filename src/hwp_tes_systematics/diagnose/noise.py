@@ -20,9 +20,13 @@ least-squares covariance scaled by the reduced chi^2.
 Whittle likelihood (the fit's noise model, :func:`whittle_fit`): for the rfft R_f of n
 samples of which a fraction v is valid, E|R_f|^2 = S_f = P(f) n f_s v / 2 and
 
-    -2 ln L = sum_f [ 2 |R_f - M_f|^2 / S_f + 2 ln S_f ]  (+ const),
+    -2 ln L = v sum_f [ 2 |R_f - M_f|^2 / S_f + 2 ln S_f ]  (+ const),
 
-each complex mode counting two real degrees of freedom. Weighting the Fourier
+each complex mode counting two real degrees of freedom, times v: a gap correlates
+neighbouring modes (the squared correlations of one mode with all others sum to 1 / v,
+Parseval on the mask's spectrum), so n modes hold n v independent ones
+(:func:`independent_fraction`); for white noise v sum_f |R_f|^2 / S_f is the time-domain
+chi^2 over the valid samples, and a gap costs the precision it should. Weighting the Fourier
 coefficients by 1/S_f is the prewhitening operator of the template fit. The
 noise parameters are fitted by maximising L on the residual periodogram (line bins
 excluded), with the periodogram summed in narrow frequency bins (1/2 % wide) over which
@@ -85,6 +89,12 @@ def rolloff(freqs_hz, tau_squared_s2) -> np.ndarray:
 def periodogram_scale(n_samples: int, sampling_rate_hz: float, valid_fraction: float) -> float:
     """S_f / P(f) = n f_s v / 2 for numpy's unnormalised rfft."""
     return 0.5 * n_samples * sampling_rate_hz * valid_fraction
+
+
+def independent_fraction(valid) -> float:
+    """v, the fraction of valid samples: the independent modes per mode of a gapped
+    periodogram (module docstring); every -2 ln L summed over modes is weighted by it."""
+    return float(np.mean(valid)) if valid is not None else 1.0
 
 
 def fitted_modes(n_samples: int) -> np.ndarray:
@@ -313,8 +323,12 @@ def whittle_fit(
     use: np.ndarray,
     scale: float,
     start: NoiseModel,
+    independent: float = 1.0,
 ) -> WhittleFit:
     """Maximum-Whittle-likelihood (net, fknee, alpha) for the periodogram ``power`` = |R_f|^2.
+
+    ``independent``: v, the independent modes per mode (:func:`independent_fraction`), which
+    scales the Fisher matrix.
 
     ``use`` selects the modes (DC and line bins excluded by the caller); ``scale`` = S_f/P(f)
     (:func:`periodogram_scale`); fmin and the pole tau are kept at ``start``'s. The white level is
@@ -371,7 +385,7 @@ def whittle_fit(
         ln_down = np.log(noise_psd(f_bin, math.exp(down[0]), math.exp(down[1]), down[2], fmin))
         grads.append((ln_up - ln_down) / (2 * step[i]))
     grads = np.array(grads)
-    fisher = (grads * m_bin) @ grads.T
+    fisher = independent * (grads * m_bin) @ grads.T
     try:
         covariance = np.linalg.inv(fisher)
     except np.linalg.LinAlgError:

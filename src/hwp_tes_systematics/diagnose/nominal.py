@@ -81,7 +81,14 @@ from .effects.hwpss import harmonic_templates
 from .linalg import cross, solve_normal
 from .locate import coarse_pixels
 from .model import Context
-from .noise import NoiseModel, fitted_modes, line_exclusion_mask, periodogram_scale, whittle_fit
+from .noise import (
+    NoiseModel,
+    fitted_modes,
+    independent_fraction,
+    line_exclusion_mask,
+    periodogram_scale,
+    whittle_fit,
+)
 
 # Binning the residual on the sky is NOT done by default (0): fitted apart from the effects it
 # also absorbs the slow dipole part of a gain drift (the dipole is fixed on the sky over a
@@ -209,15 +216,21 @@ def fit_nominal(
             # holds a strong effect (its leakage over the circular FFT) can be far off and
             # would pull the linearisation point of the effects with it
             s = scale[k] * noise_start[k].psd(freqs)
-            w = np.where(modes, 1.0 / np.maximum(s, 1e-300), 0.0)
-            # the HWP lines beside them, as nuisances (module docstring)
-            bank = np.concatenate(
-                [templates_f[k], scipy.fft.rfft(lines[k] * valid[k], axis=-1, workers=workers)]
-            )
+            # v / S_f: a gapped periodogram's modes hold v independent ones each (noise)
+            w = np.where(modes, independent_fraction(valid[k]) / np.maximum(s, 1e-300), 0.0)
+            # the HWP lines beside them, as nuisances (module docstring), and with flagged
+            # samples a constant: masked, it is no longer the DC mode the fit leaves out, and
+            # a nonlinearity's g1 A_2^2 / 2 (21 mK on H3-402 at g1 = 3e-3) cut by a gap leaked
+            # into the gain, leaving the dipole at f_spin in the residual (fit.GAP_OFFSET)
+            parts = [templates_f[k], scipy.fft.rfft(lines[k] * valid[k], axis=-1, workers=workers)]
+            if not valid[k].all():
+                parts.append(scipy.fft.rfft(valid[k].astype(float), workers=workers)[None])
+            bank = np.concatenate(parts)
             solution, full_covariance = solve_normal(
                 cross(bank, bank, w), cross(bank, residual0_f[k] - sky_f[k], w)
             )
-            values[k], line_values[k] = solution[:n_par], solution[n_par:]
+            values[k] = solution[:n_par]
+            line_values[k] = solution[n_par : n_par + lines.shape[1]]
             covariance[k] = full_covariance[:n_par, :n_par]
         residual1 = residual0 - np.einsum("kj,kjn->kn", values, templates) * valid
         offsets = np.array([residual1[k][valid[k]].mean() for k in range(n_det)])
@@ -287,7 +300,9 @@ def refit_noise(ctx: Context, residual_f: np.ndarray, noise: list[NoiseModel]):
     for k in range(ctx.n_detectors):
         scale = periodogram_scale(n, fs, float(np.mean(ctx.valid[k])))
         power = residual_f[k].real ** 2 + residual_f[k].imag ** 2
-        fitted = whittle_fit(freqs, power, quiet, scale, noise[k])
+        fitted = whittle_fit(
+            freqs, power, quiet, scale, noise[k], independent_fraction(ctx.valid[k])
+        )
         models.append(fitted.model)
         covariances.append(fitted.covariance)
         where = np.array(

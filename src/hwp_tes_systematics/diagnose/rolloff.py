@@ -45,6 +45,7 @@ from .model import Context
 from .noise import (
     NoiseModel,
     _narrow_bins,
+    independent_fraction,
     knee_bound_hz,
     line_exclusion_mask,
     noise_psd,
@@ -158,14 +159,15 @@ def fit_rolloff(ctx: Context, residual_f, noise, used: np.ndarray, ln_n_eff: flo
         if again_fun < without_fun:
             without_x, without_fun = again_x, again_fun
         v = float(best_x[2]) if best_fun < without_fun else 0.0
-        delta_chi2 += min(best_fun - without_fun, 0.0)
+        independent = independent_fraction(ctx.valid[k])  # v: a gapped periodogram's modes
+        delta_chi2 += independent * min(best_fun - without_fun, 0.0)
         chosen = best_x if v > 0 else without_x
         # sigma of v from the curvature of -2 ln L along v (the others held)
         h = max(1e-3, 0.05 * v)
         around = [
             objective(np.array([*chosen[:2], max(v + d, 0.0), chosen[3]])) for d in (-h, 0.0, h)
         ]
-        curvature = (around[0] - 2 * around[1] + around[2]) / h**2
+        curvature = independent * (around[0] - 2 * around[1] + around[2]) / h**2
         sigma_v = math.sqrt(2.0 / curvature) if curvature > 0 else math.inf
         to_u = 1.0 / (2 * np.pi * nyquist) ** 2  # u = tau^2 = v / (2 pi f_Nyq)^2
         u, sigma_u = v * to_u, sigma_v * to_u

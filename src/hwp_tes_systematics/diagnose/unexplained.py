@@ -47,7 +47,13 @@ from .effects import format_temperature
 from .effects.glitches import event_directions, find_transients, sky_fixed_groups
 from .locate import excess_bands, find_lines, line_at, sinusoid_fit, sky_residual
 from .model import Context
-from .noise import NoiseModel, fitted_modes, line_exclusion_mask, periodogram_scale
+from .noise import (
+    NoiseModel,
+    fitted_modes,
+    independent_fraction,
+    line_exclusion_mask,
+    periodogram_scale,
+)
 
 SKY_TOLERANCE = 0.10
 MIN_SIGMA = 5.0
@@ -185,7 +191,9 @@ def find_unexplained(
     for k, det in enumerate(ctx.detector_names):
         scale = periodogram_scale(n, fs, float(ctx.valid[k].mean()))
         s = scale * noise_models[k].psd(freqs)
-        out += _bands(residual_f[k], freqs, s, modes & ~lines, det, tried)
+        out += _bands(
+            residual_f[k], freqs, s, modes & ~lines, det, tried, independent_fraction(ctx.valid[k])
+        )
         out += _segments(residual_f[k], s, ctx, k, tried, workers)
         transients += find_transients(
             residual_f[k], s, ctx.valid[k], ctx.times_s, scale, k, workers=workers
@@ -247,7 +255,7 @@ def _sky_fixed_transients(events, ctx: Context, tried) -> list[dict]:
     return out
 
 
-def _bands(residual_f, freqs, s, use, det, tried) -> list[dict]:
+def _bands(residual_f, freqs, s, use, det, tried, valid_fraction) -> list[dict]:
     """:func:`locate.excess_bands` above MIN_SIGMA, as entries of ``unexplained``."""
     return [
         {
@@ -259,7 +267,9 @@ def _bands(residual_f, freqs, s, use, det, tried) -> list[dict]:
             "significance_sigma": band["significance_sigma"],
             "tried_and_rejected": tried,
         }
-        for band in excess_bands(residual_f, freqs, s, use, det, min_sigma=MIN_SIGMA)
+        for band in excess_bands(
+            residual_f, freqs, s, use, det, min_sigma=MIN_SIGMA, valid_fraction=valid_fraction
+        )
     ]
 
 
