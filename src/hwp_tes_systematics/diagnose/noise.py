@@ -185,12 +185,15 @@ def valid_welch(
     segment is used."""
     n = residual.size
     segment = min(welch_segment(n), n)
+    # invalid samples before each index: a segment [a, a + L) is whole if the count is equal
+    invalid_before = None
+    if valid is not None:
+        invalid_before = np.concatenate([[0], np.cumsum(~np.asarray(valid, dtype=bool))])
     while True:
         starts = np.arange(0, n - segment + 1, segment // 2)
-        if valid is None:
+        if invalid_before is None:
             whole = np.ones(starts.size, dtype=bool)
         else:
-            invalid_before = np.concatenate([[0], np.cumsum(~np.asarray(valid, dtype=bool))])
             whole = invalid_before[starts + segment] == invalid_before[starts]
         if whole.sum() >= min(MIN_WELCH_SEGMENTS, starts.size) or segment <= 256:
             break
