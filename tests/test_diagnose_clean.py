@@ -89,6 +89,14 @@ def test_clean_recording_reports_no_mismatch(tmp_path):
     for name in ("diagnosis.json", "diagnosis.md", "residual_spectrum.png", "residual_map.png"):
         assert (tmp_path / "out" / name).stat().st_size > 0
     assert "No mismatch found" in (tmp_path / "out" / "diagnosis.md").read_text()
+    # g1 fitted beside nothing: consistent with none, and its bound said against the
+    # requirement in the report
+    check = result["requirement_check"]
+    assert check["effect"] is None and not check["detected"]
+    for detector in check["detectors"]:
+        assert abs(detector["g1_per_k"]) < 3 * detector["sigma_per_k"]
+        assert detector["bound_per_k"] < 6 * detector["sigma_per_k"]
+    assert check["sentence"] in (tmp_path / "out" / "diagnosis.md").read_text()
 
 
 @pytest.mark.slow

@@ -80,6 +80,43 @@ def test_a_found_nonlinearity_against_the_shipped_requirement(result):
     assert sentence.rstrip(".").count(". ") == 0  # one sentence
 
 
+def test_a_nonlinearity_not_found_is_bounded_against_the_requirement():
+    """No nonlinearity selected: the g1 fitted beside the effects bounds |g1| by |g1| + 2
+    sigma per detector; the verdict turns on the larger bound against sigma_g1."""
+    from hwp_tes_systematics.diagnose.requirement_check import (
+        bound_nonlinearity,
+        load_requirement,
+    )
+
+    requirement = load_requirement()
+    limit = requirement["sigma_g1_per_k"]
+
+    def parameters(*values_sigmas):
+        return {
+            f"g1[d{k}]": {
+                "value": v,
+                "sigma": s,
+                "unit": "1/K",
+                "detector": f"d{k}",
+                "parameter": "g1",
+            }
+            for k, (v, s) in enumerate(values_sigmas)
+        }
+
+    tight = bound_nonlinearity(parameters((1e-4, 1e-4), (-2e-4, 2e-4)), requirement, -1.5)
+    assert [d["bound_per_k"] for d in tight["detectors"]] == pytest.approx([3e-4, 6e-4])
+    assert tight["detectors"][1]["bound_over_requirement"] == pytest.approx(6e-4 / limit)
+    sentence = tight["sentence"]
+    assert (
+        sentence.startswith("No TES nonlinearity found") and "below the requirement (" in sentence
+    )
+    assert "Delta chi^2 = -1.5 for 2 parameters" in sentence and "365.25 days" in sentence
+    assert sentence.rstrip(".").count(". ") == 0  # one sentence
+    loose = bound_nonlinearity(parameters((1e-4, 1e-4), (-3e-3, limit)), requirement, -9.0)
+    assert "cannot show |g1| below the requirement" in loose["sentence"]
+    assert not loose["detected"] and tight["parameters"]["g1[d0]"]["value"] == 1e-4
+
+
 def test_a_requirement_file_without_a_headline_is_refused(tmp_path):
     from hwp_tes_systematics.diagnose.requirement_check import (
         RequirementFileError,

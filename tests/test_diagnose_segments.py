@@ -180,3 +180,30 @@ def test_a_recording_in_two_segments_gives_the_effect_of_the_whole(tmp_path):
     report = (tmp_path / "out" / "diagnosis.md").read_text()
     assert "## Segments" in report and "segments/1/diagnosis.md" in report
     assert (tmp_path / "out" / "segments" / "1" / "diagnosis.json").exists()
+
+
+def test_segments_without_a_nonlinearity_combine_their_bounds_on_g1():
+    """No segment finds a nonlinearity: each one's g1 fitted beside its effects
+    (requirement_check.parameters) combines as the inverse-variance mean, and the bound is
+    |g1| + 2 sigma of that mean."""
+    from hwp_tes_systematics.diagnose.requirement_check import bound_nonlinearity
+
+    results = []
+    for value, sigma in ((1.0e-4, 4e-4), (-3.0e-4, 3e-4)):
+        result = segment_result(0.0, 1.0)
+        result["effects"] = []
+        parameters = {"g1[d0]": entry(value, sigma)}
+        result["requirement_check"] = {"effect": None} | bound_nonlinearity(
+            parameters, REQUIREMENT, -1.0
+        )
+        results.append(result)
+    combined = combine_segments(results, [(0, 3600), (3600, 7200)], 1.0, REQUIREMENT)
+    check = combined["requirement_check"]
+    assert check["effect"] is None and not check["detected"] and check["delta_chi2"] == -2.0
+    weights = np.array([4e-4, 3e-4]) ** -2.0
+    mean = np.sum(weights * [1.0e-4, -3.0e-4]) / weights.sum()
+    (detector,) = check["detectors"]
+    assert detector["g1_per_k"] == pytest.approx(mean)
+    assert detector["bound_per_k"] == pytest.approx(abs(mean) + 2 * weights.sum() ** -0.5)
+    assert check["sentence"].startswith("No TES nonlinearity found")
+    json.dumps(combined)

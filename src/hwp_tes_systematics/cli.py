@@ -222,8 +222,8 @@ def main(argv: list[str] | None = None) -> int:
             f"mismatch found: {names}; chi2 {result['chi2_before']:.1f} -> "
             f"{result['chi2_after']:.1f}; report in {arguments.out}"
         )
-        if result.requirement_sentence:
-            print(result.requirement_sentence)
     else:
         print(f"no mismatch found (chi2 {result['chi2_before']:.1f}); report in {arguments.out}")
+    if result.requirement_sentence:
+        print(result.requirement_sentence)
     return 0

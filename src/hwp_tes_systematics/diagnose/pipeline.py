@@ -51,7 +51,12 @@ from .nominal import (
 )
 from .recording import Recording
 from .report import Diagnosis, write_outputs
-from .requirement_check import NONLINEARITY_FAMILY, compare_nonlinearity, load_requirement
+from .requirement_check import (
+    NONLINEARITY_FAMILY,
+    bound_nonlinearity,
+    compare_nonlinearity,
+    load_requirement,
+)
 from .rolloff import fit_rolloff
 from .unexplained import find_unexplained
 
@@ -110,6 +115,21 @@ def _nominal_noise_models(recording: Recording, nominal_noise) -> list[NoiseMode
             continue
         models.append(NoiseModel.from_detector(values))
     return models
+
+
+def _nonlinearity_bound(problem: FitProblem, final, requirement: dict) -> dict:
+    """No nonlinearity selected: g1 fitted beside the final selection (the selection's last
+    step tried it, so the fit is cached) bounds it (:func:`.requirement_check.bound_nonlinearity`)."""
+    name = NONLINEARITY_FAMILY
+    beside = problem.fit((*final.selected, name))
+    effect = CATALOG[name]
+    parameters = effect.reported_parameters(
+        beside.effects[name],
+        problem.ctx.detector_names,
+        problem.ctx.sampling_rate_hz,
+        problem.units[name],
+    )
+    return bound_nonlinearity(parameters, requirement, beside.chi2 - final.chi2)
 
 
 def look_alikes(steps, threshold: float) -> dict[str, list[str]]:
@@ -434,12 +454,14 @@ def diagnose(
     nonlinearity = next(
         (e for e in effects_out if family_of(e["name"]) == NONLINEARITY_FAMILY), None
     )
-    requirement_check = None
+    requirement = requirement_given or load_requirement()
     if nonlinearity is not None:
         requirement_check = {
             "effect": nonlinearity["name"],
-            **compare_nonlinearity(nonlinearity, requirement_given or load_requirement()),
+            **compare_nonlinearity(nonlinearity, requirement),
         }
+    else:  # what the recording says of g1 all the same: its fit beside the effects found
+        requirement_check = {"effect": None, **_nonlinearity_bound(problem, final, requirement)}
     lines = _line_table(mismatch, ctx, residual, residual_after, noise_models)
     corrections = final.effects[NOMINAL.name]
     adjustments = adjustments_report(

@@ -79,8 +79,8 @@ class Diagnosis(Mapping):
 
     @property
     def requirement_sentence(self) -> str | None:
-        """The fitted nonlinearity against the requirement on sigma_g1, in one sentence
-        (None when no nonlinearity was found)."""
+        """The fitted nonlinearity against the requirement on sigma_g1, in one sentence (when
+        none was found: the bound on g1 from its fit beside the effects found)."""
         check = self._data.get("requirement_check")
         return check["sentence"] if check else None
 
@@ -188,6 +188,9 @@ def markdown_report(result: dict, figure_files: dict | None = None) -> str:
         check = result.get("requirement_check")
         if check and check["effect"] == effect["name"]:
             out += [f"*Against the requirement*: {check['sentence']}", ""]
+    check = result.get("requirement_check")
+    if check and check["effect"] is None:  # no nonlinearity found: what bounds it
+        out += ["## The TES nonlinearity, not found", "", check["sentence"], ""]
     out += ["## What the fit cannot explain", ""]
     if unexplained:
         out += [

@@ -5,7 +5,9 @@ the detectors' g1 left after calibration (Micheli et al. 2024: g1 drawn per dete
 N(0, sigma_g1)). A diagnosis that measures g1 with uncertainty sigma says two things
 against it: whether this recording knows g1 well enough (sigma below the requirement:
 correcting with the fitted g1 leaves an error within it) and how large g1 itself is
-against it (the bias a detector with this g1 would bring if left uncorrected). Without a
+against it (the bias a detector with this g1 would bring if left uncorrected). When no
+nonlinearity is found, g1 fitted beside the effects that were bounds it instead:
+|g1| < |g1_fit| + 2 sigma per detector (:func:`bound_nonlinearity`). Without a
 file given, the shipped one-year result is used (``docs/one_year/requirement.json``,
 packaged as ``data/one_year_requirement.json``).
 """
@@ -76,10 +78,77 @@ def compare_nonlinearity(effect: dict, requirement: dict) -> dict:
             }
         )
     return {
+        "detected": True,
         "requirement": requirement,
         "detectors": detectors,
         "sentence": _sentence(detectors, requirement),
     }
+
+
+def bound_nonlinearity(parameters: dict, requirement: dict, delta_chi2: float) -> dict:
+    """No nonlinearity found: the g1 fitted beside the effects found (``parameters``, the
+    report's entries of that fit) bounds it, |g1| < |g1_fit| + 2 sigma per detector (97.7 %
+    on the side of the fit, more on the other), against the requirement;
+    ``delta_chi2`` = chi^2 with g1 - chi^2 without (what adding it gained, <= 0)."""
+    limit = requirement["sigma_g1_per_k"]
+    detectors = []
+    for entry in parameters.values():
+        if entry["parameter"] != "g1" or entry["detector"] == "common":
+            continue
+        sigma = entry["sigma"]  # None: not measured (combined over segments without one)
+        bound = abs(entry["value"]) + 2 * sigma if sigma is not None else float("inf")
+        detectors.append(
+            {
+                "detector": entry["detector"],
+                "g1_per_k": entry["value"],
+                "sigma_per_k": entry["sigma"],
+                "bound_per_k": bound,
+                "bound_over_requirement": bound / limit,
+            }
+        )
+    fitted = ", ".join(
+        f"{d['g1_per_k']:.2g} +- {d['sigma_per_k']:.2g} ({d['detector']})" for d in detectors
+    )
+    ratios = [d["bound_over_requirement"] for d in detectors]
+    bounds = ", ".join(format(d["bound_per_k"], ".2g") for d in detectors)
+    verdict = (
+        f"each detector's |g1| is below the requirement ({_span(ratios, '.2g')} of it)"
+        if max(ratios) < 1
+        else f"this recording cannot show |g1| below the requirement (its bound is "
+        f"{_span(ratios, '.2g')} times it)"
+    )
+    sentence = (
+        f"No TES nonlinearity found: fitted beside the effects found, g1 = {fitted} K^-1 "
+        f"(Delta chi^2 = {delta_chi2:.3g} for {len(detectors)} parameters), so |g1| < "
+        f"{bounds} K^-1 (|g1| + 2 sigma) "
+        f"against the requirement sigma_g1 < {_bound_text(requirement)} K^-1 "
+        f"({_context(requirement)}): {verdict}."
+    )
+    return {
+        "detected": False,
+        "requirement": requirement,
+        "detectors": detectors,
+        "parameters": parameters,  # the fit's entries, for segments to combine
+        "delta_chi2": delta_chi2,
+        "sentence": sentence,
+    }
+
+
+def _bound_text(requirement) -> str:
+    error = requirement["error_per_k"]
+    return f"{requirement['sigma_g1_per_k']:.2g}" + (f" +- {error:.1g}" if error else "")
+
+
+def _context(requirement) -> str:
+    settings = requirement["settings"]
+    context = []
+    if requirement["delta_r_budget"] is not None:
+        context.append(f"delta r < {requirement['delta_r_budget']:g}")
+    if "duration_days" in settings:
+        context.append(f"{settings['duration_days']:g} days")
+    if "nside" in settings:
+        context.append(f"nside {settings['nside']}")
+    return "; ".join(part for part in (", ".join(context), requirement["source"]) if part)
 
 
 def _span(values, fmt) -> str:
@@ -90,20 +159,9 @@ def _span(values, fmt) -> str:
 
 
 def _sentence(detectors, requirement) -> str:
-    limit = requirement["sigma_g1_per_k"]
-    error = requirement["error_per_k"]
-    settings = requirement["settings"]
     fitted = ", ".join(
         f"{d['g1_per_k']:.3g} +- {d['sigma_per_k']:.2g} ({d['detector']})" for d in detectors
     )
-    context = []
-    if requirement["delta_r_budget"] is not None:
-        context.append(f"delta r < {requirement['delta_r_budget']:g}")
-    if "duration_days" in settings:
-        context.append(f"{settings['duration_days']:g} days")
-    if "nside" in settings:
-        context.append(f"nside {settings['nside']}")
-    bound = f"{limit:.2g}" + (f" +- {error:.1g}" if error else "")
     sigma_ratio = [d["sigma_over_requirement"] for d in detectors]
     known = (
         f"this recording knows g1 {_span([1 / r for r in sigma_ratio], '.3g')} times better "
@@ -114,7 +172,7 @@ def _sentence(detectors, requirement) -> str:
     )
     uncorrected = _span([d["g1_over_requirement"] for d in detectors], ".2g")
     return (
-        f"Fitted g1 = {fitted} K^-1 against the requirement sigma_g1 < {bound} K^-1 "
-        f"({', '.join(context)}; {requirement['source']}): {known}, and left uncorrected "
+        f"Fitted g1 = {fitted} K^-1 against the requirement sigma_g1 < "
+        f"{_bound_text(requirement)} K^-1 ({_context(requirement)}): {known}, and left uncorrected "
         f"|g1| is {uncorrected} times the requirement."
     )

@@ -49,7 +49,12 @@ from .recording import (
     recording_size,
 )
 from .report import Diagnosis, markdown_report
-from .requirement_check import NONLINEARITY_FAMILY, compare_nonlinearity, load_requirement
+from .requirement_check import (
+    NONLINEARITY_FAMILY,
+    bound_nonlinearity,
+    compare_nonlinearity,
+    load_requirement,
+)
 
 log = logging.getLogger(__name__)
 VARIES_P = 1e-3  # a parameter whose segments disagree at p below this is marked as varying
@@ -249,10 +254,21 @@ def combine_segments(
             }
     nonlinearity = next((e for e in effects if family_of(e["name"]) == NONLINEARITY_FAMILY), None)
     requirement_check = None
+    beside = [r.get("requirement_check") or {} for r in results]  # each segment's bound
     if nonlinearity is not None:
         requirement_check = {
             "effect": nonlinearity["name"],
             **compare_nonlinearity(nonlinearity, requirement),
+        }
+    elif all("parameters" in check and check["effect"] is None for check in beside):
+        parameters = {
+            key: _combined_value([check["parameters"][key] for check in beside])
+            for key in beside[0]["parameters"]
+        }
+        delta_chi2 = float(sum(check["delta_chi2"] for check in beside))
+        requirement_check = {
+            "effect": None,
+            **bound_nonlinearity(parameters, requirement, delta_chi2),
         }
     total = {key: float(sum(r[key] for r in results)) for key in ("chi2_before", "chi2_after")}
     total.update({key: float(sum(r[key] for r in results)) for key in ("bic_before", "bic_after")})
