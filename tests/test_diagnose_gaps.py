@@ -158,6 +158,7 @@ def test_an_hwpss_with_strong_higher_harmonics_beside_a_gap_changes_nothing(
         assert not diagnosis["unexplained"]
         check = diagnosis["requirement_check"]
         if "tes_nonlinearity" not in found:
+            print(check["sentence"])
             assert check["effect"] is None
             for detector in check["detectors"]:
                 assert abs(detector["g1_per_k"] - g1) < 3 * detector["sigma_per_k"]

@@ -18,6 +18,8 @@ import json
 from importlib import resources
 from pathlib import Path
 
+from scipy import stats
+
 SHIPPED = "one_year_requirement.json"  # under the package's data/
 NONLINEARITY_FAMILY = "tes_nonlinearity"
 
@@ -89,7 +91,9 @@ def bound_nonlinearity(parameters: dict, requirement: dict, delta_chi2: float) -
     """No nonlinearity found: the g1 fitted beside the effects found (``parameters``, the
     report's entries of that fit) bounds it, |g1| < |g1_fit| + 2 sigma per detector (97.7 %
     on the side of the fit, more on the other), against the requirement;
-    ``delta_chi2`` = chi^2 with g1 - chi^2 without (what adding it gained, <= 0)."""
+    ``delta_chi2`` = chi^2 with g1 - chi^2 without (what adding it gained, <= 0), and p the
+    chance of gaining as much from noise alone (chi^2 with n_detectors degrees of freedom):
+    a small p is a nonlinearity below the selection's BIC threshold, not its absence."""
     limit = requirement["sigma_g1_per_k"]
     detectors = []
     for entry in parameters.values():
@@ -117,9 +121,12 @@ def bound_nonlinearity(parameters: dict, requirement: dict, delta_chi2: float) -
         else f"this recording cannot show |g1| below the requirement (its bound is "
         f"{_span(ratios, '.2g')} times it)"
     )
+    # the chance that noise alone gains as much: -Delta chi^2 ~ chi^2(n_detectors)
+    p_value = float(stats.chi2.sf(-delta_chi2, len(detectors))) if detectors else 1.0
     sentence = (
         f"No TES nonlinearity found: fitted beside the effects found, g1 = {fitted} K^-1 "
-        f"(Delta chi^2 = {delta_chi2:.3g} for {len(detectors)} parameters), so |g1| < "
+        f"(Delta chi^2 = {delta_chi2:.3g} for {len(detectors)} parameters, p = {p_value:.2g} "
+        "from noise alone), so |g1| < "
         f"{bounds} K^-1 (|g1| + 2 sigma) "
         f"against the requirement sigma_g1 < {_bound_text(requirement)} K^-1 "
         f"({_context(requirement)}): {verdict}."
@@ -130,6 +137,7 @@ def bound_nonlinearity(parameters: dict, requirement: dict, delta_chi2: float) -
         "detectors": detectors,
         "parameters": parameters,  # the fit's entries, for segments to combine
         "delta_chi2": delta_chi2,
+        "p_value": p_value,
         "sentence": sentence,
     }
 
