@@ -176,11 +176,13 @@ class FitProblem:
         self.freqs = scipy.fft.rfftfreq(n, 1.0 / fs)
         self.modes = modes = fitted_modes(n)
         self.valid = np.asarray(ctx.valid, dtype=bool)
-        self.valid_fraction = self.valid.mean(axis=1)
-        self.independent = [independent_fraction(v) for v in self.valid]  # v_k
+        # v_k, the fraction of valid samples, plays two parts: each gapped periodogram mode
+        # holds v_k independent ones (the likelihood's weight) and v_k scales the
+        # periodogram of the zero-filled residual (noise.periodogram_scale)
+        self.independent = [independent_fraction(v) for v in self.valid]
         self.n_eff = int(2 * modes.sum() * sum(self.independent))
         self.ln_n_eff = math.log(self.n_eff)
-        self.scale = [periodogram_scale(n, fs, v) for v in self.valid_fraction]
+        self.scale = [periodogram_scale(n, fs, v) for v in self.independent]
         if residual_f is None:
             residual = np.where(self.valid, tod - ctx.d_nom, 0.0)
             residual_f = scipy.fft.rfft(residual, axis=-1, workers=workers)
