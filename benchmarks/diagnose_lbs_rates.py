@@ -185,7 +185,15 @@ def score(result: dict, case: str, truth: list) -> dict:
         main = effect["main_parameters"][0]
         entries = [p for p in effect["parameters"].values() if p["parameter"] == main]
         pulls = [(p["value"] - t) / p["sigma"] for p, t in zip(entries, truth, strict=False)]
+    # no nonlinearity found: g1 fitted beside the effects found bounds it (requirement_check);
+    # where none was injected its truth is 0, so g1 / sigma is a pull and the bound a size
+    check = result.get("requirement_check") or {}
+    beside = check.get("detectors", []) if check.get("detected") is False else []
     return {
+        "beside_pulls": [round(d["g1_per_k"] / d["sigma_per_k"], 3) for d in beside]
+        if case != "nonlinearity"
+        else [],
+        "beside_bounds": [d["bound_per_k"] for d in beside] if case != "nonlinearity" else [],
         "n": 1,
         "reported": int(bool(names)),
         "alarm": int(bool(result["mismatch_found"])),
@@ -296,8 +304,16 @@ def summary_line(key: str, c: dict) -> str:
     """A case's counts; the split into ranked first / look-alike / extra effects and the
     pulls where the run recorded them (files before session 23 did not)."""
     case = key.split()[1]
+    beside = ""
+    if c.get("beside_pulls"):  # runs before the nonlinearity bound (session 31) lack it
+        pulls, bounds = np.asarray(c["beside_pulls"]), np.asarray(c["beside_bounds"])
+        beside = (
+            f"; g1 fitted beside (truth 0): pulls mean {pulls.mean():+.2f} rms "
+            f"{np.sqrt(np.mean(pulls**2)):.2f} over {pulls.size}, |g1| + 2 sigma median "
+            f"{np.median(bounds):.2g} K^-1"
+        )
     if not CASES[case][1]:
-        return f"{key}: false alarms {c['alarm']}/{c['n']} ({c['gapped']} with a gap)"
+        return f"{key}: false alarms {c['alarm']}/{c['n']} ({c['gapped']} with a gap){beside}"
     line = (
         f"{key}: reported {c['reported']}/{c['n']}, expected ranked first or named "
         f"{c['correct']}/{c['n']}, parameter within 3 sigma {c['within']}/{c['param_checked']} "
@@ -311,7 +327,7 @@ def summary_line(key: str, c: dict) -> str:
     if c.get("pulls"):
         pulls = np.asarray(c["pulls"])
         line += f"; pulls mean {pulls.mean():+.2f} rms {np.sqrt(np.mean(pulls**2)):.2f}"
-    return line
+    return line + beside
 
 
 if __name__ == "__main__":

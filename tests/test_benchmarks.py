@@ -408,3 +408,13 @@ def test_lbs_rates_score_splits_first_look_alike_extra_and_pulls(benchmarks):
     last = summary({"hours": 6.0, "cases": {"M1-140 nonlinearity 0.003": entry}})[-1]
     assert "ranked first 1, look-alike 1, with an extra effect 1" in last
     assert "pulls rms 3.61" in last
+    # a clean recording: g1 fitted beside nothing, truth 0, its pull and bound kept
+    bound = {"detected": False, "detectors": [{"g1_per_k": 2e-4, "sigma_per_k": 1e-4,
+                                               "bound_per_k": 4e-4}]}  # fmt: skip
+    clean = score({"effects": [], "mismatch_found": False, "requirement_check": bound},
+                  "clean", [])  # fmt: skip
+    assert clean["beside_pulls"] == [2.0] and clean["beside_bounds"] == [4e-4]
+    null: dict = {"gapped": 0}
+    add(null, clean)
+    line = summary({"hours": 6.0, "cases": {"M1-140 clean 0": null}})[0]
+    assert "pulls mean +2.00 rms 2.00 over 1, |g1| + 2 sigma median 0.0004 K^-1" in line
