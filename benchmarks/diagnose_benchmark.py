@@ -109,6 +109,12 @@ AMPLITUDES = {
         lambda a, rng: {"a2c": a * np.cos(p := _phase(rng)), "a2s": a * np.sin(p)},
         None,
     ),
+    "hwp_intensity_leakage_4f": (
+        "b4c",
+        [1e-3, 3e-3, 1e-2],
+        lambda a, rng: {"b4c": a * np.cos(p := _phase(rng)), "b4s": a * np.sin(p)},
+        None,
+    ),
     "gain_drift": ("g1", [1e-3, 3e-3, 3e-2], lambda a, rng: _gain_drift(a, rng, True), None),
     "gain_drift_common_mode": (
         "g1",

@@ -55,6 +55,12 @@ SINGLE = [
         105,
     ),
     ("hwp_temperature_drift", {"c1": 1e-3, "c2": 3e-4}, {"c1": [1e-3] * 2, "c2": [3e-4] * 2}, 106),
+    (  # the HWP's I -> P leakage at 4 f_HWP: the dipole's 4f +- f_spin sidebands ~10 uK
+        "hwp_intensity_leakage_4f",
+        {"b4c": 0.01, "b4s": -0.006},
+        {"b4c": [0.01] * 2, "b4s": [-0.006] * 2},
+        107,
+    ),
 ]
 
 GLITCHES = [

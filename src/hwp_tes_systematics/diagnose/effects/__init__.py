@@ -66,6 +66,7 @@ from .glitches import (
 )
 from .hwpss import (
     HwpEmissionFluctuations,
+    HwpIntensityLeakage4f,
     HwpssHarmonic,
     HwpssHarmonics,
     HwpssIntensityCoupling,
@@ -93,6 +94,7 @@ CATALOG: dict[str, Effect] = {
         HwpssHarmonics(),
         *(HwpssHarmonic(n) for n in HWPSS_HARMONICS),
         HwpssIntensityCoupling(),
+        HwpIntensityLeakage4f(),
         GainDrift(),
         GainDriftCommon(),
         HwpTemperatureDrift(),
@@ -166,6 +168,7 @@ __all__ = [
     "GlitchEvent",
     "Glitches",
     "HwpEmissionFluctuations",
+    "HwpIntensityLeakage4f",
     "HwpTemperatureDrift",
     "HwpssHarmonic",
     "HwpssHarmonics",

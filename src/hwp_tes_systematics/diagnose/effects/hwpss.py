@@ -186,6 +186,55 @@ class HwpssIntensityCoupling(Effect):
         return "; ".join(parts)
 
 
+class HwpIntensityLeakage4f(Effect):
+    """The HWP's intensity-to-polarisation leakage at 4 f_HWP: I(t) [b_c cos 4(chi-theta) + b_s sin].
+
+    A non-ideal HWP's Mueller elements M_QI, M_UI turn part of the incoming intensity
+    into a polarised signal the rotation modulates at 4 f_HWP, the science band (what
+    litebird_sim's ``hwp_harmonics`` computes for a non-ideal HWP). I(t) = I(p) + D: the
+    dipole makes lines at 4 f_HWP +- f_spin; the mean intensity a 4f line, which a 4f
+    HWPSS makes too (the CMB monopole's part, outside I(t), is such a line).
+    """
+
+    name = "hwp_intensity_leakage_4f"
+    title = "HWP intensity-to-4f leakage (I -> P)"
+    parameters: ClassVar[dict[str, str]] = {"b4c": "1", "b4s": "1"}
+    # a leakage of more than a tenth of the intensity is no HWP's (assumption)
+    physical_bounds: ClassVar[dict[str, float]] = {"b4c": 0.1, "b4s": 0.1}
+    main_parameters = ("b4c",)
+    signature = "4 f_HWP +- f_spin sidebands proportional to I (dipole), in the science band"
+    discrimination = (
+        "proportional to I at 4 f_HWP: a 4f HWPSS line has no f_spin sidebands, the "
+        "nonlinearity and the 2f intensity coupling put theirs at 2 f_HWP +- f_spin, and the "
+        "polarised sky's 4f signal does not follow the dipole"
+    )
+
+    def templates(self, ctx):
+        angle = 4 * ctx.detector_angle
+        return np.stack([ctx.intensity * np.cos(angle), ctx.intensity * np.sin(angle)], axis=1)
+
+    def apply(self, ctx, params, tod=None):
+        return self._linear_apply(ctx, params, tod)
+
+    def evidence(self, ev, fit) -> str:
+        """The signature measured on the residual ``ev`` (:class:`.evidence.Evidence`), in words."""
+        parts = []
+        f4 = 4 * ev.f_hwp
+        for k, name in enumerate(ev.ctx.detector_names):
+            b = math.hypot(fit.values["b4c"][k], fit.values["b4s"][k])
+            lo, _, _, lo_sig, *_ = ev.line(k, f4 - ev.f_spin)
+            hi, _, _, hi_sig, *_ = ev.line(k, f4 + ev.f_spin)
+            side2 = [ev.line(k, 2 * ev.f_hwp + sign * ev.f_spin)[3] for sign in (-1, 1)]
+            parts.append(
+                f"{name}: 4 f_HWP - f_spin and 4 f_HWP + f_spin sidebands "
+                f"{format_temperature(lo)} and {format_temperature(hi)} ({lo_sig:.1f} and "
+                f"{hi_sig:.1f} sigma), b = {b:.3g} of I (the dipole's {format_temperature(b * ev.dipole_amplitude(k))}); "
+                f"at 2 f_HWP +- f_spin {side2[0]:.1f} and {side2[1]:.1f} sigma (a nonlinearity "
+                "or a 2f coupling would put its sidebands there)"
+            )
+        return "; ".join(parts)
+
+
 class HwpTemperatureDrift(Effect):
     """Slow drift of the 2f HWPSS amplitude: A_2,k [sum_{j=1..3} r_j P_j(x)] cos(2 (chi - theta) - phi).
 
