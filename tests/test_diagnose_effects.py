@@ -93,6 +93,7 @@ def test_single_effect_found(tmp_path, effect, injected, truths, seed):
     # the evidence is measured on the recording (the effect's own text), not its signature
     top = result["effects"][0]
     assert top["evidence"] != top["signature"] and "sigma" in top["evidence"], top["evidence"]
+    assert not top["partial"], top["evidence"]  # its own lines fully described
     if effect == "tes_nonlinearity":  # its 2f +- f_spin sidebands seen: no look-alike
         assert top["look_alikes"] == [], top["look_alikes"]
     if effect == "hwpss_harmonics":  # its c2 is a 2f amplitude error: an adjustment

@@ -235,6 +235,23 @@ def test_spin_modulated_harmonic_leaves_its_sidebands_unexplained(tmp_path):
     assert {"3 f_HWP - f_spin", "3 f_HWP + f_spin"} <= labels, result["unexplained"]
 
 
+def test_a_spin_modulated_4f_line_is_not_passed_off_as_the_4f_leakage(tmp_path):
+    """A 4f HWPSS line modulated at f_spin (an HWP wobble, outside the catalog) makes
+    4 f_HWP +- f_spin sidebands as the HWP's 4f intensity leakage does through the dipole.
+    The leakage takes the part that follows the dipole; over three hours (the dipole's
+    phase at f_spin moves with the precession) the rest is left in `unexplained`, and the
+    leakage, if reported, says it describes its own lines only in part (``partial``)."""
+    errors = nominal_errors(np.random.default_rng(61))
+    wobble = ("hwpss_spin_modulation", {"harmonic": 4, "amplitude_k": 40e-6, "depth": 1.0})
+    recording, _ = recorded_with_errors(tmp_path, [wobble], 3161, errors, hours=3.0)
+    result = run_with(recording, errors)
+    labels = {u["identification"] for u in result["unexplained"] if u["kind"] == "line"}
+    assert {"4 f_HWP - f_spin", "4 f_HWP + f_spin"} <= labels, result["unexplained"]
+    for effect in result["effects"]:
+        if effect["name"] == "hwp_intensity_leakage_4f":
+            assert effect["partial"] and "only in part" in effect["evidence"], effect
+
+
 def test_gain_drift_and_2f_drift_not_told_apart_in_one_hour_are_named_together(tmp_path):
     """A 3 %/h gain drift in one hour: its only difference from a 2f amplitude drift is the
     dipole's drift at f_spin, deep in the 1/f noise; the two fit equally well and the

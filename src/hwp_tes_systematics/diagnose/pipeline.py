@@ -117,6 +117,28 @@ def _nominal_noise_models(recording: Recording, nominal_noise) -> list[NoiseMode
     return models
 
 
+def _left_at_its_signature(entry: dict, unexplained: list[dict]) -> None:
+    """An effect whose own lines (``Effect.signature_lines``) are left in ``unexplained``
+    describes them only in part, e.g. the 4f leakage taking the part of an HWP wobble's
+    4 f_HWP +- f_spin lines that follows the dipole: said in its evidence, ``partial``."""
+    effect = CATALOG.get(entry["name"])
+    own = set(getattr(effect, "signature_lines", ()))
+    left = sorted(
+        {
+            u["identification"]
+            for u in unexplained
+            if u.get("kind") == "line" and (u.get("n_hwp"), u.get("m_spin")) in own
+        }
+    )
+    entry["partial"] = bool(left)
+    if left:
+        entry["evidence"] += (
+            f"; lines of its own signature are left unexplained ({', '.join(left)}): it "
+            "describes them only in part, so something outside the catalog may share them "
+            "(see What the fit cannot explain)"
+        )
+
+
 def _nonlinearity_bound(problem: FitProblem, final, requirement: dict) -> dict:
     """No nonlinearity selected: g1 fitted beside the final selection (the selection's last
     step tried it, so the fit is cached) bounds it (:func:`.requirement_check.bound_nonlinearity`)."""
@@ -470,6 +492,8 @@ def diagnose(
     n_nuisance = len(NOMINAL.parameters) * ctx.n_detectors + 3 * ctx.n_detectors + ctx.n_detectors
     n_nuisance += adjusted.sky_residual_pixels
     unexplained = find_unexplained(ctx, residual_after, noise_models, selection, workers)
+    for entry in effects_out:
+        _left_at_its_signature(entry, unexplained)
     result = {
         "mismatch_found": bool(effects_out) or bool(unexplained),
         "effects": effects_out,

@@ -217,6 +217,7 @@ def _combined_effect(name: str, found: list[tuple[int, dict]], starts_s, n_segme
         "evidence": evidence,
         "look_alikes": sorted({a for _, effect in found for a in effect.get("look_alikes", [])}),
         "segments": indices,
+        "partial": any(effect.get("partial", False) for _, effect in found),
         "varies_between_segments": varying,
     }
 

@@ -103,6 +103,9 @@ class Effect:
         values = np.stack([_value(params, p, ctx.n_detectors) for p in names], axis=1)
         return tod + np.einsum("kj,kjn->kn", values, self.templates(ctx))
 
+    # its own lines, (n, m) for n f_HWP + m f_spin: one of them left in `unexplained` after
+    # the fit means the effect describes those lines only in part (said in the report)
+    signature_lines: ClassVar[tuple[tuple[int, int], ...]] = ()
     # |parameter| beyond which the effect is not physics but a template absorbing something
     # else (e.g. an intensity coupling of 0.35): parameter -> bound, in its unit
     physical_bounds: ClassVar[dict[str, float]] = {}

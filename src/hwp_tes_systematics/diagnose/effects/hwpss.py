@@ -154,6 +154,7 @@ class HwpssIntensityCoupling(Effect):
     # a 2f signal of more than a tenth of the incoming intensity is no HWP's (assumption)
     physical_bounds: ClassVar[dict[str, float]] = {"a2c": 0.1, "a2s": 0.1}
     main_parameters = ("a2c",)
+    signature_lines = ((2, -1), (2, 1))
     signature = "2 f_HWP +- f_spin sidebands proportional to I (dipole), no 4f line, no DC"
     discrimination = (
         "proportional to I, not to A_2 I; no 4f line, no DC (a nonlinearity making the same "
@@ -202,6 +203,7 @@ class HwpIntensityLeakage4f(Effect):
     # a leakage of more than a tenth of the intensity is no HWP's (assumption)
     physical_bounds: ClassVar[dict[str, float]] = {"b4c": 0.1, "b4s": 0.1}
     main_parameters = ("b4c",)
+    signature_lines = ((4, -1), (4, 1))
     signature = "4 f_HWP +- f_spin sidebands proportional to I (dipole), in the science band"
     discrimination = (
         "proportional to I at 4 f_HWP: a 4f HWPSS line has no f_spin sidebands, the "

@@ -27,6 +27,7 @@ class TesNonlinearity(Effect):
     powers: ClassVar[tuple[int, ...]] = (2,)  # d_obs - d = sum_j p_j d^powers[j]
     main_parameters = ("g1",)
     stage = "response"
+    signature_lines = ((4, 0), (2, -1), (2, 1))
     signature = (
         "4 f_HWP line g1 A_2^2/2 (and a DC shift, inside the offset), 2 f_HWP +- f_spin "
         "sidebands g1 A_2 D each"
