@@ -116,6 +116,9 @@ def test_a_nonlinearity_not_found_is_bounded_against_the_requirement():
     loose = bound_nonlinearity(parameters((1e-4, 1e-4), (-3e-3, limit)), requirement, -9.0)
     assert "cannot show |g1| below the requirement" in loose["sentence"]
     assert not loose["detected"] and tight["parameters"]["g1[d0]"]["value"] == 1e-4
+    unmeasured = bound_nonlinearity(parameters((1e-4, None)), requirement, 0.0)
+    assert unmeasured["detectors"][0]["bound_per_k"] == float("inf")
+    assert "+- unknown" in unmeasured["sentence"] and "cannot show" in unmeasured["sentence"]
 
 
 def test_a_requirement_file_without_a_headline_is_refused(tmp_path):

@@ -111,7 +111,8 @@ def bound_nonlinearity(parameters: dict, requirement: dict, delta_chi2: float) -
             }
         )
     fitted = ", ".join(
-        f"{d['g1_per_k']:.2g} +- {d['sigma_per_k']:.2g} ({d['detector']})" for d in detectors
+        f"{d['g1_per_k']:.2g} +- {_or_unknown(d['sigma_per_k'])} ({d['detector']})"
+        for d in detectors
     )
     ratios = [d["bound_over_requirement"] for d in detectors]
     bounds = ", ".join(format(d["bound_per_k"], ".2g") for d in detectors)
@@ -140,6 +141,10 @@ def bound_nonlinearity(parameters: dict, requirement: dict, delta_chi2: float) -
         "p_value": p_value,
         "sentence": sentence,
     }
+
+
+def _or_unknown(sigma) -> str:
+    return "unknown" if sigma is None else format(sigma, ".2g")
 
 
 def _bound_text(requirement) -> str:
