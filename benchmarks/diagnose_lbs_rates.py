@@ -4,6 +4,7 @@
     python benchmarks/diagnose_lbs_rates.py --channels M1-140 H3-402 --hours 6 --seeds 3 \
         --gap-every 3 --out lbs_rates.json
     python benchmarks/diagnose_lbs_rates.py --combine lbs_rates.json other.json
+    python benchmarks/diagnose_lbs_rates.py --strict recordings.txt   # from its stderr lines
     python benchmarks/diagnose_lbs_rates.py --channels H3-402 --only nonlinearity \
         --amplitudes 0.002 0.005 0.01 0.02 --seeds 3 --first-seed 2101   # a ladder
 
@@ -38,6 +39,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 import tempfile
 import time
@@ -226,9 +228,20 @@ def main() -> None:
     parser.add_argument(
         "--combine", nargs="+", type=Path, metavar="JSON", help="add up the counts of --out files"
     )
+    parser.add_argument(
+        "--strict",
+        nargs="+",
+        type=Path,
+        metavar="LINES",
+        help="the strict counts of the per-recording lines a run printed (its stderr)",
+    )
     arguments = parser.parse_args()
     if arguments.combine:
         print("\n".join(summary(combine(arguments.combine))))
+        return
+    if arguments.strict:
+        lines = [line for path in arguments.strict for line in path.read_text().splitlines()]
+        print("\n".join(strict_counts(lines)))
         return
     from hwp_tes_systematics.diagnose import testbed as support
 
@@ -247,6 +260,35 @@ def main() -> None:
                     print(summary_line(key, entry), flush=True)
     if arguments.out:
         arguments.out.write_text(json.dumps(counts, indent=1))
+
+
+RECORDING_LINE = re.compile(
+    r"^(?P<channel>\S+) (?P<case>\S+) (?P<amplitude>\S+) seed \d+( \(gap\))?: "
+    r"reported (?P<reported>.*); unexplained (?P<unexplained>\d+); \d+ s$"
+)
+EXPECTED = {"nonlinearity": "tes_nonlinearity", "linear_gain": "gain_drift"}
+EXPECTED["thermal_gain"] = "gain_fluctuations"
+
+
+def strict_counts(lines: list[str]) -> list[str]:
+    """Per case and amplitude, from the recording lines a run prints: how many report the
+    expected effect alone and leave nothing in `unexplained` (a null case: nothing at all);
+    no drift beside a fluctuation, no look-alike reported in its place."""
+    counts: dict = {}
+    for line in lines:
+        match = RECORDING_LINE.match(line.strip())
+        if not match:
+            continue
+        reported = match["reported"]
+        names = [] if reported == "-" else reported.split(", ")
+        expected = EXPECTED.get(match["case"])
+        alone = names == ([expected] if expected else [])
+        key = f"{match['channel']} {match['case']} {match['amplitude']}"
+        strict, n = counts.get(key, (0, 0))
+        counts[key] = (strict + int(alone and match["unexplained"] == "0"), n + 1)
+    out = [f"{key}: strict {s}/{n}" for key, (s, n) in sorted(counts.items())]
+    total = [sum(c[i] for c in counts.values()) for i in (0, 1)]
+    return [*out, f"strict (the expected effect alone, nothing unexplained): {total[0]}/{total[1]}"]
 
 
 def combine(paths: list[Path]) -> dict:

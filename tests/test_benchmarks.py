@@ -418,3 +418,27 @@ def test_lbs_rates_score_splits_first_look_alike_extra_and_pulls(benchmarks):
     add(null, clean)
     line = summary({"hours": 6.0, "cases": {"M1-140 clean 0": null}})[0]
     assert "pulls mean +2.00 rms 2.00 over 1, |g1| + 2 sigma median 0.0004 K^-1" in line
+
+
+def test_lbs_rates_strict_counts_read_the_recording_lines(benchmarks):
+    """diagnose_lbs_rates --strict: the expected effect alone and nothing unexplained counts;
+    a drift beside it, a look-alike in its place or an entry left does not; null cases
+    count when nothing at all is reported."""
+    from diagnose_lbs_rates import strict_counts
+
+    lines = [
+        "M1-140 thermal_gain 0.0003 seed 1: reported gain_fluctuations; unexplained 0; 30 s",
+        "M1-140 thermal_gain 0.0003 seed 2 (gap): reported gain_fluctuations, hwp_temperature_drift; unexplained 0; 31 s",
+        "M1-140 thermal_gain 0.0003 seed 3: reported gain_fluctuations; unexplained 2; 29 s",
+        "M1-140 linear_gain 0.001 seed 4: reported hwp_temperature_drift; unexplained 0; 16 s",
+        "H3-402 clean 0 seed 5: reported -; unexplained 0; 12 s",
+        "H3-402 clean 0 seed 6 (gap): reported -; unexplained 1; 12 s",
+        "not a recording line",
+    ]  # fmt: skip
+    out = strict_counts(lines)
+    assert out == [
+        "H3-402 clean 0: strict 1/2",
+        "M1-140 linear_gain 0.001: strict 0/1",
+        "M1-140 thermal_gain 0.0003: strict 1/3",
+        "strict (the expected effect alone, nothing unexplained): 2/6",
+    ]
