@@ -15,7 +15,7 @@ held M1-140's 0.26 K) and its own noise seed, then ONE of these applied to its T
 litebird_sim's functions (the diagnosis is told nothing):
 
 * ``nonlinearity``: ``non_linearity.apply_quadratic_nonlin_for_one_detector`` with g1 per
-  detector drawn by litebird_sim (NonLinParams loc = the amplitude, scale 10 % of it);
+  detector drawn by litebird_sim (NonLinParams loc = minus the amplitude, scale 10 % of it);
   expected ``tes_nonlinearity``, g1 within 3 sigma of the drawn value;
 * ``linear_gain``: ``apply_gaindrift_for_one_detector`` (LINEAR_GAIN, sigma_drift = the
   amplitude, calibration period longer than the recording: one ramp per detector);
@@ -188,14 +188,20 @@ def score(result: dict, case: str, truth: list) -> dict:
         entries = [p for p in effect["parameters"].values() if p["parameter"] == main]
         pulls = [(p["value"] - t) / p["sigma"] for p, t in zip(entries, truth, strict=False)]
     # no nonlinearity found: g1 fitted beside the effects found bounds it (requirement_check);
-    # where none was injected its truth is 0, so g1 / sigma is a pull and the bound a size
+    # its truth is the injected g1 (0 where none was), so (g1 - truth) / sigma is a pull,
+    # and whether |g1| + 2 sigma covers |truth| the bound's coverage
     check = result.get("requirement_check") or {}
     beside = check.get("detectors", []) if check.get("detected") is False else []
+    g1_truth = truth if case == "nonlinearity" else [0.0] * len(beside)
     return {
-        "beside_pulls": [round(d["g1_per_k"] / d["sigma_per_k"], 3) for d in beside]
-        if case != "nonlinearity"
-        else [],
-        "beside_bounds": [d["bound_per_k"] for d in beside] if case != "nonlinearity" else [],
+        "beside_pulls": [
+            round((d["g1_per_k"] - t) / d["sigma_per_k"], 3)
+            for d, t in zip(beside, g1_truth, strict=False)
+        ],
+        "beside_bounds": [d["bound_per_k"] for d in beside],
+        "beside_covered": [
+            int(d["bound_per_k"] >= abs(t)) for d, t in zip(beside, g1_truth, strict=False)
+        ],
         "n": 1,
         "reported": int(bool(names)),
         "alarm": int(bool(result["mismatch_found"])),
@@ -349,11 +355,14 @@ def summary_line(key: str, c: dict) -> str:
     beside = ""
     if c.get("beside_pulls"):  # runs before the nonlinearity bound (session 31) lack it
         pulls, bounds = np.asarray(c["beside_pulls"]), np.asarray(c["beside_bounds"])
+        truth = "the injected g1" if case == "nonlinearity" else "truth 0"
         beside = (
-            f"; g1 fitted beside (truth 0): pulls mean {pulls.mean():+.2f} rms "
+            f"; g1 fitted beside ({truth}): pulls mean {pulls.mean():+.2f} rms "
             f"{np.sqrt(np.mean(pulls**2)):.2f} over {pulls.size}, |g1| + 2 sigma median "
             f"{np.median(bounds):.2g} K^-1"
         )
+        if "beside_covered" in c:  # runs before this count (b56a371) lack it
+            beside += f", covering |truth| in {sum(c['beside_covered'])}/{pulls.size}"
     if not CASES[case][1]:
         return f"{key}: false alarms {c['alarm']}/{c['n']} ({c['gapped']} with a gap){beside}"
     line = (

@@ -418,6 +418,11 @@ def test_lbs_rates_score_splits_first_look_alike_extra_and_pulls(benchmarks):
     add(null, clean)
     line = summary({"hours": 6.0, "cases": {"M1-140 clean 0": null}})[0]
     assert "pulls mean +2.00 rms 2.00 over 1, |g1| + 2 sigma median 0.0004 K^-1" in line
+    # a nonlinearity not found: its pull and coverage are about the injected g1
+    missed = score({"effects": [], "mismatch_found": False, "requirement_check": bound},
+                   "nonlinearity", [5e-4])  # fmt: skip
+    assert missed["beside_pulls"] == [-3.0] and missed["beside_covered"] == [0]
+    assert missed["first"] == 0 and missed["pulls"] == []
 
 
 def test_lbs_rates_strict_counts_read_the_recording_lines(benchmarks):
