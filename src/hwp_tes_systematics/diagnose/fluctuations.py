@@ -141,9 +141,13 @@ def fit_fluctuations(
     noise: list[NoiseModel],
     used: np.ndarray,
     ln_n_eff: float,
+    also_from: list[NoiseModel] | None = None,
 ) -> FluctuationFit:
     """Maximum-Whittle-likelihood (a, beta, rho) of the 2f sidebands with each detector's
-    noise refitted alongside (module docstring); ``used`` the modes of the likelihood.
+    noise refitted alongside (module docstring); ``used`` the modes of the likelihood;
+    ``also_from``: another noise to start both fits from (the recording's nominal noise:
+    beside strong sidebands a shallow 1/f, alpha ~0.1 with its knee near 1 Hz, passes for
+    part of the white level, a local optimum the fit can start in), the best kept.
 
     With two detectors the likelihood is the pair's: per mode the 2 x 2 covariance
     [[S_A + E_A, C], [C*, S_B + E_B]], C = rho sqrt(s_A s_B) (A_A A_B / 4) [P_g(|f - f_0|)
@@ -176,10 +180,14 @@ def fit_fluctuations(
     poles = [rolloff(f, getattr(m, "tau_s", 0.0) ** 2) for m in noise]  # held
     n_noise = 3 * n_det
 
-    start = []
-    for m in noise:
-        start += [math.log(m.net_k_sqrt_s), math.log(max(m.fknee_hz, 1e-5)), m.alpha]
-    start = np.array(start)
+    def as_start(models):
+        out = []
+        for m in models:
+            out += [math.log(m.net_k_sqrt_s), math.log(max(m.fknee_hz, 1e-5)), m.alpha]
+        return np.array(out)
+
+    start = as_start(noise)
+    starts = [start] if also_from is None else [start, as_start(also_from)]
     knee_max_hz = knee_bound_hz(ctx.f_hwp_hz, fs)  # (see there: else the wings pass for 1/f)
     noise_bounds = []
     for k in range(n_det):
@@ -236,7 +244,7 @@ def fit_fluctuations(
             minus_two_ln_l, x0, args=(with_excess,), method="L-BFGS-B", bounds=bounds
         )
 
-    without = minimise(start, False)
+    without = min((minimise(x, False) for x in starts), key=lambda result: result.fun)
     # a coarse grid in (ln a, beta, rho) with the noise held, then everything jointly
     grid = [
         (minus_two_ln_l(np.concatenate([without.x, [log_a, slope, rho]]), True), log_a, slope, rho)
@@ -250,7 +258,7 @@ def fit_fluctuations(
     best = min(
         (
             minimise(np.concatenate([noise_x, [log_a, slope, rho]]), True)
-            for noise_x in (without.x, start)
+            for noise_x in (without.x, *starts)
         ),
         key=lambda result: result.fun,
     )

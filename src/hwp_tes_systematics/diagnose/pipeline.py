@@ -365,7 +365,7 @@ def diagnose(
         # tested on this residual; if taken, everything is selected again with it
         remaining_f = problem.residual_f - np.array(final.model_f)
         fluctuation = fit_fluctuations(
-            ctx, remaining_f, noise_models, problem.modes, problem.ln_n_eff
+            ctx, remaining_f, noise_models, problem.modes, problem.ln_n_eff, also_from=nominal
         )
         if fluctuation.delta_bic < delta_bic_threshold:
             noise_models = fluctuation.noise
@@ -384,7 +384,9 @@ def diagnose(
     remaining_f = problem.residual_f - np.array(final.model_f)  # of the final fit
 
     def fluctuation_beside(noise):
-        return fit_fluctuations(ctx, remaining_f, noise, problem.modes, problem.ln_n_eff)
+        return fit_fluctuations(
+            ctx, remaining_f, noise, problem.modes, problem.ln_n_eff, also_from=nominal
+        )
 
     if fluctuation is not None:  # its parameters on the final residual
         fluctuation = fluctuation_beside(fluctuation.base_noise)
