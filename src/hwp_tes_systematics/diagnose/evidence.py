@@ -54,12 +54,10 @@ class Evidence:
         if k not in self._drifts:
             ctx = self.ctx
             freqs = scipy.fft.rfftfreq(ctx.n_samples, 1.0 / ctx.sampling_rate_hz)
-            scale = periodogram_scale(
-                ctx.n_samples, ctx.sampling_rate_hz, float(ctx.valid[k].mean())
-            )
-            s = scale * self.noise[k].psd(freqs)
+            v = independent_fraction(ctx.valid[k])  # scales the periodogram, weights the modes
+            s = periodogram_scale(ctx.n_samples, ctx.sampling_rate_hz, v) * self.noise[k].psd(freqs)
             weights = np.zeros(freqs.size)
-            weights[1:-1] = independent_fraction(ctx.valid[k]) / s[1:-1]  # noise module
+            weights[1:-1] = v / s[1:-1]  # noise module
             residual_f = scipy.fft.rfft(self.residual[k], workers=self.workers)
             self._drifts[k] = {
                 d["quantity"]: d for d in drifts(residual_f, ctx, k, weights, self.workers)

@@ -298,11 +298,9 @@ def refit_noise(ctx: Context, residual_f: np.ndarray, noise: list[NoiseModel]):
     quiet &= freqs > NOISE_FMIN_SPINS * ctx.f_spin_hz
     models, covariances, change = [], [], 0.0
     for k in range(ctx.n_detectors):
-        scale = periodogram_scale(n, fs, float(np.mean(ctx.valid[k])))
+        v = independent_fraction(ctx.valid[k])  # scales the periodogram, weights the modes
         power = residual_f[k].real ** 2 + residual_f[k].imag ** 2
-        fitted = whittle_fit(
-            freqs, power, quiet, scale, noise[k], independent_fraction(ctx.valid[k])
-        )
+        fitted = whittle_fit(freqs, power, quiet, periodogram_scale(n, fs, v), noise[k], v)
         models.append(fitted.model)
         covariances.append(fitted.covariance)
         where = np.array(

@@ -165,6 +165,7 @@ def markdown_report(result: dict, figure_files: dict | None = None) -> str:
             ),
             "",
         ]
+    check = result.get("requirement_check")
     for rank, effect in enumerate(effects, 1):
         out += [
             f"## {rank}. {effect['title']} (`{effect['name']}`)",
@@ -185,10 +186,8 @@ def markdown_report(result: dict, figure_files: dict | None = None) -> str:
         for pname, p in list(effect["parameters"].items())[:60]:
             out.append(f"| {pname} | {p['value']:.6g} | {p['sigma']:.3g} | {p['unit']} |")
         out.append("")
-        check = result.get("requirement_check")
         if check and check["effect"] == effect["name"]:
             out += [f"*Against the requirement*: {check['sentence']}", ""]
-    check = result.get("requirement_check")
     if check and check["effect"] is None:  # no nonlinearity found: what bounds it
         out += ["## The TES nonlinearity, not found", "", check["sentence"], ""]
     out += ["## What the fit cannot explain", ""]

@@ -61,15 +61,22 @@ def load_requirement(path=None) -> dict:
     }
 
 
+def _per_detector_g1(parameters: dict):
+    """The report's g1 entries of each detector (a shared fit's common one left out)."""
+    return (
+        entry
+        for entry in parameters.values()
+        if entry["parameter"] == "g1" and entry["detector"] != "common"
+    )
+
+
 def compare_nonlinearity(effect: dict, requirement: dict) -> dict:
     """The fitted g1 of each detector (a report entry of the tes_nonlinearity family)
     against the requirement: sigma / requirement (how well this recording knows g1),
     |g1| / requirement (what an uncorrected g1 would bring), and the sentence."""
     limit = requirement["sigma_g1_per_k"]
     detectors = []
-    for entry in effect["parameters"].values():
-        if entry["parameter"] != "g1" or entry["detector"] == "common":
-            continue
+    for entry in _per_detector_g1(effect["parameters"]):
         detectors.append(
             {
                 "detector": entry["detector"],
@@ -96,9 +103,7 @@ def bound_nonlinearity(parameters: dict, requirement: dict, delta_chi2: float) -
     a small p is a nonlinearity below the selection's BIC threshold, not its absence."""
     limit = requirement["sigma_g1_per_k"]
     detectors = []
-    for entry in parameters.values():
-        if entry["parameter"] != "g1" or entry["detector"] == "common":
-            continue
+    for entry in _per_detector_g1(parameters):
         sigma = entry["sigma"]  # None: not measured (combined over segments without one)
         bound = abs(entry["value"]) + 2 * sigma if sigma is not None else float("inf")
         detectors.append(

@@ -141,6 +141,13 @@ class HwpssHarmonic(Effect):
         return ["tes_nonlinearity"] if snr2 < detection else []
 
 
+def intensity_templates(ctx, n: int) -> np.ndarray:
+    """I(t) cos n(chi - theta_k) and I(t) sin n(chi - theta_k), (n_det, 2, n_samples): the
+    incoming intensity modulated by the HWP at n f_HWP (the 2f coupling, the 4f leakage)."""
+    angle = n * ctx.detector_angle
+    return np.stack([ctx.intensity * np.cos(angle), ctx.intensity * np.sin(angle)], axis=1)
+
+
 class HwpssIntensityCoupling(Effect):
     """Intensity modulated by the HWP (paper's a_n^opt I term): I(t) [a_c cos 2(chi-theta) + a_s sin].
 
@@ -162,8 +169,7 @@ class HwpssIntensityCoupling(Effect):
     )
 
     def templates(self, ctx):
-        angle = 2 * ctx.detector_angle
-        return np.stack([ctx.intensity * np.cos(angle), ctx.intensity * np.sin(angle)], axis=1)
+        return intensity_templates(ctx, 2)
 
     def apply(self, ctx, params, tod=None):
         return self._linear_apply(ctx, params, tod)
@@ -212,8 +218,7 @@ class HwpIntensityLeakage4f(Effect):
     )
 
     def templates(self, ctx):
-        angle = 4 * ctx.detector_angle
-        return np.stack([ctx.intensity * np.cos(angle), ctx.intensity * np.sin(angle)], axis=1)
+        return intensity_templates(ctx, 4)
 
     def apply(self, ctx, params, tod=None):
         return self._linear_apply(ctx, params, tod)
