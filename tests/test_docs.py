@@ -246,3 +246,25 @@ def test_docs_build_without_warnings(tmp_path):
         assert name in catalog, name
     for page in ("index", "getting_started", "results/one_year", "api/diagnose", "changelog"):
         assert (out / f"{page}.html").is_file(), page
+
+
+def test_python_floor_is_stated_where_pip_enforces_it():
+    """requires-python, the classifiers, CI's interpreter and every page that names a
+    Python version agree on one floor (3.11: litebird_sim 0.18 and the locked numpy,
+    scipy and astropy need it); a page saying another "Python >= X" fails."""
+    tomllib = pytest.importorskip("tomllib")  # Python >= 3.11
+    project = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+    floor = re.fullmatch(r">=(3\.\d+)", project["requires-python"]).group(1)
+    assert floor == "3.11", project["requires-python"]
+    assert f"Programming Language :: Python :: {floor}" in project["classifiers"]
+    assert f"python{floor}" in (REPO / ".ci/run").read_text()
+    pages = [REPO / "README.md", *sorted(DOCS.rglob("*.md"))]
+    pages = [page for page in pages if "_build" not in page.parts]
+    stated = {
+        page.relative_to(REPO).as_posix(): re.findall(r"Python >= ?(3\.\d+)", page.read_text())
+        for page in pages
+    }
+    for required in ("README.md", "docs/getting_started.md"):
+        assert stated[required] == [floor], (required, stated[required])
+    wrong = {page: found for page, found in stated.items() if set(found) - {floor}}
+    assert not wrong, f"pages stating another Python floor than {floor}: {wrong}"
