@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import multiprocessing
 import time
+from types import SimpleNamespace
 
 import astropy.time
 import numpy as np
@@ -30,6 +31,7 @@ from common import MASTER_SEED, SEED, pair_setup, peak_rss_mb, timed_accumulate
 from hwp_tes_systematics import seeding
 from hwp_tes_systematics.analysis.systematics import maps_for_sigma, unit_g1_draws
 from hwp_tes_systematics.instrument.channels import load_channel
+from hwp_tes_systematics.simulation.hwpss_removal import harmonic_templates
 from hwp_tes_systematics.simulation.mapmaking import solve_maps
 from hwp_tes_systematics.simulation.notch import chunk_span
 from hwp_tes_systematics.simulation.tod import NOISE_MODELS
@@ -115,7 +117,13 @@ def naive_map(simulator, settings, sky_map, g1_per_k, clock):
                 random=np.random.default_rng(0),
             )
     with clock("2f removal + notch"):
-        pointing = type("Pointing", (), {"hwp_angle_rad": observation.hwp_angle})
+        angle = observation.hwp_angle
+        pointing = SimpleNamespace(  # what the filter reads of a ChunkPointing
+            hwp_angle_rad=angle,
+            harmonic_templates=lambda harmonics, offset: harmonic_templates(
+                angle, harmonics, offset
+            ),
+        )
         filtered = filter_tod(observation.tod, pointing, inner, simulator, settings)
     with clock("binning"):
         # the chunk without its margins: same quaternions, so the same pointings

@@ -1,8 +1,11 @@
-"""Small I/O helpers: atomic writes (temp file + rename) and logging set-up."""
+"""Small I/O helpers: atomic writes (temp file + rename), logging set-up and the process
+settings of a compute job (threads, memory reuse)."""
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import ctypes.util
 import logging
 import os
 import sys
@@ -64,3 +67,34 @@ def use_threads(threads: int) -> None:
 
     threads = max(1, int(threads))
     numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+
+
+# glibc's mallopt parameters (malloc.h)
+_M_TRIM_THRESHOLD, _M_MMAP_MAX = -1, -4
+_KEPT_FREE_BYTES = 2**31 - 1  # the largest trim threshold mallopt takes (a C int)
+
+
+def reuse_freed_memory() -> bool:
+    """Keep the memory a job frees for its next allocations (glibc's malloc; elsewhere
+    nothing changes): returns whether the setting took effect.
+
+    A TOD pass allocates and frees arrays of 10-300 MB per chunk (the TOD stack, its
+    spectrum, the filtered rows). By default glibc serves each from a fresh ``mmap``
+    and returns it to the kernel when freed, so every chunk faults its pages in again,
+    each zero-filled by the kernel. With ``mmap`` off (M_MMAP_MAX = 0) and the heap's
+    top kept (M_TRIM_THRESHOLD = 2 GiB), a freed array's pages serve the next one. The
+    numbers computed are the same bit for bit; the peak memory is the same (measured,
+    ``benchmarks/fixed_pass_profile.py``); only the time spent in the kernel goes. Call
+    it once at the start of a job's process (the stages that run TOD passes do)."""
+    if not sys.platform.startswith("linux"):
+        return False
+    name = ctypes.util.find_library("c")
+    try:
+        libc = ctypes.CDLL(name or "libc.so.6")
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):  # not glibc (musl has no mallopt)
+        return False
+    mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
+    mallopt.restype = ctypes.c_int
+    kept = mallopt(_M_TRIM_THRESHOLD, _KEPT_FREE_BYTES) == 1
+    return kept and mallopt(_M_MMAP_MAX, 0) == 1

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import copy
 import logging
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from functools import cached_property
 
 import astropy.time
@@ -32,6 +32,7 @@ from ..instrument.channels import Channel, open_imo
 from ..sky.harmonics import BandLimitedSky
 from . import data_model
 from .data_model import cache_litebird_sim_kernels, ecliptic_to_galactic, orbit_table
+from .hwpss_removal import harmonic_templates
 
 log = logging.getLogger(__name__)
 
@@ -133,10 +134,22 @@ class ChunkPointing:
     hwp_angle_rad: np.ndarray  # (n,)
     galactic_rad: np.ndarray  # (n_det, n, 3) theta, phi, psi in Galactic coordinates
     observation: object  # litebird_sim Observation, pointings prepared (ecliptic, lazy)
+    _harmonic_templates: dict = field(default_factory=dict, init=False, repr=False)
 
     def ecliptic_rad(self) -> np.ndarray:
         """(n_det, n, 3) theta, phi, psi in ecliptic coordinates (litebird_sim, on demand)."""
         return self.observation.get_pointings("all")[0]
+
+    def harmonic_templates(self, harmonics, offset: bool) -> np.ndarray:
+        """D^T of the HWP-harmonic fit on this chunk
+        (:func:`hwpss_removal.harmonic_templates`), computed once per (harmonics,
+        offset): the chunk's filters share it (read-only)."""
+        key = (tuple(harmonics), bool(offset))
+        if key not in self._harmonic_templates:
+            templates = harmonic_templates(self.hwp_angle_rad, *key)
+            templates.flags.writeable = False
+            self._harmonic_templates[key] = templates
+        return self._harmonic_templates[key]
 
 
 class PairSimulator:

@@ -192,7 +192,10 @@ def filter_both_offsets(unfiltered, pointing, simulator, settings) -> dict[bool,
     TOD stack (rows, n_det, n), both from one filtering: the fit without a constant, then
     the constant projected out through the same filter (:func:`hwpss_removal.offset_residual`;
     equal to filtering twice, to round-off). ``unfiltered`` is overwritten."""
-    u = offset_residual(pointing.hwp_angle_rad, settings.removed_hwp_harmonics)
+    harmonics = settings.removed_hwp_harmonics
+    u = offset_residual(
+        pointing.hwp_angle_rad, harmonics, pointing.harmonic_templates(harmonics, offset=False)
+    )
     coefficients = (unfiltered @ u) / (u @ u)  # (rows, n_det): c = <u, d> / <u, u>
     u_rows = np.broadcast_to(u.astype(unfiltered.dtype), (1, *unfiltered.shape[1:]))
     stack = np.concatenate([unfiltered, u_rows])
@@ -297,12 +300,15 @@ def notch_with_margins(tod, pointing, simulator, settings, overwrite: bool = Fal
     ``offset`` says), then the notch (none when ``settings.notch_width_divisor`` is
     None), on the whole chunk with its margins."""
     f_hwp_hz = simulator.channel.hwp_frequency_hz
+    offset = settings.baseline_length_s is not None if offset is None else offset
+    harmonics = settings.removed_hwp_harmonics
     cleaned = remove_hwp_harmonics(
         tod,
         pointing.hwp_angle_rad,
-        settings.removed_hwp_harmonics,
+        harmonics,
         overwrite=overwrite,
-        offset=settings.baseline_length_s is not None if offset is None else offset,
+        offset=offset,
+        templates=pointing.harmonic_templates(harmonics, offset),
     )
     if settings.notch_width_divisor is None:
         return cleaned

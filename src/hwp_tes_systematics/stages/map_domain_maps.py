@@ -14,7 +14,7 @@ import pandas as pd
 from .. import config as cfg
 from .. import sky
 from ..analysis import ilc_residuals
-from ..io import use_threads
+from ..io import reuse_freed_memory, use_threads
 from ..simulation import map_domain
 from ..simulation.maps_file import maps_attributes
 from ..simulation.tod import PairSimulator
@@ -36,6 +36,7 @@ def run_fixed_pass(
     every one of :func:`config.fixed_pass_variant_names`)."""
     started = time.perf_counter()
     use_threads(threads)
+    reuse_freed_memory()  # the chunks' arrays: no page faults (io.reuse_freed_memory)
     channel = cfg.channel(config, channel_name)
     carries_systematics = channel_name in config["instrument"]["systematics_channels"]
     kw = pd.read_csv(kw_csv).set_index("channel")

@@ -14,7 +14,7 @@ import time
 
 from .. import config as cfg
 from .. import sky
-from ..io import use_threads
+from ..io import reuse_freed_memory, use_threads
 from ..simulation.map_domain import seed_cmb_alm
 from ..simulation.mapmaking import NormalEquations, solve_maps
 from ..simulation.maps_file import maps_attributes, write_channel_maps
@@ -48,6 +48,7 @@ def run(
 
     started = time.perf_counter()
     use_threads(threads)
+    reuse_freed_memory()  # the chunks' arrays: no page faults (io.reuse_freed_memory)
     channel = cfg.channel(config, channel_name)
     kw = pd.read_csv(kw_csv).set_index("channel")
     carries_systematics = channel_name in config["instrument"]["systematics_channels"]
