@@ -1,25 +1,34 @@
 """A recording too large to diagnose is refused from its declared sizes, before any of its
-data is read (diagnose.recording.check_memory)."""
+data is read (diagnose.recording.check_memory); one whose datasets declare more than they
+store (never written) is refused before that."""
 
 import json
 
 import h5py
+import numpy as np
 import pytest
 
 from hwp_tes_systematics.diagnose import RecordingError, read_recording
 from hwp_tes_systematics.diagnose.recording import (
     DIAGNOSIS_BYTES_PER_DETECTOR_SAMPLE,
+    check_memory,
     diagnosis_memory_bytes,
 )
 
 
-def declared_file(path, n_samples, rate_hz=19.0):
-    """An HDF5 file in the recording layout whose datasets declare ``n_samples`` per
-    detector but hold no data (unallocated: a few kB on disk)."""
+def declared_file(path, n_samples, rate_hz=19.0, written=True):
+    """An HDF5 file in the recording layout whose datasets hold ``n_samples`` zeros per
+    detector, or with ``written=False`` only declare them (unallocated: a few kB on disk)."""
+
+    def dataset(name, shape):
+        if written:
+            return handle.create_dataset(name, data=np.zeros(shape))
+        return handle.create_dataset(name, shape=shape, dtype="f8")
+
     with h5py.File(path, "w") as handle:
-        tod = handle.create_dataset("tod", shape=(2, n_samples), dtype="f8")
-        handle.create_dataset("pointings", shape=(2, n_samples, 3), dtype="f8")
-        handle.create_dataset("hwp_angle", shape=(n_samples,), dtype="f8")
+        tod = dataset("tod", (2, n_samples))
+        dataset("pointings", (2, n_samples, 3))
+        dataset("hwp_angle", (n_samples,))
         tod.attrs["sampling_rate_hz"] = rate_hz
         tod.attrs["detectors"] = json.dumps(
             [{"name": f"d{k}", "pol_angle_rad": 0.0 if k == 0 else 1.5708} for k in range(2)]
@@ -30,14 +39,22 @@ def declared_file(path, n_samples, rate_hz=19.0):
 
 
 def test_a_file_declaring_1e10_samples_is_refused_before_reading(tmp_path):
-    path = declared_file(tmp_path / "huge.h5", 10**10)
+    path = declared_file(tmp_path / "huge.h5", 10**10, written=False)
     assert path.stat().st_size < 1e6  # sparse: nothing to read, everything to allocate
-    needed = diagnosis_memory_bytes(2, 10**10) / 2**30
     with pytest.raises(RecordingError) as info:
         read_recording(path)
     message = str(info.value)
+    assert "huge.h5: dataset 'tod' declares shape (2, 10000000000) float64" in message
+    assert "stores 0 bytes in the file: its data were never written" in message
+
+
+def test_a_recording_too_large_for_the_memory_says_the_segments():
+    needed = diagnosis_memory_bytes(2, 10**10) / 2**30
+    with pytest.raises(RecordingError) as info:
+        check_memory("huge.h5", 2, 10**10, 19.0, budget_bytes=64 * 2**30)
+    message = str(info.value)
     assert "huge.h5: declares 2 detector(s) x 1e+10 samples" in message
-    assert f"~{needed:.3g} GiB" in message and "GiB available" in message
+    assert f"~{needed:.3g} GiB" in message and "64 GiB available" in message
     assert "diagnose it in segments of at most" in message
 
 

@@ -25,6 +25,13 @@ is an error (an Inf in an already flagged sample is masked like a NaN). A file (
 detector) without any valid sample is an error. Every error is a :class:`RecordingError`
 (a ValueError) whose message names the file and the problem.
 
+Declared sizes are checked before anything is read: every dataset's shape, dtype (real
+numbers; flags boolean or integer) and stored bytes (a dataset that stores less than
+1/``MAX_DECLARED_OVER_STORED`` of the bytes its shape declares was never written: a
+hostile or hand-built file declaring 1e10 samples in a few MB) and the run lengths of
+RLE flags, so that no array of a declared size is allocated before it is known to be
+plausible and to fit in memory.
+
 Recordings with injected effects are simulated by :mod:`.simulate`.
 """
 
@@ -32,10 +39,12 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import astropy.time
+import erfa
 import numpy as np
 
 from ..io import atomic_path
@@ -50,6 +59,15 @@ MIN_SAMPLES = 64
 # templates; 1190 B before them), on top of ~0.7 GB.
 DIAGNOSIS_BYTES_PER_DETECTOR_SAMPLE = 1300
 DIAGNOSIS_BASE_BYTES = 0.7e9
+# A data dataset (tod, pointings, hwp_angle) storing less than 1/this of the bytes its
+# shape declares holds mostly unwritten (fill) values: refused. gzip on float64 TOD,
+# pointing or HWP angle gains < 10x; a dataset created with a shape and never written
+# stores nothing.
+MAX_DECLARED_OVER_STORED = 100
+STORAGE_CHECK_MIN_BYTES = 2**20  # below this a dataset's storage is not compared
+REAL_KINDS = "fiu"  # numpy dtype kinds accepted for tod, pointings, hwp_angle
+FLAG_KINDS = "biu"  # for flags and RLE flags
+FINITE_DETECTOR_KEYS = ("pol_angle_rad", "pol_efficiency", "net_ukrts", "fknee_mhz", "alpha")
 
 
 class RecordingError(ValueError):
@@ -134,47 +152,140 @@ def _read_start_time(path, dataset) -> astropy.time.Time:
     if isinstance(scale, bytes):
         scale = scale.decode()
     try:
-        return astropy.time.Time(str(value), format="mjd", scale=str(scale))
-    except ValueError as error:
-        _fail(path, f"start_time = {value!r} (scale {scale!r}) is not an MJD ({error})")
+        start = astropy.time.Time(str(value), format="mjd", scale=str(scale))
+        with warnings.catch_warnings():  # "dubious year": leap seconds after the table's end
+            warnings.simplefilter("ignore", erfa.ErfaWarning)
+            start.utc.isot  # noqa: B018 (ERFA refuses a date it cannot represent)
+    except (ValueError, TypeError, astropy.time.ScaleValueError) as error:
+        _fail(
+            path,
+            f"attribute 'start_time' of dataset 'tod' = {value!r} (scale {scale!r}) is not "
+            f"an MJD date ({type(error).__name__}: {error}); expected e.g. '63323.0' with "
+            "start_time_scale 'tdb' or 'utc'",
+        )
+    return start
 
 
 def _read_detectors(path, dataset, n_det: int) -> list[dict]:
     text = dataset.attrs.get("detectors")
     if text is None:
         _fail(path, "dataset 'tod' has no 'detectors' attribute (JSON list of detectors)")
+    if isinstance(text, bytes):
+        text = text.decode(errors="replace")
     try:
         detectors = json.loads(text)
     except (TypeError, json.JSONDecodeError) as error:
         _fail(path, f"attribute 'detectors' is not valid JSON ({error})")
-    if not isinstance(detectors, list) or len(detectors) != n_det:
+    if not isinstance(detectors, list):
+        _fail(
+            path,
+            f"attribute 'detectors' of dataset 'tod' is a JSON {type(detectors).__name__}: "
+            f"expected a list of {n_det} detector objects",
+        )
+    if len(detectors) != n_det:
         _fail(path, f"attribute 'detectors' lists {len(detectors)} detectors, 'tod' has {n_det}")
     for index, detector in enumerate(detectors):
+        if not isinstance(detector, dict):
+            _fail(
+                path,
+                f"detector {index} of attribute 'detectors' is {detector!r}: expected an "
+                f"object with at least {list(REQUIRED_DETECTOR_KEYS)}",
+            )
         missing = [key for key in REQUIRED_DETECTOR_KEYS if key not in detector]
         if missing:
             _fail(path, f"detector {index} of attribute 'detectors' lacks {missing}")
+        if not isinstance(detector["name"], str) or not detector["name"]:
+            _fail(
+                path,
+                f"detector {index} of attribute 'detectors' has name {detector['name']!r}: "
+                "expected a non-empty string",
+            )
+        for key in FINITE_DETECTOR_KEYS:
+            if key not in detector or (key != "pol_angle_rad" and detector[key] is None):
+                continue
+            value = detector[key]
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                finite = False
+            else:
+                finite = math.isfinite(value)
+            if not finite:
+                _fail(
+                    path,
+                    f"detector {detector['name']!r} (attribute 'detectors') has {key} = "
+                    f"{value!r}: expected a finite number",
+                )
     return detectors
 
 
-def _read_flags(path, handle, n_det: int, n: int) -> np.ndarray:
-    flags = np.zeros((n_det, n), dtype=bool)
-    if "flags" in handle:
-        data = handle["flags"][()]
-        if data.shape != (n_det, n):
-            _fail(path, f"dataset 'flags' has shape {data.shape}, expected {(n_det, n)}")
-        flags |= data.astype(bool)
-    names = [name for name in handle if name.startswith("flags_") and name[6:].isdigit()]
-    if names:
-        from litebird_sim.compress import rle_decompress
+def _rle_flag_names(handle) -> list[str]:
+    return sorted(name for name in handle if name.startswith("flags_") and name[6:].isdigit())
 
-        for name in names:
-            index = int(name[6:])
-            if index >= n_det:
-                _fail(path, f"dataset {name!r} refers to detector {index} of {n_det}")
-            values = np.asarray(rle_decompress(handle[name][()]))
-            if values.size != n:
-                _fail(path, f"dataset {name!r} decodes to {values.size} samples, 'tod' has {n}")
-            flags[index] |= values.astype(bool)
+
+def _check_flags(path, handle, n_det: int, n: int) -> None:
+    """The flags' declared shapes and dtypes, and the RLE flags' run lengths, checked
+    before any flag array of the recording's size is made."""
+    import h5py
+
+    if "flags" in handle:
+        flags = handle["flags"]
+        if not isinstance(flags, h5py.Dataset):
+            _fail(path, "'flags' is not a dataset: expected (n_det, n_samples) booleans")
+        if flags.shape != (n_det, n):
+            _fail(path, f"dataset 'flags' has shape {flags.shape}, expected {(n_det, n)}")
+        _check_dtype(path, "flags", flags, FLAG_KINDS, "booleans or integers (non-zero = bad)")
+    for name in _rle_flag_names(handle):
+        index = int(name[6:])
+        if index >= n_det:
+            _fail(path, f"dataset {name!r} refers to detector {index} of {n_det}")
+        dataset = handle[name]
+        if not isinstance(dataset, h5py.Dataset) or dataset.ndim != 2 or dataset.shape[0] != 2:
+            shape = getattr(dataset, "shape", "a group")
+            _fail(
+                path,
+                f"dataset {name!r} has shape {shape}: expected (2, n_runs), run lengths "
+                "then values (litebird_sim's run-length-encoded flags)",
+            )
+        if dataset.shape[1] > n:
+            _fail(
+                path,
+                f"dataset {name!r} declares {dataset.shape[1]} runs, more than the {n} "
+                "samples of 'tod' (expected at most one run per sample)",
+            )
+        _check_dtype(path, name, dataset, FLAG_KINDS, "integer run lengths and flag values")
+        _check_stored(path, name, dataset)
+        runs = np.asarray(dataset[0], dtype=np.int64) if dataset.shape[1] else np.zeros(0)
+        if (runs < 0).any():
+            _fail(path, f"dataset {name!r} has negative run lengths: expected lengths >= 0")
+        if int(runs.sum()) != n:
+            _fail(
+                path,
+                f"dataset {name!r} decodes to {int(runs.sum())} samples, 'tod' has {n} "
+                "(expected the run lengths to add up to the samples of 'tod')",
+            )
+
+
+def _rle_segment(dataset, start: int, stop: int) -> np.ndarray:
+    """Samples start:stop of one detector's RLE flags (checked by :func:`_check_flags`),
+    decoded without decoding the rest: (stop - start,) bool."""
+    runs = np.asarray(dataset[0], dtype=np.int64)
+    values = np.asarray(dataset[1]) != 0
+    ends = np.cumsum(runs)
+    first = int(np.searchsorted(ends, start, side="right"))
+    last = int(np.searchsorted(ends, stop, side="left"))
+    lengths = runs[first : last + 1].copy()
+    starts = ends[first : last + 1] - lengths
+    lengths -= np.clip(start - starts, 0, None)
+    lengths -= np.clip(ends[first : last + 1] - stop, 0, None)
+    return np.repeat(values[first : last + 1], lengths)
+
+
+def _read_flags(path, handle, n_det: int, start: int, stop: int) -> np.ndarray:
+    """Flags of samples start:stop, (n_det, stop - start) bool; shapes already checked."""
+    flags = np.zeros((n_det, stop - start), dtype=bool)
+    if "flags" in handle:
+        flags |= np.asarray(handle["flags"][:, start:stop]) != 0
+    for name in _rle_flag_names(handle):
+        flags[int(name[6:])] |= _rle_segment(handle[name], start, stop)
     return flags
 
 
@@ -276,6 +387,9 @@ def _declared(path: Path, handle) -> tuple:
     dataset = handle["tod"]
     if dataset.ndim != 2:
         _fail(path, f"dataset 'tod' has shape {dataset.shape}, expected (n_det, n_samples)")
+    for name in ("tod", "pointings", "hwp_angle"):
+        _check_dtype(path, name, handle[name], REAL_KINDS, "real numbers (float64)")
+        _check_stored(path, name, handle[name])
     n_det, n = dataset.shape
     if n < MIN_SAMPLES or n_det < 1:
         _fail(path, f"dataset 'tod' has shape {dataset.shape}: too few samples/detectors")
@@ -293,9 +407,39 @@ def _declared(path: Path, handle) -> tuple:
         sampling_rate_hz = float(dataset.attrs["sampling_rate_hz"])
     except KeyError:
         _fail(path, "dataset 'tod' has no 'sampling_rate_hz' attribute")
+    except (TypeError, ValueError):
+        _fail(
+            path,
+            f"attribute 'sampling_rate_hz' of dataset 'tod' = "
+            f"{dataset.attrs['sampling_rate_hz']!r}: expected a number of Hz",
+        )
     if not (math.isfinite(sampling_rate_hz) and sampling_rate_hz > 0):
         _fail(path, f"sampling_rate_hz = {sampling_rate_hz!r}: expected a rate > 0 Hz")
+    _check_flags(path, handle, n_det, n)
     return dataset, n_det, n, sampling_rate_hz
+
+
+def _check_dtype(path, name: str, dataset, kinds: str, expected: str) -> None:
+    if dataset.dtype.kind not in kinds or dataset.dtype.names is not None:
+        _fail(path, f"dataset {name!r} has dtype {dataset.dtype}: expected {expected}")
+
+
+def _check_stored(path, name: str, dataset) -> None:
+    """Refuse a dataset whose declared size its stored bytes cannot hold (never written)."""
+    declared = math.prod(dataset.shape) * dataset.dtype.itemsize
+    stored = dataset.id.get_storage_size()
+    if declared and (
+        stored == 0
+        or (declared > STORAGE_CHECK_MIN_BYTES and stored * MAX_DECLARED_OVER_STORED < declared)
+    ):
+        _fail(
+            path,
+            f"dataset {name!r} declares shape {dataset.shape} {dataset.dtype} "
+            f"({declared / 2**30:.3g} GiB) but stores {stored} bytes in the file: its data "
+            f"were never written (expected at least 1/{MAX_DECLARED_OVER_STORED} of the "
+            "declared bytes on disk, as a written and at most compressed dataset has); "
+            "write the recording again",
+        )
 
 
 def _read_recording(path: Path, memory_budget_bytes=None, samples=None) -> Recording:
@@ -318,13 +462,10 @@ def _read_recording(path: Path, memory_budget_bytes=None, samples=None) -> Recor
         start_time = _read_start_time(path, dataset)
         if start:
             start_time = start_time + astropy.time.TimeDelta(start / sampling_rate_hz, format="sec")
-        try:
-            tod = np.asarray(dataset[:, start:stop], dtype=float)
-            pointings_ecl = np.asarray(pointings[:, start:stop], dtype=float)
-            hwp_angle = np.asarray(hwp[start:stop], dtype=float)
-        except (TypeError, ValueError) as error:
-            _fail(path, f"non-numeric data ({error})")
-        flags = _read_flags(path, handle, n_det, n_file)[:, start:stop]
+        tod = np.asarray(dataset[:, start:stop], dtype=float)
+        pointings_ecl = np.asarray(pointings[:, start:stop], dtype=float)
+        hwp_angle = np.asarray(hwp[start:stop], dtype=float)
+        flags = _read_flags(path, handle, n_det, start, stop)
 
     # NaN = gap (masked); Inf = corruption (error unless already flagged).
     for name, values, per_sample in (
