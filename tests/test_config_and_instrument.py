@@ -58,6 +58,16 @@ def test_every_schema_key_has_a_description():
             "optics.telescopes.MFT.hwp_temperature_k = -20.0",
         ),
         (lambda c: c["instrument"].__setitem__("systematics_channels", ["M9-999"]), "M9-999"),
+        (
+            lambda c: c["figures"].__setitem__("tod_channel", "m1-140"),
+            "figures.tod_channel: unknown channel(s) ['m1-140'] (did you mean 'M1-140'?",
+        ),
+        (
+            lambda c: c["instrument"]["detector_pairs"].__setitem__(
+                "M1-140", ["001_002_030_00A_140_T", "001_002_030_00a_140_B"]
+            ),
+            "instrument.detector_pairs['M1-140']: detector(s) ['001_002_030_00a_140_B']",
+        ),
         (lambda c: c["tes"].__setitem__("tbath_k", 0.2), "tes.tbath_k"),
         (lambda c: c.__setitem__("master_seed", "abc"), "master_seed"),
     ],
@@ -65,8 +75,23 @@ def test_every_schema_key_has_a_description():
 def test_bad_config_names_the_key(default_config, mutate, message):
     config = copy.deepcopy(default_config)
     mutate(config)
-    with pytest.raises(ConfigError, match=message.replace(".", r"\.")):
+    with pytest.raises(ConfigError) as error:
         check_config(config)
+    assert message in str(error.value)
+
+
+@pytest.mark.parametrize("name", ["X9-999", "m1-140", "", None])
+def test_unknown_channel_names_the_value_and_lists_the_valid_ones(name):
+    """check_channel_name (the API and the diagnosis stage use it): an unknown or
+    wrongly-cased channel is an error naming where it came from, the value, a case hint
+    and all 22 valid names; a known one is returned."""
+    with pytest.raises(instrument.InstrumentModelError) as error:
+        instrument.check_channel_name(name, "recording.h5: the detectors' 'channel'")
+    message = str(error.value)
+    assert message.startswith(f"recording.h5: the detectors' 'channel': unknown channel {name!r}")
+    assert all(valid in message for valid in instrument.all_channel_names())
+    assert ("did you mean 'M1-140'?" in message) == (name == "m1-140")
+    assert instrument.check_channel_name("M1-140", "x") == "M1-140"
 
 
 def test_user_config_merges_over_default(tmp_path, repo, monkeypatch):

@@ -316,3 +316,37 @@ def test_usable_malformed_recordings_end_in_a_diagnosis(base, tmp_path):
     assert recording.flags.sum() == 1 + 1 + 60 + 2 + 30
     result = run(recording, figures=False)
     assert np.isfinite(result["chi2_before"]) and np.isfinite(result["chi2_after"])
+
+
+@pytest.mark.parametrize("channel", ["X9-999", "m1-140"])
+def test_unknown_channel_of_a_recording_is_named_with_the_valid_ones(base, tmp_path, channel):
+    """A recording whose detectors name a channel the instrument model does not know (or
+    in the wrong case) is not diagnosed with A_2 = 0: the command line's nominal_a2 and
+    the workflow's diagnosis stage both stop, naming the file, the value and the valid
+    channels."""
+    from hwp_tes_systematics.config import default_config_path, load_config
+    from hwp_tes_systematics.diagnose.recording import nominal_a2
+    from hwp_tes_systematics.instrument import InstrumentModelError, all_channel_names
+    from hwp_tes_systematics.stages import diagnose_recordings
+
+    def rename(listed):
+        for detector in listed:
+            detector["channel"] = channel
+        return json.dumps(listed)
+
+    path = edited(base, tmp_path / "renamed.h5", detectors(rename))
+    recording = read_recording(path)
+    with pytest.raises(RecordingError) as error:
+        nominal_a2(recording, None, lambda name: pytest.fail(f"looked up {name}"))
+    message = str(error.value)
+    assert message.startswith(f"{path}: channel {channel!r}") and "--a2" in message
+    assert all(name in message for name in all_channel_names())
+    assert ("did you mean 'M1-140'?" in message) == (channel == "m1-140")
+
+    out = tmp_path / "out"
+    with pytest.raises(InstrumentModelError) as error:
+        diagnose_recordings.run(
+            load_config(default_config_path()), str(path), "sky.fits", str(out), str(out / "d.json")
+        )
+    assert f"{path}: the detectors' 'channel': unknown channel {channel!r}" in str(error.value)
+    assert not out.exists()

@@ -156,6 +156,10 @@ def check_config(config: dict, source: str = "configuration") -> None:
         instrument.check_channel_names(
             list(config["instrument"]["detector_pairs"]), "instrument.detector_pairs", imo_location
         )
+        for name, pair in config["instrument"]["detector_pairs"].items():
+            instrument.check_detector_names(
+                name, list(pair), f"instrument.detector_pairs[{name!r}]", imo_location
+            )
         instrument.check_channel_names([config["tes"]["figure_channel"]], "tes.figure_channel")
         instrument.check_channel_names(
             [config["figures"]["tod_channel"]], "figures.tod_channel", imo_location

@@ -542,12 +542,16 @@ def nominal_a2(recording: Recording, a2_k: float | None, lookup) -> float:
             raise RecordingError(f"--a2 = {a2_k!r}: expected an amplitude >= 0 in K_CMB")
         return float(a2_k)
     channel = recording.channel
-    if not channel or channel not in known_channels():
+    known = known_channels()
+    if not channel or channel not in known:
+        same = [name for name in known if name.lower() == channel.lower()]
+        hint = f" (did you mean {same[0]!r}? names are case-sensitive)" if same else ""
         _fail(
             recording.source,
             f"channel {channel!r} of detectors {recording.detector_names} is not in the "
-            "instrument model, so its nominal HWPSS amplitude is unknown: give it with "
-            "--a2 A2_K (K_CMB; e.g. --a2 0.264)",
+            f"instrument model{hint}, so its nominal HWPSS amplitude is unknown: give it with "
+            "--a2 A2_K (K_CMB; e.g. --a2 0.264), or write one of the model's channels in "
+            f"the detectors' 'channel': {sorted(known)}",
         )
     return float(lookup(channel))
 

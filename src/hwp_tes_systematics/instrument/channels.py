@@ -93,9 +93,61 @@ def telescope_of(channel_name: str, imo_location: str | None = None, release: st
         if channel_name in names:
             return telescope
     raise InstrumentModelError(
-        f"channel {channel_name!r} is not in instrument model release {release!r}; "
+        f"channel {channel_name!r} is not in instrument model release {release!r}"
+        f"{_case_hint(channel_name, all_channel_names(imo_location, release))}; "
         f"expected one of {all_channel_names(imo_location, release)}"
     )
+
+
+def _case_hint(name, known: list[str]) -> str:
+    """' (did you mean 'M1-140'? names are case-sensitive)' for a name known in another case."""
+    same = [k for k in known if isinstance(name, str) and k.lower() == name.lower()]
+    return f" (did you mean {same[0]!r}? names are case-sensitive)" if same else ""
+
+
+def check_channel_name(name, what: str, imo_location: str | None = None) -> str:
+    """``name`` if it is a channel of the instrument model, else an
+    :class:`InstrumentModelError` naming ``what`` (where the name came from), the value
+    and the valid names."""
+    known = all_channel_names(imo_location)
+    if name not in known:
+        raise InstrumentModelError(
+            f"{what}: unknown channel {name!r}{_case_hint(name, known)}; expected one of "
+            f"the PTEP instrument model's channels: {known}"
+        )
+    return name
+
+
+@lru_cache(maxsize=64)
+def channel_detector_names(
+    channel_name: str, imo_location: str | None = None, release: str = "vPTEP"
+) -> tuple[str, ...]:
+    """The detector names of one channel, in instrument-model order."""
+    import litebird_sim as lbs
+
+    telescope = telescope_of(channel_name, imo_location, release)
+    info = lbs.FreqChannelInfo.from_imo(
+        open_imo(imo_location),
+        f"/releases/{release}/satellite/{telescope}/{channel_name}/channel_info",
+    )
+    return tuple(info.detector_names)
+
+
+def check_detector_names(
+    channel_name: str, names, key: str, imo_location: str | None = None, release: str = "vPTEP"
+) -> None:
+    """Raise a clear error if a detector is not in ``channel_name`` (names the key, the
+    detectors and, the channel holding hundreds, the first valid names and how many)."""
+    known = channel_detector_names(channel_name, imo_location, release)
+    unknown = [name for name in names if name not in known]
+    if unknown:
+        hints = "".join(_case_hint(name, list(known)) for name in unknown)
+        raise InstrumentModelError(
+            f"config key {key}: detector(s) {unknown} not in channel {channel_name!r} of "
+            f"release {release!r}{hints}; expected two of its {len(known)} detectors, e.g. "
+            f'{list(known[:6])} (all: python -c "from hwp_tes_systematics.instrument.channels '
+            f'import channel_detector_names; print(channel_detector_names({channel_name!r}))")'
+        )
 
 
 def pixel_of(detector_name: str) -> str:
@@ -192,7 +244,8 @@ def check_channel_names(names: list[str], key: str, imo_location: str | None = N
     known = all_channel_names(imo_location)
     unknown = [name for name in names if name not in known]
     if unknown:
+        hints = "".join(_case_hint(name, known) for name in unknown)
         raise InstrumentModelError(
-            f"config key {key}: unknown channel(s) {unknown}; expected names from the "
+            f"config key {key}: unknown channel(s) {unknown}{hints}; expected names from the "
             f"PTEP instrument model: {known}"
         )

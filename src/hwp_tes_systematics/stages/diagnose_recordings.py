@@ -15,6 +15,7 @@ from .. import sky
 from ..diagnose import diagnose
 from ..diagnose.recording import read_recording, write_recording
 from ..diagnose.simulate import simulate_recording
+from ..instrument.channels import check_channel_name
 from ..simulation.channel_inputs import (
     channel_a2_k_cmb,
     channel_conversion,
@@ -73,6 +74,13 @@ def make_example(config: dict, out_h5: str, out_sky: str) -> None:
 def run(config: dict, recording_h5: str, sky_fits: str, out_dir: str, out_json: str) -> None:
     """Diagnose one recording; writes diagnosis.json, diagnosis.md and figures in out_dir."""
     recording = read_recording(recording_h5)
+    # channel_a2_k_cmb gives 0 for a name outside the systematics channels: a name the
+    # instrument model does not know is an error here, not an ideal HWP
+    check_channel_name(
+        recording.channel,
+        f"{recording_h5}: the detectors' 'channel'",
+        config["instrument"]["imo_location"],
+    )
     a2_k = channel_a2_k_cmb(config, recording.channel)
     result = diagnose(
         recording,
