@@ -9,7 +9,8 @@ The pass is the map-domain fixed pass of one channel (``map_domain.fixed_passes`
 pair, ``--days`` one-day chunks at ``--rate`` Hz, no noise, the sky scanned at
 ``--nside`` with 60 s baselines, plus the map-makers of ``--variants`` (nside:baseline
 seconds or none) and, with ``--demodulated``, HWP demodulation at every binned one; one
-thread. A ten-minute pass first compiles the kernels; the measured pass's first chunk
+thread; T_ell and S_ell measured up to ``--measure-lmax`` (the configurations' filter_lmax).
+A ten-minute pass first compiles the kernels; the measured pass's first chunk
 also pays ducc0's FFT plan (~0.2 s).
 
 Printed, in ns per detector-sample (one sample of one detector): each stage of the pass
@@ -129,6 +130,7 @@ def run_pass(arguments) -> dict:
             alm,
             carries_systematics,
             lmax,
+            measure_lmax=min(lmax, arguments.measure_lmax),
             extra_variants=variants,
             demodulated_variants=binned_variants if arguments.demodulated else (),
             band_limited_sky=arguments.demodulated,
@@ -261,6 +263,12 @@ def main() -> None:
     parser.add_argument("--nside", type=int, default=64, help="the scan's and primary nside")
     parser.add_argument("--variants", nargs="*", default=[], help="nside:baseline_s|none")
     parser.add_argument("--demodulated", action="store_true")
+    parser.add_argument(
+        "--measure-lmax",
+        type=int,
+        default=128,
+        help="T_ell, S_ell measured up to it (simulation.filter_lmax of config/nside*.yaml)",
+    )
     parser.add_argument("--no-systematics", action="store_true")
     parser.add_argument("--default-malloc", action="store_true", help="glibc's defaults")
     parser.add_argument("--reference-src", help="another checkout's src, run beside")
