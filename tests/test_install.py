@@ -86,8 +86,11 @@ def test_cli_help_from_another_folder(tmp_path):
 
 @pytest.mark.slow
 def test_cli_merges_config_over_the_shipped_default_from_another_folder(tmp_path):
-    """From a folder without config/, the default is found and --config merged over it."""
+    """From a folder without config/, the default is found and --config merged over it
+    (checked with the other arguments, before the recording is read)."""
     (tmp_path / "cold_tc.yaml").write_text("tes:\n  tc_k: 0.05\n")
+    (tmp_path / "recording.h5").write_bytes(b"")  # never read: the configuration stops first
+    (tmp_path / "sky.fits").write_bytes(b"")
     result = run_cli(
         tmp_path,
         "diagnose",

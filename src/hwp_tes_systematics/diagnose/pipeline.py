@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 
 import numpy as np
 import scipy.fft
@@ -61,6 +62,19 @@ from .rolloff import fit_rolloff
 from .unexplained import find_unexplained
 
 log = logging.getLogger(__name__)
+
+
+class _Progress:
+    """The pipeline's stages on the log (INFO; the command line shows them on stderr):
+    '<source>: [12.3 s] stage ...', the time since the diagnosis started."""
+
+    def __init__(self, source: str):
+        self.source, self.start = source, time.monotonic()
+
+    def __call__(self, message: str, *args) -> None:
+        log.info("%s: [%.1f s] " + message, self.source, time.monotonic() - self.start, *args)
+
+
 NOISE_REFIT_CHANGE = 0.02  # select again when the noise PSD at the effects moved by > 2 %
 
 __all__ = ["diagnose", "nominal_tod"]
@@ -289,6 +303,13 @@ def diagnose(
         raise TypeError(f"recording: expected a Recording, got {type(recording).__name__}")
     # a requirement file given is read first: a bad one stops before the long diagnosis
     requirement_given = None if requirement is None else load_requirement(requirement)
+    progress = _Progress(recording.source)
+    progress(
+        "nominal model (%d detectors x %d samples, %.2f h)",
+        recording.n_detectors,
+        recording.n_samples,
+        recording.duration_s / 3600,
+    )
     sky, sky_source = load_sky(sky_iqu)
     a2 = per_detector(a2_k, recording.n_detectors, "a2_k")
     nominal = _nominal_noise_models(recording, nominal_noise)
@@ -311,6 +332,7 @@ def diagnose(
     nominal = [m if m is not None else e.model for m, e in zip(nominal, estimates, strict=True)]
     # Nominal adjustments (gain, 2f amplitude and phase, polarisation angle, sky scales,
     # offsets, sky residual, noise): fitted on every recording, never an effect.
+    progress("fitting the nominal adjustments")
     adjusted = fit_nominal(
         base,
         recording.tod,
@@ -336,6 +358,7 @@ def diagnose(
     ):
         noise_models = adjusted.noise = early.noise
     del line_free_f
+    progress("locating where the residual differs from noise")
     mismatch = locate(ctx, residual, noise_models, nominal, workers=workers, residual_f=residual_f)
 
     # The noise was fitted before any effect was removed: a strong effect leaks power
@@ -351,6 +374,9 @@ def diagnose(
     for attempt in range(2):
         if attempt:  # same templates and residual, new noise weights
             problem = problem.with_noise(noise_models)
+        progress(
+            "selecting effects (pass %d%s)", attempt + 1, ", noise refitted" if attempt else ""
+        )
         selection = stepwise(
             problem,
             delta_bic_threshold=delta_bic_threshold,
@@ -359,6 +385,7 @@ def diagnose(
         )
         final = problem.fit(selection.final.selected, keep_model=True)
         history += selection.steps
+        log.debug("selected: %s", ", ".join(final.selected) or "nothing")
         if attempt == 1:
             break
         # a fluctuating gain is an excess noise in the 2f sidebands (:mod:`.fluctuations`):
@@ -493,6 +520,7 @@ def diagnose(
     )
     n_nuisance = len(NOMINAL.parameters) * ctx.n_detectors + 3 * ctx.n_detectors + ctx.n_detectors
     n_nuisance += adjusted.sky_residual_pixels
+    progress("looking for unexplained structure")
     unexplained = find_unexplained(ctx, residual_after, noise_models, selection, workers)
     for entry in effects_out:
         _left_at_its_signature(entry, unexplained)
@@ -555,6 +583,7 @@ def diagnose(
     }
     result = Diagnosis(_jsonable(result))
     if out_dir is not None:
+        progress("writing the report and figures in %s", out_dir)
         write_outputs(
             result,
             out_dir,
@@ -566,6 +595,7 @@ def diagnose(
             noise_models,
             figures=figures,
         )
+    progress("done: %s", ", ".join(e["name"] for e in effects_out) or "no effect selected")
     return result
 
 

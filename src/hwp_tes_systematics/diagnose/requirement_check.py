@@ -15,6 +15,7 @@ packaged as ``data/one_year_requirement.json``).
 from __future__ import annotations
 
 import json
+import math
 from importlib import resources
 from pathlib import Path
 
@@ -122,10 +123,10 @@ def bound_nonlinearity(parameters: dict, requirement: dict, delta_chi2: float) -
     ratios = [d["bound_over_requirement"] for d in detectors]
     bounds = ", ".join(format(d["bound_per_k"], ".2g") for d in detectors)
     verdict = (
-        f"each detector's |g1| is below the requirement ({_span(ratios, '.2g')} of it)"
+        f"each detector's |g1| is below the requirement ({_span(ratios)} of it)"
         if max(ratios) < 1
         else f"this recording cannot show |g1| below the requirement (its bound is "
-        f"{_span(ratios, '.2g')} times it)"
+        f"{_span(ratios)} times it)"
     )
     # the chance that noise alone gains as much: -Delta chi^2 ~ chi^2(n_detectors)
     p_value = float(stats.chi2.sf(-delta_chi2, len(detectors))) if detectors else 1.0
@@ -169,11 +170,19 @@ def _context(requirement) -> str:
     return "; ".join(part for part in (", ".join(context), requirement["source"]) if part)
 
 
-def _span(values, fmt) -> str:
-    low, high = min(values), max(values)
-    return (
-        format(low, fmt) if format(low, fmt) == format(high, fmt) else f"{low:{fmt}}-{high:{fmt}}"
-    )
+def significant(value: float, digits: int = 2) -> str:
+    """``value`` to ``digits`` significant figures, trailing zeros kept: 4.98e-3 / 4.9e-3
+    is "1.0", not "1" (what ``format(value, ".2g")`` gives)."""
+    if not math.isfinite(value) or value == 0:
+        return format(value, "g")
+    text = format(value, f"#.{digits}g")
+    return text if "e" in text else text.rstrip(".")
+
+
+def _span(values, digits: int = 2) -> str:
+    """The range of ratios, each to ``digits`` significant figures ("1.0" or "0.98-1.2")."""
+    low, high = significant(min(values), digits), significant(max(values), digits)
+    return low if low == high else f"{low}-{high}"
 
 
 def _sentence(detectors, requirement) -> str:
@@ -182,13 +191,13 @@ def _sentence(detectors, requirement) -> str:
     )
     sigma_ratio = [d["sigma_over_requirement"] for d in detectors]
     known = (
-        f"this recording knows g1 {_span([1 / r for r in sigma_ratio], '.3g')} times better "
+        f"this recording knows g1 {_span([1 / r for r in sigma_ratio], 3)} times better "
         "than required (correcting with it meets the requirement)"
         if max(sigma_ratio) < 1
-        else f"this recording knows g1 only to {_span(sigma_ratio, '.2g')} times the "
+        else f"this recording knows g1 only to {_span(sigma_ratio)} times the "
         "requirement (not enough to correct with it)"
     )
-    uncorrected = _span([d["g1_over_requirement"] for d in detectors], ".2g")
+    uncorrected = _span([d["g1_over_requirement"] for d in detectors])
     return (
         f"Fitted g1 = {fitted} K^-1 against the requirement sigma_g1 < "
         f"{_bound_text(requirement)} K^-1 ({_context(requirement)}): {known}, and left uncorrected "

@@ -30,6 +30,7 @@ from __future__ import annotations
 import gc
 import logging
 import math
+import time
 from pathlib import Path
 
 import numpy as np
@@ -122,14 +123,21 @@ def diagnose_segments(
     requirement_given = load_requirement(requirement) if requirement is not None else None
     sky, _ = load_sky(sky_iqu)
     results = []
+    began = time.monotonic()
     for index, (start, stop) in enumerate(bounds):
+        elapsed = time.monotonic() - began
         log.info(
-            "%s: segment %d of %d, %.2f-%.2f h",
+            "%s: segment %d of %d, %.2f-%.2f h%s",
             path,
             index + 1,
             len(bounds),
             start / rate / 3600,
             stop / rate / 3600,
+            # the segments are of equal length: the ones done give the time left
+            f" (elapsed {elapsed / 60:.1f} min, ~{elapsed / index * (len(bounds) - index) / 60:.1f} "
+            "min left)"
+            if index
+            else "",
         )
         recording = read_recording(path, budget, samples=(start, stop))
         segment_dir = None if out_dir is None else Path(out_dir) / "segments" / str(index)
