@@ -133,6 +133,18 @@ def test_a_key_given_twice_is_refused_and_no_shipped_file_has_one(tmp_path, repo
         read_yaml(path)
 
 
+def test_unknown_detector_of_a_pair_is_named_with_valid_ones():
+    """load_channel (the API) with a detector the channel lacks, or in the wrong case."""
+    with pytest.raises(instrument.InstrumentModelError) as error:
+        instrument.load_channel(
+            "L1-040", detector_pair=("000_000_006_UA_040_T", "000_000_006_ua_040_B")
+        )
+    message = str(error.value)
+    assert "detector '000_000_006_ua_040_B' is not in channel 'L1-040'" in message
+    assert "did you mean '000_000_006_UA_040_B'?" in message
+    assert "expected two of its" in message and "000_000_003_QA_040_T" in message
+
+
 def test_user_detector_pair_must_be_orthogonal():
     with pytest.raises(instrument.InstrumentModelError, match="not orthogonal|from orthogonal"):
         instrument.load_channel(

@@ -350,3 +350,36 @@ def test_unknown_channel_of_a_recording_is_named_with_the_valid_ones(base, tmp_p
         )
     assert f"{path}: the detectors' 'channel': unknown channel {channel!r}" in str(error.value)
     assert not out.exists()
+
+
+def test_the_command_line_refuses_a_hostile_recording_naming_it(base, tmp_path, capsys):
+    """The command line's path (declared size, then a segmented read of the first samples
+    when it would not fit): exit status 2 and the error naming the file and the dataset,
+    before the sky or anything else is read."""
+    import logging
+
+    from hwp_tes_systematics import cli
+
+    root = logging.getLogger()
+    handlers, level = list(root.handlers), root.level  # main() configures logging
+
+    path = edited(base, tmp_path / "hostile.h5", hostile_datasets)
+    (tmp_path / "sky.fits").write_bytes(b"")  # never read
+    try:
+        status = cli.main(
+            [
+                "diagnose",
+                str(path),
+                "--sky",
+                str(tmp_path / "sky.fits"),
+                "--out",
+                str(tmp_path / "o"),
+            ]
+        )
+    finally:
+        root.handlers[:] = handlers
+        root.setLevel(level)
+    err = capsys.readouterr().err
+    assert status == 2
+    assert f"error: {path}: dataset 'tod' declares shape (2, 10000000000) float64" in err
+    assert not (tmp_path / "o").exists()

@@ -199,9 +199,12 @@ def load_channel(
                 imo, f"{base}/{channel_name}/{detector_name}/detector_info"
             )
         except Exception as error:  # the IMo raises KeyError or its own error types
+            known = list(info.detector_names)
             raise InstrumentModelError(
                 f"detector {detector_name!r} is not in channel {channel_name!r} "
-                f"of release {release!r}"
+                f"of release {release!r}{_case_hint(detector_name, known)}; expected two of "
+                f"its {len(known)} detectors, e.g. {known[:6]} (all: "
+                "instrument.channel_detector_names)"
             ) from error
         return float(detector.pol_angle_rad)
 
