@@ -288,3 +288,27 @@ def test_a_bad_configuration_stops_before_the_work(capsys, inputs, no_work):
     )  # fmt: skip
     assert status == 2 and "cold.yaml" in err and "must be below tes.tc_k = 0.05" in err, err
     assert not (inputs / "out").exists()
+
+
+def test_segments_show_the_time_left(tmp_path, monkeypatch, caplog):
+    """A recording diagnosed in segments logs each segment with the time elapsed and an
+    estimate of the time left (equal segments: the mean so far times those to go). The
+    diagnosis of a segment is replaced by one that takes a minute on a fake clock."""
+    from types import SimpleNamespace
+
+    from hwp_tes_systematics.diagnose import segments, simulate_recording, write_recording
+    from hwp_tes_systematics.diagnose.testbed import A2_K, CHANNEL, MASTER_SEED, sky_map
+
+    path = tmp_path / "rec.h5"
+    write_recording(path, simulate_recording(CHANNEL, 0.02, MASTER_SEED, 6, sky_map(), A2_K))
+    clock = iter([0, 0, 60, 120])  # the start, then each segment's: a minute apiece
+    monkeypatch.setattr(segments, "time", SimpleNamespace(monotonic=lambda: next(clock)))
+    monkeypatch.setattr(segments, "diagnose", lambda *a, **k: SimpleNamespace(to_dict=dict))
+    monkeypatch.setattr(segments, "combine_segments", lambda *a: {"recording": {}})
+    caplog.set_level(logging.INFO, logger="hwp_tes_systematics")
+    segments.diagnose_segments(path, sky_map(), A2_K, segment_hours=0.02 / 3)  # 3 x 24 s
+    lines = [r.getMessage() for r in caplog.records if "segment" in r.getMessage()]
+    assert len(lines) == 3, lines
+    assert lines[0].endswith("segment 1 of 3, 0.00-0.01 h")
+    assert lines[1].endswith("segment 2 of 3, 0.01-0.01 h (elapsed 1.0 min, ~2.0 min left)")
+    assert lines[2].endswith("(elapsed 2.0 min, ~1.0 min left)")
