@@ -17,7 +17,7 @@ Printed, in ns per detector-sample (one sample of one detector): each stage of t
 (the job's own clock), the floor of that stage, and their ratio; the pass's wall time,
 including the solve and the spectra after the chunks (``once per pass``); the FFT
 row-samples the pass transforms per detector-sample (forward and inverse each count);
-and the peak memory. With ``--reference-src`` the same pass is run by the package at
+by stage, and the peak memory. With ``--reference-src`` the same pass is run by the package at
 that path (another checkout's ``src``, e.g. a worktree at an earlier commit) in its own
 process, and its stages are printed beside these.
 
@@ -29,13 +29,17 @@ The floors, per detector-sample, with n the chunk's samples with margins:
 - noise: a standard normal draw per sample;
 - HWPSS, HWPSS moments, nonlinearity terms: one cos (or one product) per sample;
 - 2f removal + notch: ducc0's r2c, the notch's product and c2r into preallocated arrays,
-  plus the harmonic fit (its templates once), for the pass's FFT rows;
-- binning: np.bincount of one weighted TOD per binned TOD-sample and map entry (I, Q, U).
+  plus the harmonic fit (its templates once), for the rows the pass filters;
+- demodulation: the same per row it low-passes (three streams per demodulated row);
+- binning: a numba scatter-add of d, d cos 2 alpha, d sin 2 alpha per binned TOD-sample
+  (no weights, no matrix: what any binning of the TODs must do).
 """
 
 from __future__ import annotations
 
 import argparse
+import collections
+import contextlib
 import json
 import os
 import resource
@@ -44,6 +48,7 @@ import sys
 import time
 from pathlib import Path
 
+import numba
 import numpy as np
 
 STAGES = (
@@ -89,19 +94,31 @@ def run_pass(arguments) -> dict:
     variants = [parse_variant(v) for v in arguments.variants]
     clocks = []
 
+    open_stages = []  # the stages being timed, innermost last
+
     class RecordedClock(tod_maps.StageClock):  # the pass's own clock, kept
         def __init__(self, *a, **k):
             super().__init__(*a, **k)
             clocks.append(self)
 
+        @contextlib.contextmanager
+        def __call__(self, stage):
+            open_stages.append(stage)
+            try:
+                with super().__call__(stage):
+                    yield
+            finally:
+                open_stages.pop()
+
     tod_maps.StageClock = RecordedClock
-    transformed = [0]
+    transformed = collections.Counter()  # FFT row-samples by stage
     for name in ("r2c", "c2r"):
         original = getattr(ducc0.fft, name)
 
         def counted(data, *a, _original=original, _name=name, **k):
             n = k.get("lastsize") if _name == "c2r" else np.shape(data)[-1]
-            transformed[0] += np.size(data) // np.shape(data)[-1] * n
+            stage = open_stages[-1] if open_stages else "outside the chunks"
+            transformed[stage] += np.size(data) // np.shape(data)[-1] * n
             return _original(data, *a, **k)
 
         setattr(ducc0.fft, name, counted)
@@ -139,7 +156,8 @@ def run_pass(arguments) -> dict:
 
     one_pass(600.0 / 86400.0)  # compiles the kernels
     clocks.clear()
-    transformed[0] = binned[0] = 0
+    transformed.clear()
+    binned[0] = 0
     wall_s, simulator = one_pass(arguments.days)
     det_samples = arguments.days * 86400.0 * rate * simulator.n_detectors
     stages = dict(clocks[-1].seconds)
@@ -147,12 +165,22 @@ def run_pass(arguments) -> dict:
         "stages_ns": {k: 1e9 * v / det_samples for k, v in stages.items()},
         "wall_s": wall_s,
         "chunks_s": sum(stages.values()),
-        "fft_row_samples_per_det_sample": transformed[0] / det_samples,
+        "fft_row_samples_per_det_sample": {k: v / det_samples for k, v in transformed.items()},
         "binned_tod_samples_per_det_sample": binned[0] / det_samples,
         "n_detectors": simulator.n_detectors,
         "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
         "package": __import__("hwp_tes_systematics").__file__,
     }
+
+
+@numba.njit(nogil=True)
+def _scatter_add(pixels, cos, sin, tod, rhs):  # pragma: no cover (compiled)
+    """rhs[p] += d [1, c, s] for every sample: one binned TOD's floor."""
+    for t in range(pixels.size):
+        p = pixels[t]
+        rhs[p, 0] += tod[t]
+        rhs[p, 1] += tod[t] * cos[t]
+        rhs[p, 2] += tod[t] * sin[t]
 
 
 def best_of(function, repeats=3) -> float:
@@ -203,7 +231,7 @@ def floors_ns(arguments, measured: dict) -> dict[str, float]:
             maps[0, pixels] + maps[1, pixels] * c + maps[2, pixels] * s
 
     floors["sky scan"] = best_of(scan) * per_det
-    references = 1 + int(measured["fft_row_samples_per_det_sample"] > 0)
+    references = 2  # the foreground, the reference CMB
     floors["reference scans"] = floors["sky scan"] * references
     vectors, velocity = rng.normal(size=(n, 3)), rng.normal(size=(n, 3))
     dipole = best_of(lambda: np.einsum("ij,ij->i", vectors, velocity))
@@ -214,7 +242,8 @@ def floors_ns(arguments, measured: dict) -> dict[str, float]:
         best_of(lambda: np.multiply(np.broadcast_to(psi, (n_det, n)), c)) * per_det
     )
     # the filter: rows of FFTs in preallocated arrays, the harmonic fit
-    fft_rows = max(1, round(measured["fft_row_samples_per_det_sample"] * n_det / 2))
+    transforms = measured["fft_row_samples_per_det_sample"]
+    fft_rows = max(1, round(transforms.get("2f removal + notch", 0.0) * n_det / 2))
     rows = rng.normal(size=(fft_rows, n))
     spectrum = np.empty((fft_rows, n // 2 + 1), complex)
     filtered = np.empty_like(rows)
@@ -242,16 +271,18 @@ def floors_ns(arguments, measured: dict) -> dict[str, float]:
 
     notch()  # ducc0's plan
     floors["2f removal + notch"] = (best_of(notch) + best_of(fit)) * per_det
-    floors["demodulation"] = 0.0  # not timed alone (see the docstring)
+    # the demodulation: a product with 2 cos 4 chi and 2 sin 4 chi, then the low-pass
+    # (r2c, product, c2r) of three streams per filtered row: the notch's floor per row
+    demodulated_rows = transforms.get("demodulation", 0.0) * n_det / 2
+    floors["demodulation"] = floors["2f removal + notch"] * demodulated_rows / fft_rows
     binned_rows = max(1, round(measured["binned_tod_samples_per_det_sample"]))
-    weights = rng.normal(size=n)
-    npix = maps.shape[1]
+    tod = rng.normal(size=n)
+    rhs = np.zeros((maps.shape[1], 3))
+    _scatter_add(pixels, c, s, tod, rhs)  # compiles
 
-    def binning():
-        for _ in range(3):
-            np.bincount(pixels, weights, minlength=npix)
-
-    floors["binning"] = best_of(binning) * binned_rows / n * 1e9
+    floors["binning"] = (
+        best_of(lambda: _scatter_add(pixels, c, s, tod, rhs)) * binned_rows / n * 1e9
+    )
     return floors
 
 
@@ -327,8 +358,12 @@ def main() -> None:
             before = 1e9 * reference[key] / det_samples
             line += f" {before:.0f} | {before / ns:.2f} |"
         print(line)
+    transforms = ", ".join(
+        f"{stage} {value:.1f}"
+        for stage, value in measured["fft_row_samples_per_det_sample"].items()
+    )
     print(
-        f"FFT row-samples per detector-sample {measured['fft_row_samples_per_det_sample']:.1f}; "
+        f"FFT row-samples per detector-sample (forward and inverse each): {transforms}; "
         f"binned TOD-samples per detector-sample "
         f"{measured['binned_tod_samples_per_det_sample']:.1f}; peak RSS "
         f"{measured['peak_rss_mb']:.0f} MB"
