@@ -187,9 +187,25 @@ class ExtraBinning:
     matrix_equations: NormalEquations | None = None
 
 
-def filter_both_offsets(unfiltered, pointing, simulator, settings) -> dict[bool, np.ndarray]:
-    """{offset: HWP-harmonic removal (with a constant if offset) then notch} of a chunk's
-    TOD stack (rows, n_det, n), both from one filtering: the fit without a constant, then
+@dataclass
+class FilteredStack:
+    """A chunk's TOD stack (rows, n_det, n) filtered with each HWP-harmonic fit in use:
+    ``stack[offset]`` (with a constant in the fit if True). When both fits come from one
+    filtering (:func:`filter_both_offsets`), ``coefficients`` c (rows, n_det) and
+    ``filtered_u`` u_f (n_det, n) relate them: with = without - c u_f, so that any
+    linear operation on the stacks (the demodulation) needs the one without and u_f only."""
+
+    of: dict[bool, np.ndarray]
+    coefficients: np.ndarray | None = None
+    filtered_u: np.ndarray | None = None
+
+    def __getitem__(self, offset: bool) -> np.ndarray:
+        return self.of[offset]
+
+
+def filter_both_offsets(unfiltered, pointing, simulator, settings) -> FilteredStack:
+    """The HWP-harmonic removal (with and without a constant) then notch of a chunk's TOD
+    stack (rows, n_det, n), both from one filtering: the fit without a constant, then
     the constant projected out through the same filter (:func:`hwpss_removal.offset_residual`;
     equal to filtering twice, to round-off). ``unfiltered`` is overwritten."""
     harmonics = settings.removed_hwp_harmonics
@@ -202,20 +218,22 @@ def filter_both_offsets(unfiltered, pointing, simulator, settings) -> dict[bool,
     notched = notch_with_margins(stack, pointing, simulator, settings, overwrite=True, offset=False)
     without, filtered_u = notched[:-1], notched[-1]
     with_offset = without - coefficients[..., None] * filtered_u
-    return {False: without, True: with_offset}
+    return FilteredStack({False: without, True: with_offset}, coefficients, filtered_u)
 
 
-def filter_offsets(unfiltered, offsets, pointing, simulator, settings) -> dict:
-    """{offset: the chunk's TOD stack (rows, n_det, n) filtered} for each HWP-harmonic fit
-    in ``offsets`` (with a constant if True): one filtering for both
+def filter_offsets(unfiltered, offsets, pointing, simulator, settings) -> FilteredStack:
+    """The chunk's TOD stack (rows, n_det, n) filtered for each HWP-harmonic fit in
+    ``offsets`` (with a constant if True): one filtering for both
     (:func:`filter_both_offsets`). ``unfiltered`` is overwritten; its dtype is kept."""
     if len(offsets) == 1:
         (offset,) = offsets
-        return {
-            offset: notch_with_margins(
-                unfiltered, pointing, simulator, settings, overwrite=True, offset=offset
-            )
-        }
+        return FilteredStack(
+            {
+                offset: notch_with_margins(
+                    unfiltered, pointing, simulator, settings, overwrite=True, offset=offset
+                )
+            }
+        )
     return filter_both_offsets(unfiltered, pointing, simulator, settings)
 
 
@@ -521,9 +539,9 @@ def accumulate(
                     detector,
                     (rows, owners),
                     (
-                        _shared_streams(streams_of, "filtered", notched_of[offset], demodulation),
+                        _shared_streams(streams_of, "filtered", notched_of, offset, demodulation),
                         _shared_streams(
-                            streams_of, "calibration", calibration_of[offset], demodulation
+                            streams_of, "calibration", calibration_of, offset, demodulation
                         )
                         if calibrating
                         else None,
@@ -626,13 +644,23 @@ def _demodulated_streams(stack, pointing, inner, rates, threads, clock) -> tuple
     return streams[..., first:stop], slice(first * stride - inner.start, None, stride)
 
 
-def _shared_streams(cache: dict, kind: str, stack, demodulation) -> tuple:
-    """:func:`_demodulated_streams` of ``stack`` (``demodulation``: its other arguments),
-    computed once per chunk: ``cache`` holds them by (kind, the stack's identity)."""
-    key = (kind, id(stack))
-    if key not in cache:
-        cache[key] = (stack, _demodulated_streams(stack, *demodulation))
-    return cache[key][1]
+def _shared_streams(cache: dict, kind: str, filtered: FilteredStack, offset: bool, demodulation):
+    """:func:`_demodulated_streams` of ``filtered[offset]`` (``demodulation``: its other
+    arguments), computed once per chunk and kind of stack (``cache``). The demodulation
+    is linear: when both fits come from one filtering, the streams with the constant are
+    those without it less c times those of u_f (:class:`FilteredStack`), so the stack is
+    demodulated once, not once per fit (equal to rounding)."""
+    key = (kind, offset)
+    if key in cache:
+        return cache[key]
+    if offset and filtered.coefficients is not None:
+        streams, picked = _shared_streams(cache, kind, filtered, False, demodulation)
+        u_streams, _ = _demodulated_streams(filtered.filtered_u, *demodulation)
+        coefficients = filtered.coefficients.astype(streams.dtype)[None, ..., None]
+        cache[key] = (streams - coefficients * u_streams[:, None], picked)
+    else:
+        cache[key] = _demodulated_streams(filtered[offset], *demodulation)
+    return cache[key]
 
 
 def _bin_streams(target, demodulated, binned, pixels, pointing, inner, detector, samples, clock):
