@@ -16,14 +16,15 @@ from hwp_tes_systematics.diagnose.recording import (
 )
 
 
-def declared_file(path, n_samples, rate_hz=19.0, written=True):
+def declared_file(path, n_samples, rate_hz=19.0, written=True, **create):
     """An HDF5 file in the recording layout whose datasets hold ``n_samples`` zeros per
-    detector, or with ``written=False`` only declare them (unallocated: a few kB on disk)."""
+    detector, or with ``written=False`` only declare them (unallocated: a few kB on disk);
+    ``create``: h5py's dataset options (compression)."""
 
     def dataset(name, shape):
         if written:
-            return handle.create_dataset(name, data=np.zeros(shape))
-        return handle.create_dataset(name, shape=shape, dtype="f8")
+            return handle.create_dataset(name, data=np.zeros(shape), **create)
+        return handle.create_dataset(name, shape=shape, dtype="f8", **create)
 
     with h5py.File(path, "w") as handle:
         tod = dataset("tod", (2, n_samples))
@@ -46,6 +47,17 @@ def test_a_file_declaring_1e10_samples_is_refused_before_reading(tmp_path):
     message = str(info.value)
     assert "huge.h5: dataset 'tod' declares shape (2, 10000000000) float64" in message
     assert "stores 0 bytes in the file: its data were never written" in message
+
+
+def test_compressible_data_every_chunk_written_are_read(tmp_path):
+    """Zeros under gzip store ~1/1000 of their bytes: read, since every chunk is stored;
+    the same file with its chunks never written is refused, naming the chunks."""
+    path = declared_file(tmp_path / "zeros.h5", 19 * 3600, compression="gzip")
+    assert path.stat().st_size < 0.01 * 2 * 19 * 3600 * 8 * 5  # tod, pointings, HWP angle
+    assert read_recording(path).tod.shape == (2, 19 * 3600)
+    path = declared_file(tmp_path / "empty.h5", 19 * 3600, written=False, compression="gzip")
+    with pytest.raises(RecordingError, match=r"'tod' .* but stores 0 bytes in the file \(0 of"):
+        read_recording(path)
 
 
 def test_a_recording_too_large_for_the_memory_says_the_segments():

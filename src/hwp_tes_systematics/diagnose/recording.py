@@ -26,9 +26,9 @@ detector) without any valid sample is an error. Every error is a :class:`Recordi
 (a ValueError) whose message names the file and the problem.
 
 Declared sizes are checked before anything is read: every dataset's shape, dtype (real
-numbers; flags boolean or integer) and stored bytes (a dataset that stores less than
-1/``MAX_DECLARED_OVER_STORED`` of the bytes its shape declares was never written: a
-hostile or hand-built file declaring 1e10 samples in a few MB) and the run lengths of
+numbers; flags boolean or integer) and stored data (a dataset whose chunks or bytes
+were never all written: a hostile or hand-built file declaring 1e10 samples in a few
+MB) and the run lengths of
 RLE flags, so that no array of a declared size is allocated before it is known to be
 plausible and to fit in memory.
 
@@ -59,12 +59,11 @@ MIN_SAMPLES = 64
 # templates; 1190 B before them), on top of ~0.7 GB.
 DIAGNOSIS_BYTES_PER_DETECTOR_SAMPLE = 1300
 DIAGNOSIS_BASE_BYTES = 0.7e9
-# A data dataset (tod, pointings, hwp_angle) storing less than 1/this of the bytes its
-# shape declares holds mostly unwritten (fill) values: refused. gzip on float64 TOD,
-# pointing or HWP angle gains < 10x; a dataset created with a shape and never written
-# stores nothing.
+# A dataset (tod, pointings, hwp_angle, RLE flags) storing less than 1/this of the bytes
+# its shape declares is either compressible data (accepted if every chunk is stored) or
+# never written (refused): gzip on float64 TOD, pointing or HWP angle gains < 10x; a
+# dataset created with a shape and never written stores nothing.
 MAX_DECLARED_OVER_STORED = 100
-STORAGE_CHECK_MIN_BYTES = 2**20  # below this a dataset's storage is not compared
 REAL_KINDS = "fiu"  # numpy dtype kinds accepted for tod, pointings, hwp_angle
 FLAG_KINDS = "biu"  # for flags and RLE flags
 FINITE_DETECTOR_KEYS = ("pol_angle_rad", "pol_efficiency", "net_ukrts", "fknee_mhz", "alpha")
@@ -425,21 +424,31 @@ def _check_dtype(path, name: str, dataset, kinds: str, expected: str) -> None:
 
 
 def _check_stored(path, name: str, dataset) -> None:
-    """Refuse a dataset whose declared size its stored bytes cannot hold (never written)."""
+    """Refuse a dataset whose data were never (all) written: its stored bytes are below
+    1/MAX_DECLARED_OVER_STORED of what its shape declares and, chunked, not every chunk
+    is stored (a written chunk of compressible data is stored however small). A virtual
+    or external dataset is not checked here (the memory check still applies)."""
+    if dataset.is_virtual or dataset.external:
+        return
     declared = math.prod(dataset.shape) * dataset.dtype.itemsize
     stored = dataset.id.get_storage_size()
-    if declared and (
-        stored == 0
-        or (declared > STORAGE_CHECK_MIN_BYTES and stored * MAX_DECLARED_OVER_STORED < declared)
-    ):
-        _fail(
-            path,
-            f"dataset {name!r} declares shape {dataset.shape} {dataset.dtype} "
-            f"({declared / 2**30:.3g} GiB) but stores {stored} bytes in the file: its data "
-            f"were never written (expected at least 1/{MAX_DECLARED_OVER_STORED} of the "
-            "declared bytes on disk, as a written and at most compressed dataset has); "
-            "write the recording again",
+    if not declared or (stored and stored * MAX_DECLARED_OVER_STORED >= declared):
+        return
+    detail = ""
+    if dataset.chunks is not None:  # counted only here: the count reads the chunk index
+        expected = math.prod(
+            -(-size // chunk) for size, chunk in zip(dataset.shape, dataset.chunks, strict=True)
         )
+        written = dataset.id.get_num_chunks()
+        if written >= expected:
+            return
+        detail = f" ({written} of its {expected} chunks)"
+    _fail(
+        path,
+        f"dataset {name!r} declares shape {dataset.shape} {dataset.dtype} "
+        f"({declared / 2**30:.3g} GiB) but stores {stored} bytes in the file{detail}: its "
+        "data were never written (expected every sample written); write the recording again",
+    )
 
 
 def _read_recording(path: Path, memory_budget_bytes=None, samples=None) -> Recording:
