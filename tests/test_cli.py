@@ -94,6 +94,16 @@ def test_the_console_script_names_itself_and_python_m_its_module():
     assert module.startswith("usage: python -m hwp_tes_systematics")
 
 
+def test_top_level_help_names_the_program_as_run(capsys):
+    status, out, _ = exit_status(capsys, "--help")
+    assert status == 0 and out.startswith("usage: hwp-tes-systematics [-h] [--version]")
+    assert "python -m" not in out
+    assert "diagnose RECORDING.h5 --sky SKY.fits" in out  # the commands' summary
+    assert "example:\n  hwp-tes-systematics diagnose recording.h5 --sky sky.fits" in out
+    status, out, _ = exit_status(capsys, "--help", prog=cli.MODULE_PROG)
+    assert out.startswith("usage: python -m hwp_tes_systematics [-h] [--version]")
+
+
 def test_program_name_from_argv0():
     assert cli.program_name("/venv/bin/hwp-tes-systematics") == "hwp-tes-systematics"
     assert cli.program_name("/src/hwp_tes_systematics/__main__.py") == cli.MODULE_PROG

@@ -223,7 +223,9 @@ def build_parser(prog: str) -> tuple[argparse.ArgumentParser, dict]:
     formatter = argparse.RawDescriptionHelpFormatter
     parser = argparse.ArgumentParser(
         prog=prog,
-        description=__doc__.replace(MODULE_PROG, prog),
+        description=__doc__.split("\n\n", 1)[1],  # the commands, without the module's name
+        epilog=f"example:\n  {prog} diagnose recording.h5 --sky sky.fits --out diagnosis/\n"
+        f"  {prog} diagnose --help      (each command's own help)",
         formatter_class=formatter,
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
