@@ -141,3 +141,36 @@ def test_without_a_notch_the_4f_harmonic_template_removes_the_line(simulator):
     settings.removed_hwp_harmonics = (2, 4)
     cleaned = notch_with_margins(line, pointing, simulator, settings)
     assert np.abs(cleaned).max() < 1e-12
+
+
+def test_a_chunk_stride_keeps_every_nth_chunk_of_the_mission():
+    """simulation.chunk_stride: the chunks simulated are the mission's own, of index
+    divisible by the stride, at their own first samples; a stride below 1 is refused."""
+    from hwp_tes_systematics.simulation.tod import MissionPlan
+
+    whole = MissionPlan("2032-04-01T00:00:00", 10 * 3600.0, 3600.0, 19.0)
+    sampled = MissionPlan("2032-04-01T00:00:00", 10 * 3600.0, 3600.0, 19.0, chunk_stride=4)
+    assert sampled.chunks() == [chunk for chunk in whole.chunks() if chunk[0] % 4 == 0]
+    assert [index for index, _, _ in sampled.chunks()] == [0, 4, 8]
+    assert sampled.simulated_samples == 3 * 3600 * 19 and sampled.n_samples == whole.n_samples
+    for stride in (0, 1.5):
+        with pytest.raises(ValueError, match="chunk_stride"):
+            MissionPlan("2032-04-01T00:00:00", 3600.0, 600.0, 19.0, chunk_stride=stride)
+
+
+@pytest.mark.slow
+def test_a_sampled_mission_bins_the_samples_of_its_chunks_only():
+    """A pass with chunk_stride 2 over four chunks hits exactly the pixels of chunks 0
+    and 2 of the whole mission (each chunk at its own time and pointing)."""
+    import dataclasses
+
+    simulator = m1_140_pair(4 * 1800.0, 1800.0, 16, 19.0, noise_model="keshner")
+    plan = dataclasses.replace(simulator.plan, chunk_stride=2)
+    settings = dataclasses.replace(settings_for(simulator), plan=plan)
+    equations = accumulate(simulator, settings, random_sky(5))
+    expected = np.zeros(hp.nside2npix(16))
+    for _, first, n_samples in plan.chunks():
+        pixels = simulator.pointing(first, n_samples).pixels
+        expected += np.bincount(pixels.ravel(), minlength=expected.size)
+    np.testing.assert_array_equal(equations.hits, expected)
+    assert 0 < expected.sum() == 2 * plan.samples_per_chunk * simulator.n_detectors

@@ -44,6 +44,7 @@ def maps_attributes(settings, simulator, observed_fraction: float) -> dict:
         else settings.baseline_length_s,
         "template_terms": list(TEMPLATE_TERMS),
         "duration_s": settings.plan.duration_s,
+        "chunk_stride": settings.plan.chunk_stride,  # every n-th chunk of duration_s simulated
         "observed_fraction": float(observed_fraction),
         "model": MODEL,
     }

@@ -41,18 +41,25 @@ QUATERNION_STEP_S = 2.0  # spin-axis quaternion sampling (litebird_sim interpola
 
 @dataclass(frozen=True)
 class MissionPlan:
-    """The observation: start, duration and the chunks it is processed in."""
+    """The observation: start, duration and the chunks it is processed in; with
+    ``chunk_stride`` n > 1 only every n-th chunk is simulated (chunk index divisible by
+    n: the mission sampled one chunk in n, each at its own time and pointing)."""
 
     start_time_tdb: str
     duration_s: float
     chunk_duration_s: float
     sampling_rate_hz: float
+    chunk_stride: int = 1
 
     def __post_init__(self):
         if self.duration_s <= 0 or self.chunk_duration_s <= 0:
             raise ValueError(
                 f"mission duration {self.duration_s} s and chunk {self.chunk_duration_s} s "
                 "must be > 0"
+            )
+        if int(self.chunk_stride) != self.chunk_stride or self.chunk_stride < 1:
+            raise ValueError(
+                f"simulation.chunk_stride = {self.chunk_stride}: expected an integer >= 1"
             )
 
     @cached_property
@@ -68,12 +75,19 @@ class MissionPlan:
         return round(self.chunk_duration_s * self.sampling_rate_hz)
 
     def chunks(self) -> list[tuple[int, int, int]]:
-        """(chunk index, first sample, number of samples) covering the mission."""
+        """(chunk index, first sample, number of samples) of the simulated chunks: every
+        chunk of the mission, or every ``chunk_stride``-th."""
         step = self.samples_per_chunk
         return [
             (index, first, min(step, self.n_samples - first))
             for index, first in enumerate(range(0, self.n_samples, step))
+            if index % self.chunk_stride == 0
         ]
+
+    @property
+    def simulated_samples(self) -> int:
+        """Samples of the simulated chunks (the mission's ``n_samples`` when every chunk is)."""
+        return sum(n for _, _, n in self.chunks())
 
 
 class MissionScanningStrategy:

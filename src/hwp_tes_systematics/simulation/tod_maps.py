@@ -82,6 +82,7 @@ class PairMapSettings:
                 duration_s=simulation["duration_days"] * 86400.0,
                 chunk_duration_s=simulation["chunk_duration_s"],
                 sampling_rate_hz=simulated_rate_hz(config, channel),
+                chunk_stride=simulation["chunk_stride"],
             ),
             a2_k_cmb=a2_k_cmb,
             notch_width_divisor=config["notch"]["width_divisor"],
@@ -611,7 +612,7 @@ def accumulate(
         simulator.channel.name,
         settings.seed,
         peak_rss_mb,
-        clock.summary(settings.plan.n_samples * n_det),
+        clock.summary(settings.plan.simulated_samples * n_det),
     )
     return equations
 

@@ -79,7 +79,7 @@ def run(
         out_h5, equations, settings, simulator, {"foreground_source": foreground_source}
     )
     elapsed_s = time.perf_counter() - started
-    samples = settings.plan.n_samples * simulator.n_detectors
+    samples = settings.plan.simulated_samples * simulator.n_detectors
     log.info(
         "%s seed %d: wrote %s in %.1f s (%.0f ns per detector-sample, start-up included)",
         channel_name,
