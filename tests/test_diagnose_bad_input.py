@@ -186,6 +186,9 @@ CASES = [
     ("angle text", detector_value("pol_angle_rad", "45 deg"), "pol_angle_rad = '45 deg'"),
     ("NET Inf", detector_value("net_ukrts", np.inf), "net_ukrts = inf"),
     ("alpha NaN", detector_value("alpha", np.nan), "alpha = nan"),
+    ("fmin Inf", detector_value("fmin_hz", -np.inf), "fmin_hz = -inf"),
+    ("NET null", detector_value("net_ukrts", None), None),
+    ("angle null", detector_value("pol_angle_rad", None), "pol_angle_rad = None"),
 ]
 
 
@@ -257,6 +260,8 @@ def test_malformed_recording_is_named_or_usable(base, tmp_path, case, action, na
             assert np.isfinite(values).all(), case
         assert recording.flags.shape == recording.tod.shape
         assert not recording.flags.all(axis=1).any(), case
+        noise = recording.nominal_noise()  # the metadata the diagnosis reads: numbers
+        assert all(isinstance(v, float) for d in noise for v in d.values()), (case, noise)
         return
     with pytest.raises(RecordingError) as error:
         read_recording(path)

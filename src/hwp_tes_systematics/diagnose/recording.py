@@ -66,7 +66,14 @@ DIAGNOSIS_BASE_BYTES = 0.7e9
 MAX_DECLARED_OVER_STORED = 100
 REAL_KINDS = "fiu"  # numpy dtype kinds accepted for tod, pointings, hwp_angle
 FLAG_KINDS = "biu"  # for flags and RLE flags
-FINITE_DETECTOR_KEYS = ("pol_angle_rad", "pol_efficiency", "net_ukrts", "fknee_mhz", "alpha")
+FINITE_DETECTOR_KEYS = (
+    "pol_angle_rad",
+    "pol_efficiency",
+    "net_ukrts",
+    "fknee_mhz",
+    "alpha",
+    "fmin_hz",
+)
 
 
 class RecordingError(ValueError):
@@ -200,7 +207,9 @@ def _read_detectors(path, dataset, n_det: int) -> list[dict]:
                 "expected a non-empty string",
             )
         for key in FINITE_DETECTOR_KEYS:
-            if key not in detector or (key != "pol_angle_rad" and detector[key] is None):
+            if key != "pol_angle_rad" and detector.get(key, 0.0) is None:
+                del detector[key]  # null: not given (a NET then comes from the residual)
+            if key not in detector:
                 continue
             value = detector[key]
             if isinstance(value, bool) or not isinstance(value, (int, float)):
