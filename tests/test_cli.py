@@ -39,9 +39,14 @@ def logging_restored():
 
 @pytest.fixture
 def inputs(tmp_path):
-    """A recording and a sky file that exist (their content is not read in these tests)."""
+    """A recording file that exists (its content is not read in these tests) and a sky map
+    (a tiny HEALPix I, Q, U FITS file: its headers are checked before the work)."""
+    import numpy as np
+
+    from hwp_tes_systematics import sky
+
     (tmp_path / "rec.h5").write_bytes(b"")
-    (tmp_path / "sky.fits").write_bytes(b"")
+    sky.write_sky_map(tmp_path / "sky.fits", np.zeros((3, 12)))
     return tmp_path
 
 
@@ -188,6 +193,20 @@ def test_bad_arguments_name_the_option(capsys, inputs, no_work, option, value, e
     assert status == 2
     assert f"argument {option}: " in err and expected in err, err
     assert not (inputs / "out").exists()
+
+
+def test_a_sky_that_is_not_a_map_stops_before_the_work(capsys, inputs, no_work):
+    from astropy.io import fits
+
+    (inputs / "notes.fits").write_text("not FITS")
+    fits.PrimaryHDU().writeto(inputs / "image.fits")
+    for name, expected in (("notes.fits", "not a FITS file"), ("image.fits", "tables: []")):
+        status, _, err = exit_status(
+            capsys, "diagnose", inputs / "rec.h5", "--sky", inputs / name,
+            "--out", inputs / "out",
+        )  # fmt: skip
+        assert status == 2 and f"argument --sky: {inputs / name}: " in err, err
+        assert expected in err and "expected a HEALPix I, Q, U map" in err, err
 
 
 def test_missing_recording_and_bad_requirement_stop_before_the_work(capsys, inputs, no_work):

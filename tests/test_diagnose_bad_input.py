@@ -368,8 +368,10 @@ def test_the_command_line_refuses_a_hostile_recording_naming_it(base, tmp_path, 
     root = logging.getLogger()
     handlers, level = list(root.handlers), root.level  # main() configures logging
 
+    from hwp_tes_systematics import sky
+
     path = edited(base, tmp_path / "hostile.h5", hostile_datasets)
-    (tmp_path / "sky.fits").write_bytes(b"")  # never read
+    sky.write_sky_map(tmp_path / "sky.fits", np.zeros((3, 12)))  # its headers only are read
     try:
         status = cli.main(
             [

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from helpers import run_cli
 
+from hwp_tes_systematics import sky
 from hwp_tes_systematics.config import (
     data_path,
     default_config_path,
@@ -90,7 +91,7 @@ def test_cli_merges_config_over_the_shipped_default_from_another_folder(tmp_path
     (checked with the other arguments, before the recording is read)."""
     (tmp_path / "cold_tc.yaml").write_text("tes:\n  tc_k: 0.05\n")
     (tmp_path / "recording.h5").write_bytes(b"")  # never read: the configuration stops first
-    (tmp_path / "sky.fits").write_bytes(b"")
+    sky.write_sky_map(tmp_path / "sky.fits", np.zeros((3, 12)))  # its headers are checked
     result = run_cli(
         tmp_path,
         "diagnose",

@@ -178,6 +178,26 @@ def check_output(path: str, option: str, is_folder: bool) -> str | None:
     return None
 
 
+def check_sky_file(path: str) -> str | None:
+    """None if ``path`` looks like a HEALPix I, Q, U FITS map (a binary table of at least
+    three columns, read from its headers alone), else a message naming ``--sky``; the map
+    itself is read and checked by the diagnosis (:func:`.diagnose.model.load_sky`)."""
+    from astropy.io import fits
+
+    try:
+        with fits.open(path, memmap=True, lazy_load_hdus=False) as hdus:
+            tables = [h for h in hdus if isinstance(h, fits.BinTableHDU)]
+            columns = [len(h.columns) for h in tables]
+    except (OSError, ValueError, TypeError) as error:
+        return f"argument --sky: {path}: not a FITS file ({error}); expected a HEALPix I, Q, U map"
+    if not any(n >= 3 for n in columns):
+        return (
+            f"argument --sky: {path}: FITS without a table of 3 columns (tables: {columns}); "
+            "expected a HEALPix I, Q, U map in K_CMB (Galactic, RING)"
+        )
+    return None
+
+
 def redraw_figure8(requirement_json: str, delta_r_csv: str | None, out_png: str) -> int:
     """Fig. 8 from a run's requirement.json and delta r table; 2 with a message naming the
     file when one is missing or is not what the requirement stage writes."""
@@ -351,7 +371,7 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
             commands["figure8"].error(problem)
         return redraw_figure8(arguments.requirement, arguments.delta_r, arguments.out)
 
-    problem = check_output(arguments.out, "--out", is_folder=True)
+    problem = check_output(arguments.out, "--out", is_folder=True) or check_sky_file(arguments.sky)
     if problem:
         commands["diagnose"].error(problem)
     if arguments.requirement is not None:  # a bad one stops before the long diagnosis
