@@ -323,3 +323,17 @@ def test_channels_without_systematics_can_be_sampled_slower(repo, monkeypatch):
     assert simulated_rate_hz(config, mft) == 19.0
     config["simulation"]["sampling_rate_hz"] = None
     assert simulated_rate_hz(config, mft) == mft.sampling_rate_hz
+
+
+def test_channel_a2_of_an_unknown_channel_is_an_error_naming_it():
+    """channel_a2_k_cmb gave A_2 = 0 for a channel the instrument model lacks (or a name in
+    the wrong case): now an error naming it, with the case hint."""
+    from hwp_tes_systematics.config import default_config_path, load_config
+    from hwp_tes_systematics.instrument.channels import InstrumentModelError
+    from hwp_tes_systematics.simulation.channel_inputs import channel_a2_k_cmb
+
+    config = load_config(default_config_path())
+    assert channel_a2_k_cmb(config, "L1-040") == 0.0  # a known channel outside the systematics
+    for name, hint in (("X9-999", "X9-999"), ("m1-140", "M1-140")):
+        with pytest.raises(InstrumentModelError, match=hint):
+            channel_a2_k_cmb(config, name)

@@ -12,6 +12,7 @@ import numpy as np
 
 from .. import config as cfg
 from .. import sky
+from ..instrument.channels import check_channel_name
 from ..instrument.hwp_power import hwp_power_for_channel, sky_to_detector_efficiency
 from ..instrument.radiometry import dpower_dtemperature_w_per_k, kelvin_per_watt
 from ..instrument.tes import TesParameters, tes_parameters_for_channel
@@ -66,7 +67,9 @@ def channel_conversion(config: dict, name: str) -> dict:
 
 def channel_a2_k_cmb(config: dict, name: str) -> float:
     """The nominal HWPSS amplitude A_2 [K_CMB] of one channel (0 outside the systematics
-    channels, whose HWP the study takes as ideal), computed from the configured optics."""
+    channels, whose HWP the study takes as ideal), computed from the configured optics;
+    a name the instrument model does not have is an error naming it (not A_2 = 0)."""
+    check_channel_name(name, "channel_a2_k_cmb(name)", config["instrument"]["imo_location"])
     if name not in config["instrument"]["systematics_channels"]:
         return 0.0
     return channel_conversion(config, name)["a2_k_cmb"]
