@@ -271,6 +271,19 @@ def floors_ns(arguments, measured: dict) -> dict[str, float]:
 
     notch()  # ducc0's plan
     floors["2f removal + notch"] = (best_of(notch) + best_of(fit)) * per_det
+    for length in (n, 65536):  # the chunk's transforms against ones that fit the caches
+        block = rng.normal(size=(8, length))
+        spectrum_block = np.empty((8, length // 2 + 1), complex)
+
+        def round_trip(block=block, spectrum_block=spectrum_block, length=length):
+            ducc0.fft.r2c(block, axes=(1,), out=spectrum_block)
+            ducc0.fft.c2r(
+                spectrum_block, axes=(1,), lastsize=length, forward=False, inorm=2, out=block
+            )
+
+        round_trip()
+        seconds = best_of(round_trip)
+        floors[f"fft_{length}"] = 1e9 * seconds / block.size / 2
     # the demodulation: a product with 2 cos 4 chi and 2 sin 4 chi, then the low-pass
     # (r2c, product, c2r) of three streams per filtered row: the notch's floor per row
     demodulated_rows = transforms.get("demodulation", 0.0) * n_det / 2
@@ -336,6 +349,8 @@ def main() -> None:
         print(f"reference: {reference['package']}")
     print(header)
     print("|---" * (header.count("|") - 1) + "|")
+    fft_lengths = [key for key in floors if key.startswith("fft_")]
+    fft_ns = {int(key[4:]): floors.pop(key) for key in fft_lengths}
     for stage in STAGES:
         ns = measured["stages_ns"].get(stage)
         before = (reference or {}).get("stages_ns", {}).get(stage)
@@ -358,6 +373,10 @@ def main() -> None:
             before = 1e9 * reference[key] / det_samples
             line += f" {before:.0f} | {before / ns:.2f} |"
         print(line)
+    print(
+        "ducc0 real FFT, forward or inverse, per row-sample: "
+        + ", ".join(f"{ns:.1f} ns at {length:,} samples" for length, ns in fft_ns.items())
+    )
     transforms = ", ".join(
         f"{stage} {value:.1f}"
         for stage, value in measured["fft_row_samples_per_det_sample"].items()

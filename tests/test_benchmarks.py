@@ -472,3 +472,35 @@ def test_the_noise_beside_a_thermal_drift_keeps_its_1_over_f(benchmarks, tmp_pat
     for adjustments in result["nominal_adjustments"].values():
         assert adjustments["noise_fknee"]["value"] < 100.0  # mHz
         assert 0.7 < adjustments["noise_alpha"]["value"] < 1.3
+
+
+@pytest.mark.slow
+def test_fixed_pass_profile_prints_each_stage_beside_its_floor_and_another_checkout(repo):
+    """benchmarks/fixed_pass_profile.py on a short pass at nside 8, the reference being
+    this checkout's own package run in a second process: every stage of a pass with
+    systematics gets a line with its floor, the reference's figure beside it, and the
+    FFT rows of the notch are counted (8 per detector with one noise realization)."""
+    import subprocess
+
+    done = subprocess.run(
+        [
+            sys.executable,
+            str(repo / "benchmarks" / "fixed_pass_profile.py"),
+            *("--days", "0.02", "--nside", "8", "--reference-src", str(repo / "src")),
+        ],
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=600,
+    )
+    lines = {line.split("|")[1].strip(): line for line in done.stdout.splitlines() if "|" in line}
+    for stage in ("pointing", "2f removal + notch", "binning", "whole pass (with the solve)"):
+        cells = [cell.strip() for cell in lines[stage].split("|")[2:-1]]
+        assert len(cells) == 5, lines[stage]  # pass, floor, ratio, reference, reference / pass
+        assert float(cells[0]) > 0 and float(cells[3]) > 0
+    # 8 rows x 2 detectors, forward and inverse, each over the chunk and its margins
+    from hwp_tes_systematics.simulation.notch import chunk_span
+
+    n_inner = round(0.02 * 86400 * 19.0)
+    _, n_fft, _ = chunk_span(0, n_inner, 19.0, 1200.0)
+    assert f"2f removal + notch {16 * n_fft / n_inner:.1f}" in done.stdout
