@@ -10,8 +10,7 @@ pair, ``--days`` one-day chunks at ``--rate`` Hz, no noise, the sky scanned at
 ``--nside`` with 60 s baselines, plus the map-makers of ``--variants`` (nside:baseline
 seconds or none) and, with ``--demodulated``, HWP demodulation at every binned one; one
 thread; T_ell and S_ell measured up to ``--measure-lmax`` (the configurations' filter_lmax).
-A ten-minute pass first compiles the kernels; the measured pass's first chunk
-also pays ducc0's FFT plan (~0.2 s).
+A one-day pass first compiles the kernels and makes the FFT plans of a day's chunk.
 
 Printed, in ns per detector-sample (one sample of one detector): each stage of the pass
 (the job's own clock), the floor of that stage, and their ratio; the pass's wall time,
@@ -154,7 +153,7 @@ def run_pass(arguments) -> dict:
         )
         return time.perf_counter() - started, simulator
 
-    one_pass(600.0 / 86400.0)  # compiles the kernels
+    one_pass(1.0)  # compiles the kernels, makes the day's FFT plans, fills the caches
     clocks.clear()
     transformed.clear()
     binned[0] = 0
