@@ -115,3 +115,49 @@ def timed_accumulate(simulator, settings, sky_map, path: str, on_chunk=None):
 def peak_rss_mb() -> float:
     """Peak resident memory of this process [MB]."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def run_fixed_pass(
+    name,
+    carries_systematics,
+    nside,
+    rate_hz,
+    days,
+    calibration_every=1,
+    measure_lmax=None,
+    extra_variants=(),
+    demodulated=False,
+    band_limited=False,
+):
+    """(seconds, {variant: FixedMaps}, simulator) of the map-domain fixed pass of ``days``
+    of channel ``name`` (:func:`fixed_pass_setup`, 60 s baselines, no foreground, the
+    reference CMB of master seed 1): T_ell and S_ell measured up to ``measure_lmax``
+    (None: the full band); ``extra_variants``: (nside, baseline length) map-makers binned
+    in the same pass, ``nside`` the scan's; ``demodulated``: each binned one also
+    demodulated; ``band_limited``: the sky scanned from its a_lm."""
+    import healpy as hp
+
+    from hwp_tes_systematics.simulation import map_domain
+
+    channel = load_channel(name)
+    a2_k_cmb = A2_K_CMB if carries_systematics else 0.0
+    simulator, settings = fixed_pass_setup(name, days, nside, rate_hz, a2_k_cmb, 60.0)
+    lmax = 3 * nside - 1
+    foreground = np.zeros((3, hp.nside2npix(nside)))
+    alm = map_domain.transfer_cmb_alm(lmax, 0.0, 1, channel.fwhm_arcmin)
+    binned = [(nside, settings.baseline_length_s), *extra_variants]
+    started = time.perf_counter()
+    passes = map_domain.fixed_passes(
+        simulator,
+        settings,
+        foreground,
+        alm,
+        carries_systematics,
+        lmax,
+        calibration_every,
+        measure_lmax=measure_lmax,
+        extra_variants=extra_variants,
+        demodulated_variants=binned if demodulated else (),
+        band_limited_sky=band_limited,
+    )
+    return time.perf_counter() - started, passes, simulator

@@ -74,21 +74,17 @@ def parse_variant(text: str) -> tuple[int, float | None]:
 def run_pass(arguments) -> dict:
     """Run the fixed pass in this process; returns its figures (see the module docstring)."""
     import ducc0
-    import healpy as hp
 
     sys.path.insert(0, str(Path(__file__).parent))
-    from common import A2_K_CMB, fixed_pass_setup
+    from common import run_fixed_pass
 
     from hwp_tes_systematics import io
-    from hwp_tes_systematics.instrument.channels import load_channel
-    from hwp_tes_systematics.simulation import map_domain, mapmaking, tod_maps
+    from hwp_tes_systematics.simulation import mapmaking, tod_maps
 
     if not arguments.default_malloc and hasattr(io, "reuse_freed_memory"):
         io.reuse_freed_memory()
     io.use_threads(1)
-    channel = load_channel(arguments.channel)
     carries_systematics = arguments.channel != "L1-040" and not arguments.no_systematics
-    a2_k_cmb = A2_K_CMB if carries_systematics else 0.0
     nside, rate = arguments.nside, arguments.rate
     variants = [parse_variant(v) for v in arguments.variants]
     clocks = []
@@ -133,25 +129,18 @@ def run_pass(arguments) -> dict:
     mapmaking.NormalEquations.add = counted_add
 
     def one_pass(days):
-        simulator, settings = fixed_pass_setup(arguments.channel, days, nside, rate, a2_k_cmb, 60.0)
-        lmax = 3 * nside - 1
-        foreground = np.zeros((3, hp.nside2npix(nside)))
-        alm = map_domain.transfer_cmb_alm(lmax, 0.0, 1, channel.fwhm_arcmin)
-        binned_variants = [(nside, 60.0), *variants]
-        started = time.perf_counter()
-        map_domain.fixed_passes(
-            simulator,
-            settings,
-            foreground,
-            alm,
+        seconds, _, simulator = run_fixed_pass(
+            arguments.channel,
             carries_systematics,
-            lmax,
-            measure_lmax=min(lmax, arguments.measure_lmax),
+            nside,
+            rate,
+            days,
+            measure_lmax=min(3 * nside - 1, arguments.measure_lmax),
             extra_variants=variants,
-            demodulated_variants=binned_variants if arguments.demodulated else (),
-            band_limited_sky=arguments.demodulated,
+            demodulated=arguments.demodulated,
+            band_limited=arguments.demodulated,
         )
-        return time.perf_counter() - started, simulator
+        return seconds, simulator
 
     one_pass(1.0)  # compiles the kernels, makes the day's FFT plans, fills the caches
     clocks.clear()

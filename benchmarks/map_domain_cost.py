@@ -27,7 +27,7 @@ import time
 
 import healpy as hp
 import numpy as np
-from common import A2_K_CMB, fixed_pass_setup
+from common import run_fixed_pass
 
 from hwp_tes_systematics.analysis.ilc_residuals import (
     ChannelAlms,
@@ -61,28 +61,21 @@ def measure(
     (simulation.fixed_pass_nsides x fixed_pass_baseline_lengths_s), ``nside`` the scan's;
     ``demodulated``: each also demodulated (simulation.fixed_pass_demodulated);
     ``band_limited``: the sky scanned from its a_lm (simulation.sky_scanning)."""
-    channel = load_channel(name)
-    a2_k_cmb = A2_K_CMB if carries_systematics else 0.0
-    simulator, settings = fixed_pass_setup(name, days, nside, rate_hz, a2_k_cmb, 60.0)
-    foreground = np.zeros((3, hp.nside2npix(nside)))
-    lmax = 3 * nside - 1
-    alm = map_domain.transfer_cmb_alm(lmax, 0.0, 1, channel.fwhm_arcmin)
-    binned = [(nside, settings.baseline_length_s), *extra_variants]
-    started = time.perf_counter()
-    fixed = map_domain.fixed_passes(
-        simulator,
-        settings,
-        foreground,
-        alm,
+    fixed_s, passes, _ = run_fixed_pass(
+        name,
         carries_systematics,
-        lmax,
+        nside,
+        rate_hz,
+        days,
         calibration_every,
-        measure_lmax=filter_lmax,
-        extra_variants=extra_variants,
-        demodulated_variants=binned if demodulated else (),
-        band_limited_sky=band_limited,
-    )[(nside, settings.baseline_length_s)]
-    fixed_s = time.perf_counter() - started
+        filter_lmax,
+        extra_variants,
+        demodulated,
+        band_limited,
+    )
+    fixed = passes[(nside, 60.0)]
+    lmax = 3 * nside - 1
+    channel = load_channel(name)
     started = time.perf_counter()
     cmb_alm, band = map_domain.band_limited_seed_cmb(lmax, 0.0, 1, 0, channel.fwhm_arcmin)
     map_domain.realize_seed(fixed, cmb_alm, band, 0.264, 1.0, np.random.default_rng)
