@@ -5,7 +5,7 @@ import sys
 
 import pytest
 
-# a 256 MB array touched and freed, then the same size again: the page faults of the second
+# a 512 MB array touched and freed, then the same size again: the page faults of the second
 FAULTS_OF_A_REALLOCATION = """
 import resource, sys
 import numpy as np
@@ -14,10 +14,10 @@ if sys.argv[1] == "reuse":
     assert reuse_freed_memory()
 def faults():
     return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
-first = np.ones(2**25)
+first = np.ones(2**26)
 del first
 before = faults()
-second = np.ones(2**25)
+second = np.ones(2**26)
 print(faults() - before)
 """
 
@@ -34,7 +34,7 @@ def faults_of_a_reallocation(mode: str) -> int:
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's malloc only")
 def test_freed_memory_serves_the_next_array_without_page_faults():
-    """By default a freed 256 MB array goes back to the kernel and the next one faults its
+    """By default a freed 512 MB array goes back to the kernel and the next one faults its
     pages in again (zero-filled); with reuse_freed_memory the freed pages serve it."""
     default, reused = faults_of_a_reallocation("default"), faults_of_a_reallocation("reuse")
     assert default > 100, default
