@@ -36,6 +36,7 @@ from hwp_tes_systematics.analysis.ilc_residuals import (
 )
 from hwp_tes_systematics.config import deep_merge, default_config_path, load_config
 from hwp_tes_systematics.instrument.channels import load_channel
+from hwp_tes_systematics.io import reuse_freed_memory
 from hwp_tes_systematics.simulation import map_domain
 from hwp_tes_systematics.simulation.mapmaking import MATRIX_ENTRIES
 
@@ -197,6 +198,11 @@ def main() -> None:
     )
     parser.add_argument("--map2alm-iter", type=int, default=3, help="component_separation")
     parser.add_argument(
+        "--default-malloc",
+        action="store_true",
+        help="glibc's defaults instead of io.reuse_freed_memory (which the jobs call)",
+    )
+    parser.add_argument(
         "--also-nsides",
         type=int,
         nargs="*",
@@ -219,6 +225,8 @@ def main() -> None:
         help="scan the sky from its a_lm (simulation.sky_scanning: band_limited)",
     )
     arguments = parser.parse_args()
+    if not arguments.default_malloc:
+        reuse_freed_memory()
     baselines = [60.0, None] if arguments.also_without_baselines else [60.0]
     extra = [(n, b) for n in [arguments.nside, *arguments.also_nsides] for b in baselines]
     extra = [variant for variant in extra if variant != (arguments.nside, 60.0)]

@@ -136,6 +136,7 @@ def run_seeds(
     ``pooled_h5s``: the fixed passes whose noise shaping is pooled with this channel's
     (:func:`map_domain.noise_shaping_siblings`)."""
     started = time.perf_counter()
+    reuse_freed_memory()  # the seeds' maps and transforms: no page faults (io.reuse_freed_memory)
     channel_seeds = map_domain.ChannelSeeds(config, fixed_h5, pooled_h5s)
     if len(pooled_h5s) > 1:
         log.info("%s: noise shaping pooled over %d fixed passes", channel_name, len(pooled_h5s))
