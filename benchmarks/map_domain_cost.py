@@ -44,35 +44,13 @@ CHANNELS = {"M1-140": (True, 10), "L1-040": (False, 12)}  # (systematics, channe
 YEAR_DAYS = 365.25
 
 
-def measure(
-    name,
-    carries_systematics,
-    nside,
-    rate_hz,
-    days,
-    calibration_every=1,
-    filter_lmax=None,
-    extra_variants=(),
-    demodulated=False,
-    band_limited=False,
-):
-    """(seconds of the fixed pass of ``days``, seconds per seed); the filter's T_ell and
-    S_ell measured up to ``filter_lmax`` (simulation.filter_lmax; None: the full band);
-    ``extra_variants``: (nside, baseline length) map-makers binned in the same pass
-    (simulation.fixed_pass_nsides x fixed_pass_baseline_lengths_s), ``nside`` the scan's;
-    ``demodulated``: each also demodulated (simulation.fixed_pass_demodulated);
-    ``band_limited``: the sky scanned from its a_lm (simulation.sky_scanning)."""
+def measure(name, carries_systematics, nside, rate_hz, days, *pass_options):
+    """(seconds of the fixed pass of ``days``, seconds per seed): the pass of
+    :func:`common.run_fixed_pass`, ``pass_options`` its further arguments in order
+    (calibration_every, measure_lmax, extra_variants, demodulated, band_limited), then
+    one seed made from its map-maker at (``nside``, 60 s)."""
     fixed_s, passes, _ = run_fixed_pass(
-        name,
-        carries_systematics,
-        nside,
-        rate_hz,
-        days,
-        calibration_every,
-        filter_lmax,
-        extra_variants,
-        demodulated,
-        band_limited,
+        name, carries_systematics, nside, rate_hz, days, *pass_options
     )
     fixed = passes[(nside, 60.0)]
     lmax = 3 * nside - 1

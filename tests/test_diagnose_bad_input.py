@@ -55,22 +55,23 @@ def replace(handle, name, data=None, **create):
     return dataset
 
 
-def with_nan(name, where):
+def with_value(name, where, value):
+    """An edit writing ``value`` into dataset ``name`` at ``where``."""
+
     def action(handle):
         data = handle[name][()]
-        data[where] = np.nan
+        data[where] = value
         handle[name][...] = data
 
     return action
+
+
+def with_nan(name, where):
+    return with_value(name, where, np.nan)
 
 
 def with_inf(name, where):
-    def action(handle):
-        data = handle[name][()]
-        data[where] = np.inf
-        handle[name][...] = data
-
-    return action
+    return with_value(name, where, np.inf)
 
 
 def set_attr(key, value):

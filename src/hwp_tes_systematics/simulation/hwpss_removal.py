@@ -49,11 +49,11 @@ def remove_hwp_harmonics(
         return tod
     if templates is None:
         templates = harmonic_templates(hwp_angle_rad, harmonics, offset)  # D^T
-    if templates.shape != (2 * len(harmonics) + int(offset), np.size(hwp_angle_rad)):
+    expected = (2 * len(harmonics) + int(offset), np.size(hwp_angle_rad))
+    if templates.shape != expected:
         raise ValueError(
-            f"harmonic templates of shape {templates.shape}: expected "
-            f"{(2 * len(harmonics) + int(offset), np.size(hwp_angle_rad))} for harmonics "
-            f"{tuple(harmonics)}, offset {offset}"
+            f"harmonic templates of shape {templates.shape}: expected {expected} for "
+            f"harmonics {tuple(harmonics)}, offset {offset}"
         )
     if not overwrite:
         tod = np.array(tod, dtype=float)
