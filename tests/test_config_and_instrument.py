@@ -25,7 +25,7 @@ def test_all_22_ptep_channels_with_telescope_hwp_rates():
         channel = instrument.load_channel(name)
         assert channel.hwp_rpm == rpm[channel.telescope]
         assert channel.sampling_rate_hz == 31.0
-        a, b = channel.detector_pair
+        a, b = channel.detectors
         assert instrument.pixel_of(a) == instrument.pixel_of(b)
     assert instrument.load_channel("M1-140").hwp_frequency_hz == pytest.approx(0.65)
 
@@ -153,7 +153,7 @@ def test_user_detector_pair_must_be_orthogonal():
     channel = instrument.load_channel(
         "L1-040", detector_pair=("000_000_006_UA_040_T", "000_000_006_UA_040_B")
     )
-    assert channel.detector_pair[0].endswith("_T")
+    assert channel.detectors[0].endswith("_T")
     assert np.isfinite(channel.fwhm_arcmin)
 
 

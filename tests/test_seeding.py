@@ -39,4 +39,4 @@ def test_g1_draws_per_detector_or_per_pair():
     np.testing.assert_array_equal(per_pair, unit_g1_draws(7, "M1-140", 0, detectors, "pair"))
     assert unit_g1_draws(7, "M1-140", 1, detectors, "pair")[0] != per_pair[0]
     with pytest.raises(ValueError, match="per"):
-        unit_g1_draws(7, "M1-140", 0, detectors, "channel")
+        unit_g1_draws(7, "M1-140", 0, detectors, "wafer")

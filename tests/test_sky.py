@@ -39,7 +39,7 @@ def make_channel(name, center_ghz, width_ghz, fwhm_arcmin):
         sampling_rate_hz=19.0,
         hwp_rpm=39.0,
         number_of_detectors=2,
-        detector_pair=("a", "b"),
+        detectors=("a", "b"),
     )
 
 

@@ -306,13 +306,20 @@ def selected_channels(config: dict) -> list[str]:
 
 
 def channel(config: dict, name: str) -> instrument.Channel:
-    """Channel record with the configured detector pair."""
-    pair = config["instrument"]["detector_pairs"].get(name)
+    """Channel record with the configured detector pairs and their positions."""
+    settings = config["instrument"]
+    pair = settings["detector_pairs"].get(name)
+    field_of_view = None
+    if settings["detector_positions"] == "field_of_view":
+        telescope = instrument.telescope_of(name, settings["imo_location"], settings["imo_release"])
+        field_of_view = tuple(settings["field_of_view_semi_axes_deg"][telescope])
     return instrument.load_channel(
         name,
-        config["instrument"]["imo_location"],
-        config["instrument"]["imo_release"],
+        settings["imo_location"],
+        settings["imo_release"],
         tuple(pair) if pair else None,
+        settings["pairs_per_channel"],
+        field_of_view,
     )
 
 

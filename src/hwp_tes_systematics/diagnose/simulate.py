@@ -193,10 +193,6 @@ def _true_pointing(simulator, pointing, params: dict):
                         quats=np.repeat(detector.quat.quats, n_quats, axis=0), **timing
                     )
             detector.quat = rotation * detector.quat
-    quats = [np.asarray(d.quat.quats) for d in moved.detectors]
-    moved.shares_direction = all(
-        q.shape == quats[0].shape and np.array_equal(q, quats[0]) for q in quats
-    )
     return moved.pointing(0, n), moved
 
 

@@ -3,8 +3,9 @@
 The PTEP instrument model (IMo, release ``vPTEP``) ships inside litebird_sim as a
 flat file (``lbs.PTEP_IMO_LOCATION``), so reading it needs no network. This module
 turns it into small, frozen :class:`Channel` records holding what the study needs:
-band, noise, beam, sampling, the telescope's HWP rotation rate, and one orthogonal
-detector pair per channel.
+band, noise, beam, sampling, the telescope's HWP rotation rate, and the channel's
+orthogonal detector pairs (one by default, as in the paper; N spread over the field of
+view by :mod:`focal_plane`).
 """
 
 from __future__ import annotations
@@ -14,6 +15,8 @@ from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
+
+from .focal_plane import PixelPosition, choose_pixels, lay_out_pixels
 
 TELESCOPES = ("LFT", "MFT", "HFT")
 PAIR_SEARCH_DETECTORS = 16  # detectors searched for the default pair (8 pixels)
@@ -38,7 +41,13 @@ class Channel:
     sampling_rate_hz: float
     hwp_rpm: float
     number_of_detectors: int
-    detector_pair: tuple[str, str]
+    detectors: tuple[str, ...]  # the simulated detectors, pair by pair (T, B, T, B, ...)
+    # each detector's direction in the focal plane; None: all at the boresight (PTEP model)
+    detector_positions: tuple[PixelPosition, ...] | None = None
+
+    @property
+    def n_pairs(self) -> int:
+        return len(self.detectors) // 2
 
     @property
     def hwp_frequency_hz(self) -> float:
@@ -179,11 +188,19 @@ def load_channel(
     imo_location: str | None = None,
     release: str = "vPTEP",
     detector_pair: tuple[str, str] | None = None,
+    pairs: int | str = 1,
+    field_of_view_deg: tuple[float, float] | None = None,
 ) -> Channel:
-    """Read one channel, choosing its detector pair.
+    """Read one channel, choosing its detector pairs.
 
     ``detector_pair=None`` takes the first orthogonal pair in model order; the
     detectors' polarisation angles are read from the model to check the pair.
+    ``pairs`` (an int, or "all" for every pixel with an orthogonal pair): that many
+    pairs, the first being the one-pair choice and the others chosen by
+    :func:`focal_plane.choose_pixels` over the layout of :func:`focal_plane.lay_out_pixels`.
+    ``field_of_view_deg``: the semi-axes of the field of view the pixels fill; with it each
+    detector gets its pixel's position, without it (the PTEP model as shipped) all point at
+    the boresight (the choice of pairs still spreads over the layout of a unit field).
     """
     import litebird_sim as lbs
 
@@ -193,9 +210,9 @@ def load_channel(
     instrument = lbs.InstrumentInfo.from_imo(imo, f"{base}/instrument_info")
     info = lbs.FreqChannelInfo.from_imo(imo, f"{base}/{channel_name}/channel_info")
 
-    def pol_angle(detector_name: str) -> float:
+    def detector_info(detector_name: str):
         try:
-            detector = lbs.DetectorInfo.from_imo(
+            return lbs.DetectorInfo.from_imo(
                 imo, f"{base}/{channel_name}/{detector_name}/detector_info"
             )
         except Exception as error:  # the IMo raises KeyError or its own error types
@@ -206,7 +223,9 @@ def load_channel(
                 f"its {len(known)} detectors, e.g. {known[:6]} (all: "
                 "instrument.channel_detector_names)"
             ) from error
-        return float(detector.pol_angle_rad)
+
+    def pol_angle(detector_name: str) -> float:
+        return float(detector_info(detector_name).pol_angle_rad)
 
     if detector_pair is None:
         # Detectors come in T/B pairs of the same pixel: search the first few pixels only.
@@ -222,6 +241,25 @@ def load_channel(
                 f"angles {np.degrees(angles)} deg are {error_deg:.1f} deg from orthogonal "
                 f"(expected within {MAX_PAIR_NON_ORTHOGONALITY_DEG} deg)"
             )
+    detectors, positions = pair, None
+    if pairs != 1 or field_of_view_deg is not None:
+        infos = [detector_info(name) for name in info.detector_names]
+        pairs_of = pixel_pairs(infos)
+        pixels = list(pairs_of)
+        wafers = [next(d.wafer for d in infos if pixel_of(d.name) == p) for p in pixels]
+        layout = lay_out_pixels(pixels, wafers, field_of_view_deg or (1.0, 1.0))
+        n = len(pixels) if pairs == "all" else int(pairs)
+        if not 1 <= n <= len(pixels):
+            raise InstrumentModelError(
+                f"instrument.pairs_per_channel = {pairs!r} for {channel_name}: the channel "
+                f"has {len(pixels)} pixels with an orthogonal pair (expected 1..{len(pixels)} "
+                "or 'all')"
+            )
+        pairs_of[pixel_of(pair[0])] = pair
+        chosen = choose_pixels(layout, pixel_of(pair[0]), n)
+        detectors = tuple(name for pixel in chosen for name in pairs_of[pixel])
+        if field_of_view_deg is not None:
+            positions = tuple(layout[pixel_of(name)] for name in detectors)
 
     return Channel(
         name=channel_name,
@@ -238,8 +276,22 @@ def load_channel(
         sampling_rate_hz=float(info.sampling_rate_hz),
         hwp_rpm=float(instrument.hwp_rpm),
         number_of_detectors=int(info.number_of_detectors),
-        detector_pair=pair,
+        detectors=tuple(detectors),
+        detector_positions=positions,
     )
+
+
+def pixel_pairs(detector_infos) -> dict[str, tuple[str, str]]:
+    """{pixel: its most orthogonal pair} for every pixel holding two detectors, in model
+    order (``detector_infos``: litebird_sim DetectorInfo of a channel)."""
+    by_pixel: dict[str, list] = {}
+    for detector in detector_infos:
+        by_pixel.setdefault(pixel_of(detector.name), []).append(detector)
+    return {
+        pixel: most_orthogonal_pair([d.name for d in group], [d.pol_angle_rad for d in group])
+        for pixel, group in by_pixel.items()
+        if len(group) >= 2
+    }
 
 
 def check_channel_names(names: list[str], key: str, imo_location: str | None = None) -> None:

@@ -29,6 +29,7 @@ import numpy as np
 
 from .. import seeding
 from ..instrument.channels import Channel, open_imo
+from ..instrument.focal_plane import offset_quaternion
 from ..sky.harmonics import BandLimitedSky
 from . import data_model
 from .data_model import cache_litebird_sim_kernels, ecliptic_to_galactic, orbit_table
@@ -136,9 +137,10 @@ NOISE_MODELS = {  # litebird_sim's 1/f models and the engine that draws each
 class ChunkPointing:
     """Pointing of one chunk (with margins): pixels and polarisation angles per detector.
 
-    When the detectors share one direction (the PTEP pairs: same quaternion, only the
-    polarisation angle differs) ``pixels`` and ``galactic_rad`` are read-only
-    broadcasts of one row.
+    Detectors with one quaternion share one direction (the two of a pixel; in the PTEP
+    model as shipped, every detector): ``galactic_rad`` holds one row per direction and
+    ``direction_of`` says whose is whose. When all share one, ``pixels`` is a read-only
+    broadcast of one row.
     """
 
     first_sample: int  # mission sample index of the first sample (negative in the margin)
@@ -146,8 +148,9 @@ class ChunkPointing:
     cos_2alpha: np.ndarray  # (n_det, n)
     sin_2alpha: np.ndarray  # (n_det, n)
     hwp_angle_rad: np.ndarray  # (n,)
-    galactic_rad: np.ndarray  # (n_det, n, 3) theta, phi, psi in Galactic coordinates
+    galactic_rad: np.ndarray  # (n_directions, n, 3) theta, phi, psi in Galactic coordinates
     observation: object  # litebird_sim Observation, pointings prepared (ecliptic, lazy)
+    direction_of: np.ndarray  # (n_det,) row of galactic_rad of each detector
     _harmonic_templates: dict = field(default_factory=dict, init=False, repr=False)
 
     def ecliptic_rad(self) -> np.ndarray:
@@ -194,13 +197,15 @@ class PairSimulator:
         self.instrument = lbs.InstrumentInfo.from_imo(imo, f"{base}/instrument_info")
         self.detectors = [
             lbs.DetectorInfo.from_imo(imo, f"{base}/{channel.name}/{name}/detector_info")
-            for name in channel.detector_pair
+            for name in channel.detectors
         ]
+        for detector, position in zip(
+            self.detectors, channel.detector_positions or (), strict=False
+        ):  # the focal-plane layout (the PTEP model points every detector at the boresight)
+            detector.quat = lbs.RotQuaternion(quats=offset_quaternion(position))
         self.pol_angles_rad = np.array([d.pol_angle_rad for d in self.detectors])
         self.pol_efficiency = np.array([d.pol_efficiency for d in self.detectors])
         self.hwp_rad_per_s = self.instrument.hwp_rpm * 2 * np.pi / 60.0
-        quaternions = [np.asarray(d.quat.quats, dtype=float) for d in self.detectors]
-        self.shares_direction = all(np.array_equal(q, quaternions[0]) for q in quaternions)
         self._last_band_limited_scan = (None, None, None)  # sky, chunk, I Q U per direction
         self.scanning = MissionScanningStrategy(imo, release, plan.start_time)
         self.healpix = ducc0.healpix.Healpix_Base(nside, "RING")
@@ -269,12 +274,13 @@ class PairSimulator:
         bore2ecliptic = observation.pointing_provider.bore2ecliptic_quats
         galactic_provider = lbs.PointingProvider(ecliptic_to_galactic()[1] * bore2ecliptic, hwp=hwp)
         shape = (self.n_detectors, n_samples)
-        directions = 1 if self.shares_direction else self.n_detectors
-        galactic = np.empty((directions, n_samples, 3))
+        direction_of = direction_groups(self.detectors)
+        owners_of = [np.flatnonzero(direction_of == d) for d in range(direction_of.max() + 1)]
+        galactic = np.empty((len(owners_of), n_samples, 3))
         hwp_angle = np.empty(n_samples)
-        for direction in range(directions):
+        for direction, owners in enumerate(owners_of):
             galactic_provider.get_pointings(
-                detector_quat=observation.quat[direction],
+                detector_quat=observation.quat[owners[0]],
                 start_time=start,
                 start_time_global=start,
                 sampling_rate_hz=sampling_rate_hz,
@@ -283,26 +289,39 @@ class PairSimulator:
                 hwp_buffer=hwp_angle,
                 compute_hwp_angle=direction == 0,
             )
-        pixels = np.empty((directions, n_samples), dtype=np.int64)
+        pixels = np.empty((len(owners_of), n_samples), dtype=np.int64)
         cos_2alpha = np.empty(shape)
         sin_2alpha = np.empty(shape)
-        for direction in range(directions):
+        for direction, owners in enumerate(owners_of):
             pixels[direction] = self.healpix.ang2pix(
                 galactic[direction, :, :2], nthreads=self.threads
             )
-            owners = np.arange(self.n_detectors) if self.shares_direction else [direction]
-            data_model.polarisation_angles(
-                hwp_angle,
-                galactic[direction, :, 2],
-                self.pol_angles_rad[owners],
-                cos_2alpha[owners[0] : owners[-1] + 1],
-                sin_2alpha[owners[0] : owners[-1] + 1],
-            )
-        if self.shares_direction:
+            first, last = owners[0], owners[-1] + 1
+            if last - first == owners.size:  # a pixel's detectors are neighbours
+                data_model.polarisation_angles(
+                    hwp_angle,
+                    galactic[direction, :, 2],
+                    self.pol_angles_rad[owners],
+                    cos_2alpha[first:last],
+                    sin_2alpha[first:last],
+                )
+            else:
+                cos_2alpha[owners], sin_2alpha[owners] = data_model.polarisation_angles(
+                    hwp_angle, galactic[direction, :, 2], self.pol_angles_rad[owners]
+                )
+        if len(owners_of) == 1:
             pixels = np.broadcast_to(pixels, shape)
-            galactic = np.broadcast_to(galactic, (*shape, 3))
+        else:
+            pixels = pixels[direction_of]
         return ChunkPointing(
-            first_sample, pixels, cos_2alpha, sin_2alpha, hwp_angle, galactic, observation
+            first_sample,
+            pixels,
+            cos_2alpha,
+            sin_2alpha,
+            hwp_angle,
+            galactic,
+            observation,
+            direction_of,
         )
 
     def pixels_at(
@@ -313,26 +332,21 @@ class PairSimulator:
         if nside == self.nside and not nest:
             return pointing.pixels[:, samples]
         healpix = ducc0.healpix.Healpix_Base(nside, "NEST" if nest else "RING")
-        directions = 1 if self.shares_direction else self.n_detectors
         pixels = np.stack(
             [
-                healpix.ang2pix(
-                    np.ascontiguousarray(pointing.galactic_rad[d, samples, :2]),
-                    nthreads=self.threads,
-                )
-                for d in range(directions)
+                healpix.ang2pix(np.ascontiguousarray(direction[samples, :2]), nthreads=self.threads)
+                for direction in pointing.galactic_rad
             ]
         )
-        if self.shares_direction:
+        if len(pixels) == 1:
             return np.broadcast_to(pixels, (self.n_detectors, pixels.shape[1]))
-        return pixels
+        return pixels[pointing.direction_of]
 
     def scan_sky(self, pointing: ChunkPointing, sky_iqu_k, out=None) -> np.ndarray:
         """I + rho (Q cos 2 alpha + U sin 2 alpha) [K_CMB], (n_det, n), written to ``out``
         if given: of a (3, npix) map at the nearest pixel, or of a
         :class:`sky.harmonics.BandLimitedSky` at each sample's direction."""
         if isinstance(sky_iqu_k, BandLimitedSky):
-            directions = 1 if self.shares_direction else self.n_detectors
             if out is None:
                 out = np.empty(pointing.cos_2alpha.shape)
             # the same sky scanned again on the same chunk (the fixed pass's foreground
@@ -341,14 +355,12 @@ class PairSimulator:
             chunk = (pointing.first_sample, pointing.hwp_angle_rad.size)
             last_sky, last_chunk, values = self._last_band_limited_scan
             if last_sky is not sky_iqu_k or last_chunk != chunk:
-                values = [sky_iqu_k.at(pointing.galactic_rad[d, :, :2]) for d in range(directions)]
+                values = [sky_iqu_k.at(direction[:, :2]) for direction in pointing.galactic_rad]
                 self._last_band_limited_scan = (sky_iqu_k, chunk, values)
-            for direction in range(directions):
+            for k, direction in enumerate(pointing.direction_of):
                 i, q, u = values[direction]
-                owners = range(self.n_detectors) if self.shares_direction else [direction]
-                for k in owners:
-                    rho = self.pol_efficiency[k]
-                    out[k] = i + rho * (q * pointing.cos_2alpha[k] + u * pointing.sin_2alpha[k])
+                rho = self.pol_efficiency[k]
+                out[k] = i + rho * (q * pointing.cos_2alpha[k] + u * pointing.sin_2alpha[k])
             return out
         return data_model.scan(
             pointing.pixels,
@@ -363,22 +375,26 @@ class PairSimulator:
         """Orbital + solar dipole [K_CMB] (litebird_sim, TOTAL_FROM_LIN_T), (n_det, n).
 
         Evaluated in Galactic coordinates (pointing and spacecraft velocity rotated
-        alike). TOTAL_FROM_LIN_T depends on the direction only, so a pair sharing one
-        direction gets one computation."""
+        alike). TOTAL_FROM_LIN_T depends on the direction only, so the detectors sharing one
+        direction get one computation."""
         import litebird_sim as lbs
 
-        directions = 1 if self.shares_direction else self.n_detectors
+        owners = [
+            np.flatnonzero(pointing.direction_of == d)[0] for d in range(len(pointing.galactic_rad))
+        ]
         observation = self._observation(
-            self.detectors[:directions],
+            [self.detectors[k] for k in owners],
             pointing.observation.start_time,
             pointing.observation.n_samples,
         )
         lbs.add_dipole_to_observations(
-            observation,
-            pos_and_vel=self.orbit_galactic,
-            pointings=pointing.galactic_rad[:directions],
+            observation, pos_and_vel=self.orbit_galactic, pointings=pointing.galactic_rad
         )
-        return np.broadcast_to(observation.tod, (self.n_detectors, observation.n_samples)).copy()
+        if len(owners) == 1:
+            return np.broadcast_to(
+                observation.tod, (self.n_detectors, observation.n_samples)
+            ).copy()
+        return observation.tod[pointing.direction_of]
 
     def hwpss(self, pointing: ChunkPointing, amplitude_k: float) -> np.ndarray:
         """A_2 cos(2 (chi - theta_det)) [K_CMB] via litebird_sim's add_2f, (n_det, n)."""
@@ -415,3 +431,23 @@ class PairSimulator:
             model=self.noise_model,
         )
         return tod
+
+
+def direction_groups(detectors) -> np.ndarray:
+    """(n_det,) the direction of each detector, numbered in order of first appearance:
+    detectors with equal quaternions (the two of one pixel) share one."""
+    quats = [np.asarray(d.quat.quats, dtype=float) for d in detectors]
+    firsts: list[int] = []
+    direction_of = np.empty(len(quats), dtype=np.int64)
+    for k, q in enumerate(quats):
+        same = [
+            j
+            for j, f in enumerate(firsts)
+            if quats[f].shape == q.shape and np.array_equal(quats[f], q)
+        ]
+        if same:
+            direction_of[k] = same[0]
+        else:
+            direction_of[k] = len(firsts)
+            firsts.append(k)
+    return direction_of

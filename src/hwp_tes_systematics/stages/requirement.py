@@ -240,6 +240,8 @@ def run(
         "settings": {
             "baseline_length_s": config["maps"]["baseline_length_s"],
             "g1_per": config["requirement"]["g1_per"],
+            "pairs_per_channel": config["instrument"]["pairs_per_channel"],
+            "detector_positions": config["instrument"]["detector_positions"],
             "likelihood_model": analysis,
             "notch_width_divisor": config["notch"]["width_divisor"],
             "removed_hwp_harmonics": config["maps"]["removed_hwp_harmonics"],

@@ -1,0 +1,147 @@
+"""How the nonlinearity template of a channel averages down with its detector pairs.
+
+One channel's seed-independent TOD (dipole + HWPSS, no foreground, no noise) through the
+paper's filter (2f removal, notch, 60 s baselines) and the binned map-maker of all its N
+pairs together (:func:`tod_maps.accumulate`), for several N chosen by
+:func:`instrument.load_channel` (nested: each N holds the smaller ones). With T_k the
+binned template of detector k at g1 = 1 1/K (``tod_maps.templates_from_terms``):
+
+- random population (g1_k = sigma z_k, z_k independent N(0, 1)): the expected template
+  power is sum_k C_ell(T_k), printed per multipole band;
+- common population (g1_k = mu for every k): the power is C_ell(sum_k T_k).
+
+Both are pseudo-spectra of the observed pixels (BB, and the Q/U rms), printed beside the
+N = 1 value; the cross-correlation coefficient of two detectors' templates,
+C_ell(T_a, T_b) / sqrt(C_ell(T_a) C_ell(T_b)) at ell 2-40, is printed against their
+focal-plane separation (the mechanism of what the common population keeps).
+
+    python benchmarks/focal_plane_templates.py --channel M1-140 --days 1 --pairs 1 2 4 8
+    python benchmarks/focal_plane_templates.py --positions field_of_view ...
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import healpy as hp
+import numpy as np
+from common import A2_K_CMB, START_TDB, paper_settings
+
+from hwp_tes_systematics.instrument.channels import load_channel, telescope_of
+from hwp_tes_systematics.instrument.focal_plane import angular_separation_deg
+from hwp_tes_systematics.io import use_threads
+from hwp_tes_systematics.simulation.mapmaking import solve_maps
+from hwp_tes_systematics.simulation.tod import MissionPlan, PairSimulator
+from hwp_tes_systematics.simulation.tod_maps import accumulate, split_solved_maps
+
+FIELD_OF_VIEW_DEG = {"LFT": (9.0, 4.5), "MFT": (14.0, 14.0), "HFT": (14.0, 14.0)}  # config
+BANDS = ((2, 11), (12, 40), (41, 100))
+
+
+def channel_templates(name, n_pairs, positions, days, nside, rate_hz, stride=1):
+    """(templates (n_det, 3, npix) [K_CMB at g1 = 1/K], good, hits, channel, seconds) of
+    ``days`` of mission, one day in ``stride`` simulated."""
+    fov = FIELD_OF_VIEW_DEG[telescope_of(name)] if positions == "field_of_view" else None
+    channel = load_channel(name, pairs=n_pairs, field_of_view_deg=fov)
+    plan = MissionPlan(START_TDB, days * 86400.0, 86400.0, rate_hz, stride)
+    settings = paper_settings(plan, nside, A2_K_CMB, baseline_length_s=60.0, noise_scale=0.0)
+    simulator = PairSimulator(channel, plan, nside, noise_model="keshner")
+    started = time.perf_counter()
+    sky_map = np.zeros((3, hp.nside2npix(nside)))
+    equations = accumulate(simulator, settings, sky_map)
+    maps, _, good = solve_maps(equations, settings.max_condition_number)
+    solved = split_solved_maps(maps, simulator.n_detectors, A2_K_CMB)
+    return solved["templates"], good, equations.hits, channel, time.perf_counter() - started
+
+
+def pseudo_bb(maps_iqu: np.ndarray, good: np.ndarray, lmax: int, other=None) -> np.ndarray:
+    """BB pseudo-spectrum (cross with ``other`` if given) of the observed pixels."""
+
+    def masked(m):
+        return np.where(good, m, 0.0)
+
+    first = masked(maps_iqu)
+    second = first if other is None else masked(other)
+    return hp.anafast(first, second, lmax=lmax, iter=0)[2]
+
+
+def band_means(cl: np.ndarray) -> list[float]:
+    return [float(cl[lo : hi + 1].mean()) for lo, hi in BANDS]
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--channel", default="M1-140")
+    parser.add_argument("--days", type=float, default=1.0)
+    parser.add_argument("--nside", type=int, default=64)
+    parser.add_argument("--rate-hz", type=float, default=19.0)
+    parser.add_argument("--stride", type=int, default=1, help="simulate one day in this many")
+    parser.add_argument("--pairs", type=int, nargs="+", default=[1, 2, 4, 8])
+    parser.add_argument(
+        "--positions", choices=("boresight", "field_of_view"), default="field_of_view"
+    )
+    args = parser.parse_args(argv)
+    use_threads(1)
+    lmax = 2 * args.nside
+    print(
+        f"{args.channel}, {args.days:g} days (one in {args.stride}) at {args.rate_hz:g} Hz, "
+        f"nside {args.nside}, "
+        f"positions {args.positions}; BB pseudo-spectra [K^2 at g1 = 1/K] in ell bands {BANDS}"
+    )
+    runs = {}
+    for n_pairs in sorted(args.pairs):
+        runs[n_pairs] = channel_templates(
+            args.channel, n_pairs, args.positions, args.days, args.nside, args.rate_hz, args.stride
+        )
+    # one mask for every N: the pixels all of them observe (a pair's sky grows with N),
+    # then those of them the first pair observes at least as often as its median pixel
+    # (a pixel at the edge of one pair's sky has few hits and a large template, which
+    # another pair's hits dilute: coverage, not averaging)
+    observed = np.logical_and.reduce([run[1] for run in runs.values()])
+    first_hits = runs[min(runs)][2]
+    well_observed = observed & (first_hits >= np.median(first_hits[observed]))
+    for label, good in (("observed by every N", observed), ("well observed", well_observed)):
+        print(f"pixels {label}: {good.mean():.1%} of the sky")
+        reference = None
+        for n_pairs, (templates, seen, _, channel, seconds) in runs.items():
+            common = templates.sum(axis=0)
+            per_detector = [pseudo_bb(t, good, lmax) for t in templates]
+            random_cl = np.sum(per_detector, axis=0)
+            common_cl = pseudo_bb(common, good, lmax)
+            qu_random = np.sqrt(np.sum([np.mean(t[1:, good] ** 2) for t in templates]))
+            qu_common = np.sqrt(np.mean(common[1:, good] ** 2))
+            row = band_means(random_cl) + band_means(common_cl) + [qu_random, qu_common]
+            reference = reference or row
+            ratios = np.array(row) / np.array(reference)
+            print(
+                f"  N = {n_pairs:3d} pairs ({seconds:.0f} s, observed {seen.mean():.1%}): "
+                f"random BB {' '.join(f'{v:.3g}' for v in row[:3])} "
+                f"(x{' '.join(f'{r:.3f}' for r in ratios[:3])}); "
+                f"common BB {' '.join(f'{v:.3g}' for v in row[3:6])} "
+                f"(x{' '.join(f'{r:.3f}' for r in ratios[3:6])}); "
+                f"Q/U rms random {row[6]:.3g} (x{ratios[6]:.3f}) common {row[7]:.3g} "
+                f"(x{ratios[7]:.3f})"
+            )
+    largest = (templates, good, channel, per_detector)
+    templates, good, channel, per_detector = largest
+    if channel.detector_positions is None:
+        return
+    print("template correlation at ell 2-40 against the separation of two detectors:")
+    for a in range(len(templates)):
+        for b in range(a + 1, len(templates)):
+            cross = pseudo_bb(templates[a], good, 40, templates[b])[2:]
+            coefficient = cross.sum() / np.sqrt(
+                per_detector[a][2:41].sum() * per_detector[b][2:41].sum()
+            )
+            separation = angular_separation_deg(
+                channel.detector_positions[a], channel.detector_positions[b]
+            )
+            print(
+                f"  {channel.detectors[a]} x {channel.detectors[b]}: separation "
+                f"{separation:5.1f} deg, correlation {coefficient:+.3f}"
+            )
+
+
+if __name__ == "__main__":
+    main()
