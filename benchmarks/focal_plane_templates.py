@@ -30,7 +30,7 @@ from common import A2_K_CMB, START_TDB, paper_settings
 
 from hwp_tes_systematics.instrument.channels import load_channel, telescope_of
 from hwp_tes_systematics.instrument.focal_plane import angular_separation_deg
-from hwp_tes_systematics.io import use_threads
+from hwp_tes_systematics.io import reuse_freed_memory, use_threads
 from hwp_tes_systematics.simulation.mapmaking import solve_maps
 from hwp_tes_systematics.simulation.tod import MissionPlan, PairSimulator
 from hwp_tes_systematics.simulation.tod_maps import accumulate, split_solved_maps
@@ -83,6 +83,7 @@ def main(argv=None) -> None:
     )
     args = parser.parse_args(argv)
     use_threads(1)
+    reuse_freed_memory()  # as the fixed_pass job: the chunks' arrays without page faults
     lmax = 2 * args.nside
     print(
         f"{args.channel}, {args.days:g} days (one in {args.stride}) at {args.rate_hz:g} Hz, "

@@ -165,3 +165,20 @@ def test_n_pairs_in_one_pass_bin_the_sum_of_the_one_pair_passes():
                 rtol=0,
                 atol=1e-10 * scale[1 + 4 * term + k],
             )
+
+
+def test_a_focal_plane_too_large_for_memory_is_refused_before_the_first_chunk(monkeypatch):
+    from collections import namedtuple
+
+    from hwp_tes_systematics.simulation import tod_maps
+
+    simulator = two_pair_simulator(86400.0, 16, None)
+    settings = pipeline_settings(simulator)
+    needed = tod_maps.chunk_memory_bytes(4, settings)
+    assert 1.5e9 < needed < 3e9  # 4 detectors, one 19 Hz day with 1200 s margins
+    memory = namedtuple("memory", "available")
+    monkeypatch.setattr(tod_maps.psutil, "virtual_memory", lambda: memory(needed + 1))
+    tod_maps.check_chunk_memory(simulator, settings)
+    monkeypatch.setattr(tod_maps.psutil, "virtual_memory", lambda: memory(needed - 1))
+    with pytest.raises(MemoryError, match="pairs_per_channel.*chunk_duration_s"):
+        tod_maps.accumulate(simulator, settings, np.zeros((3, 12 * 16**2)))

@@ -51,6 +51,12 @@ DECIMATE_DEMODULATED = False
 # precision: they measure ratios of spectra, which a relative rounding of ~1e-7 cannot
 # move, and their FFTs take half the time (measured: 31 against 66 ns per row-sample)
 CALIBRATION_DTYPE = np.float32
+# memory a pass holds per detector and sample of a chunk (margins included) [bytes], and
+# beside the chunks: measured on M1-140 fixed passes of one 19 Hz day at nside 64 with 2
+# reference noise realizations, 1.42 / 2.40 / 4.30 GB peak for 1 / 2 / 4 pairs
+# (docs/physics/focal_plane.md), with a margin
+CHUNK_BYTES_PER_DETECTOR_SAMPLE = 320
+PASS_BASE_BYTES = 0.6e9
 
 
 @dataclass
@@ -387,6 +393,7 @@ def accumulate(
     TODs, at other resolutions and baseline lengths; their equations are created here.
     """
     clock = clock or StageClock()
+    check_chunk_memory(simulator, settings)
     if demodulated is not None and calibration is not None:
         raise ValueError("accumulate: demodulated maps of calibration TODs are not supported")
     if demodulated is not None and extra_binnings:
@@ -615,6 +622,31 @@ def accumulate(
         clock.summary(settings.plan.simulated_samples * n_det),
     )
     return equations
+
+
+def chunk_memory_bytes(n_detectors: int, settings) -> float:
+    """Peak memory of a pass whose chunks hold ``n_detectors`` detectors [bytes]:
+    PASS_BASE_BYTES + CHUNK_BYTES_PER_DETECTOR_SAMPLE x detectors x samples of a chunk
+    with its margins (measured, see the constants)."""
+    plan = settings.plan
+    margins_s = 2 * (settings.notch_margin_s or 0.0)
+    samples = plan.samples_per_chunk + round(margins_s * plan.sampling_rate_hz)
+    return PASS_BASE_BYTES + CHUNK_BYTES_PER_DETECTOR_SAMPLE * n_detectors * samples
+
+
+def check_chunk_memory(simulator, settings) -> None:
+    """A clear MemoryError before the first chunk when the chunks of all the channel's
+    detectors would not fit the memory available now (:func:`chunk_memory_bytes`)."""
+    needed = chunk_memory_bytes(simulator.n_detectors, settings)
+    available = psutil.virtual_memory().available
+    if needed > available:
+        raise MemoryError(
+            f"{simulator.channel.name}: {simulator.n_detectors} detectors "
+            f"(instrument.pairs_per_channel) in chunks of {settings.plan.chunk_duration_s:g} s "
+            f"(simulation.chunk_duration_s) at {settings.plan.sampling_rate_hz:g} Hz need about "
+            f"{needed / 1e9:.1f} GB, {available / 1e9:.1f} GB are available: use fewer pairs "
+            "or shorter chunks"
+        )
 
 
 def _bin_chunk(target, calibration_target, pixels, angles, binned, filtered, calibration, noise):
