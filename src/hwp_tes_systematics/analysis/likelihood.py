@@ -1,6 +1,6 @@
 """Likelihood of the tensor-to-scalar ratio r from the BB spectrum of the CMB residual.
 
-The study (Micheli et al. 2024, eq. 8, after Hamimeche & Lewis 2008) fits r to
+The study (Micheli et al. 2024, eq. 10, after Hamimeche & Lewis 2008) fits r to
 
     C_obs(ell)   = C_res(ell) + C_lens(ell)
     C_mod(ell|r) = r C_GW^{r=1}(ell) + C_lens(ell) + C_FGres(ell) + N(ell)
@@ -493,7 +493,7 @@ def fit_r_common_grid(
 # likelihood.model: what the residual is taken against and what the model's sky is.
 ANALYSES = {
     "paper_recipe": "residual against the CMB through the same filters, unfiltered "
-    "C_lens and r C_GW in the model (the paper's eq. 8 as written)",
+    "C_lens and r C_GW in the model (the paper's eq. 10 as written)",
     "transfer_in_model": "residual against the CMB through the same filters, C_lens and "
     "r C_GW times the sky's end-to-end BB transfer T_ell measured in the run",
     "paper_literal": "residual against the unfiltered input CMB (the paper's words read "

@@ -1,7 +1,7 @@
 """Stage: r from the Hamimeche-Lewis likelihood for every case of one realization, and
 the systematic-only bias.
 
-C_obs = C_res + C_lens and C_mod(r) = r C_GW(r=1) + C_lens + C_FGres + N_ell (paper eq. 8),
+C_obs = C_res + C_lens and C_mod(r) = r C_GW(r=1) + C_lens + C_FGres + N_ell (paper eq. 10),
 with C_lens and C_GW from the PTEP spectra shipped with litebird_sim and N_ell, C_FGres
 from the noise model; ``likelihood.model`` (:data:`likelihood.ANALYSES`) says what the
 residual is taken against and whether C_lens and C_GW carry the sky's measured transfer.
