@@ -379,9 +379,7 @@ class PairSimulator:
         direction get one computation."""
         import litebird_sim as lbs
 
-        owners = [
-            np.flatnonzero(pointing.direction_of == d)[0] for d in range(len(pointing.galactic_rad))
-        ]
+        owners = np.unique(pointing.direction_of, return_index=True)[1]  # first of each
         observation = self._observation(
             [self.detectors[k] for k in owners],
             pointing.observation.start_time,
@@ -390,11 +388,7 @@ class PairSimulator:
         lbs.add_dipole_to_observations(
             observation, pos_and_vel=self.orbit_galactic, pointings=pointing.galactic_rad
         )
-        if len(owners) == 1:
-            return np.broadcast_to(
-                observation.tod, (self.n_detectors, observation.n_samples)
-            ).copy()
-        return observation.tod[pointing.direction_of]
+        return observation.tod[pointing.direction_of]  # (n_det, n), a copy
 
     def hwpss(self, pointing: ChunkPointing, amplitude_k: float) -> np.ndarray:
         """A_2 cos(2 (chi - theta_det)) [K_CMB] via litebird_sim's add_2f, (n_det, n)."""
