@@ -17,11 +17,17 @@ focal-plane separation (the mechanism of what the common population keeps).
 
     python benchmarks/focal_plane_templates.py --channel M1-140 --days 1 --pairs 1 2 4 8
     python benchmarks/focal_plane_templates.py --positions field_of_view ...
+
+With ``--separations-deg``, one pass instead: the first pair and, for each separation,
+the two pairs nearest to it (layout of :mod:`focal_plane`), one of the first pair's
+orientation field (``00A`` in ``001_002_030_00A_140_T``) and one of another, and the
+correlation at ell 2-40 of every two detectors' templates against their separation.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 
 import healpy as hp
@@ -39,11 +45,48 @@ FIELD_OF_VIEW_DEG = {"LFT": (9.0, 4.5), "MFT": (14.0, 14.0), "HFT": (14.0, 14.0)
 BANDS = ((2, 11), (12, 40), (41, 100))
 
 
-def channel_templates(name, n_pairs, positions, days, nside, rate_hz, stride=1):
+def orientation_of(detector: str) -> str:
+    """The orientation field of a PTEP detector name (``001_002_030_00A_140_T``: ``00A``)."""
+    return detector.split("_")[3]
+
+
+def pairs_at_separations(name: str, separations_deg):
+    """The channel (positions in the field of view) holding its first pair and, for each
+    separation [deg], the pairs nearest to it from the first: one whose orientation field
+    is the first pair's, one whose is another."""
+    channel = load_channel(
+        name, pairs="all", field_of_view_deg=FIELD_OF_VIEW_DEG[telescope_of(name)]
+    )
+    positions = channel.detector_positions
+    separation = np.array(
+        [angular_separation_deg(positions[0], positions[2 * i]) for i in range(channel.n_pairs)]
+    )
+    same = np.array(
+        [
+            orientation_of(channel.detectors[2 * i]) == orientation_of(channel.detectors[0])
+            for i in range(channel.n_pairs)
+        ]
+    )
+    chosen = [0]
+    for target in separations_deg:
+        for wanted in (True, False):
+            excluded = np.isin(np.arange(channel.n_pairs), chosen) | (same != wanted)
+            chosen.append(int(np.argmin(np.where(excluded, np.inf, np.abs(separation - target)))))
+    detectors = [2 * i + k for i in chosen for k in (0, 1)]
+    return dataclasses.replace(
+        channel,
+        detectors=tuple(channel.detectors[d] for d in detectors),
+        detector_positions=tuple(positions[d] for d in detectors),
+    )
+
+
+def channel_templates(name, n_pairs, positions, days, nside, rate_hz, stride=1, channel=None):
     """(templates (n_det, 3, npix) [K_CMB at g1 = 1/K], good, hits, channel, seconds) of
-    ``days`` of mission, one day in ``stride`` simulated."""
+    ``days`` of mission, one day in ``stride`` simulated (``channel``: these detectors
+    instead of ``n_pairs`` chosen by :func:`load_channel`)."""
     fov = FIELD_OF_VIEW_DEG[telescope_of(name)] if positions == "field_of_view" else None
-    channel = load_channel(name, pairs=n_pairs, field_of_view_deg=fov)
+    if channel is None:
+        channel = load_channel(name, pairs=n_pairs, field_of_view_deg=fov)
     plan = MissionPlan(START_TDB, days * 86400.0, 86400.0, rate_hz, stride)
     settings = paper_settings(plan, nside, A2_K_CMB, baseline_length_s=60.0, noise_scale=0.0)
     simulator = PairSimulator(channel, plan, nside, noise_model="keshner")
@@ -81,6 +124,12 @@ def main(argv=None) -> None:
     parser.add_argument(
         "--positions", choices=("boresight", "field_of_view"), default="field_of_view"
     )
+    parser.add_argument(
+        "--separations-deg",
+        type=float,
+        nargs="+",
+        help="one pass of the first pair and the pairs nearest these separations from it",
+    )
     args = parser.parse_args(argv)
     use_threads(1)
     reuse_freed_memory()  # as the fixed_pass job: the chunks' arrays without page faults
@@ -90,6 +139,21 @@ def main(argv=None) -> None:
         f"nside {args.nside}, "
         f"positions {args.positions}; BB pseudo-spectra [K^2 at g1 = 1/K] in ell bands {BANDS}"
     )
+    if args.separations_deg:
+        channel = pairs_at_separations(args.channel, args.separations_deg)
+        templates, good, _, channel, seconds = channel_templates(
+            args.channel,
+            None,
+            "field_of_view",
+            args.days,
+            args.nside,
+            args.rate_hz,
+            args.stride,
+            channel,
+        )
+        print(f"{channel.n_pairs} pairs in one pass ({seconds:.0f} s), observed {good.mean():.1%}")
+        print_correlations(templates, good, channel)
+        return
     runs = {}
     for n_pairs in sorted(args.pairs):
         runs[n_pairs] = channel_templates(
@@ -124,24 +188,30 @@ def main(argv=None) -> None:
                 f"Q/U rms random {row[6]:.3g} (x{ratios[6]:.3f}) common {row[7]:.3g} "
                 f"(x{ratios[7]:.3f})"
             )
-    largest = (templates, good, channel, per_detector)
-    templates, good, channel, per_detector = largest
-    if channel.detector_positions is None:
-        return
-    print("template correlation at ell 2-40 against the separation of two detectors:")
+    if channel.detector_positions is not None:
+        print_correlations(templates, good, channel)
+
+
+def print_correlations(templates, good, channel) -> None:
+    """The correlation C(T_a, T_b) / sqrt(C(T_a) C(T_b)) summed over ell 2-40 of every two
+    detectors' templates, with their focal-plane separation, nearest first."""
+    autos = [pseudo_bb(t, good, 40)[2:].sum() for t in templates]
+    rows = []
     for a in range(len(templates)):
         for b in range(a + 1, len(templates)):
-            cross = pseudo_bb(templates[a], good, 40, templates[b])[2:]
-            coefficient = cross.sum() / np.sqrt(
-                per_detector[a][2:41].sum() * per_detector[b][2:41].sum()
-            )
+            cross = pseudo_bb(templates[a], good, 40, templates[b])[2:].sum()
             separation = angular_separation_deg(
                 channel.detector_positions[a], channel.detector_positions[b]
             )
-            print(
-                f"  {channel.detectors[a]} x {channel.detectors[b]}: separation "
-                f"{separation:5.1f} deg, correlation {coefficient:+.3f}"
-            )
+            rows.append((separation, cross / np.sqrt(autos[a] * autos[b]), a, b))
+    print("template correlation at ell 2-40 against the separation of two detectors:")
+    for separation, coefficient, a, b in sorted(rows):
+        first, second = channel.detectors[a], channel.detectors[b]
+        kind = "same" if orientation_of(first) == orientation_of(second) else "other"
+        print(
+            f"  {first} x {second}: separation {separation:5.1f} deg, orientation {kind:5s}, "
+            f"correlation {coefficient:+.3f}"
+        )
 
 
 if __name__ == "__main__":
