@@ -578,8 +578,11 @@ def residual_spectra_table(
     With the input CMB through the weights and the filters' loss
     (:meth:`SeedMaps.residual`), also: ``residual_unfiltered_cmb`` (the residual against
     the unfiltered input CMB, the paper's words read literally), ``cmb_input`` (its
-    spectrum) and ``cmb_recovered_x_input`` (the cross spectrum of the recovered CMB,
-    input + loss, with the input): their ratio is the sky's end-to-end transfer T_ell."""
+    spectrum), ``cmb_recovered_x_input`` (the cross spectrum of the recovered CMB,
+    input + loss, with the input: their ratio is the sky's end-to-end transfer T_ell),
+    ``cmb_recovered`` (the recovered CMB's own spectrum) and ``recovered`` (the spectrum
+    of the HILC's CMB map itself, recovered CMB + residual: what an experiment measures,
+    on which an injected r is recovered, :func:`consistency.check_r_recovery`)."""
     table = {"ell": np.arange(lmax + 1)}
     pairs = [
         ("residual", residual_alm, None),
@@ -591,6 +594,8 @@ def residual_spectra_table(
             ("residual_unfiltered_cmb", residual_alm + cmb_filter_loss_alm, None),
             ("cmb_input", cmb_input_alm, None),
             ("cmb_recovered_x_input", cmb_input_alm + cmb_filter_loss_alm, cmb_input_alm),
+            ("cmb_recovered", cmb_input_alm + cmb_filter_loss_alm, None),
+            ("recovered", residual_alm + cmb_input_alm + cmb_filter_loss_alm, None),
         ]
     for label, alm, alm2 in pairs:
         cl = unit_beam_spectra(alm, alm2, lmax, fractions["w2"], common_fwhm_arcmin)

@@ -234,6 +234,23 @@ class BBModel:
         return float(fisher**-0.5)
 
 
+def linear_r_estimate(c_obs, model: BBModel, r_fiducial: float = 0.0) -> float:
+    """r from one observed spectrum by one Newton step of eq. (1) from ``r_fiducial``:
+
+        r_hat = r_f + sum w g (C_obs - C_mod(r_f)) / C_mod(r_f)^2 / sum w (g / C_mod(r_f))^2,
+
+    w = (2 ell + 1) f_sky / 2, g = the model's C_GW^{r=1} (with its transfer). Linear in
+    C_obs and free of the prior r >= 0, so its mean over realizations is the true r
+    whenever the model's C_mod(r) is the mean of C_obs, whatever r_f (which only sets
+    the weights); its scatter is then the Fisher width sigma_r(r_f) of eq. (2)."""
+    c_obs = _as_spectrum("c_obs", c_obs, model.ell.size)[model.mask]
+    c_mod = model.c_mod(r_fiducial)[model.mask]
+    weight = (2 * model.ell_used + 1) * model.f_sky / 2.0 * model.c_gw_r1[model.mask] / c_mod**2
+    return float(
+        r_fiducial + np.sum(weight * (c_obs - c_mod)) / np.sum(model.fisher_terms(r_fiducial))
+    )
+
+
 def fisher_bias(c_sys, model: BBModel, r: float = 0.0) -> float:
     """delta r of eq. (3): the first-order shift of the maximum of L when ``c_sys``
     [K_CMB^2] (on ``model.ell``) is added to C_obs = C_mod(r); signed, linear in c_sys."""

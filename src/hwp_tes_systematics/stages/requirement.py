@@ -134,6 +134,7 @@ def run(
                 for split in check["held_out"]["splits"]
             ),
         )
+    check["r_recovery"] = r_recovery_check(config, noise, nosys_tables)
     table = delta_r_table(likelihoods)
     grid_summary = summarise(table)
     table, regime = paper_estimator(table, config, extension)
@@ -184,6 +185,9 @@ def run(
         "consistent_held_out": None
         if check["held_out"] is None
         else check["held_out"]["consistent"],
+        "r_recovered_consistent": None
+        if check["r_recovery"] is None
+        else check["r_recovery"][analysis]["consistent"],
         "requirement_sigma_g1_per_k": fraction_point["requirement_sigma_g1_per_k"],
         "error_per_k": fraction_point["requirement_error_per_k"],
         "std_over_seeds_per_k": fraction_point["requirement_std_over_seeds_per_k"],
@@ -248,6 +252,7 @@ def run(
             "hwpss_a2_over_delta_p": config["optics"]["hwpss_a2_over_delta_p"],
             "duration_days": config["simulation"]["duration_days"],
             "nside": config["maps"]["nside"],
+            "cmb_r": config["simulation"]["cmb_r"],
         },
         "n_seeds": len(likelihoods),
         "sigma_r_fisher": sigma_r,
@@ -457,6 +462,36 @@ def held_out_check(config: dict, nosys_tables: list[pd.DataFrame]) -> dict | Non
         "consistent": all(result["consistent"] for result in results),
         "splits": results,
     }
+
+
+def r_recovery_check(config: dict, noise: pd.DataFrame, nosys_tables) -> dict | None:
+    """:func:`consistency.check_r_recovery` of the input CMB's r (simulation.cmb_r) on the
+    no-systematics HILC map of every seed, for the model without transfer (paper_recipe,
+    paper_literal) and with the measured one (transfer_in_model), keyed by analysis. None
+    when the spectra have no recovered-map column (made by an older component_separation).
+    """
+    if not all("bb_recovered_k2" in table for table in nosys_tables):
+        return None
+    settings = config["likelihood"]
+    lmax = settings["lmax"]
+    recovered = np.array(
+        [table["bb_recovered_k2"].to_numpy()[: lmax + 1] for table in nosys_tables]
+    )
+    results = {}
+    for analysis in ANALYSES:
+        model = model_from_noise_table(noise, settings["lmin"], lmax, analysis)
+        results[analysis] = consistency.check_r_recovery(
+            model, recovered, config["simulation"]["cmb_r"]
+        )
+        log.info(
+            "r recovered on the HILC map with the %s model: %.3e +- %.3e (input %.3e)%s",
+            analysis,
+            results[analysis]["r_mean"],
+            results[analysis]["r_sem"],
+            config["simulation"]["cmb_r"],
+            "" if results[analysis]["consistent"] is not False else ": NOT consistent",
+        )
+    return results
 
 
 def model_check(
