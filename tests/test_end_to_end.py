@@ -18,6 +18,12 @@ def test_whole_workflow_on_tiny_config(tiny_local_run):
     assert np.isfinite(requirement["power_law_fit"]["exponent"])
     assert [row["sigma_g1_per_k"] for row in requirement["per_sigma"]] == [1e-3, 1e-1]
     assert requirement["n_seeds"] == 2 and len(requirement["config_sha256"]) == 64
+    # the template fit on the TOD path knows each seed's templates whole: it removes the
+    # systematic to rounding and recovers the injected g1 exactly
+    mitigated = requirement["systematic_only"]["mitigated"]
+    assert mitigated["templates_known"][0].startswith("whole")
+    assert 0 <= mitigated["k_per_k2"] < 1e-15 * requirement["systematic_only"]["k_per_k2"]
+    assert mitigated["per_channel"]["M1-140"]["fitted_over_injected"] == pytest.approx(1, rel=1e-9)
     figures = sorted(p.name for p in (workdir / "results/figures").glob("*.png"))
     for number in range(1, 9):
         assert any(name.startswith(f"fig{number}_") for name in figures), figures
@@ -150,7 +156,8 @@ def test_tiny_requirement_unchanged(tiny_local_run, repo):
     tests/data (made at the commit that moved the seeds' maps to a_lm and added the
     fixed pass's map-makers: those changes left it identical). A change that moves a
     number must say so and replace the file (python -m pytest ... then copy the run's
-    results/requirement.json)."""
+    results/requirement.json). What the template fit leaves on the TOD path is rounding
+    (checked by test_whole_workflow_on_tiny_config), so only its keys are compared."""
     workdir, result = tiny_local_run
     assert result.returncode == 0, result.stderr[-3000:]
     produced = numbers(json.loads((workdir / "results/requirement.json").read_text()))
@@ -159,6 +166,7 @@ def test_tiny_requirement_unchanged(tiny_local_run, repo):
     moved = {
         key: (expected[key], produced[key])
         for key in expected
-        if not np.isclose(produced[key], expected[key], rtol=1e-6, atol=0, equal_nan=True)
+        if "/mitigated/" not in key
+        and not np.isclose(produced[key], expected[key], rtol=1e-6, atol=0, equal_nan=True)
     }
     assert not moved, moved

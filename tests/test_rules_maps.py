@@ -130,6 +130,23 @@ def test_map_domain_alms_reproduce_and_equal_the_maps_path(repo, tmp_path, tiny_
     ).residual_spectra(0.1)
     for column in ("bb_residual_k2", "bb_noise_residual_k2", "bb_cmb_input_k2"):
         np.testing.assert_allclose(from_alms[column], from_maps[column], rtol=1e-9, atol=0)
+    # the template fit on the map-domain path knows the fixed pass's templates only: it
+    # leaves the seed's own part of the s h term less its projection, W-orthogonal to them
+    fitted = SeedMaps.from_alm_files(
+        {**config, "mitigation": {"template_fit": "detector"}},
+        0,
+        {name: str(workdir / f"results/alms/{name}/seed0.h5") for name in map_paths},
+        str(workdir / "results/alms/analysis_mask.h5"),
+    )
+    (report,) = fitted.template_fits
+    assert report["channel"] == "M1-140" and report["templates_known"].startswith("the fixed")
+    m1 = fitted.names.index("M1-140")
+    left = fitted.channel_alms["fit_residual"][m1]
+    pieces = sum(fitted.channel_alms[kind][m1] for kind in ("x1_cmb_h", "x1_noise_h"))
+    assert np.abs(left).max() > 0 and np.abs(pieces).max() > 0
+    injected = np.array(report["injected_unit_draw"])
+    missed = np.abs(np.array(report["fitted_unit_response"]) - injected)
+    assert missed.max() < 0.5 * np.abs(injected).max(), (missed, injected)  # known part dominates
     written = pd.read_csv(workdir / "results/spectra/seed0/nosys.csv")
     nosys_from_maps = SeedMaps.load(config, 0, map_paths).residual_spectra(0.0)
     np.testing.assert_allclose(

@@ -81,3 +81,54 @@ def test_the_basis_is_per_detector_or_per_term():
     assert tf.channel_basis(terms, "term").shape == (6, 3, 5)
     with pytest.raises(ValueError, match="mitigation.template_fit"):
         tf.channel_basis(terms, "pixel")
+
+
+def test_the_mitigation_summary_reads_the_seeds():
+    """The requirement after the fit from the seeds' mitigated blocks: the Fisher one is
+    sqrt(budget / k_mit), the fit's cost its mean and standard error, the recovered g1 the
+    slope of response on draws and the rms of the fit's error."""
+    from hwp_tes_systematics.analysis.requirement import mitigation_summary
+
+    sigma = np.logspace(-5, 0, 21)
+    likelihoods = [
+        {
+            "systematic_only": {
+                "mitigated": {
+                    "basis": "detector",
+                    "k_per_k2": k,
+                    "fraction_point_shift": {
+                        "sigma_g1_per_k": sigma.tolist(),
+                        "delta_r": (k * sigma**2).tolist(),
+                    },
+                    "fit_cost_delta_r": cost,
+                }
+            }
+        }
+        for k, cost in ((1.0, 1e-6), (3.0, 3e-6))
+    ]
+    fits = [
+        {
+            "channels": [
+                {
+                    "channel": "M1-140",
+                    "templates_known": "the fixed pass's",
+                    "rank": 2,
+                    "injected_unit_draw": [1.0, -2.0],
+                    "fitted_unit_response": [1.1, -2.2],
+                    "fit_error_per_k": [error, -error],
+                    "formal_error_per_k": [0.1, 0.1],
+                }
+            ]
+        }
+        for error in (0.3, 0.4)
+    ]
+    summary = mitigation_summary(likelihoods, 6.5e-6, fits)
+    assert summary["fisher_peak_shift_requirement_sigma_g1_per_k"] == pytest.approx(
+        np.sqrt(6.5e-6 / 2.0)
+    )
+    assert summary["requirement_sigma_g1_per_k"] == pytest.approx(np.sqrt(6.5e-6 / 2.0), rel=1e-3)
+    assert summary["fit_cost_delta_r"] == pytest.approx(2e-6)
+    assert summary["fit_cost_delta_r_sem"] == pytest.approx(1e-6)
+    channel = summary["per_channel"]["M1-140"]
+    assert channel["fitted_over_injected"] == pytest.approx(1.1)
+    assert channel["g1_error_rms_per_k"] == pytest.approx(np.sqrt((0.09 + 0.16) / 2))

@@ -6,13 +6,17 @@ rule component_separation:
     the no-systematics weights (the systematic-only estimator); for each fixed instrument
     (g1 draws the same for every seed) the systematic's BB and its cross spectrum with the
     no-systematics residual. One job per seed, so the maps are read and the references'
-    a_lm computed once. Wildcard: seed."""
+    a_lm computed once; the template fit of mitigation.template_fit (each systematics
+    channel's known templates fitted to its a_lm): what it leaves of the systematic and
+    takes from the sky, through the no-systematics weights, and its fitted g1. Wildcard:
+    seed."""
     input:
         unpack(channel_maps_of_seed),
     output:
         hilc=expand(paths.HILC, case=CASES, allow_missing=True),
         systematic=paths.SYSTEMATIC_SPECTRA,
         instruments=paths.INSTRUMENT_SPECTRA,
+        template_fit=paths.TEMPLATE_FIT,
     log:
         paths.log("component_separation", "seed{seed}"),
     benchmark:
@@ -20,7 +24,7 @@ rule component_separation:
     resources:
         mem_mb=component_separation_mem_mb,
     params:
-        config=analysis_config(),
+        config={**analysis_config(), "mitigation": config["mitigation"]},
         cases=CASES,
         fixed_instruments=config["requirement"]["fixed_instruments"],
     script:

@@ -13,6 +13,7 @@ rule likelihood:
     params:
         config={
             "likelihood": config["likelihood"],
+            "mitigation": config["mitigation"],
             "requirement": {
                 key: config["requirement"][key]
                 for key in ("sigma_g1_per_k", "a2_scale_factors", "delta_r_budget")

@@ -6,13 +6,15 @@ rule requirement:
     requirement versus the A_2 scale; whether the likelihood model describes the data
     (per multipole bin); where in ell the information and the bias come from; the
     paper's Figs. 7 and 8; the bias of fixed instruments (g1 held over every seed, the
-    term linear in g1 included) and their requirements. No wildcards."""
+    term linear in g1 included) and their requirements; the requirement after the template
+    fit (mitigation.template_fit) and the g1 it recovers. No wildcards."""
     input:
         **MASK_INPUT,
         likelihoods=expand(paths.LIKELIHOOD, seed=SEEDS),
         nosys_spectra=expand(paths.RESIDUAL_SPECTRA, seed=SEEDS, case="nosys"),
         systematic=expand(paths.SYSTEMATIC_SPECTRA, seed=SEEDS),
         instruments=expand(paths.INSTRUMENT_SPECTRA, seed=SEEDS),
+        template_fits=expand(paths.TEMPLATE_FIT, seed=SEEDS),
         noise_model=paths.NOISE_MODEL,
         maps=[path for seed in SEEDS for path in all_channel_maps()[seed].values()],
     output:
@@ -62,6 +64,7 @@ rule requirement:
                 "component_separation",
                 "likelihood",
                 "requirement",
+                "mitigation",
             )
         },
         map_paths=all_channel_maps(),

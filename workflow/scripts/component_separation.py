@@ -14,4 +14,5 @@ component_separation.run(
     instruments_csv=snakemake.output.instruments,
     fixed_instruments=snakemake.params.fixed_instruments,
     mask_path=snakemake.input.get("mask"),
+    template_fit_json=snakemake.output.template_fit,
 )

@@ -19,6 +19,7 @@ requirement.run(
     systematic_csvs=list(snakemake.input.systematic),
     instrument_csvs=list(snakemake.input.instruments),
     fig_fixed_instruments=snakemake.output.fig_fixed_instruments,
+    template_fit_jsons=list(snakemake.input.template_fits),
     extension={
         "map_paths": snakemake.params.map_paths,
         "nosys_spectra": dict(zip(seeds, snakemake.input.nosys_spectra, strict=True)),

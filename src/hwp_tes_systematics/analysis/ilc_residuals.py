@@ -38,7 +38,7 @@ from ..io import atomic_path
 from ..simulation import map_domain
 from ..simulation.maps_file import read_channel_maps
 from ..sky import harmonics
-from . import hilc, spectra
+from . import hilc, spectra, template_fit
 from .systematics import instrument_g1_draws, unit_g1_draws
 
 N_TEMPLATE_TERMS = 3  # s^2, s h, h^2
@@ -52,6 +52,9 @@ TEMPLATE_PARTS = ("fixed", *map_domain.SH_TERM_PIECES)  # the template's split
 # a map-domain channel's fixed-pass part of X^1 (a seed's X^1 is it plus the seed's pieces):
 # given to ChannelAlms.from_maps with the other known a_lm, never stored
 FIXED_SH_KIND = "x1_fixed"
+# map-based template fitting (:mod:`template_fit`) of a channel at sigma_g1 = 1: what is left
+# of its contamination, and what the fit takes from its map without the systematic
+FIT_KINDS = ("fit_residual", "fit_removed")
 
 
 def analysis_mask(observed: list[np.ndarray], settings: dict) -> np.ndarray:
@@ -187,6 +190,53 @@ class ChannelAlms:
         if TERM_KINDS[0] not in self.alms:
             return np.zeros((len(self.detectors), *self.alms["nosys"].shape), complex)
         return sum(self.alms[kind] for kind in TERM_KINDS)
+
+    def known_terms(self) -> list[np.ndarray]:
+        """[c_j T^j_k (n_det, 3, nalm) for j = 0, 1, 2]: what a template fit knows of each
+        detector's terms, the whole of them less the seed's own CMB and noise through the
+        s h term (the map-domain path's pieces; the TOD path has none, so its templates
+        are known whole)."""
+        known = [self.alms[kind] for kind in TERM_KINDS]
+        pieces = [self.alms[kind] for kind in PIECE_KINDS if kind in self.alms]
+        if pieces:
+            known[1] = known[1] - sum(pieces)
+        return known
+
+    def template_fit(self, basis: str, lmax: int) -> tuple[np.ndarray, np.ndarray, dict]:
+        """(residual, removed, report) of :class:`template_fit.TemplateFit` of the known
+        templates (:meth:`known_terms`, ``basis``) on this channel with the seed's draws:
+        residual = X - P X, X the contamination at sigma_g1 = 1 1/K; removed = P m, m the
+        map without the systematic (both (3, nalm)); report: per basis row the injected
+        unit draw, the fitted coefficient of X (its response, 1 x the draw for a known
+        template), the coefficient of m (the fit's error at any sigma_g1 [1/K]) and the
+        formal error."""
+        terms = self.known_terms()
+        fit = template_fit.TemplateFit.build(
+            template_fit.channel_basis(terms, basis),
+            template_fit.inverse_spectrum_weights(self.alms["nosys"], lmax),
+        )
+        contamination = sum(self.term(kind) for kind in TERM_KINDS)
+        nosys = self.alms["nosys"]
+        rows = (
+            self.detectors
+            if basis == "detector"
+            else [f"{d}:{t}" for t in ("s2", "sh", "h2") for d in self.detectors]
+        )
+        report = {
+            "channel": self.name,
+            "basis": basis,
+            "templates_known": "the fixed pass's (a seed's own CMB x h and noise x h unknown)"
+            if any(kind in self.alms for kind in PIECE_KINDS)
+            else "whole (TOD path: the seed's own CMB and noise in them; what no instrument "
+            "knows, an upper bound on the fit)",
+            "rank": fit.rank,
+            "rows": rows,
+            "injected_unit_draw": np.tile(self.unit_draws, len(rows) // len(self.detectors)),
+            "fitted_unit_response": fit.coefficients(contamination),
+            "fit_error_per_k": fit.coefficients(nosys),
+            "formal_error_per_k": fit.coefficient_errors(),
+        }
+        return contamination - fit.fitted(contamination), fit.fitted(nosys), report
 
 
 def _term_coefficients(a2_k: float) -> tuple[float, float, float]:
@@ -334,6 +384,8 @@ class SeedMaps:
     detector_templates: list[np.ndarray] = field(repr=False, default_factory=list)
     detectors: list[list[str]] = field(default_factory=list)  # per channel
     map2alm_iter: int = hilc.MAP2ALM_ITER
+    # per systematics channel: ChannelAlms.template_fit's report (mitigation.template_fit)
+    template_fits: list[dict] = field(default_factory=list)
 
     @classmethod
     def load(cls, config: dict, seed: int, map_paths: dict[str, str]) -> SeedMaps:
@@ -386,6 +438,22 @@ class SeedMaps:
         kinds = (*ALM_KINDS, *TERM_KINDS)
         if any(kind in c.alms for c in channels for kind in PIECE_KINDS):
             kinds = (*kinds, *PIECE_KINDS)
+        channel_alms = {kind: np.array([c.term(kind) for c in channels]) for kind in kinds}
+        basis = config.get("mitigation", {}).get("template_fit")
+        template_fits = []
+        if basis is not None:
+            fits = [
+                c.template_fit(basis, harmonic.lmax) if TERM_KINDS[0] in c.alms else None
+                for c in channels
+            ]
+            for i, kind in enumerate(FIT_KINDS):
+                channel_alms[kind] = np.array(
+                    [
+                        np.zeros_like(c.alms["nosys"]) if f is None else f[i]
+                        for c, f in zip(channels, fits, strict=True)
+                    ]
+                )
+            template_fits = [f[2] for f in fits if f is not None]
         return cls(
             config=config,
             seed=seed,
@@ -397,10 +465,11 @@ class SeedMaps:
             bins=bins,
             fractions=fractions,
             unit_draws=[c.unit_draws for c in channels],
-            channel_alms={kind: np.array([c.term(kind) for c in channels]) for kind in kinds},
+            channel_alms=channel_alms,
             detector_templates=[c.detector_templates() for c in channels],
             detectors=[c.detectors for c in channels],
             map2alm_iter=harmonic.map2alm_iter,
+            template_fits=template_fits,
         )
 
     def alms(self, maps: list[np.ndarray]) -> np.ndarray:
@@ -519,16 +588,38 @@ class SeedMaps:
             cmb_filter_loss_alm=result["cmb_filter_loss_alm"],
         )
 
-    def systematic_spectra(self, nosys_weights: np.ndarray) -> pd.DataFrame:
+    def systematic_spectra(
+        self, nosys_weights: np.ndarray, nosys_residual_alm: np.ndarray | None = None
+    ) -> pd.DataFrame:
         """:func:`systematic_spectra_table` through the no-systematics weights; on the
         map-domain path also the template's split (:meth:`template_split_alms`): BB
-        ``bb_<a>_x_<b>_k4`` [K_CMB^2 K^2] of its parts a, b in TEMPLATE_PARTS."""
+        ``bb_<a>_x_<b>_k4`` [K_CMB^2 K^2] of its parts a, b in TEMPLATE_PARTS. With the
+        template fit (FIT_KINDS) and the no-systematics residual ``nosys_residual_alm``:
+        ``bb_mitigated_k4``, the BB of what the fit leaves of the systematic at sigma_g1 =
+        1 1/K; ``bb_fit_removed_k2``, that of what it takes from the map without the
+        systematic, and ``bb_fit_removed_x_residual_k2``, its cross spectrum with the
+        residual (the mitigated residual's BB is C_res - 2 C_x + C_removed + sigma^2
+        C_mitigated + cross terms of zero mean)."""
         table = systematic_spectra_table(
             self.systematic_term_alms(nosys_weights),
             self.lmax,
             self.fractions,
             self.common_fwhm_arcmin,
         )
+        if nosys_residual_alm is not None and FIT_KINDS[0] in self.channel_alms:
+            residual, removed = (
+                hilc.apply_ilc(self.channel_alms[kind], nosys_weights, self.bins, self.lmax)
+                for kind in FIT_KINDS
+            )
+            for label, alm, alm2 in (
+                ("mitigated_k4", residual, None),
+                ("fit_removed_k2", removed, None),
+                ("fit_removed_x_residual_k2", removed, nosys_residual_alm),
+            ):
+                cl = unit_beam_spectra(
+                    alm, alm2, self.lmax, self.fractions["w2"], self.common_fwhm_arcmin
+                )
+                table[f"bb_{label}"] = cl[2]
         if PIECE_KINDS[0] not in self.channel_alms:
             return table
         parts = self.template_split_alms(nosys_weights)

@@ -11,6 +11,7 @@ are computed (or read, on the map-domain path) once for all of them.
 
 from __future__ import annotations
 
+import json
 import logging
 
 import h5py
@@ -34,11 +35,14 @@ def run(
     mask_path: str | None = None,
     instruments_csv: str | None = None,
     fixed_instruments: int = 0,
+    template_fit_json: str | None = None,
 ) -> None:
     """HILC of (seed, case) for each case, written to ``out_h5s[i]`` for ``cases[i]``; the
     systematic-only spectra (sigma_g1 = 1, no-systematics weights) to ``systematic_csv``;
     the spectra of ``fixed_instruments`` fixed instruments to ``instruments_csv``.
-    ``map_paths``: {channel: maps file}, or {channel: a_lm file} made on ``mask_path``."""
+    ``map_paths``: {channel: maps file}, or {channel: a_lm file} made on ``mask_path``;
+    ``template_fit_json``: the template fit's report per systematics channel
+    (mitigation.template_fit; an empty list when it is null)."""
     if len(cases) != len(out_h5s):
         raise ValueError(f"component_separation: {len(cases)} cases but {len(out_h5s)} outputs")
     if NOSYS not in cases:
@@ -49,8 +53,10 @@ def run(
         result = write_case(config, seed_maps, case, out_h5)
         if case == NOSYS:
             nosys = result
-    write_csv(seed_maps.systematic_spectra(nosys["weights"]), systematic_csv)
+    write_csv(seed_maps.systematic_spectra(nosys["weights"], nosys["residual_alm"]), systematic_csv)
     log.info("seed %d: wrote the systematic-only spectra %s", seed, systematic_csv)
+    if template_fit_json is not None:
+        write_template_fits(seed_maps, template_fit_json)
     if instruments_csv is not None:
         instruments = [seed_maps.instrument_draws(index) for index in range(fixed_instruments)]
         table = seed_maps.instrument_spectra(nosys, instruments)
@@ -91,3 +97,31 @@ def write_case(config: dict, seed_maps: SeedMaps, case: str, out_h5: str) -> dic
         seed_maps.common_fwhm_arcmin,
     )
     return result
+
+
+def write_template_fits(seed_maps: SeedMaps, out_json: str) -> None:
+    """The template fit's report of every systematics channel (:meth:`ChannelAlms.template_fit`)."""
+    reports = [
+        {
+            key: value.tolist() if isinstance(value, np.ndarray) else value
+            for key, value in r.items()
+        }
+        for r in seed_maps.template_fits
+    ]
+    with atomic_path(out_json) as temporary:
+        temporary.write_text(json.dumps({"seed": seed_maps.seed, "channels": reports}, indent=1))
+    for r in seed_maps.template_fits:
+        log.info(
+            "seed %d %s: template fit (%s, rank %d): response to the injected draws %s, "
+            "error %s 1/K",
+            seed_maps.seed,
+            r["channel"],
+            r["basis"],
+            r["rank"],
+            np.round(
+                r["fitted_unit_response"]
+                / np.where(r["injected_unit_draw"] == 0, 1, r["injected_unit_draw"]),
+                3,
+            ),
+            np.array2string(r["fit_error_per_k"], precision=2),
+        )
