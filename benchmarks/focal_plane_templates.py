@@ -10,6 +10,9 @@ binned template of detector k at g1 = 1 1/K (``tod_maps.templates_from_terms``):
   power is sum_k C_ell(T_k), printed per multipole band;
 - common population (g1_k = mu for every k): the power is C_ell(sum_k T_k).
 
+Beside them, the variance a white noise would have in the same pixels, mean(1 / hits),
+against N = 1: a template that averages down like the noise follows it, whatever the mask.
+
 Both are pseudo-spectra of the observed pixels (BB, and the Q/U rms), printed beside the
 N = 1 value; the cross-correlation coefficient of two detectors' templates,
 C_ell(T_a, T_b) / sqrt(C_ell(T_a) C_ell(T_b)) at ell 2-40, is printed against their
@@ -169,14 +172,15 @@ def main(argv=None) -> None:
     for label, good in (("observed by every N", observed), ("well observed", well_observed)):
         print(f"pixels {label}: {good.mean():.1%} of the sky")
         reference = None
-        for n_pairs, (templates, seen, _, channel, seconds) in runs.items():
+        for n_pairs, (templates, seen, hits, channel, seconds) in runs.items():
             common = templates.sum(axis=0)
             per_detector = [pseudo_bb(t, good, lmax) for t in templates]
             random_cl = np.sum(per_detector, axis=0)
             common_cl = pseudo_bb(common, good, lmax)
             qu_random = np.sqrt(np.sum([np.mean(t[1:, good] ** 2) for t in templates]))
             qu_common = np.sqrt(np.mean(common[1:, good] ** 2))
-            row = band_means(random_cl) + band_means(common_cl) + [qu_random, qu_common]
+            white = float(np.mean(1.0 / hits[good]))  # a white noise's map variance, per hit
+            row = band_means(random_cl) + band_means(common_cl) + [qu_random, qu_common, white]
             reference = reference or row
             ratios = np.array(row) / np.array(reference)
             print(
@@ -186,7 +190,7 @@ def main(argv=None) -> None:
                 f"common BB {' '.join(f'{v:.3g}' for v in row[3:6])} "
                 f"(x{' '.join(f'{r:.3f}' for r in ratios[3:6])}); "
                 f"Q/U rms random {row[6]:.3g} (x{ratios[6]:.3f}) common {row[7]:.3g} "
-                f"(x{ratios[7]:.3f})"
+                f"(x{ratios[7]:.3f}); white-noise variance mean(1/hits) x{ratios[8]:.3f}"
             )
     if channel.detector_positions is not None:
         print_correlations(templates, good, channel)
