@@ -255,3 +255,60 @@ def test_no_verdict_on_r_below_four_seeds(base):
     rng = np.random.default_rng(12)
     check = consistency.check_r_recovery(base, recovered_draws(base, 1.0, 0.0, rng, 3), 0.0)
     assert check["consistent"] is None and check["n_seeds"] == 3
+
+
+def recovered_map_tables(model, rng, r_input, n_seeds=N_SEEDS):
+    """Seeds' spectra tables of a sky the filters scale mode by mode (a_rec = t a_in, t
+    rising from 0 below ell 10 to 0.6 at ell 60 and above) plus an E-to-B leakage: the
+    recovered CMB's BB is t^2 C_in + L, its cross with the input t C_in."""
+    import pandas as pd
+
+    t = np.clip((model.ell - 10) / 50.0, 0.0, 0.6)
+    leakage = 0.05 * model.c_lens
+    nu = np.maximum((2 * model.ell + 1) * model.f_sky, 1.0)
+    tables = []
+    for noise in noise_draws(model, rng, n_seeds):
+        cmb_in = (model.c_lens + r_input * model.c_gw_r1) * rng.chisquare(nu) / nu
+        recovered = t**2 * cmb_in + leakage * rng.chisquare(nu) / nu
+        tables.append(
+            pd.DataFrame(
+                {
+                    "ell": model.ell,
+                    "bb_noise_residual_k2": noise,
+                    "bb_foreground_residual_k2": np.zeros_like(noise),
+                    "bb_residual_k2": noise,
+                    "bb_cmb_input_k2": cmb_in,
+                    "bb_cmb_recovered_x_input_k2": t * cmb_in,
+                    "bb_cmb_recovered_k2": recovered,
+                    "bb_recovered_k2": recovered + noise,
+                    "fsky_eff": model.f_sky,
+                }
+            )
+        )
+    return tables
+
+
+def test_the_map_holds_the_transfer_squared_and_only_recovered_power_reads_r_back(base, repo):
+    """A filter that scales each mode by t leaves t^2 of the sky's power in the map: the
+    model with t (transfer_in_model) expects more tensor and lensing power than the map
+    holds, reads an injected r low and fails the sky check against the map's power
+    transfer; the model with t^2 and the measured leakage (recovered_power) reads r back
+    and passes."""
+    from hwp_tes_systematics.config import load_config
+    from hwp_tes_systematics.stages.requirement import compare_model_with_data, r_recovery_check
+
+    config = load_config(repo / "config/config.yaml")
+    config["likelihood"].update({"lmin": 2, "lmax": LMAX})
+    config["simulation"]["cmb_r"] = R_INPUT
+    tables = recovered_map_tables(base, np.random.default_rng(21), R_INPUT, n_seeds=60)
+    noise = lk.noise_model(tables)
+    recovery = r_recovery_check(config, noise, tables)
+    assert recovery["recovered_power"]["consistent"], recovery["recovered_power"]["pull"]
+    assert recovery["transfer_in_model"]["consistent"] is False
+    assert recovery["transfer_in_model"]["r_mean"] < 0.8 * R_INPUT
+    residuals = [table["bb_residual_k2"].to_numpy() for table in tables]
+    for analysis, consistent in (("transfer_in_model", False), ("recovered_power", True)):
+        settings = {**config["likelihood"], "model": analysis}
+        check, _, _ = compare_model_with_data(settings, noise, noise, residuals)
+        assert check["consistent"] is consistent, (analysis, check["failing_bins"])
+        assert check["data_transfer"] == "sky_power_transfer_bb"

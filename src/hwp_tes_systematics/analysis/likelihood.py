@@ -206,14 +206,19 @@ class BBModel:
         """C_obs = C_res + C_lens [K_CMB^2] (the paper's observed spectrum)."""
         return _as_spectrum("c_res", c_res, self.ell.size) + self.c_lens
 
-    def with_transfer(self, transfer) -> BBModel:
-        """The model of a CMB seen through a filter: C_lens and C_GW times ``transfer``
-        (on ``ell``; e.g. the notch's BB transfer function T_ell), the rest unchanged."""
+    def with_transfer(self, transfer, tensor_transfer=None, added_lensing=0.0) -> BBModel:
+        """The model of a CMB seen through a filter: C_lens times ``transfer`` plus
+        ``added_lensing`` [K^2] (r-independent power the filters make, e.g. E-to-B
+        leakage), C_GW times ``tensor_transfer`` (default ``transfer``), all on ``ell``;
+        the rest unchanged."""
         transfer = _as_spectrum("transfer", transfer, self.ell.size)
+        tensor = transfer if tensor_transfer is None else tensor_transfer
+        tensor = _as_spectrum("tensor_transfer", tensor, self.ell.size)
+        added = _as_spectrum("added_lensing", added_lensing, self.ell.size)
         return BBModel(
             ell=self.ell,
-            c_lens=self.c_lens * transfer,
-            c_gw_r1=self.c_gw_r1 * transfer,
+            c_lens=self.c_lens * transfer + added,
+            c_gw_r1=self.c_gw_r1 * tensor,
             c_fg_res=self.c_fg_res,
             n_ell=self.n_ell,
             f_sky=self.f_sky,
@@ -515,10 +520,14 @@ ANALYSES = {
     "r C_GW times the sky's end-to-end BB transfer T_ell measured in the run",
     "paper_literal": "residual against the unfiltered input CMB (the paper's words read "
     "literally: it keeps the CMB the filters removed), unfiltered model",
+    "recovered_power": "residual against the CMB through the same filters; the model's CMB "
+    "is the power the recovered map holds: T_ell^2 C_lens plus the filters' E-to-B leakage "
+    "measured in the run, and T_ell^2 r C_GW (T_ell the measured B-to-B transfer)",
 }
 RESIDUAL_COLUMN = {
     "paper_recipe": "bb_residual_k2",
     "transfer_in_model": "bb_residual_k2",
+    "recovered_power": "bb_residual_k2",
     "paper_literal": "bb_residual_unfiltered_cmb_k2",
 }
 
@@ -552,15 +561,41 @@ def sky_transfer_bb(noise: pd.DataFrame, lmax: int, source: str = "") -> np.ndar
     return noise["sky_transfer_bb"].to_numpy()[: lmax + 1]
 
 
-def analysis_transfer(noise: pd.DataFrame, lmax: int, analysis: str, source: str = ""):
-    """The T_ell (ell = 0..lmax) that ``analysis`` multiplies C_lens and C_GW by: the
-    measured sky transfer for ``transfer_in_model`` (1 below ell = 2, clipped at 0: a
-    spectrum is not negative), None (no transfer) for the others."""
-    if check_analysis(analysis) != "transfer_in_model":
-        return None
+def _clipped_sky_transfer(noise: pd.DataFrame, lmax: int, source: str = "") -> np.ndarray:
+    """The measured B-to-B transfer T_ell, 1 below ell = 2, clipped at 0 (a spectrum is
+    not negative)."""
     transfer = sky_transfer_bb(noise, lmax, source).copy()
     transfer[:2] = 1.0
     return np.clip(transfer, 0.0, None)
+
+
+def cmb_leakage_bb(noise: pd.DataFrame, lmax: int, source: str = "") -> np.ndarray:
+    """The recovered CMB's BB that the B-to-B transfer does not explain [K^2], ell =
+    0..lmax: mean over seeds of C(recovered CMB) - T_ell^2 C(input CMB) (E-to-B leakage of
+    the filters and the mask), from the noise model."""
+    if "cmb_leakage_bb_k2" not in noise:
+        raise ValueError(
+            f"{source or 'noise model'}: no cmb_leakage_bb_k2 column for likelihood.model = "
+            "recovered_power (made by an older component_separation: rerun it and noise_model)"
+        )
+    return noise["cmb_leakage_bb_k2"].to_numpy()[: lmax + 1]
+
+
+def analysis_transfer(noise: pd.DataFrame, lmax: int, analysis: str, source: str = ""):
+    """The T_ell (ell = 0..lmax) by which ``analysis`` multiplies C_lens: the measured
+    sky transfer for ``transfer_in_model``; for ``recovered_power`` the recovered map's
+    lensing power over C_lens, T_ell^2 + leakage / C_lens; None (no transfer) for the
+    others."""
+    if check_analysis(analysis) not in ("transfer_in_model", "recovered_power"):
+        return None
+    transfer = _clipped_sky_transfer(noise, lmax, source)
+    if analysis == "transfer_in_model":
+        return transfer
+    c_lens = sky.lensing_bb(lmax)
+    leakage = np.divide(
+        cmb_leakage_bb(noise, lmax, source), c_lens, out=np.zeros(lmax + 1), where=c_lens > 0
+    )
+    return transfer**2 + leakage
 
 
 def noise_model(nosys_spectra) -> pd.DataFrame:
@@ -568,7 +603,12 @@ def noise_model(nosys_spectra) -> pd.DataFrame:
     the sky's measured end-to-end BB transfer T_ell (filters, binning, mask, HILC):
     mean over seeds of C(recovered CMB, input CMB) over the mean of C(input CMB), with
     the standard error of the per-seed ratios (``sky_transfer_bb_sem``; 1 and 0 below
-    ell = 2, where polarization has no power). ``nosys_spectra``: the seeds' residual
+    ell = 2, where polarization has no power). With the recovered CMB's own BB, also the
+    leakage ``cmb_leakage_bb_k2``, mean over seeds of C(recovered CMB) - T_ell^2 C(input
+    CMB) (what the B-to-B transfer does not explain: E-to-B leakage; r-independent), and
+    the power the map holds of a lensing-only sky over C_lens, T_ell^2 + leakage / C_lens
+    (``sky_power_transfer_bb``, ``_sem`` over seeds; T_ell^2 for a filter that scales
+    each mode). ``nosys_spectra``: the seeds' residual
     spectra, as CSV paths or tables."""
     tables = [t if isinstance(t, pd.DataFrame) else pd.read_csv(t) for t in nosys_spectra]
     out = pd.DataFrame({"ell": tables[0]["ell"]})
@@ -580,6 +620,19 @@ def noise_model(nosys_spectra) -> pd.DataFrame:
         transfer, sem = measured_transfer(cross, auto)
         out["sky_transfer_bb"] = transfer
         out["sky_transfer_bb_sem"] = sem
+        if all("bb_cmb_recovered_k2" in t for t in tables):
+            recovered = np.array([t["bb_cmb_recovered_k2"] for t in tables])
+            leakage = recovered - transfer**2 * auto  # per seed: r-independent
+            c_lens = sky.lensing_bb(int(out["ell"].iloc[-1]))
+            power = transfer**2 + np.divide(
+                leakage, c_lens, out=np.zeros_like(leakage), where=c_lens > 0
+            )
+            power[:, :2] = 1.0
+            out["cmb_leakage_bb_k2"] = leakage.mean(axis=0)
+            out["sky_power_transfer_bb"] = power.mean(axis=0)
+            out["sky_power_transfer_bb_sem"] = (
+                power.std(axis=0, ddof=1) / np.sqrt(len(power)) if len(power) > 1 else 0.0
+            )
     out["fsky_eff"] = float(np.mean([t["fsky_eff"].iloc[0] for t in tables]))
     out["n_seeds"] = len(tables)
     return out
@@ -614,6 +667,9 @@ def model_from_noise_table(
         n_ell=noise["n_ell_bb_k2"].to_numpy()[: lmax + 1],
         c_fg_res=noise["c_fg_res_bb_k2"].to_numpy()[: lmax + 1],
     )
+    if analysis == "recovered_power":
+        transfer = _clipped_sky_transfer(noise, lmax, source) ** 2
+        return model.with_transfer(transfer, transfer, cmb_leakage_bb(noise, lmax, source))
     transfer = analysis_transfer(noise, lmax, analysis, source)
     return model if transfer is None else model.with_transfer(transfer)
 

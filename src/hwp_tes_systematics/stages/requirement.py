@@ -54,7 +54,6 @@ from ..analysis.likelihood import (
     model_from_noise_table,
     noise_model,
     residual_bb,
-    sky_transfer_bb,
 )
 from ..analysis.requirement import (
     budget_crossing_over_seeds,
@@ -203,7 +202,7 @@ def run(
         else check["held_out"]["consistent"],
         "r_recovered_consistent": None
         if check["r_recovery"] is None
-        else check["r_recovery"][analysis]["consistent"],
+        else check["r_recovery"].get(analysis, {}).get("consistent"),
         "requirement_sigma_g1_per_k": fraction_point["requirement_sigma_g1_per_k"],
         "error_per_k": fraction_point["requirement_error_per_k"],
         "std_over_seeds_per_k": fraction_point["requirement_std_over_seeds_per_k"],
@@ -415,22 +414,27 @@ def compare_model_with_data(
     the analysis carries the transfer, that transfer's error."""
     analysis, lmax = settings["model"], settings["lmax"]
     model_transfer = analysis_transfer(model_noise, lmax, analysis)
+    # what the data's map holds of the sky: its power transfer where the run measured it
+    # (the recovered CMB's own BB), else (older runs) the B-to-B transfer
+    power = "sky_power_transfer_bb" if "sky_power_transfer_bb" in data_noise else "sky_transfer_bb"
     errors = {}
     if model_noise_per_seed is not None:
         errors["model_noise_per_seed"] = model_noise_per_seed
         if model_transfer is not None:
-            errors["model_transfer_sem"] = model_noise["sky_transfer_bb_sem"].to_numpy()[: lmax + 1]
+            column = "sky_power_transfer_bb" if analysis == "recovered_power" else "sky_transfer_bb"
+            errors["model_transfer_sem"] = model_noise[f"{column}_sem"].to_numpy()[: lmax + 1]
     if model_transfer is None:
         model_transfer = np.ones(lmax + 1)
-    data_transfer = sky_transfer_bb(data_noise, lmax)
+    data_transfer = data_noise[power].to_numpy()[: lmax + 1]
     check = consistency.check_model(
         model_from_noise_table(model_noise, settings["lmin"], lmax, "paper_recipe"),
         model_transfer,
         data_transfer,
-        data_noise["sky_transfer_bb_sem"].to_numpy()[: lmax + 1],
+        data_noise[f"{power}_sem"].to_numpy()[: lmax + 1],
         residuals,
         **errors,
     )
+    check["data_transfer"] = power
     return check, model_transfer, data_transfer
 
 
@@ -495,6 +499,8 @@ def r_recovery_check(config: dict, noise: pd.DataFrame, nosys_tables) -> dict | 
     )
     results = {}
     for analysis in ANALYSES:
+        if analysis == "recovered_power" and "cmb_leakage_bb_k2" not in noise:
+            continue
         model = model_from_noise_table(noise, settings["lmin"], lmax, analysis)
         results[analysis] = consistency.check_r_recovery(
             model, recovered, config["simulation"]["cmb_r"]
