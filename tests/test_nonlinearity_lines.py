@@ -53,3 +53,27 @@ def test_matches_litebird_sim_quadratic_nonlinearity():
         random=np.random.default_rng(0),
     )
     np.testing.assert_allclose(apply_nonlinearity(tod, -3e-3), expected, rtol=1e-15)
+
+
+def test_linearize_with_the_true_g1_removes_the_nonlinearity_to_rounding():
+    """The TOD correction of a calibration: with g1_hat = g1 the quadratic response is
+    undone to rounding (per detector row); with an error delta = g1 - g1_hat what is left
+    is the nonlinearity of g1 = delta, to O(g1 delta d^3)."""
+    from hwp_tes_systematics.instrument.nonlinearity import linearize
+
+    rng = np.random.default_rng(7)
+    time_s = np.arange(20000) / 19.0
+    tod = 3e-3 * np.cos(2 * np.pi * 0.01 * time_s) + 0.5 * np.cos(2 * np.pi * 2 * 0.77 * time_s)
+    tod = np.array([tod, tod + 1e-4 * rng.standard_normal(tod.size)])  # K: dipole + HWPSS
+    g1 = np.array([0.05, -0.03])
+    corrected = linearize(apply_nonlinearity(tod, g1), g1)
+    np.testing.assert_allclose(corrected, tod, rtol=0, atol=1e-15)
+    delta = np.array([1e-3, -2e-3])
+    left = linearize(apply_nonlinearity(tod, g1), g1 - delta) - tod
+    expected = delta[:, None] * tod**2
+    bound = 4 * np.abs(g1 * delta)[:, None] * np.abs(tod) ** 3
+    assert np.all(np.abs(left - expected) <= bound + 1e-16)
+    assert np.abs(left - expected).max() < 0.1 * np.abs(expected).max()
+    np.testing.assert_array_equal(linearize(tod, 0.0), tod)  # g1_hat = 0: no correction
+    with pytest.raises(ValueError, match="extremum"):
+        linearize(np.array([-10.0]), 0.05)
