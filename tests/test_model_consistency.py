@@ -160,26 +160,32 @@ def seed_tables(model, rng, noise_scale_of_seed, n_seeds=N_SEEDS):
     """Residual spectra tables of the no-systematics seeds (the columns the noise model and
     the check read): noise N_ell x noise_scale_of_seed(seed) with chi^2 scatter, no
     foreground residual, the sky filtered below NOTCH_ELL (input CMB BB = C_lens)."""
+    transfer = filtered_transfer(model.ell)
+    return [
+        spectra_table(model, draw * noise_scale_of_seed(seed), model.c_lens, transfer)
+        for seed, draw in enumerate(noise_draws(model, rng, n_seeds))
+    ]
+
+
+def spectra_table(model, noise, cmb_in, transfer, recovered_cmb=None):
+    """One seed's residual spectra table: the residual is the noise alone (no foreground
+    residual), the recovered CMB's cross spectrum with the input ``transfer`` x
+    ``cmb_in``; with ``recovered_cmb``, its own BB and the HILC map's (CMB + noise)."""
     import pandas as pd
 
-    transfer = filtered_transfer(model.ell)
-    tables = []
-    for seed, draw in enumerate(noise_draws(model, rng, n_seeds)):
-        noise = draw * noise_scale_of_seed(seed)
-        tables.append(
-            pd.DataFrame(
-                {
-                    "ell": model.ell,
-                    "bb_noise_residual_k2": noise,
-                    "bb_foreground_residual_k2": np.zeros_like(noise),
-                    "bb_residual_k2": noise,
-                    "bb_cmb_input_k2": model.c_lens,
-                    "bb_cmb_recovered_x_input_k2": transfer * model.c_lens,
-                    "fsky_eff": model.f_sky,
-                }
-            )
-        )
-    return tables
+    columns = {
+        "ell": model.ell,
+        "bb_noise_residual_k2": noise,
+        "bb_foreground_residual_k2": np.zeros_like(noise),
+        "bb_residual_k2": noise,
+        "bb_cmb_input_k2": cmb_in,
+        "bb_cmb_recovered_x_input_k2": transfer * cmb_in,
+        "fsky_eff": model.f_sky,
+    }
+    if recovered_cmb is not None:
+        columns["bb_cmb_recovered_k2"] = recovered_cmb
+        columns["bb_recovered_k2"] = recovered_cmb + noise
+    return pd.DataFrame(columns)
 
 
 def test_held_out_check_fails_when_the_seeds_do_not_share_a_noise_model(base, repo):
@@ -261,8 +267,6 @@ def recovered_map_tables(model, rng, r_input, n_seeds=N_SEEDS):
     """Seeds' spectra tables of a sky the filters scale mode by mode (a_rec = t a_in, t
     rising from 0 below ell 10 to 0.6 at ell 60 and above) plus an E-to-B leakage: the
     recovered CMB's BB is t^2 C_in + L, its cross with the input t C_in."""
-    import pandas as pd
-
     t = np.clip((model.ell - 10) / 50.0, 0.0, 0.6)
     leakage = 0.05 * model.c_lens
     nu = np.maximum((2 * model.ell + 1) * model.f_sky, 1.0)
@@ -270,21 +274,7 @@ def recovered_map_tables(model, rng, r_input, n_seeds=N_SEEDS):
     for noise in noise_draws(model, rng, n_seeds):
         cmb_in = (model.c_lens + r_input * model.c_gw_r1) * rng.chisquare(nu) / nu
         recovered = t**2 * cmb_in + leakage * rng.chisquare(nu) / nu
-        tables.append(
-            pd.DataFrame(
-                {
-                    "ell": model.ell,
-                    "bb_noise_residual_k2": noise,
-                    "bb_foreground_residual_k2": np.zeros_like(noise),
-                    "bb_residual_k2": noise,
-                    "bb_cmb_input_k2": cmb_in,
-                    "bb_cmb_recovered_x_input_k2": t * cmb_in,
-                    "bb_cmb_recovered_k2": recovered,
-                    "bb_recovered_k2": recovered + noise,
-                    "fsky_eff": model.f_sky,
-                }
-            )
-        )
+        tables.append(spectra_table(model, noise, cmb_in, t, recovered))
     return tables
 
 
