@@ -152,3 +152,38 @@ def test_split_half_correlation_tells_a_real_linear_term_from_noise():
     null = fi.split_half_correlation(_tables(model, np.zeros(30), 20, 1e-3, rng, 30), model)
     assert abs(null["pearson_r"]) < 0.6 and null["p_value"] > 1e-3
     assert np.isnan(fi.split_half_correlation(tables[:3], model)["pearson_r"])
+
+
+def test_common_offset_requirement_and_the_region_it_shares_with_the_random_population():
+    """A g1 common to every detector: |mu| < budget_sigma(b, k); with a random population
+    at a fraction f of its own requirement beside it, the budget left is (1 - f^2) B and
+    the allowed |mu| shrinks accordingly (to sqrt(B / k) x sqrt(1 - f^2) when b = 0)."""
+    model = _model()
+    shape = model.c_gw_r1
+    k_unit = fisher_bias(shape, model)
+    tables = [
+        pd.DataFrame(
+            {
+                "ell": model.ell,
+                fi.COMMON_AUTO: 8.0 * shape,
+                fi.COMMON_CROSS: 0.0 * shape,
+                fi.COMMON_CROSS_UNFILTERED: 0.0 * shape,
+            }
+        )
+        for _ in range(3)
+    ]
+    budget, k_random = 6.5e-6, 2.0 * k_unit
+    common = fi.common_offset_estimator(tables, model, budget, k_random)
+    assert common["k_per_k2"] == pytest.approx(8.0 * k_unit)
+    assert common["k_over_k_random"] == pytest.approx(4.0)
+    assert common["requirement_mu_per_k"] == pytest.approx(np.sqrt(budget / (8.0 * k_unit)))
+    for row in common["allowed_region"]:
+        f = row["sigma_over_requirement"]
+        expected = np.sqrt(budget * (1 - f**2) / (8.0 * k_unit))
+        assert row["mu_max_per_k"] == pytest.approx(expected)
+    assert (
+        fi.common_offset_estimator(
+            [t.drop(columns=fi.COMMON_AUTO) for t in tables], model, budget, k_random
+        )
+        is None
+    )

@@ -38,6 +38,9 @@ from .likelihood import fisher_bias, fraction_point_shift
 CROSS = "bb_cross_instrument{index}_k3"
 CROSS_UNFILTERED = "bb_cross_unfiltered_instrument{index}_k3"
 AUTO = "bb_auto_instrument{index}_k4"
+COMMON_CROSS = "bb_cross_common_offset_k3"
+COMMON_CROSS_UNFILTERED = "bb_cross_unfiltered_common_offset_k3"
+COMMON_AUTO = "bb_auto_common_offset_k4"
 
 
 def n_instruments(table: pd.DataFrame) -> int:
@@ -72,30 +75,72 @@ def instrument_biases(tables: list[pd.DataFrame], model, unfiltered: bool = Fals
     counts = {n_instruments(table) for table in tables}
     if len(counts) != 1:
         raise ValueError(f"fixed instruments: the seeds' tables hold {sorted(counts)} instruments")
+    return [
+        {
+            "instrument": index,
+            **_bias(tables, model, _column(index, unfiltered), AUTO.format(index=index)),
+        }
+        for index in range(counts.pop())
+    ]
+
+
+def _bias(tables: list[pd.DataFrame], model, cross: str, auto: str) -> dict:
+    """b (mean over seeds of the Fisher bias of the column ``cross``, per 1/K), its
+    standard error and scatter over seeds, and k (of the column ``auto``) [K^2]."""
     size = model.ell.size
-    rows = []
-    for index in range(counts.pop()):
-        b_seeds = np.array(
-            [fisher_bias(t[_column(index, unfiltered)].to_numpy()[:size], model) for t in tables]
+    b_seeds = np.array([fisher_bias(t[cross].to_numpy()[:size], model) for t in tables])
+    k_seeds = np.array([fisher_bias(t[auto].to_numpy()[:size], model) for t in tables])
+    several = b_seeds.size > 1
+    return {
+        "b_per_k": float(b_seeds.mean()),
+        "b_error_per_k": float(b_seeds.std(ddof=1) / np.sqrt(b_seeds.size))
+        if several
+        else float("nan"),
+        "b_std_over_seeds_per_k": float(b_seeds.std(ddof=1)) if several else float("nan"),
+        "k_per_k2": float(k_seeds.mean()),
+        "n_seeds": int(b_seeds.size),
+    }
+
+
+def common_offset_estimator(
+    tables: list[pd.DataFrame], model, budget: float, k_random: float, unfiltered: bool = False
+) -> dict | None:
+    """The requirement on a g1 common to every detector of the systematics channels, mu
+    (a residual the calibration shares; :meth:`SeedMaps.common_offset_draws`): delta r =
+    2 mu b + mu^2 k from the seeds' ``common_offset`` columns, |mu| < :func:`budget_sigma`;
+    and the region allowed with the random population of spread sigma beside it (Fisher
+    bias ``k_random`` sigma^2; the cross term of a zero-mean draw with mu averages out):
+    k_random sigma^2 + 2 mu |b| + mu^2 k <= budget, given as the largest |mu| at a few
+    sigma, with |b| debiased by its standard error over seeds (sqrt(max(b^2 - se^2, 0)): a
+    b the seeds do not resolve does not set the region). None when the tables hold no
+    common offset."""
+    if not tables or COMMON_AUTO not in tables[0]:
+        return None
+    cross = COMMON_CROSS_UNFILTERED if unfiltered else COMMON_CROSS
+    row = _bias(tables, model, cross, COMMON_AUTO)
+    b, error, k = row["b_per_k"], row["b_error_per_k"], row["k_per_k2"]
+    debiased = np.sqrt(max(b * b - error * error, 0.0)) if error > 0 else abs(b)
+    sigma_required = float(np.sqrt(budget / k_random))
+    region = []
+    for fraction in (0.0, 0.5, 0.8, 0.95):
+        left = budget * (1.0 - fraction**2)  # what the random population leaves of the budget
+        region.append(
+            {"sigma_over_requirement": fraction, "mu_max_per_k": budget_sigma(debiased, k, left)}
         )
-        k_seeds = np.array(
-            [fisher_bias(t[AUTO.format(index=index)].to_numpy()[:size], model) for t in tables]
-        )
-        rows.append(
-            {
-                "instrument": index,
-                "b_per_k": float(b_seeds.mean()),
-                "b_error_per_k": float(b_seeds.std(ddof=1) / np.sqrt(b_seeds.size))
-                if b_seeds.size > 1
-                else float("nan"),
-                "b_std_over_seeds_per_k": float(b_seeds.std(ddof=1))
-                if b_seeds.size > 1
-                else float("nan"),
-                "k_per_k2": float(k_seeds.mean()),
-                "n_seeds": int(b_seeds.size),
-            }
-        )
-    return rows
+    return {
+        "definition": "g1 = mu on every detector of the systematics channels, the same for "
+        "every seed: delta r = 2 mu b + mu^2 k (Fisher peak shift of the seeds' mean cross "
+        "and auto spectra through the no-systematics weights); with a random population of "
+        "spread sigma beside it, k_random sigma^2 + 2 mu b + mu^2 k <= budget",
+        **row,
+        "t_linear": b / error if error > 0 else float("nan"),
+        "requirement_mu_per_k": budget_sigma(b, k, budget),
+        "requirement_mu_debiased_per_k": budget_sigma(debiased, k, budget),
+        "requirement_mu_quadratic_only_per_k": float(np.sqrt(budget / k)),
+        "k_over_k_random": k / k_random,
+        "random_requirement_sigma_per_k": sigma_required,
+        "allowed_region": region,
+    }
 
 
 def fraction_point_terms(

@@ -536,6 +536,16 @@ class SeedMaps:
             for name, detectors in zip(self.names, self.detectors, strict=True)
         ]
 
+    def common_offset_draws(self) -> list[np.ndarray]:
+        """g1 = 1 1/K on every detector of the systematics channels (a residual common to
+        the focal plane, :func:`fixed_instruments.common_offset_estimator`), zeros on the
+        others: the draws of an instrument with no spread."""
+        systematic = self.config["instrument"]["systematics_channels"]
+        return [
+            np.full(len(detectors), 1.0 if name in systematic else 0.0)
+            for name, detectors in zip(self.names, self.detectors, strict=True)
+        ]
+
     def instrument_template_alms(self, draws: list[np.ndarray], weights: np.ndarray):
         """(3, nalm) the systematic at sigma_g1 = 1 1/K of one instrument [K_CMB K]: the
         unit draws ``draws`` (one array per channel, :func:`systematics.instrument_g1_draws`)
@@ -557,20 +567,22 @@ class SeedMaps:
         no-systematics residual ``nosys`` (:meth:`residual` at sigma 0) against the
         filtered CMB reference and against the unfiltered input
         (``bb_cross_instrument<i>_k3``, ``bb_cross_unfiltered_instrument<i>_k3``
-        [K_CMB^2 K]): at sigma, C_obs = C_nosys + 2 sigma C_cross + sigma^2 C_auto."""
+        [K_CMB^2 K]): at sigma, C_obs = C_nosys + 2 sigma C_cross + sigma^2 C_auto; and
+        the same of the common offset (:meth:`common_offset_draws`), ``..._common_offset_...``."""
         residuals = {
             "cross": nosys["residual_alm"],
             "cross_unfiltered": nosys["residual_alm"] + nosys["cmb_filter_loss_alm"],
         }
         table = {"ell": np.arange(self.lmax + 1)}
-        for index, draws in enumerate(instruments):
+        named = [(f"instrument{index}", draws) for index, draws in enumerate(instruments)]
+        for name, draws in [*named, ("common_offset", self.common_offset_draws())]:
             template = self.instrument_template_alms(draws, nosys["weights"])
             for label, alm2 in (("auto", None), *residuals.items()):
                 cl = unit_beam_spectra(
                     template, alm2, self.lmax, self.fractions["w2"], self.common_fwhm_arcmin
                 )
                 unit = "k4" if label == "auto" else "k3"
-                table[f"bb_{label}_instrument{index}_{unit}"] = cl[2]
+                table[f"bb_{label}_{name}_{unit}"] = cl[2]
         out = pd.DataFrame(table)
         out["fsky_eff"] = self.fractions["fsky_eff"]
         return out

@@ -40,6 +40,7 @@ import pandas as pd
 
 from ..analysis import consistency
 from ..analysis.fixed_instruments import (
+    common_offset_estimator,
     delta_r_curves,
     fixed_instrument_estimator,
     n_instruments,
@@ -183,6 +184,23 @@ def run(
             mitigated["fit_cost_delta_r"],
             mitigated["fit_cost_delta_r_sem"],
         )
+    common = common_offset_estimator(
+        [pd.read_csv(path) for path in instrument_csvs or []],
+        model,
+        budget,
+        systematic_only["k_per_k2"],
+        analysis == "paper_literal",
+    )
+    if common is not None:
+        log.info(
+            "a g1 common to every detector: |mu| < %.3e 1/K (Fisher, b = %.2e +- %.2e, k_mu / "
+            "k_sigma = %.2f); at sigma = 0.5 sigma_req, |mu| < %.3e",
+            common["requirement_mu_per_k"],
+            common["b_per_k"],
+            common["b_error_per_k"],
+            common["k_over_k_random"],
+            common["allowed_region"][1]["mu_max_per_k"],
+        )
     systematic_only["template_split"] = split = template_split(systematic_csvs, model, budget)
     if split is not None:
         log.info(
@@ -256,6 +274,7 @@ def run(
         ),
         "systematic_only": systematic_only,
         "fixed_instruments": fixed,
+        "common_offset": common,
         "settings": {
             "baseline_length_s": config["maps"]["baseline_length_s"],
             "g1_per": config["requirement"]["g1_per"],
