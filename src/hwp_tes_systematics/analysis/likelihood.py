@@ -206,18 +206,15 @@ class BBModel:
         """C_obs = C_res + C_lens [K_CMB^2] (the paper's observed spectrum)."""
         return _as_spectrum("c_res", c_res, self.ell.size) + self.c_lens
 
-    def with_transfer(self, transfer, tensor_transfer=None, added_lensing=0.0) -> BBModel:
-        """The model of a CMB seen through a filter: C_lens times ``transfer`` plus
-        ``added_lensing`` [K^2] (r-independent power the filters make, e.g. E-to-B
-        leakage), C_GW times ``tensor_transfer`` (default ``transfer``), all on ``ell``;
-        the rest unchanged."""
+    def with_transfer(self, transfer, tensor_transfer=None) -> BBModel:
+        """The model of a CMB seen through a filter: C_lens times ``transfer``, C_GW times
+        ``tensor_transfer`` (default ``transfer``), both on ``ell``; the rest unchanged."""
         transfer = _as_spectrum("transfer", transfer, self.ell.size)
         tensor = transfer if tensor_transfer is None else tensor_transfer
         tensor = _as_spectrum("tensor_transfer", tensor, self.ell.size)
-        added = _as_spectrum("added_lensing", added_lensing, self.ell.size)
         return BBModel(
             ell=self.ell,
-            c_lens=self.c_lens * transfer + added,
+            c_lens=self.c_lens * transfer,
             c_gw_r1=self.c_gw_r1 * tensor,
             c_fg_res=self.c_fg_res,
             n_ell=self.n_ell,
@@ -667,11 +664,13 @@ def model_from_noise_table(
         n_ell=noise["n_ell_bb_k2"].to_numpy()[: lmax + 1],
         c_fg_res=noise["c_fg_res_bb_k2"].to_numpy()[: lmax + 1],
     )
-    if analysis == "recovered_power":
-        transfer = _clipped_sky_transfer(noise, lmax, source) ** 2
-        return model.with_transfer(transfer, transfer, cmb_leakage_bb(noise, lmax, source))
     transfer = analysis_transfer(noise, lmax, analysis, source)
-    return model if transfer is None else model.with_transfer(transfer)
+    if transfer is None:
+        return model
+    tensor = (
+        _clipped_sky_transfer(noise, lmax, source) ** 2 if analysis == "recovered_power" else None
+    )
+    return model.with_transfer(transfer, tensor)
 
 
 def model_from_noise_csv(
