@@ -165,11 +165,14 @@ def test_unwritable_out_fails_at_once_naming_out(capsys, inputs, no_work):
 def test_figure8_out_is_checked_first(capsys, tmp_path, monkeypatch):
     monkeypatch.setattr(cli, "redraw_figure8", lambda *a: pytest.fail("redrew"))
     (tmp_path / "file").write_text("")
+    requirement = tmp_path / "requirement.json"
+    requirement.write_text("{}")
+    (tmp_path / "delta_r.csv").write_text("")
     status, _, err = exit_status(
-        capsys, "figure8", "requirement.json", "--out", tmp_path / "file" / "fig8.png"
+        capsys, "figure8", requirement, "--out", tmp_path / "file" / "fig8.png"
     )
     assert status == 2 and "argument --out:" in err and "is a file, not a folder" in err
-    status, _, err = exit_status(capsys, "figure8", "requirement.json", "--out", tmp_path)
+    status, _, err = exit_status(capsys, "figure8", requirement, "--out", tmp_path)
     assert status == 2 and f"argument --out: {tmp_path} is a folder" in err
 
 
@@ -298,7 +301,7 @@ def test_verdict_ratios_have_two_significant_figures():
 
     sentence = compare_nonlinearity({"parameters": entries(4.98e-3)}, requirement)["sentence"]
     assert "|g1| is 1.0 times the requirement." in sentence
-    assert "this recording knows g1 2.45 times better than required" in sentence
+    assert "this recording knows g1 2.4 times better than required" in sentence
     loose = compare_nonlinearity(
         {"parameters": entries(4.98e-3)}, dict(requirement, sigma_g1_per_k=2e-3)
     )

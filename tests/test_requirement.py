@@ -283,16 +283,30 @@ def test_template_split_shares_sum_to_one_and_drop_the_noise_part(tmp_path):
 
 def test_figure8_command_redraws_a_committed_run(tmp_path, capsys):
     """``python -m hwp_tes_systematics figure8`` redraws Fig. 8 from a run's files (the
-    committed one-year run), and names the file when it is not a requirement.json."""
+    committed one-year run), and names the file or the argument when one is not what it
+    expects, before any work."""
+    import shutil
+
     from hwp_tes_systematics.cli import main
+
+    def status_of(*argv):
+        try:
+            return main([str(a) for a in argv])
+        except SystemExit as exit:  # argparse's errors
+            return exit.code
 
     run = Path(__file__).parents[1] / "docs" / "one_year"
     out = tmp_path / "fig8.png"
-    assert main(["figure8", str(run / "requirement.json"), "--out", str(out)]) == 0
+    assert status_of("figure8", run / "requirement.json", "--out", out) == 0
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     not_json = tmp_path / "notes.txt"
     not_json.write_text("not a requirement")
-    assert main(["figure8", str(not_json), "--out", str(tmp_path / "x.png")]) == 2
+    assert status_of("figure8", not_json, "--out", tmp_path / "x.png") == 2
+    assert "argument --delta-r: no " in capsys.readouterr().err  # nothing beside it
+    shutil.copy(run / "delta_r.csv", tmp_path / "delta_r.csv")
+    assert status_of("figure8", not_json, "--out", tmp_path / "x.png") == 2
     assert "notes.txt" in capsys.readouterr().err
-    assert main(["figure8", str(tmp_path / "absent.json"), "--out", str(out)]) == 2
-    assert "absent.json" in capsys.readouterr().err
+    assert status_of("figure8", tmp_path / "absent.json", "--out", out) == 2
+    assert "absent.json: no such file" in capsys.readouterr().err
+    assert status_of("figure8", run / "requirement.json", "--out", tmp_path / "fig8.svg") == 2
+    assert "fig8.svg: expected a file name ending in .png" in capsys.readouterr().err

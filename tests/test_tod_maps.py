@@ -56,6 +56,32 @@ def test_scan_matches_litebird_sim_scan_map(simulator):
 
 
 @pytest.mark.slow
+def test_pointing_and_dipole_equal_litebird_sim(simulator):
+    """The pointing (ducc0's quaternions, our angle kernel) equals litebird_sim's ecliptic
+    pointing rotated to Galactic, and the dipole from the direction vectors equals
+    litebird_sim's add_dipole on those angles, both to rounding."""
+    import litebird_sim as lbs
+
+    pointing = simulator.pointing(1000, 20_000)
+    galactic = lbs.rotate_coordinates_e2g(np.ascontiguousarray(pointing.ecliptic_rad()[0]))
+    difference = pointing.galactic_rad[0] - galactic
+    difference[:, 1:] = (difference[:, 1:] + np.pi) % (2 * np.pi) - np.pi  # phi, psi wrap
+    assert np.abs(difference).max() < 1e-10
+    vectors = hp.ang2vec(galactic[:, 0], galactic[:, 1])
+    np.testing.assert_allclose(pointing.galactic_vectors[0], vectors, rtol=0, atol=1e-12)
+    observation = pointing.observation
+    observation.tod[:] = 0.0
+    lbs.add_dipole_to_observations(
+        observation,
+        pos_and_vel=simulator.orbit_galactic,
+        pointings=pointing.galactic_rad[pointing.direction_of],
+    )
+    ours = simulator.dipole(pointing)
+    assert np.abs(ours).max() > 1e-3  # the orbital + solar dipole, a few mK
+    np.testing.assert_allclose(ours, observation.tod, rtol=0, atol=1e-12 * np.abs(ours).max())
+
+
+@pytest.mark.slow
 def test_binned_qu_equal_input_with_hwp(simulator):
     """litebird_sim #498 (binned Q/U a factor 2 off with a HWP) must not happen here."""
     import litebird_sim as lbs

@@ -277,11 +277,20 @@ def build_parser(prog: str) -> tuple[argparse.ArgumentParser, dict]:
         epilog=f"example:\n  {prog} figure8 docs/one_year/requirement.json --out fig8.png",
         formatter_class=formatter,
     )
-    figure8.add_argument("requirement", help="a run's results/requirement.json")
     figure8.add_argument(
-        "--delta-r", default=None, help="its delta r table (default: delta_r.csv beside it)"
+        "requirement", type=_existing_file, help="a run's results/requirement.json"
     )
-    figure8.add_argument("--out", required=True, help="the PNG to write")
+    figure8.add_argument(
+        "--delta-r",
+        default=None,
+        type=_existing_file,
+        help="its delta r table (default: delta_r.csv beside it)",
+    )
+    figure8.add_argument(
+        "--out",
+        required=True,
+        help="the PNG to write (name ending in .png; missing folders are created)",
+    )
     diagnose = commands.add_parser(
         "diagnose",
         help="find, name and fit what the simulation left out of a recording",
@@ -367,6 +376,14 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
         return 0
     if arguments.command == "figure8":
         problem = check_output(arguments.out, "--out", is_folder=False)
+        if not problem and Path(arguments.out).suffix.lower() != ".png":
+            problem = f"argument --out: {arguments.out}: expected a file name ending in .png"
+        beside = Path(arguments.requirement).with_name("delta_r.csv")
+        if not problem and arguments.delta_r is None and not beside.is_file():
+            problem = (
+                f"argument --delta-r: no {beside} beside the requirement file; give the "
+                "run's delta_r.csv with --delta-r"
+            )
         if problem:
             commands["figure8"].error(problem)
         return redraw_figure8(arguments.requirement, arguments.delta_r, arguments.out)

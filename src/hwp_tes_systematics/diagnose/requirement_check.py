@@ -191,7 +191,7 @@ def _sentence(detectors, requirement) -> str:
     )
     sigma_ratio = [d["sigma_over_requirement"] for d in detectors]
     known = (
-        f"this recording knows g1 {_span([1 / r for r in sigma_ratio], 3)} times better "
+        f"this recording knows g1 {_span([1 / r for r in sigma_ratio])} times better "
         "than required (correcting with it meets the requirement)"
         if max(sigma_ratio) < 1
         else f"this recording knows g1 only to {_span(sigma_ratio)} times the "

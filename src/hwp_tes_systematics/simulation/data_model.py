@@ -99,6 +99,46 @@ def galactic_angles(pointings_ecliptic_rad: np.ndarray) -> np.ndarray:
     return lbs.rotate_coordinates_e2g(np.ascontiguousarray(pointings_ecliptic_rad))
 
 
+def quaternion_pointing(quaternions: np.ndarray, angles_out=None, vectors_out=None):
+    """(theta, phi, psi) [rad] and the unit direction vector of detector-to-sky rotation
+    quaternions (n, 4), components (x, y, z, w): the direction is the rotated z axis
+    v = R z, the orientation psi the angle of R x from the local North towards East
+    (litebird_sim's ``compute_pointing_and_orientation``, to rounding; its North and East
+    written with v's components instead of the sines and cosines of theta and phi).
+    Written into ``angles_out`` (n, 3) and ``vectors_out`` (n, 3) if given."""
+    n = np.shape(quaternions)[0]
+    angles_out = np.empty((n, 3)) if angles_out is None else angles_out
+    vectors_out = np.empty((n, 3)) if vectors_out is None else vectors_out
+    _quaternion_pointing_kernel(quaternions, angles_out, vectors_out)
+    return angles_out, vectors_out
+
+
+def dipole_total_from_lin_t(vectors, velocities_km_s, frequency_ghz: float, out=None):
+    """Orbital + solar dipole [K_CMB] at unit directions n (n, 3) with the spacecraft
+    velocity v (n, 3) [km/s]: litebird_sim's ``TOTAL_FROM_LIN_T``,
+
+        dT = T_0 / f(x) [N(x gamma (1 - beta . n)) / N(x) - 1],   x = h nu / (k_B T_0),
+
+    N(x) = 1 / (e^x - 1), f(x) = x e^x / (e^x - 1), beta = v / c; the same operations
+    as litebird_sim's kernel, from the direction vector rather than (theta, phi)."""
+    from litebird_sim.constants import C_LIGHT_KM_OVER_S, H_OVER_K_B, T_CMB_K
+
+    out = np.empty(np.shape(vectors)[0]) if out is None else out
+    x = H_OVER_K_B * frequency_ghz * 1e9 / T_CMB_K
+    f_x = x * np.exp(x) / (np.exp(x) - 1)
+    _dipole_kernel(
+        vectors,
+        velocities_km_s,
+        H_OVER_K_B * frequency_ghz * 1e9,
+        T_CMB_K,
+        C_LIGHT_KM_OVER_S,
+        1 / np.expm1(x),
+        f_x,
+        out,
+    )
+    return out
+
+
 def polarisation_angles(hwp_angle_rad, psi_rad, pol_angles_rad, cos_2alpha=None, sin_2alpha=None):
     """cos 2 alpha_k, sin 2 alpha_k (n_det, n) for detectors of polarisation angles
     theta_k sharing one pointing orientation psi (n,): 2 alpha = 2 (2 chi + psi) - 2 theta_k.
@@ -169,3 +209,35 @@ def _scan_kernel(pixels, cos_2alpha, sin_2alpha, rho, i_map, q_map, u_map, inten
             p = pixels[det, t]
             value = rho[det] * (q_map[p] * cos_2alpha[det, t] + u_map[p] * sin_2alpha[det, t])
             out[det, t] = i_map[p] + value if intensity else value
+
+
+@numba.njit(cache=True, nogil=True)
+def _quaternion_pointing_kernel(quaternions, angles, vectors):
+    """theta, phi, psi and v = R z per quaternion (see :func:`quaternion_pointing`)."""
+    for t in range(quaternions.shape[0]):
+        qx, qy, qz, qw = quaternions[t, 0], quaternions[t, 1], quaternions[t, 2], quaternions[t, 3]
+        x = 2 * (qw * qy + qx * qz)  # R z
+        y = 2 * (qy * qz - qw * qx)
+        z = 1 - 2 * (qx * qx + qy * qy)
+        ox = 1 - 2 * (qy * qy + qz * qz)  # R x, the orientation
+        oy = 2 * (qx * qy + qw * qz)
+        oz = 2 * (qx * qz - qw * qy)
+        r = np.sqrt(x * x + y * y)  # sin theta; East = (-y, x, 0) / r
+        cos_psi = min(max((-y * ox + x * oy) / r, -1.0), 1.0)  # R x . East
+        sin_psi = min(max(-z * (x * ox + y * oy) / r + r * oz, -1.0), 1.0)  # R x . North
+        angles[t, 0] = np.arctan2(r, z)
+        angles[t, 1] = np.arctan2(y, x)
+        angles[t, 2] = np.arctan2(sin_psi, cos_psi)
+        vectors[t, 0], vectors[t, 1], vectors[t, 2] = x, y, z
+
+
+@numba.njit(cache=True, nogil=True)
+def _dipole_kernel(vectors, velocities, h_nu_over_k, t_cmb_k, c_km_s, n_x, f_x, out):
+    """out[t] = T_0 / f_x (N(x') / N(x) - 1), x' = h nu gamma (1 - beta . n) / (k T_0)."""
+    for t in range(out.size):
+        vx, vy, vz = velocities[t, 0], velocities[t, 1], velocities[t, 2]
+        beta_dot_n = (vectors[t, 0] * vx + vectors[t, 1] * vy + vectors[t, 2] * vz) / c_km_s
+        beta = np.sqrt(vx**2 + vy**2 + vz**2) / c_km_s
+        gamma = 1 / np.sqrt(1 - beta**2)
+        x_doppler = h_nu_over_k * gamma * (1 - beta_dot_n) / t_cmb_k
+        out[t] = t_cmb_k / f_x * ((1 / np.expm1(x_doppler)) / n_x - 1)

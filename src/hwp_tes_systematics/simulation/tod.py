@@ -8,12 +8,16 @@ shared with the diagnosis's nominal model)
     alpha = 2 chi - theta_det + psi       (ideal HWP; litebird_sim's convention)
 
 with chi the HWP angle, theta_det the detector's polarisation angle and psi the
-orientation in Galactic coordinates. litebird_sim gives the pointing (PTEP
-scanning strategy, phases counted from the mission start so chunks join up), the
-orbital + solar dipole (one orbit for the whole mission), the white + 1/f noise and
-the 2f HWPSS (``add_2f``). The pointing is computed once per chunk, rotated once to
-Galactic coordinates and its pixels and angles reused for scanning the sky and for
-binning; a test checks the scan against ``lbs.scan_map_in_observations``.
+orientation in Galactic coordinates. litebird_sim gives the boresight attitude (PTEP
+scanning strategy, phases counted from the mission start so chunks join up), the orbit
+for the dipole (its ``TOTAL_FROM_LIN_T`` formula), the white + 1/f noise and the 2f
+HWPSS (``add_2f``). The boresight quaternions, rotated once to Galactic coordinates, are
+interpolated and composed with each direction's detector quaternion by ducc0's
+``PointingProvider``; one kernel turns them into theta, phi, psi and the direction
+vector (:func:`data_model.quaternion_pointing`), which the pixels, the angles, the sky
+scans, the binning and the dipole all reuse. Tests check the pointing and the dipole
+against litebird_sim's ``get_pointings`` and ``add_dipole``, and the scan against
+``lbs.scan_map_in_observations``, to rounding.
 """
 
 from __future__ import annotations
@@ -151,6 +155,7 @@ class ChunkPointing:
     galactic_rad: np.ndarray  # (n_directions, n, 3) theta, phi, psi in Galactic coordinates
     observation: object  # litebird_sim Observation, pointings prepared (ecliptic, lazy)
     direction_of: np.ndarray  # (n_det,) row of galactic_rad of each detector
+    galactic_vectors: np.ndarray  # (n_directions, n, 3) unit direction vectors, Galactic
     _harmonic_templates: dict = field(default_factory=dict, init=False, repr=False)
 
     def ecliptic_rad(self) -> np.ndarray:
@@ -272,23 +277,39 @@ class PairSimulator:
             observation, instrument=self.instrument, spin2ecliptic_quats=spin2ecliptic, hwp=hwp
         )
         bore2ecliptic = observation.pointing_provider.bore2ecliptic_quats
-        galactic_provider = lbs.PointingProvider(ecliptic_to_galactic()[1] * bore2ecliptic, hwp=hwp)
+        bore2galactic = ecliptic_to_galactic()[1] * bore2ecliptic
         shape = (self.n_detectors, n_samples)
         direction_of = direction_groups(self.detectors)
         owners_of = [np.flatnonzero(direction_of == d) for d in range(direction_of.max() + 1)]
-        galactic = np.empty((len(owners_of), n_samples, 3))
         hwp_angle = np.empty(n_samples)
+        hwp.get_hwp_angle(
+            output_buffer=hwp_angle, start_time_s=0.0, delta_time_s=1 / sampling_rate_hz
+        )
+        # ducc0 interpolates the boresight quaternions and composes each direction's
+        # detector quaternion (litebird_sim's get_pointings does both in Python blocks)
+        provider = ducc0.pointingprovider.PointingProvider(
+            0.0, bore2galactic.sampling_rate_hz, bore2galactic.quats, self.threads
+        )
+        first_s = (start - bore2galactic.start_time).to_value("s")
+        galactic = np.empty((len(owners_of), n_samples, 3))
+        vectors = np.empty((len(owners_of), n_samples, 3))
+        quaternions = np.empty((n_samples, 4))
         for direction, owners in enumerate(owners_of):
-            galactic_provider.get_pointings(
-                detector_quat=observation.quat[owners[0]],
-                start_time=start,
-                start_time_global=start,
-                sampling_rate_hz=sampling_rate_hz,
-                nsamples=n_samples,
-                pointing_buffer=galactic[direction],
-                hwp_buffer=hwp_angle,
-                compute_hwp_angle=direction == 0,
+            detector_quaternions = observation.quat[owners[0]].quats
+            if len(detector_quaternions) != 1:
+                raise ValueError(
+                    f"{self.detectors[owners[0]].name}: a time-dependent detector quaternion "
+                    f"({len(detector_quaternions)} samples); expected one"
+                )
+            provider.get_rotated_quaternions(
+                first_s,
+                sampling_rate_hz,
+                detector_quaternions[0],
+                rot_left=False,
+                out=quaternions,
             )
+            data_model.quaternion_pointing(quaternions, galactic[direction], vectors[direction])
+        del quaternions
         pixels = np.empty((len(owners_of), n_samples), dtype=np.int64)
         cos_2alpha = np.empty(shape)
         sin_2alpha = np.empty(shape)
@@ -322,6 +343,7 @@ class PairSimulator:
             galactic,
             observation,
             direction_of,
+            vectors,
         )
 
     def pixels_at(
@@ -372,23 +394,28 @@ class PairSimulator:
         )
 
     def dipole(self, pointing: ChunkPointing) -> np.ndarray:
-        """Orbital + solar dipole [K_CMB] (litebird_sim, TOTAL_FROM_LIN_T), (n_det, n).
+        """Orbital + solar dipole [K_CMB] (litebird_sim's TOTAL_FROM_LIN_T), (n_det, n).
 
-        Evaluated in Galactic coordinates (pointing and spacecraft velocity rotated
-        alike). TOTAL_FROM_LIN_T depends on the direction only, so the detectors sharing one
-        direction get one computation."""
-        import litebird_sim as lbs
-
+        Evaluated in Galactic coordinates (directions and spacecraft velocity rotated
+        alike), from each direction's unit vectors (:func:`data_model.dipole_total_from_lin_t`;
+        litebird_sim's ``add_dipole`` recomputes them from theta and phi, 3 times the
+        cost); the velocity is litebird_sim's interpolation of the orbit. The dipole
+        depends on the direction only, so detectors sharing one get one computation."""
+        velocities = self.orbit_galactic.compute_velocities(
+            time0=pointing.observation.start_time,
+            delta_time_s=1 / self.plan.sampling_rate_hz,
+            num_of_samples=pointing.hwp_angle_rad.size,
+        )
         owners = np.unique(pointing.direction_of, return_index=True)[1]  # first of each
-        observation = self._observation(
-            [self.detectors[k] for k in owners],
-            pointing.observation.start_time,
-            pointing.observation.n_samples,
+        per_direction = np.stack(
+            [
+                data_model.dipole_total_from_lin_t(
+                    vectors, velocities, self.detectors[owner].bandcenter_ghz
+                )
+                for owner, vectors in zip(owners, pointing.galactic_vectors, strict=True)
+            ]
         )
-        lbs.add_dipole_to_observations(
-            observation, pos_and_vel=self.orbit_galactic, pointings=pointing.galactic_rad
-        )
-        return observation.tod[pointing.direction_of]  # (n_det, n), a copy
+        return per_direction[pointing.direction_of]  # (n_det, n), a copy
 
     def hwpss(self, pointing: ChunkPointing, amplitude_k: float) -> np.ndarray:
         """A_2 cos(2 (chi - theta_det)) [K_CMB] via litebird_sim's add_2f, (n_det, n)."""
