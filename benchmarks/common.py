@@ -128,13 +128,15 @@ def run_fixed_pass(
     extra_variants=(),
     demodulated=False,
     band_limited=False,
+    noise_realizations=1,
 ):
     """(seconds, {variant: FixedMaps}, simulator) of the map-domain fixed pass of ``days``
     of channel ``name`` (:func:`fixed_pass_setup`, 60 s baselines, no foreground, the
     reference CMB of master seed 1): T_ell and S_ell measured up to ``measure_lmax``
     (None: the full band); ``extra_variants``: (nside, baseline length) map-makers binned
     in the same pass, ``nside`` the scan's; ``demodulated``: each binned one also
-    demodulated; ``band_limited``: the sky scanned from its a_lm."""
+    demodulated; ``band_limited``: the sky scanned from its a_lm; ``noise_realizations``:
+    the reference noise realizations (simulation.noise_reference_realizations)."""
     import healpy as hp
 
     from hwp_tes_systematics.simulation import map_domain
@@ -159,5 +161,6 @@ def run_fixed_pass(
         extra_variants=extra_variants,
         demodulated_variants=binned if demodulated else (),
         band_limited_sky=band_limited,
+        noise_realizations=noise_realizations,
     )
     return time.perf_counter() - started, passes, simulator

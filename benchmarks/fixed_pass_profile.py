@@ -6,7 +6,8 @@ numpy, ducc0 or numba primitive it rests on, timed alone at the pass's array siz
     python benchmarks/fixed_pass_profile.py --reference-src ../ref/src   # beside another checkout
 
 The pass is the map-domain fixed pass of one channel (``map_domain.fixed_passes``): one
-pair, ``--days`` one-day chunks at ``--rate`` Hz, no noise, the sky scanned at
+pair, ``--days`` one-day chunks at ``--rate`` Hz, no noise in the TOD, ``--noise-realizations``
+reference noise realizations (2, the configurations'), the sky scanned at
 ``--nside`` with 60 s baselines, plus the map-makers of ``--variants`` (nside:baseline
 seconds or none) and, with ``--demodulated``, HWP demodulation at every binned one; one
 thread; T_ell and S_ell measured up to ``--measure-lmax`` (the configurations' filter_lmax).
@@ -139,6 +140,7 @@ def run_pass(arguments) -> dict:
             extra_variants=variants,
             demodulated=arguments.demodulated,
             band_limited=arguments.demodulated,
+            noise_realizations=arguments.noise_realizations,
         )
         return seconds, simulator
 
@@ -301,6 +303,12 @@ def main() -> None:
         default=128,
         help="T_ell, S_ell measured up to it (simulation.filter_lmax of config/nside*.yaml)",
     )
+    parser.add_argument(
+        "--noise-realizations",
+        type=int,
+        default=2,
+        help="reference noise realizations (simulation.noise_reference_realizations)",
+    )
     parser.add_argument("--no-systematics", action="store_true")
     parser.add_argument("--default-malloc", action="store_true", help="glibc's defaults")
     parser.add_argument("--reference-src", help="another checkout's src, run beside")
@@ -328,7 +336,8 @@ def main() -> None:
     print(
         f"{arguments.channel}, {arguments.days:g} days at {arguments.rate:g} Hz, nside "
         f"{arguments.nside}, variants {arguments.variants or 'none'}, demodulated "
-        f"{arguments.demodulated}, one thread ({det_samples:.3g} detector-samples)"
+        f"{arguments.demodulated}, {arguments.noise_realizations} reference noise "
+        f"realizations, one thread ({det_samples:.3g} detector-samples)"
     )
     print(f"package: {measured['package']}")
     header = "| stage | this pass [ns] | floor [ns] | pass / floor |"

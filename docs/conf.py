@@ -41,7 +41,8 @@ autodoc_typehints = "none"  # the docstrings state the units; signatures stay sh
 
 html_theme = "furo"
 html_title = f"hwp_tes_systematics {release}"
-html_static_path: list[str] = []
+html_static_path = ["_static"]
+html_css_files = ["custom.css"]  # hides the code-host note (tests/test_docs.py)
 html_show_sourcelink = False
 
 

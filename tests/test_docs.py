@@ -3,6 +3,7 @@ class, every command a page shows names what runs it, the README is a short fron
 whose test command is CI's, and the version has one source."""
 
 import ast
+import importlib.metadata
 import re
 import subprocess
 import sys
@@ -224,8 +225,12 @@ def test_version_has_one_source():
     assert citation["license"] == pyproject["project"]["license"]["text"] == "GPL-3.0-or-later"
     assert "arXiv:2407.15294" in (REPO / "CITATION.cff").read_text()
     changelog = (REPO / "CHANGELOG.md").read_text()
-    releases = re.findall(r"^## \[(\d+\.\d+\.\d+)\]", changelog, re.MULTILINE)
-    assert (releases and releases[0] == version) or "## [Unreleased]" in changelog
+    releases = re.findall(r"^## \[(\d+\.\d+\.\d+)\] - (\d{4}-\d{2}-\d{2})", changelog, re.MULTILINE)
+    assert releases, "CHANGELOG.md: no dated release heading '## [0.x.y] - YYYY-MM-DD'"
+    latest, date = releases[0]
+    assert latest == version, f"CHANGELOG.md's latest release {latest} != {version}"
+    assert str(citation["date-released"]) == date, "CITATION.cff date-released"
+    assert importlib.metadata.version("hwp-tes-systematics") == version  # as installed
 
 
 @pytest.mark.slow
@@ -268,3 +273,57 @@ def test_python_floor_is_stated_where_pip_enforces_it():
         assert stated[required] == [floor], (required, stated[required])
     wrong = {page: found for page, found in stated.items() if set(found) - {floor}}
     assert not wrong, f"pages stating another Python floor than {floor}: {wrong}"
+
+
+CODE_HOST_NOTE = (
+    '<p class="code-host-note">This page is written for the documentation site (build it with '
+    "<code>sphinx-build -b html docs docs/_build/html</code>); on a code host its directives "
+    "show as plain text.</p>"
+)
+DIRECTIVE = re.compile(r"^(```|:::)\{[a-z-]+\}", re.MULTILINE)
+
+
+def pages_with_directives() -> list[Path]:
+    return sorted(
+        page
+        for page in DOCS.rglob("*.md")
+        if not {"_build", "_generated"} & set(page.relative_to(DOCS).parts)
+        and DIRECTIVE.search(page.read_text())
+    )
+
+
+def test_a_page_with_directives_says_where_it_renders():
+    """A page that uses MyST directives (shown as raw text on a code host) says so under its
+    title, in a note the site hides (docs/_static/custom.css)."""
+    assert ".code-host-note" in (DOCS / "_static" / "custom.css").read_text()
+    missing = []
+    for page in pages_with_directives():
+        lines = [line for line in page.read_text().splitlines() if line.strip()]
+        if not (lines[0].startswith("# ") and lines[1] == CODE_HOST_NOTE):
+            missing.append(str(page.relative_to(REPO)))
+    assert not missing, "pages without the code-host note under their title:\n" + "\n".join(missing)
+
+
+HISTORY = re.compile(r"\bsessions? \d+|\bissue #?\d+|\breferee|\bround \d+ of\b", re.IGNORECASE)
+HASH = re.compile(r"(?<![\w/.-])`?[0-9a-f]{7,40}`?(?![\w/.-])")
+# run records: pages that describe the files of one run and name the commits they came from
+RUN_RECORDS = ("one_year/README.md", "resolution/README.md", "diagnosis_rates/README.md")
+
+
+def test_pages_carry_no_development_history():
+    """The manual names no work sessions, issue numbers or referee rounds, and commit hashes
+    only as provenance: in a caption or a "Made at" line, or in a run record's page."""
+    found = []
+    for page in sorted(DOCS.rglob("*.md")):
+        relative = page.relative_to(DOCS).as_posix()
+        if {"_build", "_generated"} & set(page.relative_to(DOCS).parts):
+            continue
+        for number, line in enumerate(page.read_text().splitlines(), 1):
+            if HISTORY.search(line):
+                found.append(f"{relative}:{number}: {HISTORY.search(line).group(0)}")
+            provenance = line.lstrip().startswith(":caption:") or "Made at" in line
+            if relative not in RUN_RECORDS and not provenance:
+                hashes = [h for h in HASH.findall(line) if re.search(r"[a-f]", h)]
+                hashes = [h for h in hashes if re.search(r"\d", h)]
+                found += [f"{relative}:{number}: {h}" for h in hashes]
+    assert not found, "\n".join(found)

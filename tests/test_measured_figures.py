@@ -129,3 +129,109 @@ def test_the_answer_and_the_range_of_readings_are_the_runs():
     assert matches(max(r["requirement"] for r in runs), bounds[1])
     assert matches(min(r["fisher"] for r in runs), bounds[2])
     assert matches(max(r["fisher"] for r in runs), bounds[3])
+
+
+# Whole-run costs: each has one source, a run record, and the pages quote it or link to it.
+DEFAULT_RUN = REPO / "docs" / "default_run" / "run.json"
+ONE_YEAR_RUN = REPO / "docs" / "one_year" / "rerun" / "run.json"
+# jobs of a configuration's DAG (a dry run checks each: test_job_counts_are_the_dags)
+JOB_COUNTS = {
+    "config/config.yaml": 70,
+    "config/one_year.yaml": 197,
+    "tests/configs/tiny.yaml": 26,
+}
+PAGES = [REPO / "README.md"] + sorted(
+    p for p in (REPO / "docs").rglob("*.md") if not {"_build", "_generated"} & set(p.parts)
+)
+
+
+def minutes(text: str) -> float:
+    """'1 h 58 min', '4 min 11 s', '255 s' -> minutes."""
+    units = {"h": 60.0, "min": 1.0, "s": 1 / 60}
+    found = re.findall(r"(\d+(?:\.\d+)?) (h|min|s)\b", text)
+    assert found, text
+    return sum(float(value) * units[unit] for value, unit in found)
+
+
+def test_the_run_records_hold_their_configurations_job_counts():
+    default, year = (json.loads(p.read_text()) for p in (DEFAULT_RUN, ONE_YEAR_RUN))
+    assert default["command"] == "snakemake --cores 2"
+    assert default["jobs"] == JOB_COUNTS["config/config.yaml"]
+    assert year["command"] == "snakemake --cores 2 --configfile config/one_year.yaml"
+    assert year["jobs"] == JOB_COUNTS["config/one_year.yaml"]
+
+
+def test_the_readme_quotes_the_run_records():
+    """The README's run times and job counts are the records' (rounded as quoted)."""
+    readme = (REPO / "README.md").read_text()
+    default = json.loads(DEFAULT_RUN.read_text())
+    jobs, quoted_min = re.search(r"\((\d+) jobs in about (\d+) minutes on 2 cores", readme).groups()
+    assert int(jobs) == default["jobs"]
+    assert int(quoted_min) == round(default["wall_s"] / 60)
+    year = json.loads(ONE_YEAR_RUN.read_text())
+    jobs, hours = re.search(
+        r"config/one_year\.yaml` \((\d+) jobs, about (\d+) h here\)", readme
+    ).groups()
+    assert int(jobs) == year["jobs"]
+    assert int(hours) == round(year["wall_s"] / 3600)
+
+
+def test_the_configuration_table_quotes_the_run_records():
+    table = (REPO / "docs" / "workflow" / "configuration.md").read_text()
+    for record, row_start in (
+        (DEFAULT_RUN, "| `config/config.yaml`"),
+        (ONE_YEAR_RUN, "| `config/one_year.yaml`"),
+    ):
+        run = json.loads(record.read_text())
+        (row,) = [line for line in table.splitlines() if line.startswith(row_start)]
+        cost = row.split("|")[3]
+        assert f"{run['jobs']} jobs in " in cost, row
+        assert record.relative_to(REPO).as_posix() in cost, row
+        quoted = minutes(cost.split(" jobs in ")[1].split(" on ")[0])
+        assert abs(quoted - run["wall_s"] / 60) < 0.5, (row, run["wall_s"])
+
+
+def test_every_job_count_on_a_page_is_a_configurations():
+    """'N jobs' on any page is the DAG of a configuration (JOB_COUNTS) or of the tiny test
+    configuration, unless given as an estimate ('~N', 'about N'): a count from an older
+    DAG fails here."""
+    allowed = set(JOB_COUNTS.values())
+    stale = [
+        f"{page.relative_to(REPO)}:{text[: match.start()].count(chr(10)) + 1}: {match.group(0)}"
+        for page in PAGES
+        for text in [page.read_text()]
+        for match in re.finditer(r"(~|about )?\b(\d[\d,]*) jobs\b", text)
+        if not match.group(1) and int(match.group(2).replace(",", "")) not in allowed
+    ]
+    assert not stale, "\n".join(stale)
+
+
+def test_no_page_quotes_a_test_count():
+    """Test counts change with every test added: pages give the tiers' wall time instead."""
+    counts = [
+        f"{page.relative_to(REPO)}: {match.group(0)}"
+        for page in PAGES
+        for match in re.finditer(r"\b\d+ (tests (in|passed)|passed in)\b", page.read_text())
+    ]
+    assert not counts, "\n".join(counts)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("configfile", JOB_COUNTS)
+def test_job_counts_are_the_dags(configfile, tmp_path):
+    """A dry run of each configuration schedules JOB_COUNTS[configfile] jobs (the default's
+    with no --configfile: the embedded configuration)."""
+    from helpers import make_workdir, snakemake
+
+    workdir = make_workdir(REPO, tmp_path / "workdir")
+    extra = (
+        ("-n",)
+        if configfile == "config/config.yaml"
+        else ("-n", "--configfile", str(REPO / configfile))
+    )
+    result = snakemake(workdir, extra=extra)
+    assert result.returncode == 0, result.stderr[-3000:]
+    total = re.search(r"^total\s+(\d+)$", result.stdout + result.stderr, re.MULTILINE)
+    assert total and int(total.group(1)) == JOB_COUNTS[configfile], (result.stdout + result.stderr)[
+        -3000:
+    ]

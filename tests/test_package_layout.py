@@ -34,7 +34,7 @@ def test_no_module_imports_a_stage():
 # The package's layers, lowest first: a module imports only from its own layer or lower
 # ones. Subpackages and top-level modules are named by their first component.
 LAYERS = (
-    ("io", "paths", "seeding", "timing", "_moved"),  # infrastructure
+    ("io", "paths", "seeding", "timing"),  # infrastructure
     ("instrument", "sky", "config"),  # the instrument and its inputs
     ("simulation",),  # TOD, filters, map-making, the map-domain path
     ("figures",),  # plotting helpers and the stages' figures (arrays in, PNG out)
@@ -81,17 +81,13 @@ def test_analysis_and_diagnosis_stay_apart():
     assert not offenders, "\n".join(offenders)
 
 
-def test_the_moved_modules_keep_their_old_names():
-    """``import hwp_tes_systematics.tod`` still works: the same module, with a warning."""
+def test_the_old_module_names_are_gone():
+    """The modules that moved into subpackages after 0.1.0 lost their old names at 0.2.0:
+    ``import hwp_tes_systematics.tod`` fails, ``hwp_tes_systematics.simulation.tod`` works."""
     import importlib
-    import sys
 
     import pytest
 
-    from hwp_tes_systematics._moved import MOVED
-
-    for old, new in MOVED.items():
-        sys.modules.pop(f"hwp_tes_systematics.{old}", None)  # an earlier import's alias
-        with pytest.warns(DeprecationWarning, match=f"moved to hwp_tes_systematics.{new}"):
-            module = importlib.import_module(f"hwp_tes_systematics.{old}")
-        assert module is importlib.import_module(f"hwp_tes_systematics.{new}")
+    with pytest.raises(ModuleNotFoundError):
+        importlib.import_module("hwp_tes_systematics.tod")
+    assert importlib.import_module("hwp_tes_systematics.simulation.tod").PairSimulator
