@@ -21,10 +21,10 @@ from hwp_tes_systematics.config import (
     fixed_pass_variant_names,
     fixed_pass_variants,
     moments_variant,
+    noise_shaping_siblings,
     selected_channels,
 )
 from hwp_tes_systematics.analysis.systematics import case_names
-from hwp_tes_systematics.simulation.map_domain import noise_shaping_siblings
 
 check_config(config, source="Snakemake config")
 

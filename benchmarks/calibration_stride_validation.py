@@ -25,6 +25,7 @@ from hwp_tes_systematics.simulation import map_domain
 from hwp_tes_systematics.simulation.channel_inputs import channel_a2_k_cmb, channel_sky
 from hwp_tes_systematics.simulation.tod import MissionPlan, PairSimulator
 from hwp_tes_systematics.simulation.tod_maps import PairMapSettings
+from hwp_tes_systematics.sky import cmb as sky_cmb
 
 NSIDE = 64
 LMAX = 3 * NSIDE - 1
@@ -52,9 +53,7 @@ def fixed_pass(config, channel_name, days, every):
     simulator = PairSimulator(channel, plan, NSIDE, noise_model="keshner")
     sky_config = {**config, "maps": {**config["maps"], "nside": NSIDE}}
     foreground = channel_sky(sky_config, channel, 0)["foreground"]
-    transfer_alm = map_domain.transfer_cmb_alm(
-        LMAX, 0.0, config["master_seed"], channel.fwhm_arcmin
-    )
+    transfer_alm = sky_cmb.transfer_cmb_alm(LMAX, 0.0, config["master_seed"], channel.fwhm_arcmin)
     started = time.perf_counter()
     fixed = map_domain.fixed_pass(
         simulator, settings, foreground, transfer_alm, True, LMAX, calibration_every_chunks=every
@@ -67,7 +66,7 @@ def seed_noise(fixed, a2_k, channel, master_seed):
     noise, sh = [], []
     good = fixed.good
     for seed in SEEDS:
-        cmb_alm = map_domain.seed_cmb_alm(LMAX, 0.0, master_seed, seed, channel.fwhm_arcmin)
+        cmb_alm = sky_cmb.seed_cmb_alm(LMAX, 0.0, master_seed, seed, channel.fwhm_arcmin)
         maps = map_domain.realize_seed(
             fixed,
             cmb_alm,

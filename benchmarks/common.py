@@ -12,6 +12,7 @@ from hwp_tes_systematics.instrument.channels import load_channel
 from hwp_tes_systematics.io import use_threads
 from hwp_tes_systematics.simulation.tod import MissionPlan, PairSimulator
 from hwp_tes_systematics.simulation.tod_maps import PairMapSettings, accumulate
+from hwp_tes_systematics.sky import cmb as sky_cmb
 from hwp_tes_systematics.timing import StageClock
 
 MASTER_SEED, SEED = 1, 0
@@ -146,7 +147,7 @@ def run_fixed_pass(
     simulator, settings = fixed_pass_setup(name, days, nside, rate_hz, a2_k_cmb, 60.0)
     lmax = 3 * nside - 1
     foreground = np.zeros((3, hp.nside2npix(nside)))
-    alm = map_domain.transfer_cmb_alm(lmax, 0.0, 1, channel.fwhm_arcmin)
+    alm = sky_cmb.transfer_cmb_alm(lmax, 0.0, 1, channel.fwhm_arcmin)
     binned = [(nside, settings.baseline_length_s), *extra_variants]
     started = time.perf_counter()
     passes = map_domain.fixed_passes(

@@ -24,6 +24,7 @@ from common import A2_K_CMB, fixed_pass_setup
 
 from hwp_tes_systematics.instrument.channels import load_channel
 from hwp_tes_systematics.simulation import map_domain
+from hwp_tes_systematics.sky import cmb as sky_cmb
 
 
 def main() -> None:
@@ -42,7 +43,7 @@ def main() -> None:
     )
     lmax = 3 * scan_nside - 1
     foreground = np.zeros((3, hp.nside2npix(scan_nside)))
-    transfer_alm = map_domain.transfer_cmb_alm(lmax, 0.0, 1, channel.fwhm_arcmin)
+    transfer_alm = sky_cmb.transfer_cmb_alm(lmax, 0.0, 1, channel.fwhm_arcmin)
     variants = [(nside, None) for nside in arguments.nsides]
     for demodulated in (False, True):
         started = time.perf_counter()

@@ -39,6 +39,7 @@ from hwp_tes_systematics.instrument.channels import load_channel
 from hwp_tes_systematics.io import reuse_freed_memory
 from hwp_tes_systematics.simulation import map_domain
 from hwp_tes_systematics.simulation.mapmaking import MATRIX_ENTRIES
+from hwp_tes_systematics.sky import cmb as sky_cmb
 
 CHANNELS = {"M1-140": (True, 10), "L1-040": (False, 12)}  # (systematics, channels like it)
 YEAR_DAYS = 365.25
@@ -56,7 +57,7 @@ def measure(name, carries_systematics, nside, rate_hz, days, *pass_options):
     lmax = 3 * nside - 1
     channel = load_channel(name)
     started = time.perf_counter()
-    cmb_alm, band = map_domain.band_limited_seed_cmb(lmax, 0.0, 1, 0, channel.fwhm_arcmin)
+    cmb_alm, band = sky_cmb.band_limited_seed_cmb(lmax, 0.0, 1, 0, channel.fwhm_arcmin)
     map_domain.realize_seed(fixed, cmb_alm, band, 0.264, 1.0, np.random.default_rng)
     return fixed_s, time.perf_counter() - started
 
@@ -138,7 +139,7 @@ def seed_costs(
         started = time.perf_counter()
         reduce_s = 0.0
         for seed in range(seeds):
-            cmb_alm, band = map_domain.band_limited_seed_cmb(lmax, 0.0, 1, seed, fwhm)
+            cmb_alm, band = sky_cmb.band_limited_seed_cmb(lmax, 0.0, 1, seed, fwhm)
             maps = map_domain.realize_seed(
                 fixed, cmb_alm, band, 0.264, 1.0, np.random.default_rng, operators, False
             )

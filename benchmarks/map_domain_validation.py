@@ -52,8 +52,9 @@ import pandas as pd
 from hwp_tes_systematics.analysis.likelihood import BBModel, fisher_bias, model_from_noise_csv
 from hwp_tes_systematics.analysis.spectra import pseudo_spectra
 from hwp_tes_systematics.config import analysis_variant, load_config
-from hwp_tes_systematics.simulation.map_domain import ChannelSeeds, band_limited_seed_cmb
+from hwp_tes_systematics.simulation.map_domain import ChannelSeeds
 from hwp_tes_systematics.simulation.maps_file import read_channel_maps
+from hwp_tes_systematics.sky.cmb import band_limited_seed_cmb
 
 ELL_BANDS = ((2, 12), (12, 40), (40, 80), (80, 129))
 

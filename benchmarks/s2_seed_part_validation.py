@@ -40,6 +40,7 @@ from hwp_tes_systematics.simulation.tod_maps import (
     split_solved_maps,
     templates_from_terms,
 )
+from hwp_tes_systematics.sky import cmb as sky_cmb
 from hwp_tes_systematics.sky.harmonics import BandLimitedSky
 
 MASTER_SEED = 7
@@ -77,7 +78,7 @@ def main(argv=None) -> None:
     if hp.npix2nside(foreground.shape[-1]) != nside:  # band-limited to the map's band
         foreground = hp.alm2map(hp.map2alm(foreground, lmax=lmax), nside, lmax=lmax)
     fwhm = channel.fwhm_arcmin
-    transfer_alm = map_domain.transfer_cmb_alm(lmax, 0.0, MASTER_SEED, fwhm)
+    transfer_alm = sky_cmb.transfer_cmb_alm(lmax, 0.0, MASTER_SEED, fwhm)
     fixed = map_domain.fixed_pass(
         simulator, settings, foreground, transfer_alm, True, lmax, demodulated=True
     )
@@ -93,7 +94,7 @@ def main(argv=None) -> None:
     scanned_foreground = BandLimitedSky.from_map(foreground, lmax)
     rows = []
     for seed in range(args.seeds):
-        alm = map_domain.seed_cmb_alm(lmax, 0.0, MASTER_SEED, seed, fwhm)
+        alm = sky_cmb.seed_cmb_alm(lmax, 0.0, MASTER_SEED, seed, fwhm)
         cmb = BandLimitedSky(alm, lmax)
         demodulated = DemodulatedEquations(nside, 1 + 3 * simulator.n_detectors + 2)
         accumulate(

@@ -31,6 +31,7 @@ from hwp_tes_systematics.simulation.tod_maps import (
     PairMapSettings,
     templates_from_terms,
 )
+from hwp_tes_systematics.sky import cmb as sky_cmb
 
 NSIDE = 64
 LMAX = 3 * NSIDE - 1
@@ -54,9 +55,7 @@ def fixed_pass(config, channel_name, rate_hz, days):
     simulator = PairSimulator(channel, plan, NSIDE, noise_model="keshner")
     sky_config = {**config, "maps": {**config["maps"], "nside": NSIDE}}
     foreground = channel_sky(sky_config, channel, 0)["foreground"]
-    transfer_alm = map_domain.transfer_cmb_alm(
-        LMAX, 0.0, config["master_seed"], channel.fwhm_arcmin
-    )
+    transfer_alm = sky_cmb.transfer_cmb_alm(LMAX, 0.0, config["master_seed"], channel.fwhm_arcmin)
     started = time.perf_counter()
     fixed = map_domain.fixed_pass(simulator, settings, foreground, transfer_alm, True, LMAX)
     return fixed, a2_k, time.perf_counter() - started

@@ -486,7 +486,8 @@ def test_fixed_pass_profile_prints_each_stage_beside_its_floor_and_another_check
         [
             sys.executable,
             str(repo / "benchmarks" / "fixed_pass_profile.py"),
-            *("--days", "0.02", "--nside", "8", "--reference-src", str(repo / "src")),
+            *("--days", "0.02", "--nside", "8", "--noise-realizations", "1"),
+            *("--reference-src", str(repo / "src")),
         ],
         capture_output=True,
         text=True,

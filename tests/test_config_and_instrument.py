@@ -309,8 +309,7 @@ def test_a_demodulated_analysis_reads_its_own_file_of_the_pass(repo, monkeypatch
 def test_channels_without_systematics_can_be_sampled_slower(repo, monkeypatch):
     """simulation.sampling_rate_without_systematics_hz applies to the channels outside
     instrument.systematics_channels only; null leaves every channel at sampling_rate_hz."""
-    from hwp_tes_systematics.config import channel
-    from hwp_tes_systematics.simulation.tod_maps import simulated_rate_hz
+    from hwp_tes_systematics.config import channel, simulated_rate_hz
 
     monkeypatch.chdir(repo)
     config = load_config(repo / "config/config.yaml", repo / "config/one_year.yaml")

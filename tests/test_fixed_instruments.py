@@ -96,7 +96,7 @@ def test_tables_with_different_instrument_counts_are_refused():
 def test_requirement_stage_summarises_and_draws_the_instruments(tmp_path):
     """The requirement stage's summary of the seeds' CSVs: the JSON block and the figure;
     no instruments (fixed_instruments: 0): no block."""
-    from hwp_tes_systematics.stages.requirement import fixed_instruments_summary
+    from hwp_tes_systematics.stages.requirement import fixed_instruments
 
     model = _model()
     rng = np.random.default_rng(5)
@@ -106,12 +106,12 @@ def test_requirement_stage_summarises_and_draws_the_instruments(tmp_path):
         table.to_csv(paths[-1], index=False)
     figure = tmp_path / "fixed_instruments.png"
     own = {"k_per_k2": 1.0}
-    fixed = fixed_instruments_summary(paths, model, 6.5e-6, "paper_recipe", own, str(figure))
+    fixed = fixed_instruments(paths, model, 6.5e-6, "paper_recipe", own, str(figure), None)
     assert fixed["n_instruments"] == 3 and fixed["residual"] == "filtered CMB reference"
     assert figure.stat().st_size > 10_000
     empty = tmp_path / "empty.csv"
     pd.DataFrame({"ell": model.ell}).to_csv(empty, index=False)
-    assert fixed_instruments_summary([empty], model, 6.5e-6, "paper_recipe", own, None) is None
+    assert fixed_instruments([empty], model, 6.5e-6, "paper_recipe", own, None, None) is None
 
 
 def test_the_68_percent_convention_matches_the_likelihood_at_the_crossing():

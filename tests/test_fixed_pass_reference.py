@@ -21,6 +21,8 @@ import numpy as np
 import pytest
 from helpers import m1_140_pair, pipeline_settings
 
+from hwp_tes_systematics.sky import cmb as sky_cmb
+
 REFERENCE = Path(__file__).parent / "data" / "fixed_pass_reference.npz"
 SCAN_NSIDE, LMAX = 8, 23
 BINNED = [(4, 60.0), (8, None)]
@@ -46,7 +48,7 @@ def fixed_pass_products() -> dict[str, np.ndarray]:
     cls[:3, 2:] = 1e-9 * (np.arange(2, LMAX + 1) / 10.0) ** -2.5
     foreground = hp.alm2map(sky.gaussian_alm(cls, LMAX, np.random.default_rng(3)), SCAN_NSIDE)
     foreground[0] += 3e-3  # an intensity offset as large as the dipole
-    transfer_alm = map_domain.transfer_cmb_alm(LMAX, 0.0, 7, simulator.channel.fwhm_arcmin)
+    transfer_alm = sky_cmb.transfer_cmb_alm(LMAX, 0.0, 7, simulator.channel.fwhm_arcmin)
     passes = map_domain.fixed_passes(
         simulator,
         settings,

@@ -18,6 +18,7 @@ from helpers import m1_140_pair, pipeline_settings
 from hwp_tes_systematics import sky
 from hwp_tes_systematics.simulation import map_domain, tod_maps
 from hwp_tes_systematics.simulation.hwpss_removal import offset_residual, remove_hwp_harmonics
+from hwp_tes_systematics.sky import cmb as sky_cmb
 
 pytestmark = pytest.mark.slow
 
@@ -38,7 +39,7 @@ def passes():
     cls[:3, 2:] = 1e-9 * (np.arange(2, LMAX + 1) / 10.0) ** -2.5
     foreground = hp.alm2map(sky.gaussian_alm(cls, LMAX, np.random.default_rng(3)), SCAN_NSIDE)
     foreground[0] += 3e-3  # an intensity offset as large as the dipole
-    transfer_alm = map_domain.transfer_cmb_alm(LMAX, 0.0, 7, channel.fwhm_arcmin)
+    transfer_alm = sky_cmb.transfer_cmb_alm(LMAX, 0.0, 7, channel.fwhm_arcmin)
     arguments = (simulator, settings, foreground, transfer_alm, True, LMAX)
     together = map_domain.fixed_passes(*arguments, extra_variants=VARIANTS)
     tod_maps.NESTED_FROM_NSIDE, ring_from = 1, tod_maps.NESTED_FROM_NSIDE

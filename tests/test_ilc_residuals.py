@@ -16,6 +16,7 @@ from hwp_tes_systematics.simulation import map_domain
 from hwp_tes_systematics.simulation.mapmaking import MATRIX_ENTRIES
 from hwp_tes_systematics.simulation.maps_file import read_channel_maps
 from hwp_tes_systematics.simulation.tod_maps import templates_from_terms
+from hwp_tes_systematics.sky import cmb as sky_cmb
 from hwp_tes_systematics.stages import component_separation
 
 NSIDE = 16
@@ -321,7 +322,7 @@ def test_seed_alms_from_the_fixed_terms_equal_those_of_the_full_terms(synthetic)
     fixed = synthetic_fixed_pass(NSIDE, np.random.default_rng(11))
     mask = np.where(fixed.good, seed_maps.mask, 0.0)
     lmax = 3 * NSIDE - 1
-    cmb_alm = map_domain.seed_cmb_alm(lmax, 0.01, 7, 0, 30.0)
+    cmb_alm = sky_cmb.seed_cmb_alm(lmax, 0.01, 7, 0, 30.0)
     known = ir.fixed_term_alms(config, "M1-140", fixed, a2_k, mask, harmonic)
     made = {}
     for full_terms in (True, False):

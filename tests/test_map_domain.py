@@ -20,6 +20,7 @@ from helpers import (
     sh_noise_ratio,
 )
 
+from hwp_tes_systematics import config as config_module
 from hwp_tes_systematics import seeding, sky
 from hwp_tes_systematics.instrument.channels import load_channel
 from hwp_tes_systematics.simulation import map_domain
@@ -27,6 +28,7 @@ from hwp_tes_systematics.simulation.map_domain import shaped_noise_map
 from hwp_tes_systematics.simulation.mapmaking import solve_maps
 from hwp_tes_systematics.simulation.tod import MissionPlan, PairSimulator
 from hwp_tes_systematics.simulation.tod_maps import PairMapSettings, accumulate, split_solved_maps
+from hwp_tes_systematics.sky import cmb as sky_cmb
 
 NSIDE = 32
 LMAX = 3 * NSIDE - 1
@@ -53,7 +55,7 @@ def m1_140_fixed_pass(inputs, measure_lmax=None):
     """The fixed pass of ``inputs`` (:func:`fixed_pass_inputs`), T_ell and S_ell measured
     to ``measure_lmax``."""
     simulator, settings, foreground = inputs
-    transfer_alm = map_domain.transfer_cmb_alm(
+    transfer_alm = sky_cmb.transfer_cmb_alm(
         LMAX, 0.0, MASTER_SEED, load_channel("M1-140").fwhm_arcmin
     )
     return map_domain.fixed_pass(
@@ -80,7 +82,7 @@ def setup():
     fast = {
         seed: map_domain.realize_seed(
             fixed,
-            map_domain.seed_cmb_alm(LMAX, 0.0, MASTER_SEED, seed, channel.fwhm_arcmin),
+            sky_cmb.seed_cmb_alm(LMAX, 0.0, MASTER_SEED, seed, channel.fwhm_arcmin),
             LMAX,
             A2_K_CMB,
             NOISE_SCALE,
@@ -96,7 +98,7 @@ def noiseless_fast(fixed, seed):
     fwhm_arcmin = load_channel("M1-140").fwhm_arcmin
     return map_domain.realize_seed(
         fixed,
-        map_domain.seed_cmb_alm(LMAX, 0.0, MASTER_SEED, seed, fwhm_arcmin),
+        sky_cmb.seed_cmb_alm(LMAX, 0.0, MASTER_SEED, seed, fwhm_arcmin),
         LMAX,
         A2_K_CMB,
         0.0,
@@ -263,7 +265,7 @@ def test_shared_seed_operators_give_the_same_seeds(setup):
     for seed in SEEDS:
         again = map_domain.realize_seed(
             fixed,
-            map_domain.seed_cmb_alm(LMAX, 0.0, MASTER_SEED, seed, fwhm_arcmin),
+            sky_cmb.seed_cmb_alm(LMAX, 0.0, MASTER_SEED, seed, fwhm_arcmin),
             LMAX,
             A2_K_CMB,
             NOISE_SCALE,
@@ -315,7 +317,7 @@ def test_cmb_filtered_to_a_band_limit():
     at the full band, and up to L < lmax it multiplies the a_lm by T_ell at ell <= L only."""
     nside = 16
     lmax = 3 * nside - 1
-    alm = map_domain.seed_cmb_alm(lmax, 0.0, MASTER_SEED, 0, 60.0)
+    alm = sky_cmb.seed_cmb_alm(lmax, 0.0, MASTER_SEED, 0, 60.0)
     transfer = np.tile(np.linspace(0.2, 0.95, lmax + 1), (3, 1))
     cmb = hp.alm2map(alm, nside, lmax=lmax, pixwin=False)
     direct = hp.alm2map(
@@ -343,9 +345,9 @@ def test_beamed_cmb_synthesised_to_the_beam_band_limit():
     assert 500 < band < lmax  # a real cut at this nside
     assert sky.beam_band_limit(0.0, lmax) == lmax
     assert sky.beam_band_limit(5.0, lmax) == lmax  # narrower than the pixels: no cut
-    alm = map_domain.seed_cmb_alm(lmax, 0.0, MASTER_SEED, 0, fwhm_arcmin)
+    alm = sky_cmb.seed_cmb_alm(lmax, 0.0, MASTER_SEED, 0, fwhm_arcmin)
     full = hp.alm2map(alm, nside, lmax=lmax, pixwin=False)
-    limited_alm, limited_band = map_domain.band_limited_seed_cmb(
+    limited_alm, limited_band = sky_cmb.band_limited_seed_cmb(
         lmax, 0.0, MASTER_SEED, 0, fwhm_arcmin
     )
     assert limited_band == band
@@ -427,7 +429,7 @@ def test_noise_shaping_pooled_over_a_telescopes_channels():
     from hwp_tes_systematics.config import default_config_path, load_config
 
     config = load_config(default_config_path(), "config/one_year.yaml")
-    siblings = map_domain.noise_shaping_siblings
+    siblings = config_module.noise_shaping_siblings
     assert siblings(config, "M1-140") == ["M1-100", "M2-119", "M1-140", "M2-166", "M1-195"]
     assert siblings(config, "H3-402") == ["H1-195", "H2-235", "H1-280", "H2-337", "H3-402"]
     lft = siblings(config, "L1-040")

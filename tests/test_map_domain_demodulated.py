@@ -31,6 +31,7 @@ from hwp_tes_systematics.simulation.tod_maps import (
     split_solved_maps,
     templates_from_terms,
 )
+from hwp_tes_systematics.sky import cmb as sky_cmb
 from hwp_tes_systematics.sky.harmonics import BandLimitedSky
 
 pytestmark = pytest.mark.slow
@@ -44,7 +45,7 @@ SEEDS = (0, 1, 2)
 
 
 def seed_cmb_alm(seed):
-    return map_domain.seed_cmb_alm(LMAX, 0.0, MASTER_SEED, seed, load_channel("M1-140").fwhm_arcmin)
+    return sky_cmb.seed_cmb_alm(LMAX, 0.0, MASTER_SEED, seed, load_channel("M1-140").fwhm_arcmin)
 
 
 @pytest.fixture(scope="module")
@@ -57,7 +58,7 @@ def setup():
     rng = np.random.default_rng(3)
     foreground = hp.alm2map(sky.gaussian_alm(cls, LMAX, rng), NSIDE, lmax=LMAX)
     foreground[0] += 3e-3  # an intensity offset as large as the dipole
-    transfer_alm = map_domain.transfer_cmb_alm(
+    transfer_alm = sky_cmb.transfer_cmb_alm(
         LMAX, 0.0, MASTER_SEED, load_channel("M1-140").fwhm_arcmin
     )
     fixed = map_domain.fixed_pass(

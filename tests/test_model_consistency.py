@@ -189,11 +189,11 @@ def spectra_table(model, noise, cmb_in, transfer, recovered_cmb=None):
 
 
 def test_held_out_check_fails_when_the_seeds_do_not_share_a_noise_model(base, repo):
-    """The check on held-out seeds (stages.requirement.held_out_check) passes seeds drawn
+    """The check on held-out seeds (consistency.held_out_check) passes seeds drawn
     from one noise model and fails seeds whose noise alternates by 30 % between even and
     odd seeds, which the check on all seeds cannot see (its model is their mean)."""
+    from hwp_tes_systematics.analysis.consistency import held_out_check
     from hwp_tes_systematics.config import load_config
-    from hwp_tes_systematics.stages.requirement import held_out_check
 
     config = load_config(repo / "config/config.yaml")
     config["likelihood"].update({"model": "transfer_in_model", "lmin": 2, "lmax": LMAX})
@@ -284,8 +284,11 @@ def test_the_map_holds_the_transfer_squared_and_only_recovered_power_reads_r_bac
     holds, reads an injected r low and fails the sky check against the map's power
     transfer; the model with t^2 and the measured leakage (recovered_power) reads r back
     and passes."""
+    from hwp_tes_systematics.analysis.consistency import (
+        compare_model_with_data,
+        r_recovery_check,
+    )
     from hwp_tes_systematics.config import load_config
-    from hwp_tes_systematics.stages.requirement import compare_model_with_data, r_recovery_check
 
     config = load_config(repo / "config/config.yaml")
     config["likelihood"].update({"lmin": 2, "lmax": LMAX})

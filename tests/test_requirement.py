@@ -259,7 +259,7 @@ def test_template_split_shares_sum_to_one_and_drop_the_noise_part(tmp_path):
     BB; without the noise x h pairs the requirement loosens; no split columns: None."""
     from hwp_tes_systematics.analysis.ilc_residuals import TEMPLATE_PARTS
     from hwp_tes_systematics.analysis.likelihood import BBModel, fisher_bias
-    from hwp_tes_systematics.stages.requirement import template_split
+    from hwp_tes_systematics.analysis.requirement import template_split
 
     ell = np.arange(41)
     model = BBModel(ell, 1e-18, 1e-16 / (1 + ell), 0.0, 1e-17, 0.5)
@@ -273,12 +273,12 @@ def test_template_split_shares_sum_to_one_and_drop_the_noise_part(tmp_path):
             total = total + (1 if a == b else 2) * table[f"bb_{a}_x_{b}_k4"] / 3
         paths.append(tmp_path / f"seed{seed}.csv")
         pd.DataFrame(table).to_csv(paths[-1], index=False)
-    split = template_split(paths, model, 6.5e-6)
+    split = template_split([pd.read_csv(path) for path in paths], model, 6.5e-6)
     assert sum(split["k_per_k2"].values()) == pytest.approx(fisher_bias(total, model))
     assert sum(split["fraction_of_k"].values()) == pytest.approx(1.0)
     assert split["requirement_without_noise_h_per_k"] > np.sqrt(6.5e-6 / fisher_bias(total, model))
-    pd.DataFrame({"ell": ell, "bb_unit_k4": 1e-17}).to_csv(tmp_path / "old.csv", index=False)
-    assert template_split([tmp_path / "old.csv"], model, 6.5e-6) is None
+    old = pd.DataFrame({"ell": ell, "bb_unit_k4": 1e-17})
+    assert template_split([old], model, 6.5e-6) is None
 
 
 def test_figure8_command_redraws_a_committed_run(tmp_path, capsys):

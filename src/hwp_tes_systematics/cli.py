@@ -206,7 +206,8 @@ def redraw_figure8(requirement_json: str, delta_r_csv: str | None, out_png: str)
 
     import pandas as pd
 
-    from .analysis.requirement import plot_requirement_from_results
+    from .analysis.requirement import figure8_arguments
+    from .figures.results import plot_requirement
 
     requirement_path = Path(requirement_json)
     table_path = (
@@ -215,7 +216,7 @@ def redraw_figure8(requirement_json: str, delta_r_csv: str | None, out_png: str)
     try:
         output = json.loads(requirement_path.read_text())
         table = pd.read_csv(table_path)
-        written = plot_requirement_from_results(output, table, out_png)
+        written = plot_requirement(path=out_png, **figure8_arguments(output, table))
     except FileNotFoundError as error:
         print(f"figure8: no such file: {error.filename}", file=sys.stderr)
         return 2

@@ -323,6 +323,52 @@ def channel(config: dict, name: str) -> instrument.Channel:
     )
 
 
+def simulated_rate_hz(config: dict, channel) -> float:
+    """The TOD sampling rate of ``channel`` [Hz]: simulation.sampling_rate_without_systematics_hz
+    for a channel outside instrument.systematics_channels if set (its TOD holds nothing
+    above 4 f_HWP + the sky band: no d^2 to 8 f_HWP), else simulation.sampling_rate_hz,
+    else the instrument model's."""
+    simulation = config["simulation"]
+    rate = simulation["sampling_rate_hz"] or channel.sampling_rate_hz
+    if channel.name in config["instrument"]["systematics_channels"]:
+        return rate
+    return simulation["sampling_rate_without_systematics_hz"] or rate
+
+
+def noise_shaping_key(config: dict, channel_name: str) -> tuple:
+    """What a channel's noise shaping S_ell, S^h_ell depends on besides the realizations
+    drawn: the filter (its HWP frequency: the notch sits at 4 f_HWP), the sampling rate,
+    the noise spectrum's shape (f_knee, f_min, alpha; not its level: S is a ratio) and
+    whether h n is measured (systematics). The map-maker, the duration and the notch are
+    the run's. Channels with equal keys (a telescope's, in the PTEP model) differ only by
+    their focal-plane position: their S agree within the realizations' scatter
+    (docs/physics/map_domain.md)."""
+    channel_record = channel(config, channel_name)
+    return (
+        channel_record.hwp_rpm,
+        simulated_rate_hz(config, channel_record),
+        channel_record.fknee_mhz,
+        channel_record.fmin_hz,
+        channel_record.alpha,
+        channel_name in config["instrument"]["systematics_channels"],
+    )
+
+
+def noise_shaping_siblings(config: dict, channel_name: str) -> list[str]:
+    """The channels of the run whose measured noise shaping is pooled with
+    ``channel_name``'s (itself included, in the run's order): those with its
+    :func:`noise_shaping_key` when ``simulation.noise_shaping_pooling`` is "telescope",
+    itself alone when it is "channel"."""
+    if config["simulation"]["noise_shaping_pooling"] == "channel":
+        return [channel_name]
+    key = noise_shaping_key(config, channel_name)
+    return [
+        name
+        for name in selected_channels(config)
+        if name == channel_name or noise_shaping_key(config, name) == key
+    ]
+
+
 def telescope_optics(config: dict, telescope: str) -> tuple[HwpCurves, list[OpticalElement], float]:
     """(HWP curves, elements after the HWP, HWP temperature [K]) of one telescope."""
     optics = config["optics"]["telescopes"][telescope]

@@ -56,7 +56,7 @@ def analysis_fixed_pass(channel="{channel}"):
 
 def noise_shaping_files(wildcards):
     """The analysis fixed pass files whose noise shaping a channel's seeds pool
-    (map_domain.noise_shaping_siblings: its own alone, or its telescope's)."""
+    (config.noise_shaping_siblings: its own alone, or its telescope's)."""
     return [
         analysis_fixed_pass(name)
         for name in noise_shaping_siblings(config, wildcards.channel)

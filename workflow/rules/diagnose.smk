@@ -1,8 +1,8 @@
 rule example_recording:
     """An example recording of diagnose.example_channel with the electrothermal TES
-    nonlinearity and its own noise, and the sky map it saw. No wildcards."""
-    input:
-        kw_conversion=paths.KW_CONVERSION_TABLE,
+    nonlinearity and its own noise, and the sky map it saw. No wildcards; no input file:
+    its K/W and A_2 come from the configured optics (channel_inputs.channel_conversion,
+    the same numbers as the kw_conversion table; its config sections rerun it)."""
     output:
         recording=paths.EXAMPLE_RECORDING,
         sky=paths.EXAMPLE_SKY,

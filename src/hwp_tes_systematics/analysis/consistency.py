@@ -34,9 +34,24 @@ lmin..lmax fails.
 
 from __future__ import annotations
 
-import numpy as np
+import logging
 
-from .likelihood import BBModel, linear_r_estimate
+import numpy as np
+import pandas as pd
+
+from .likelihood import (
+    ANALYSES,
+    BBModel,
+    analysis_transfer,
+    fisher_bias_per_ell,
+    fisher_information_per_ell,
+    linear_r_estimate,
+    model_from_noise_table,
+    noise_model,
+    residual_bb,
+)
+
+log = logging.getLogger(__name__)
 
 MIN_SEEDS_FOR_VERDICT = 4  # below this, a standard error over seeds is not one
 
@@ -91,7 +106,7 @@ def check_model(
     ``residual_per_seed``: (n_seeds, n_ell) the no-systematics residual BB [K^2] that
     the analysis fits, one row per seed. ``model_noise_per_seed`` ((n, n_ell), N + C_FGres
     of each seed the model was measured on) and ``model_transfer_sem`` (per ell): when
-    the model comes from other seeds than the data (``stages.requirement.held_out_check``),
+    the model comes from other seeds than the data (:func:`held_out_check`),
     its own standard errors, added in quadrature to the data's. Returns {"consistent", "failing_bins",
     "bins": [{"ell": [first, last], "model_transfer", "data_transfer",
     "data_transfer_sem", "model_bb_k2", "data_bb_k2", "data_bb_sem_k2",
@@ -227,3 +242,138 @@ def check_r_recovery(model: BBModel, recovered_per_seed, r_input: float) -> dict
         "consistent": verdict,
         "bins": rows,
     }
+
+
+def compare_model_with_data(
+    settings: dict, model_noise, data_noise, residuals, model_noise_per_seed=None
+) -> tuple[dict, np.ndarray, np.ndarray]:
+    """(:func:`consistency.check_model`, the model's T_ell, the data's T_ell) of the
+    analysis ``settings`` (config likelihood) with its model from the noise table
+    ``model_noise`` and the data's transfer from ``data_noise`` (the same table when model
+    and data come from the same seeds); ``model_noise_per_seed`` given (other seeds than
+    the data's), the model's own errors are added: its N + C_FGres per seed and, when
+    the analysis carries the transfer, that transfer's error."""
+    analysis, lmax = settings["model"], settings["lmax"]
+    model_transfer = analysis_transfer(model_noise, lmax, analysis)
+    # what the data's map holds of the sky: its power transfer where the run measured it
+    # (the recovered CMB's own BB), else (older runs) the B-to-B transfer
+    power = "sky_power_transfer_bb" if "sky_power_transfer_bb" in data_noise else "sky_transfer_bb"
+    errors = {}
+    if model_noise_per_seed is not None:
+        errors["model_noise_per_seed"] = model_noise_per_seed
+        if model_transfer is not None:
+            column = "sky_power_transfer_bb" if analysis == "recovered_power" else "sky_transfer_bb"
+            errors["model_transfer_sem"] = model_noise[f"{column}_sem"].to_numpy()[: lmax + 1]
+    if model_transfer is None:
+        model_transfer = np.ones(lmax + 1)
+    data_transfer = data_noise[power].to_numpy()[: lmax + 1]
+    check = check_model(
+        model_from_noise_table(model_noise, settings["lmin"], lmax, "paper_recipe"),
+        model_transfer,
+        data_transfer,
+        data_noise[f"{power}_sem"].to_numpy()[: lmax + 1],
+        residuals,
+        **errors,
+    )
+    check["data_transfer"] = power
+    return check, model_transfer, data_transfer
+
+
+def held_out_check(config: dict, nosys_tables: list[pd.DataFrame]) -> dict | None:
+    """The model check with the model measured on other seeds than the data: the seeds
+    split into even and odd positions, the noise model (N_ell, C_FGres, the sky's
+    transfer) of each half checked against the other half's residuals and transfer
+    (:func:`check_model` with both halves' standard errors), both ways.
+    Unlike the check on all seeds, where the model's N_ell is the mean of the residuals
+    it is compared with, this one can fail when the seeds do not share one noise model
+    (e.g. a seed-dependent leak) or its scatter is underestimated. None below 4 seeds."""
+    if len(nosys_tables) < 4:
+        return None
+    settings = config["likelihood"]
+    analysis, lmax = settings["model"], settings["lmax"]
+    halves = (nosys_tables[0::2], nosys_tables[1::2])
+    results = []
+    for name, (model_half, data_half) in zip(
+        ("even -> odd", "odd -> even"), (halves, halves[::-1]), strict=True
+    ):
+        check, _, _ = compare_model_with_data(
+            settings,
+            noise_model(model_half),
+            noise_model(data_half),
+            [residual_bb(table, analysis, lmax) for table in data_half],
+            model_noise_per_seed=[
+                table["bb_noise_residual_k2"].to_numpy()[: lmax + 1]
+                + table["bb_foreground_residual_k2"].to_numpy()[: lmax + 1]
+                for table in model_half
+            ],
+        )
+        results.append(
+            {
+                "model_from_data": name,
+                "consistent": check["consistent"],
+                "failing_bins": check["failing_bins"],
+                "data_over_model": [row["data_over_model"] for row in check["bins"]],
+            }
+        )
+    return {
+        "definition": "the model check with the noise model and transfer measured on half "
+        "the seeds (even or odd positions) and the data of the other half, both ways, the "
+        "two halves' standard errors combined",
+        "bins": [row["ell"] for row in check["bins"]],
+        "consistent": all(result["consistent"] for result in results),
+        "splits": results,
+    }
+
+
+def r_recovery_check(config: dict, noise: pd.DataFrame, nosys_tables) -> dict | None:
+    """:func:`check_r_recovery` of the input CMB's r (simulation.cmb_r) on the
+    no-systematics HILC map of every seed, for the model without transfer (paper_recipe,
+    paper_literal) and with the measured one (transfer_in_model), keyed by analysis. None
+    when the spectra have no recovered-map column (made by an older component_separation).
+    """
+    if not all("bb_recovered_k2" in table for table in nosys_tables):
+        return None
+    settings = config["likelihood"]
+    lmax = settings["lmax"]
+    recovered = np.array(
+        [table["bb_recovered_k2"].to_numpy()[: lmax + 1] for table in nosys_tables]
+    )
+    results = {}
+    for analysis in ANALYSES:
+        if analysis == "recovered_power" and "cmb_leakage_bb_k2" not in noise:
+            continue
+        model = model_from_noise_table(noise, settings["lmin"], lmax, analysis)
+        results[analysis] = check_r_recovery(model, recovered, config["simulation"]["cmb_r"])
+        log.info(
+            "r recovered on the HILC map with the %s model: %.3e +- %.3e (input %.3e)%s",
+            analysis,
+            results[analysis]["r_mean"],
+            results[analysis]["r_sem"],
+            config["simulation"]["cmb_r"],
+            "" if results[analysis]["consistent"] is not False else ": NOT consistent",
+        )
+    return results
+
+
+def information_and_bias(model: BBModel, c_sys: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
+    """(the Fisher information on r per ell, the Fisher bias per ell of the systematic BB
+    ``c_sys``, their fractions per bin of :func:`bins`) from the analysis's ``model``."""
+    information = fisher_information_per_ell(model)
+    bias = fisher_bias_per_ell(c_sys, model)
+    rows = []
+    for first, last in bins(model.lmin, model.lmax):
+        where = (model.ell >= first) & (model.ell <= last)
+        rows.append(
+            {
+                "ell": [int(first), int(last)],
+                "information_fraction": float(information[where].sum() / information.sum()),
+                "bias_fraction": float(bias[where].sum() / bias.sum()) if bias.sum() else 0.0,
+            }
+        )
+    distribution = {
+        "definition": "per bin: the fraction of the Fisher information 1 / sigma_r^2 and of "
+        "the Fisher bias of the mean systematic BB (sigma_g1 = 1), from the analysis's model",
+        "sigma_r_fisher": model.fisher_sigma_r(0.0),
+        "bins": rows,
+    }
+    return information, bias, distribution

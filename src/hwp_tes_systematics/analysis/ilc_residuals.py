@@ -37,6 +37,7 @@ from .. import config as cfg
 from ..io import atomic_path
 from ..simulation import map_domain
 from ..simulation.maps_file import read_channel_maps
+from ..sky import cmb as sky_cmb
 from ..sky import harmonics
 from . import hilc, spectra, template_fit
 from .systematics import instrument_g1_draws, unit_g1_draws
@@ -288,9 +289,9 @@ def _unit_draws(
 
 def _input_cmb_map(config: dict, seed: int, fwhm_arcmin: float, npix: int) -> np.ndarray:
     """(3, npix) the seed's unfiltered CMB at a channel's beam: the draw of
-    :func:`map_domain.band_limited_seed_cmb` (the one every path simulates)."""
+    :func:`sky.cmb.band_limited_seed_cmb` (the one every path simulates)."""
     nside = hp.npix2nside(npix)
-    alm, band = map_domain.band_limited_seed_cmb(
+    alm, band = sky_cmb.band_limited_seed_cmb(
         3 * nside - 1, config["simulation"]["cmb_r"], config["master_seed"], seed, fwhm_arcmin
     )
     return harmonics.alm2map(alm, nside, band)

@@ -34,17 +34,14 @@ the tensor modes widens the likelihood), and the fitted exponent exceeds 2.
 from __future__ import annotations
 
 import logging
-import os
 import warnings
 from collections.abc import Mapping
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-from ..figures.results import plot_requirement
-from .ilc_residuals import SeedMaps
-from .likelihood import fit_r_common_grid, residual_bb
+from .ilc_residuals import TEMPLATE_PARTS, SeedMaps
+from .likelihood import fisher_bias, fit_r_common_grid, residual_bb
 from .systematics import NOSYS
 
 log = logging.getLogger(__name__)
@@ -535,11 +532,12 @@ def systematic_only_estimator(likelihoods: list[dict], budget: float, sigma_r: f
     }
 
 
-def plot_requirement_from_results(output: Mapping, table, path: str | os.PathLike) -> Path:
-    """Fig. 8 from a run's files: ``output`` the requirement stage's requirement.json (a
-    dict), ``table`` its delta_r.csv (a DataFrame: sigma_g1, delta_r,
-    delta_r_systematic_only per seed). What the stage draws; also redraws a committed
-    run's figure without its inputs (``python -m hwp_tes_systematics figure8``)."""
+def figure8_arguments(output: Mapping, table: pd.DataFrame) -> dict:
+    """The arguments of :func:`figures.results.plot_requirement` (Fig. 8) from a run's
+    files: ``output`` the requirement stage's requirement.json (a dict), ``table`` its
+    delta_r.csv (a DataFrame: sigma_g1, delta_r, delta_r_systematic_only per seed). What
+    the stage draws; also what redraws a committed run's figure without its inputs
+    (``python -m hwp_tes_systematics figure8``)."""
     missing = {"sigma_g1", "delta_r", "delta_r_systematic_only"} - set(table.columns)
     if missing:
         raise ValueError(f"delta r table: missing columns {sorted(missing)}")
@@ -555,35 +553,34 @@ def plot_requirement_from_results(output: Mapping, table, path: str | os.PathLik
     check = output["consistency"]
     failing = ", ".join(f"ell {first}-{last}" for first, last in check["failing_bins"])
     fit = output["power_law_fit"]
-    return plot_requirement(
-        summary["sigma_g1"].to_numpy(),
-        summary["mean_delta_r"].to_numpy(),
-        summary["std_delta_r"].to_numpy(),
-        regime["k_per_k2"],
-        fit["exponent"],
-        output["delta_r_budget"],
-        output["requirement_sigma_g1_per_k"],
-        path,
-        exponent_sigma=fit["exponent_sigma"],
-        invalid_reason=None if regime["valid"] else regime["reason"],
-        quadratic_threshold=regime["quadratic_threshold_delta_r"],
-        crossing=output["budget_crossing"]["sigma_g1_per_k"],
-        systematic_only=(
+    return {
+        "sigma": summary["sigma_g1"].to_numpy(),
+        "mean": summary["mean_delta_r"].to_numpy(),
+        "std": summary["std_delta_r"].to_numpy(),
+        "k": regime["k_per_k2"],
+        "exponent": fit["exponent"],
+        "budget": output["delta_r_budget"],
+        "requirement": output["requirement_sigma_g1_per_k"],
+        "exponent_sigma": fit["exponent_sigma"],
+        "invalid_reason": None if regime["valid"] else regime["reason"],
+        "quadratic_threshold": regime["quadratic_threshold_delta_r"],
+        "crossing": output["budget_crossing"]["sigma_g1_per_k"],
+        "systematic_only": (
             systematic["sigma_g1"].to_numpy(),
             systematic["mean_delta_r"].to_numpy(),
             systematic["std_delta_r"].to_numpy(),
             only["k_per_k2"],
             only["requirement_sigma_g1_per_k"],
         ),
-        fraction_point=(
+        "fraction_point": (
             fraction_point["sigma_g1_per_k"],
             fraction_point["mean_delta_r"],
             fraction_point["requirement_sigma_g1_per_k"],
         ),
-        inconsistent=None
+        "inconsistent": None
         if check["consistent"]
         else f"{output['headline']['model']}: fails in {failing}",
-    )
+    }
 
 
 def mitigation_summary(likelihoods: list[dict], budget: float, template_fits: list[dict]) -> dict:
@@ -646,4 +643,33 @@ def mitigation_summary(likelihoods: list[dict], budget: float, template_fits: li
         else float("nan"),
         "fit_cost_over_budget": float(cost.mean() / budget),
         "per_channel": per_channel,
+    }
+
+
+def template_split(tables: list[pd.DataFrame], model, budget: float) -> dict | None:
+    """Where the systematic's own power comes from (map-domain path): the Fisher bias k
+    [K^2] of the seeds' mean BB of each pair of the template's parts (fixed: the
+    seed-independent sky through the nonlinearity; cmb_h, noise_h: the seed's CMB and noise
+    through the s h term), the share of each, and the requirement without the noise x h
+    part (what cross-spectra of data splits, whose noise is independent, would leave);
+    from the seeds' systematic spectra ``tables``."""
+    size = model.ell.size
+    pairs = [(a, b) for i, a in enumerate(TEMPLATE_PARTS) for b in TEMPLATE_PARTS[i:]]
+    if not tables or f"bb_{pairs[0][0]}_x_{pairs[0][1]}_k4" not in tables[0]:
+        return None
+    k = {}
+    for a, b in pairs:
+        mean = np.mean([t[f"bb_{a}_x_{b}_k4"].to_numpy()[:size] for t in tables], axis=0)
+        k[f"{a}_x_{b}"] = (1 if a == b else 2) * fisher_bias(mean, model)
+    total = sum(k.values())
+    without_noise = sum(value for pair, value in k.items() if "noise_h" not in pair)
+    return {
+        "definition": "k [K^2] of each pair of the template's parts (crosses counted "
+        "twice), from the seeds' mean BB through the no-systematics weights; they sum to k",
+        "k_per_k2": k,
+        "fraction_of_k": {pair: value / total for pair, value in k.items()},
+        "k_without_noise_h_per_k2": without_noise,
+        "requirement_without_noise_h_per_k": requirement_sigma(without_noise, budget)
+        if without_noise > 0
+        else float("nan"),
     }

@@ -83,7 +83,6 @@ from .tod_maps import (
     Calibration,
     ExtraBinning,
     accumulate,
-    simulated_rate_hz,
     split_solved_maps,
     templates_from_terms,
 )
@@ -96,29 +95,6 @@ NOISE_REFERENCE_SEED = -1  # the fixed pass's noise realization: a stream no see
 SHAPING_BIN_WIDTH = 4  # multipoles averaged in the noise shaping
 SHAPING_ITERATIONS = 2  # corrections of the noise shaping for the mask's mode coupling
 TRANSFER_SPECTRA = ("tt", "ee", "bb")
-
-
-def transfer_cmb_alm(lmax: int, r: float, master_seed: int, fwhm_arcmin: float) -> np.ndarray:
-    """The fixed pass's reference CMB a_lm (3, nalm) [K_CMB], beam-smoothed: its own
-    random stream ("cmb-transfer"), so it is none of the seeds' realizations."""
-    cls = sky_cmb.cmb_spectra(r, lmax)
-    alm = sky_cmb.gaussian_alm(cls, lmax, seeding.rng(master_seed, "cmb-transfer"))
-    return sky_cmb.smooth_alm(alm, fwhm_arcmin, lmax)
-
-
-def seed_cmb_alm(lmax: int, r: float, master_seed: int, seed: int, fwhm_arcmin: float):
-    """CMB realization ``seed`` (3, nalm) [K_CMB], beam-smoothed: the same draw as the full
-    path's :func:`sky.cmb.cmb_map` for that seed."""
-    return sky_cmb.smooth_alm(sky_cmb.cmb_alm(lmax, r, master_seed, seed), fwhm_arcmin, lmax)
-
-
-def band_limited_seed_cmb(lmax: int, r: float, master_seed: int, seed: int, fwhm_arcmin: float):
-    """(a_lm, L): CMB realization ``seed`` as :func:`seed_cmb_alm` (the same draw), cut
-    at the beam's band limit L = :func:`sky.beam_band_limit` (B_ell^2 >= 1e-10): its maps
-    equal the full band's to < 1e-4 of their rms, at (L / lmax)^2 of the transforms."""
-    alm = seed_cmb_alm(lmax, r, master_seed, seed, fwhm_arcmin)
-    band = sky_cmb.beam_band_limit(fwhm_arcmin, lmax)
-    return hp.resize_alm(alm, lmax, lmax, band, band), band
 
 
 def measure_transfer(output_iqu: np.ndarray, input_iqu: np.ndarray, good: np.ndarray, lmax: int):
@@ -770,11 +746,11 @@ class ChannelSeeds:
     """The seeds of one channel made from its fixed pass file: :meth:`maps` of a seed as
     the TOD path's maps file holds them (nosys, template_terms, templates, cmb_reference,
     foreground_reference, attrs), each seed's CMB the draw of
-    :func:`band_limited_seed_cmb` and its noise the stream ("map-domain noise", channel,
+    :func:`sky.cmb.band_limited_seed_cmb` and its noise the stream ("map-domain noise", channel,
     seed, detector); the filter's action applied up to ``simulation.filter_lmax`` (at
     most the map's band 3 nside - 1). The operators are computed once, on the first seed.
     ``pooled_h5s``: the fixed passes whose noise shaping is pooled with this one's
-    (:func:`noise_shaping_siblings`; this channel's file among them): the seeds then use
+    (:func:`config.noise_shaping_siblings`; this channel's file among them): the seeds then use
     :func:`pooled_noise_shaping` of them."""
 
     def __init__(self, config: dict, fixed_h5, pooled_h5s=()):
@@ -800,12 +776,12 @@ class ChannelSeeds:
     @classmethod
     def from_run(cls, config: dict, fixed_h5) -> ChannelSeeds:
         """As the workflow makes them: the noise shaping pooled over the fixed passes of
-        :func:`noise_shaping_siblings` in the same run folder (``<maps>/<channel>/<the
+        :func:`config.noise_shaping_siblings` in the same run folder (``<maps>/<channel>/<the
         same file name>``; those not made are left out, with a warning)."""
         fixed_h5 = Path(fixed_h5)
         name = read_fixed_attribute(fixed_h5, "channel")
         pooled = []
-        for sibling in noise_shaping_siblings(config, name):
+        for sibling in cfg.noise_shaping_siblings(config, name):
             path = fixed_h5.parent.parent / sibling / fixed_h5.name
             if path.exists():
                 pooled.append(path)
@@ -843,7 +819,7 @@ class ChannelSeeds:
     def maps(self, seed: int, full_terms: bool = True) -> dict:
         """The maps of ``seed`` (:func:`realize_seed`; ``full_terms`` passed on)."""
         simulation, master_seed = self.config["simulation"], self.config["master_seed"]
-        cmb_alm, band = band_limited_seed_cmb(
+        cmb_alm, band = sky_cmb.band_limited_seed_cmb(
             self.lmax, simulation["cmb_r"], master_seed, seed, self.fwhm_arcmin
         )
         maps = realize_seed(
@@ -860,43 +836,9 @@ class ChannelSeeds:
         return maps
 
 
-def noise_shaping_key(config: dict, channel_name: str) -> tuple:
-    """What a channel's noise shaping S_ell, S^h_ell depends on besides the realizations
-    drawn: the filter (its HWP frequency: the notch sits at 4 f_HWP), the sampling rate,
-    the noise spectrum's shape (f_knee, f_min, alpha; not its level: S is a ratio) and
-    whether h n is measured (systematics). The map-maker, the duration and the notch are
-    the run's. Channels with equal keys (a telescope's, in the PTEP model) differ only by
-    their focal-plane position: their S agree within the realizations' scatter
-    (docs/physics/map_domain.md)."""
-    channel = cfg.channel(config, channel_name)
-    return (
-        channel.hwp_rpm,
-        simulated_rate_hz(config, channel),
-        channel.fknee_mhz,
-        channel.fmin_hz,
-        channel.alpha,
-        channel_name in config["instrument"]["systematics_channels"],
-    )
-
-
-def noise_shaping_siblings(config: dict, channel_name: str) -> list[str]:
-    """The channels of the run whose measured noise shaping is pooled with
-    ``channel_name``'s (itself included, in the run's order): those with its
-    :func:`noise_shaping_key` when ``simulation.noise_shaping_pooling`` is "telescope",
-    itself alone when it is "channel"."""
-    if config["simulation"]["noise_shaping_pooling"] == "channel":
-        return [channel_name]
-    key = noise_shaping_key(config, channel_name)
-    return [
-        name
-        for name in cfg.selected_channels(config)
-        if name == channel_name or noise_shaping_key(config, name) == key
-    ]
-
-
 def pooled_noise_shaping(fixed_h5s) -> tuple[np.ndarray, np.ndarray]:
     """(S_ell, S^h_ell) pooled over fixed passes whose shaping is the same by construction
-    (:func:`noise_shaping_siblings`): S = sqrt(sum_c K_c S_c^2 / sum_c K_c), K_c the
+    (:func:`config.noise_shaping_siblings`): S = sqrt(sum_c K_c S_c^2 / sum_c K_c), K_c the
     noise reference realizations of file c (its ``noise_reference_realizations``
     attribute, 1 if absent). Each S_c^2 is a ratio of pseudo-spectra summed over its
     realizations, so the pooled one averages sum_c K_c of them: its scatter at low ell

@@ -25,6 +25,7 @@ import numpy as np
 import psutil
 from tqdm import tqdm
 
+from ..config import simulated_rate_hz
 from ..timing import StageClock
 from .baselines import baseline_samples, remove_baselines
 from .demodulation import DemodulatedEquations, decimation_factor, demodulate
@@ -99,18 +100,6 @@ class PairMapSettings:
             baseline_length_s=config["maps"]["baseline_length_s"],
             threads=threads,
         )
-
-
-def simulated_rate_hz(config: dict, channel) -> float:
-    """The TOD sampling rate of ``channel`` [Hz]: simulation.sampling_rate_without_systematics_hz
-    for a channel outside instrument.systematics_channels if set (its TOD holds nothing
-    above 4 f_HWP + the sky band: no d^2 to 8 f_HWP), else simulation.sampling_rate_hz,
-    else the instrument model's."""
-    simulation = config["simulation"]
-    rate = simulation["sampling_rate_hz"] or channel.sampling_rate_hz
-    if channel.name in config["instrument"]["systematics_channels"]:
-        return rate
-    return simulation["sampling_rate_without_systematics_hz"] or rate
 
 
 @dataclass

@@ -216,3 +216,26 @@ def _check_nside(nside: int) -> int:
     if not hp.isnsideok(int(nside)) or int(nside) != nside:
         raise ValueError(f"nside = {nside}: expected a power of 2")
     return int(nside)
+
+
+def transfer_cmb_alm(lmax: int, r: float, master_seed: int, fwhm_arcmin: float) -> np.ndarray:
+    """The fixed pass's reference CMB a_lm (3, nalm) [K_CMB], beam-smoothed: its own
+    random stream ("cmb-transfer"), so it is none of the seeds' realizations."""
+    cls = cmb_spectra(r, lmax)
+    alm = gaussian_alm(cls, lmax, seeding.rng(master_seed, "cmb-transfer"))
+    return smooth_alm(alm, fwhm_arcmin, lmax)
+
+
+def seed_cmb_alm(lmax: int, r: float, master_seed: int, seed: int, fwhm_arcmin: float):
+    """CMB realization ``seed`` (3, nalm) [K_CMB], beam-smoothed: the same draw as the full
+    path's :func:`sky.cmb.cmb_map` for that seed."""
+    return smooth_alm(cmb_alm(lmax, r, master_seed, seed), fwhm_arcmin, lmax)
+
+
+def band_limited_seed_cmb(lmax: int, r: float, master_seed: int, seed: int, fwhm_arcmin: float):
+    """(a_lm, L): CMB realization ``seed`` as :func:`seed_cmb_alm` (the same draw), cut
+    at the beam's band limit L = :func:`sky.beam_band_limit` (B_ell^2 >= 1e-10): its maps
+    equal the full band's to < 1e-4 of their rms, at (L / lmax)^2 of the transforms."""
+    alm = seed_cmb_alm(lmax, r, master_seed, seed, fwhm_arcmin)
+    band = beam_band_limit(fwhm_arcmin, lmax)
+    return hp.resize_alm(alm, lmax, lmax, band, band), band

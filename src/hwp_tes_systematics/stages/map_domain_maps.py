@@ -19,6 +19,7 @@ from ..simulation import map_domain
 from ..simulation.maps_file import maps_attributes
 from ..simulation.tod import PairSimulator
 from ..simulation.tod_maps import PairMapSettings
+from ..sky import cmb as sky_cmb
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +59,7 @@ def run_fixed_pass(
     simulator = PairSimulator.from_config(config, channel, settings.plan, scan_nside, threads)
     foreground = sky.read_sky_map(foreground_fits, nside=scan_nside)
     lmax = 3 * scan_nside - 1
-    transfer_alm = map_domain.transfer_cmb_alm(
+    transfer_alm = sky_cmb.transfer_cmb_alm(
         lmax, config["simulation"]["cmb_r"], config["master_seed"], channel.fwhm_arcmin
     )
     log.info(
@@ -134,7 +135,7 @@ def run_seeds(
     seed's maps reach the disk (at nside 512 they would take ~0.8 GB per channel and
     seed). One job per channel: the seeds share the fixed pass's operators.
     ``pooled_h5s``: the fixed passes whose noise shaping is pooled with this channel's
-    (:func:`map_domain.noise_shaping_siblings`)."""
+    (:func:`config.noise_shaping_siblings`)."""
     started = time.perf_counter()
     reuse_freed_memory()  # the seeds' maps and transforms: no page faults (io.reuse_freed_memory)
     channel_seeds = map_domain.ChannelSeeds(config, fixed_h5, pooled_h5s)

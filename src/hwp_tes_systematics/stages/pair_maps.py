@@ -15,11 +15,11 @@ import time
 from .. import config as cfg
 from .. import sky
 from ..io import reuse_freed_memory, use_threads
-from ..simulation.map_domain import seed_cmb_alm
 from ..simulation.mapmaking import NormalEquations, solve_maps
 from ..simulation.maps_file import maps_attributes, write_channel_maps
 from ..simulation.tod import PairSimulator
 from ..simulation.tod_maps import PairMapSettings, accumulate, split_solved_maps
+from ..sky.cmb import seed_cmb_alm
 from ..sky.harmonics import BandLimitedSky
 
 log = logging.getLogger(__name__)

@@ -42,37 +42,29 @@ from ..analysis import consistency
 from ..analysis.fixed_instruments import (
     common_offset_estimator,
     delta_r_curves,
-    fixed_instrument_estimator,
-    n_instruments,
+    fixed_instruments_summary,
 )
-from ..analysis.ilc_residuals import TEMPLATE_PARTS, systematic_bb
-from ..analysis.likelihood import (
-    ANALYSES,
-    analysis_transfer,
-    fisher_bias,
-    fisher_bias_per_ell,
-    fisher_information_per_ell,
-    model_from_noise_table,
-    noise_model,
-    residual_bb,
-)
+from ..analysis.ilc_residuals import systematic_bb
+from ..analysis.likelihood import ANALYSES, model_from_noise_table, residual_bb
 from ..analysis.requirement import (
     budget_crossing_over_seeds,
     delta_r_table,
+    figure8_arguments,
     fit_power_law,
     fraction_point_estimator,
     mitigation_summary,
     paper_estimator,
-    plot_requirement_from_results,
     requirement_sigma,
     summarise,
     systematic_only_estimator,
+    template_split,
 )
 from ..figures.results import (
     plot_a2_scaling,
     plot_ell_distribution,
     plot_fixed_instruments,
     plot_likelihoods,
+    plot_requirement,
 )
 from ..io import atomic_path, write_csv
 
@@ -128,7 +120,7 @@ def run(
     check, distribution = model_check(
         config, model, noise, nosys_residuals, systematic_csvs, fig_ell_distribution
     )
-    check["held_out"] = held_out_check(config, nosys_tables)
+    check["held_out"] = consistency.held_out_check(config, nosys_tables)
     if check["held_out"] is not None:
         log.info(
             "model check on held-out seeds: %s",
@@ -138,7 +130,7 @@ def run(
                 for split in check["held_out"]["splits"]
             ),
         )
-    check["r_recovery"] = r_recovery_check(config, noise, nosys_tables)
+    check["r_recovery"] = consistency.r_recovery_check(config, noise, nosys_tables)
     table = delta_r_table(likelihoods)
     grid_summary = summarise(table)
     table, regime = paper_estimator(table, config, extension)
@@ -163,7 +155,7 @@ def run(
     systematic_only["fraction_point"] = fraction_point_estimator(likelihoods, budget)
     fraction_point = systematic_only["fraction_point"]
     failing = ", ".join(f"ell {first}-{last}" for first, last in check["failing_bins"])
-    fixed = fixed_instruments_summary(
+    fixed = fixed_instruments(
         instrument_csvs,
         model,
         budget,
@@ -201,7 +193,8 @@ def run(
             common["k_over_k_random"],
             common["allowed_region"][1]["mu_max_per_k"],
         )
-    systematic_only["template_split"] = split = template_split(systematic_csvs, model, budget)
+    systematic_tables = [pd.read_csv(path) for path in systematic_csvs]
+    systematic_only["template_split"] = split = template_split(systematic_tables, model, budget)
     if split is not None:
         log.info(
             "the template's split, shares of k: %s; without noise x h: sigma_g1 < %.3e 1/K",
@@ -335,80 +328,46 @@ def run(
     curves = {case: np.array(v["likelihood"]) for case, v in first["cases"].items()}
     r68 = {case: v["r_fraction"] for case, v in first["cases"].items()}
     plot_likelihoods(grid, curves, r68, fig_likelihoods, fraction=first["fraction"])
-    plot_requirement_from_results(output, table, fig_requirement)
+    plot_requirement(path=fig_requirement, **figure8_arguments(output, table))
     plot_a2_scaling(systematic_only["by_a2_scale"], budget, fig_a2_scaling)
 
 
-def template_split(systematic_csvs, model, budget: float) -> dict | None:
-    """Where the systematic's own power comes from (map-domain path): the Fisher bias k
-    [K^2] of the seeds' mean BB of each pair of the template's parts (fixed: the
-    seed-independent sky through the nonlinearity; cmb_h, noise_h: the seed's CMB and noise
-    through the s h term), the share of each, and the requirement without the noise x h
-    part (what cross-spectra of data splits, whose noise is independent, would leave)."""
-    tables = [pd.read_csv(path) for path in systematic_csvs]
-    size = model.ell.size
-    pairs = [(a, b) for i, a in enumerate(TEMPLATE_PARTS) for b in TEMPLATE_PARTS[i:]]
-    if not tables or f"bb_{pairs[0][0]}_x_{pairs[0][1]}_k4" not in tables[0]:
-        return None
-    k = {}
-    for a, b in pairs:
-        mean = np.mean([t[f"bb_{a}_x_{b}_k4"].to_numpy()[:size] for t in tables], axis=0)
-        k[f"{a}_x_{b}"] = (1 if a == b else 2) * fisher_bias(mean, model)
-    total = sum(k.values())
-    without_noise = sum(value for pair, value in k.items() if "noise_h" not in pair)
-    return {
-        "definition": "k [K^2] of each pair of the template's parts (crosses counted "
-        "twice), from the seeds' mean BB through the no-systematics weights; they sum to k",
-        "k_per_k2": k,
-        "fraction_of_k": {pair: value / total for pair, value in k.items()},
-        "k_without_noise_h_per_k2": without_noise,
-        "requirement_without_noise_h_per_k": requirement_sigma(without_noise, budget)
-        if without_noise > 0
-        else float("nan"),
-    }
-
-
-def fixed_instruments_summary(
-    instrument_csvs,
+def model_check(
+    config: dict,
     model,
-    budget: float,
-    analysis: str,
-    systematic_only: dict,
-    figure,
-    c_res_nosys=None,
-) -> dict | None:
-    """:func:`fixed_instruments.fixed_instrument_estimator` of the seeds' tables (None
-    without instruments), logged and drawn beside the study's own k sigma^2; with
-    ``c_res_nosys``, the seeds' mean no-systematics residual BB, also in the paper's
-    68 %-point convention."""
-    tables = [pd.read_csv(path) for path in instrument_csvs or []]
-    if not tables or n_instruments(tables[0]) == 0:
-        return None
-    unfiltered = analysis == "paper_literal"
-    fixed = fixed_instrument_estimator(tables, model, budget, unfiltered, c_res_nosys)
-    log.info(
-        "fixed instruments (%d, %d seeds): requirement with the linear term median %.3e "
-        "1/K (16-84 %%: %.3e-%.3e), own power alone %.3e; linear term resolved (|t| > 2) "
-        "in %.0f %% of the instruments, even/odd seeds' b correlate by r = %.2f (p %.2g)",
-        fixed["n_instruments"],
-        len(tables),
-        fixed["requirement_median_per_k"],
-        *fixed["requirement_16_84_per_k"],
-        fixed["quadratic_only_median_per_k"],
-        100 * fixed["fraction_linear_resolved"],
-        fixed["linear_split_half"]["pearson_r"],
-        fixed["linear_split_half"]["p_value"],
+    noise: pd.DataFrame,
+    residuals: np.ndarray,
+    systematic_csvs: list[str],
+    fig_ell_distribution: str,
+) -> tuple[dict, dict]:
+    """(:func:`consistency.check_model` of the analysis, the information and the bias per
+    bin) and their figure. ``noise``: the noise model table; ``residuals``: (seeds, ell)
+    the no-systematics residual BB of the analysis. The bias is that of the mean over
+    seeds of the systematic's BB at sigma_g1 = 1."""
+    settings = config["likelihood"]
+    lmax = settings["lmax"]
+    check, model_transfer, data_transfer = consistency.compare_model_with_data(
+        settings, noise, noise, residuals
     )
-    if fixed["fraction_point"] is not None:
-        log.info(
-            "fixed instruments, 68 %% point: median %.3e (debiased %.3e), own power alone "
-            "%.3e 1/K; linearity %.4f",
-            fixed["fraction_point"]["requirement_median_per_k"],
-            fixed["fraction_point"]["requirement_debiased_median_per_k"],
-            fixed["fraction_point"]["quadratic_only_median_per_k"],
-            fixed["fraction_point"]["linearity_check"],
-        )
-    if figure is not None:
+    c_sys = np.mean(
+        [systematic_bb(pd.read_csv(path).iloc[: lmax + 1], 1.0) for path in systematic_csvs],
+        axis=0,
+    )
+    information, bias, distribution = consistency.information_and_bias(model, c_sys)
+    plot_ell_distribution(
+        model.ell, information, bias, model_transfer, data_transfer, check, fig_ell_distribution
+    )
+    return check, distribution
+
+
+def fixed_instruments(
+    instrument_csvs, model, budget, analysis, systematic_only, figure, c_res_nosys
+) -> dict | None:
+    """:func:`fixed_instruments.fixed_instruments_summary` of the seeds' instrument
+    spectra, drawn in ``figure`` beside the study's own k sigma^2."""
+    tables = [pd.read_csv(path) for path in instrument_csvs or []]
+    fixed = fixed_instruments_summary(tables, model, budget, analysis, c_res_nosys)
+    if fixed is not None and figure is not None:
         sigma = np.logspace(-5, -1, 200)
         plot_fixed_instruments(
             sigma,
@@ -420,161 +379,3 @@ def fixed_instruments_summary(
             figure,
         )
     return fixed
-
-
-def compare_model_with_data(
-    settings: dict, model_noise, data_noise, residuals, model_noise_per_seed=None
-) -> tuple[dict, np.ndarray, np.ndarray]:
-    """(:func:`consistency.check_model`, the model's T_ell, the data's T_ell) of the
-    analysis ``settings`` (config likelihood) with its model from the noise table
-    ``model_noise`` and the data's transfer from ``data_noise`` (the same table when model
-    and data come from the same seeds); ``model_noise_per_seed`` given (other seeds than
-    the data's), the model's own errors are added: its N + C_FGres per seed and, when
-    the analysis carries the transfer, that transfer's error."""
-    analysis, lmax = settings["model"], settings["lmax"]
-    model_transfer = analysis_transfer(model_noise, lmax, analysis)
-    # what the data's map holds of the sky: its power transfer where the run measured it
-    # (the recovered CMB's own BB), else (older runs) the B-to-B transfer
-    power = "sky_power_transfer_bb" if "sky_power_transfer_bb" in data_noise else "sky_transfer_bb"
-    errors = {}
-    if model_noise_per_seed is not None:
-        errors["model_noise_per_seed"] = model_noise_per_seed
-        if model_transfer is not None:
-            column = "sky_power_transfer_bb" if analysis == "recovered_power" else "sky_transfer_bb"
-            errors["model_transfer_sem"] = model_noise[f"{column}_sem"].to_numpy()[: lmax + 1]
-    if model_transfer is None:
-        model_transfer = np.ones(lmax + 1)
-    data_transfer = data_noise[power].to_numpy()[: lmax + 1]
-    check = consistency.check_model(
-        model_from_noise_table(model_noise, settings["lmin"], lmax, "paper_recipe"),
-        model_transfer,
-        data_transfer,
-        data_noise[f"{power}_sem"].to_numpy()[: lmax + 1],
-        residuals,
-        **errors,
-    )
-    check["data_transfer"] = power
-    return check, model_transfer, data_transfer
-
-
-def held_out_check(config: dict, nosys_tables: list[pd.DataFrame]) -> dict | None:
-    """The model check with the model measured on other seeds than the data: the seeds
-    split into even and odd positions, the noise model (N_ell, C_FGres, the sky's
-    transfer) of each half checked against the other half's residuals and transfer
-    (:func:`consistency.check_model` with both halves' standard errors), both ways.
-    Unlike the check on all seeds, where the model's N_ell is the mean of the residuals
-    it is compared with, this one can fail when the seeds do not share one noise model
-    (e.g. a seed-dependent leak) or its scatter is underestimated. None below 4 seeds."""
-    if len(nosys_tables) < 4:
-        return None
-    settings = config["likelihood"]
-    analysis, lmax = settings["model"], settings["lmax"]
-    halves = (nosys_tables[0::2], nosys_tables[1::2])
-    results = []
-    for name, (model_half, data_half) in zip(
-        ("even -> odd", "odd -> even"), (halves, halves[::-1]), strict=True
-    ):
-        check, _, _ = compare_model_with_data(
-            settings,
-            noise_model(model_half),
-            noise_model(data_half),
-            [residual_bb(table, analysis, lmax) for table in data_half],
-            model_noise_per_seed=[
-                table["bb_noise_residual_k2"].to_numpy()[: lmax + 1]
-                + table["bb_foreground_residual_k2"].to_numpy()[: lmax + 1]
-                for table in model_half
-            ],
-        )
-        results.append(
-            {
-                "model_from_data": name,
-                "consistent": check["consistent"],
-                "failing_bins": check["failing_bins"],
-                "data_over_model": [row["data_over_model"] for row in check["bins"]],
-            }
-        )
-    return {
-        "definition": "the model check with the noise model and transfer measured on half "
-        "the seeds (even or odd positions) and the data of the other half, both ways, the "
-        "two halves' standard errors combined",
-        "bins": [row["ell"] for row in check["bins"]],
-        "consistent": all(result["consistent"] for result in results),
-        "splits": results,
-    }
-
-
-def r_recovery_check(config: dict, noise: pd.DataFrame, nosys_tables) -> dict | None:
-    """:func:`consistency.check_r_recovery` of the input CMB's r (simulation.cmb_r) on the
-    no-systematics HILC map of every seed, for the model without transfer (paper_recipe,
-    paper_literal) and with the measured one (transfer_in_model), keyed by analysis. None
-    when the spectra have no recovered-map column (made by an older component_separation).
-    """
-    if not all("bb_recovered_k2" in table for table in nosys_tables):
-        return None
-    settings = config["likelihood"]
-    lmax = settings["lmax"]
-    recovered = np.array(
-        [table["bb_recovered_k2"].to_numpy()[: lmax + 1] for table in nosys_tables]
-    )
-    results = {}
-    for analysis in ANALYSES:
-        if analysis == "recovered_power" and "cmb_leakage_bb_k2" not in noise:
-            continue
-        model = model_from_noise_table(noise, settings["lmin"], lmax, analysis)
-        results[analysis] = consistency.check_r_recovery(
-            model, recovered, config["simulation"]["cmb_r"]
-        )
-        log.info(
-            "r recovered on the HILC map with the %s model: %.3e +- %.3e (input %.3e)%s",
-            analysis,
-            results[analysis]["r_mean"],
-            results[analysis]["r_sem"],
-            config["simulation"]["cmb_r"],
-            "" if results[analysis]["consistent"] is not False else ": NOT consistent",
-        )
-    return results
-
-
-def model_check(
-    config: dict,
-    model,
-    noise: pd.DataFrame,
-    residuals: np.ndarray,
-    systematic_csvs: list[str],
-    fig_ell_distribution: str,
-) -> tuple[dict, dict]:
-    """(:func:`consistency.check_model` of the analysis, the information and the bias
-    per bin), and their figure. ``noise``: the noise model table; ``residuals``: (seeds,
-    ell) the no-systematics residual BB of the analysis. The bias is that of the mean over
-    seeds of the systematic's BB at sigma_g1 = 1."""
-    settings = config["likelihood"]
-    lmax = settings["lmax"]
-    check, model_transfer, data_transfer = compare_model_with_data(
-        settings, noise, noise, residuals
-    )
-    c_sys = np.mean(
-        [systematic_bb(pd.read_csv(path).iloc[: lmax + 1], 1.0) for path in systematic_csvs],
-        axis=0,
-    )
-    information = fisher_information_per_ell(model)
-    bias = fisher_bias_per_ell(c_sys, model)
-    rows = []
-    for first, last in consistency.bins(model.lmin, model.lmax):
-        where = (model.ell >= first) & (model.ell <= last)
-        rows.append(
-            {
-                "ell": [int(first), int(last)],
-                "information_fraction": float(information[where].sum() / information.sum()),
-                "bias_fraction": float(bias[where].sum() / bias.sum()) if bias.sum() else 0.0,
-            }
-        )
-    distribution = {
-        "definition": "per bin: the fraction of the Fisher information 1 / sigma_r^2 and of "
-        "the Fisher bias of the mean systematic BB (sigma_g1 = 1), from the analysis's model",
-        "sigma_r_fisher": model.fisher_sigma_r(0.0),
-        "bins": rows,
-    }
-    plot_ell_distribution(
-        model.ell, information, bias, model_transfer, data_transfer, check, fig_ell_distribution
-    )
-    return check, distribution
