@@ -505,3 +505,27 @@ def test_fixed_pass_profile_prints_each_stage_beside_its_floor_and_another_check
     n_inner = round(0.02 * 86400 * 19.0)
     _, n_fft, _ = chunk_span(0, n_inner, 19.0, 1200.0)
     assert f"2f removal + notch {16 * n_fft / n_inner:.1f}" in done.stdout
+
+
+@pytest.mark.slow
+def test_focal_plane_cost_covers_the_ptep_focal_plane(repo):
+    """benchmarks/focal_plane_cost.py: a row per channel, 4,508 detectors in all, the
+    core-hours the sum of the rows, a one-day job's memory growing with the detectors."""
+    import subprocess
+
+    done = subprocess.run(
+        [sys.executable, str(repo / "benchmarks" / "focal_plane_cost.py")],
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=300,
+        cwd=repo,
+    )
+    rows = [line.split("|")[1:-1] for line in done.stdout.splitlines() if line.startswith("| ")]
+    channels = [[cell.strip() for cell in row] for row in rows[1:] if "**all**" not in row[0]]
+    (total,) = [[cell.strip() for cell in row] for row in rows if "**all**" in row[0]]
+    assert len(channels) == 22 and int(total[1]) == 4508
+    assert sum(int(row[1]) for row in channels) == 4508
+    assert abs(sum(float(row[4]) for row in channels) - float(total[4])) <= len(channels)
+    by_detectors = sorted((int(row[1]), float(row[5])) for row in channels if row[2] == "19")
+    assert by_detectors[0][1] < by_detectors[-1][1]

@@ -93,7 +93,10 @@ def run(
     fig_fixed_instruments: str | None = None,
     template_fit_jsons: list[str] | None = None,
 ) -> None:
-    """``extension``: {"map_paths": {seed: {channel: maps or a_lm file}}, "nosys_spectra":
+    """The stage, in its steps: the model checked against the data, the paper's estimator
+    on the delta r grid, the systematic alone (the headline's convention), fixed
+    instruments and a common offset, then requirement.json and the figures.
+    ``extension``: {"map_paths": {seed: {channel: maps or a_lm file}}, "nosys_spectra":
     {seed: csv}, "mask": the a_lm files' analysis mask or None} to extend the paper
     estimator's grid (None: no extension). ``instrument_csvs``: the seeds' fixed-instrument
     spectra (:mod:`fixed_instruments`), drawn in ``fig_fixed_instruments``;
@@ -117,6 +120,100 @@ def run(
             for table, path in zip(nosys_tables, nosys_spectra_csvs, strict=True)
         ]
     )
+    check, distribution = model_checks(
+        config, model, noise, nosys_tables, nosys_residuals, systematic_csvs, fig_ell_distribution
+    )
+    table = delta_r_table(likelihoods)
+    grid_summary = summarise(table)
+    table, regime = paper_estimator(table, config, extension)
+    write_csv(table, table_csv)
+    summary = summarise(table)
+    amplitude, exponent, exponent_sigma = fit_power_law(
+        summary["sigma_g1"].to_numpy(), summary["mean_delta_r"].to_numpy()
+    )
+    crossing = budget_crossing_over_seeds(table, budget)
+    systematic_only = systematic_alone(
+        likelihoods, table, budget, regime["sigma_r_fisher"], template_fit_jsons
+    )
+    fixed = fixed_instruments(
+        instrument_csvs,
+        model,
+        budget,
+        analysis,
+        systematic_only,
+        fig_fixed_instruments,
+        nosys_residuals.mean(axis=0) if len(nosys_residuals) else None,
+    )
+    common = common_offset(instrument_csvs, model, budget, systematic_only, analysis)
+    systematic_tables = [pd.read_csv(path) for path in systematic_csvs]
+    systematic_only["template_split"] = split = template_split(systematic_tables, model, budget)
+    if split is not None:
+        log.info(
+            "the template's split, shares of k: %s; without noise x h: sigma_g1 < %.3e 1/K",
+            ", ".join(f"{pair} {share:.2f}" for pair, share in split["fraction_of_k"].items()),
+            split["requirement_without_noise_h_per_k"],
+        )
+
+    def per_sigma(rows):
+        return [
+            {
+                "sigma_g1_per_k": float(row.sigma_g1),
+                "mean_delta_r": float(row.mean_delta_r),
+                "std_delta_r": float(row.std_delta_r),
+                "n_seeds": int(row.n_seeds),
+            }
+            for row in rows.itertuples()
+        ]
+
+    output = {
+        "headline": headline(analysis, check, systematic_only, crossing, model),
+        "consistency": check,
+        "ell_distribution": distribution,
+        "requirement_sigma_g1_per_k": requirement_sigma(regime["k_per_k2"], budget),
+        "valid": regime["valid"],
+        "delta_r_budget": budget,
+        "quadratic_fit": {
+            "k_per_k2": regime["k_per_k2"],
+            "model": "mean delta r = k sigma_g1^2",
+            "sigma_g1_used_per_k": regime["sigma_g1_used_per_k"],
+        },
+        "power_law_fit": {
+            "amplitude": amplitude,
+            "exponent": exponent,
+            "exponent_sigma": exponent_sigma,
+        },
+        "regime": regime,
+        "budget_crossing": crossing,
+        "per_sigma": per_sigma(grid_summary),
+        "extended_per_sigma": per_sigma(
+            summary[~summary["sigma_g1"].isin(grid_summary["sigma_g1"])]
+        ),
+        "systematic_only": systematic_only,
+        "fixed_instruments": fixed,
+        "common_offset": common,
+        "settings": run_settings(config),
+        "n_seeds": len(likelihoods),
+        "sigma_r_fisher": regime["sigma_r_fisher"],
+        "config_sha256": config_hash(config),
+    }
+    with atomic_path(requirement_json) as temporary:
+        temporary.write_text(json.dumps(output, indent=1))
+    log_results(output)
+    first = likelihoods[0]
+    grid = np.array(first["r_grid"])
+    curves = {case: np.array(v["likelihood"]) for case, v in first["cases"].items()}
+    r68 = {case: v["r_fraction"] for case, v in first["cases"].items()}
+    plot_likelihoods(grid, curves, r68, fig_likelihoods, fraction=first["fraction"])
+    plot_requirement(path=fig_requirement, **figure8_arguments(output, table))
+    plot_a2_scaling(systematic_only["by_a2_scale"], budget, fig_a2_scaling)
+
+
+def model_checks(
+    config, model, noise, nosys_tables, nosys_residuals, systematic_csvs, fig_ell_distribution
+) -> tuple[dict, dict]:
+    """(the model check on all seeds with its held-out and r read-back checks, the
+    information and bias per bin): :func:`model_check`, then
+    :func:`consistency.held_out_check` and :func:`consistency.r_recovery_check`."""
     check, distribution = model_check(
         config, model, noise, nosys_residuals, systematic_csvs, fig_ell_distribution
     )
@@ -131,18 +228,13 @@ def run(
             ),
         )
     check["r_recovery"] = consistency.r_recovery_check(config, noise, nosys_tables)
-    table = delta_r_table(likelihoods)
-    grid_summary = summarise(table)
-    table, regime = paper_estimator(table, config, extension)
-    write_csv(table, table_csv)
-    summary = summarise(table)
-    sigma = summary["sigma_g1"].to_numpy()
-    mean = summary["mean_delta_r"].to_numpy()
-    sigma_r = regime["sigma_r_fisher"]
-    k = regime["k_per_k2"]
-    amplitude, exponent, exponent_sigma = fit_power_law(sigma, mean)
-    requirement = requirement_sigma(k, budget)
-    crossing = budget_crossing_over_seeds(table, budget)
+    return check, distribution
+
+
+def systematic_alone(likelihoods, table, budget, sigma_r, template_fit_jsons) -> dict:
+    """The systematic's own power: :func:`requirement.systematic_only_estimator` (Fisher),
+    its free exponent, the paper's 68 %-point convention and, when the likelihoods carry
+    it, the requirement after the template fit."""
     systematic_only = systematic_only_estimator(likelihoods, budget, sigma_r)
     systematic_summary = summarise(
         table.dropna(subset=["delta_r_systematic_only"]).assign(
@@ -153,17 +245,6 @@ def run(
         systematic_summary["sigma_g1"], systematic_summary["mean_delta_r"]
     )
     systematic_only["fraction_point"] = fraction_point_estimator(likelihoods, budget)
-    fraction_point = systematic_only["fraction_point"]
-    failing = ", ".join(f"ell {first}-{last}" for first, last in check["failing_bins"])
-    fixed = fixed_instruments(
-        instrument_csvs,
-        model,
-        budget,
-        analysis,
-        systematic_only,
-        fig_fixed_instruments,
-        nosys_residuals.mean(axis=0) if len(nosys_residuals) else None,
-    )
     if template_fit_jsons and all("mitigated" in r["systematic_only"] for r in likelihoods):
         fits = [json.loads(Path(path).read_text()) for path in template_fit_jsons]
         systematic_only["mitigated"] = mitigated = mitigation_summary(likelihoods, budget, fits)
@@ -176,6 +257,12 @@ def run(
             mitigated["fit_cost_delta_r"],
             mitigated["fit_cost_delta_r_sem"],
         )
+    return systematic_only
+
+
+def common_offset(instrument_csvs, model, budget, systematic_only, analysis) -> dict | None:
+    """:func:`fixed_instruments.common_offset_estimator` of the seeds' instrument spectra
+    (None without them), logged."""
     common = common_offset_estimator(
         [pd.read_csv(path) for path in instrument_csvs or []],
         model,
@@ -193,15 +280,15 @@ def run(
             common["k_over_k_random"],
             common["allowed_region"][1]["mu_max_per_k"],
         )
-    systematic_tables = [pd.read_csv(path) for path in systematic_csvs]
-    systematic_only["template_split"] = split = template_split(systematic_tables, model, budget)
-    if split is not None:
-        log.info(
-            "the template's split, shares of k: %s; without noise x h: sigma_g1 < %.3e 1/K",
-            ", ".join(f"{pair} {share:.2f}" for pair, share in split["fraction_of_k"].items()),
-            split["requirement_without_noise_h_per_k"],
-        )
-    headline = {
+    return common
+
+
+def headline(analysis: str, check: dict, systematic_only: dict, crossing: dict, model) -> dict:
+    """requirement.json's headline: the systematic's own power in the paper's convention,
+    with the checks' verdicts and the other readings beside it."""
+    fraction_point = systematic_only["fraction_point"]
+    failing = ", ".join(f"ell {first}-{last}" for first, last in check["failing_bins"])
+    return {
         "definition": "the systematic's own power in the paper's convention: sigma_g1 where "
         "the mean over seeds of the 68 %-point shift reaches the budget; error: bootstrap "
         "over seeds of that mean; std_over_seeds: the scatter of the seeds' own values",
@@ -231,62 +318,32 @@ def run(
         else f"NOT a requirement: the likelihood model does not describe the data in {failing}",
     }
 
-    def per_sigma(rows):
-        return [
-            {
-                "sigma_g1_per_k": float(row.sigma_g1),
-                "mean_delta_r": float(row.mean_delta_r),
-                "std_delta_r": float(row.std_delta_r),
-                "n_seeds": int(row.n_seeds),
-            }
-            for row in rows.itertuples()
-        ]
 
-    output = {
-        "headline": headline,
-        "consistency": check,
-        "ell_distribution": distribution,
-        "requirement_sigma_g1_per_k": requirement,
-        "valid": regime["valid"],
-        "delta_r_budget": budget,
-        "quadratic_fit": {
-            "k_per_k2": k,
-            "model": "mean delta r = k sigma_g1^2",
-            "sigma_g1_used_per_k": regime["sigma_g1_used_per_k"],
-        },
-        "power_law_fit": {
-            "amplitude": amplitude,
-            "exponent": exponent,
-            "exponent_sigma": exponent_sigma,
-        },
-        "regime": regime,
-        "budget_crossing": crossing,
-        "per_sigma": per_sigma(grid_summary),
-        "extended_per_sigma": per_sigma(
-            summary[~summary["sigma_g1"].isin(grid_summary["sigma_g1"])]
-        ),
-        "systematic_only": systematic_only,
-        "fixed_instruments": fixed,
-        "common_offset": common,
-        "settings": {
-            "baseline_length_s": config["maps"]["baseline_length_s"],
-            "g1_per": config["requirement"]["g1_per"],
-            "pairs_per_channel": config["instrument"]["pairs_per_channel"],
-            "detector_positions": config["instrument"]["detector_positions"],
-            "likelihood_model": analysis,
-            "notch_width_divisor": config["notch"]["width_divisor"],
-            "removed_hwp_harmonics": config["maps"]["removed_hwp_harmonics"],
-            "hwpss_a2_over_delta_p": config["optics"]["hwpss_a2_over_delta_p"],
-            "duration_days": config["simulation"]["duration_days"],
-            "nside": config["maps"]["nside"],
-            "cmb_r": config["simulation"]["cmb_r"],
-        },
-        "n_seeds": len(likelihoods),
-        "sigma_r_fisher": sigma_r,
-        "config_sha256": config_hash(config),
+def run_settings(config: dict) -> dict:
+    """The settings a reader of requirement.json needs to tell runs apart."""
+    return {
+        "baseline_length_s": config["maps"]["baseline_length_s"],
+        "g1_per": config["requirement"]["g1_per"],
+        "pairs_per_channel": config["instrument"]["pairs_per_channel"],
+        "detector_positions": config["instrument"]["detector_positions"],
+        "likelihood_model": config["likelihood"]["model"],
+        "notch_width_divisor": config["notch"]["width_divisor"],
+        "removed_hwp_harmonics": config["maps"]["removed_hwp_harmonics"],
+        "hwpss_a2_over_delta_p": config["optics"]["hwpss_a2_over_delta_p"],
+        "duration_days": config["simulation"]["duration_days"],
+        "nside": config["maps"]["nside"],
+        "cmb_r": config["simulation"]["cmb_r"],
     }
-    with atomic_path(requirement_json) as temporary:
-        temporary.write_text(json.dumps(output, indent=1))
+
+
+def log_results(output: dict) -> None:
+    """The requirement by every estimator, in the log."""
+    requirement, k = output["requirement_sigma_g1_per_k"], output["quadratic_fit"]["k_per_k2"]
+    exponent = output["power_law_fit"]["exponent"]
+    exponent_sigma = output["power_law_fit"]["exponent_sigma"]
+    regime, crossing = output["regime"], output["budget_crossing"]
+    systematic_only, headline = output["systematic_only"], output["headline"]
+    analysis = headline["model"]
     log.info(
         "paper estimator: sigma_g1 < %.3e 1/K (k = %.3e, free exponent %.2f +- %.2f, %d seeds)",
         requirement,
@@ -323,13 +380,6 @@ def run(
         headline["sigma_r_fisher"],
         headline["note"],
     )
-    first = likelihoods[0]
-    grid = np.array(first["r_grid"])
-    curves = {case: np.array(v["likelihood"]) for case, v in first["cases"].items()}
-    r68 = {case: v["r_fraction"] for case, v in first["cases"].items()}
-    plot_likelihoods(grid, curves, r68, fig_likelihoods, fraction=first["fraction"])
-    plot_requirement(path=fig_requirement, **figure8_arguments(output, table))
-    plot_a2_scaling(systematic_only["by_a2_scale"], budget, fig_a2_scaling)
 
 
 def model_check(
