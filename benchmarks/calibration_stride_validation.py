@@ -1,5 +1,5 @@
 """Is the filter's action measured as well on every n-th day as on all of them? The fixed
-pass of the map-domain path (:func:`map_domain.fixed_pass`) with
+pass of the map-domain path (:func:`fixed_maps.fixed_pass`) with
 ``calibration_every_chunks`` = 1 and larger strides.
 
     python benchmarks/calibration_stride_validation.py --channels M1-140 H3-402 --days 16 \\
@@ -21,7 +21,7 @@ import numpy as np
 
 from hwp_tes_systematics.config import default_config_path, load_config
 from hwp_tes_systematics.instrument.channels import load_channel
-from hwp_tes_systematics.simulation import map_domain
+from hwp_tes_systematics.simulation import fixed_maps, map_domain
 from hwp_tes_systematics.simulation.channel_inputs import channel_a2_k_cmb, channel_sky
 from hwp_tes_systematics.simulation.tod import MissionPlan, PairSimulator
 from hwp_tes_systematics.simulation.tod_maps import PairMapSettings
@@ -41,7 +41,7 @@ def fixed_pass(config, channel_name, days, every):
     a2_k = channel_a2_k_cmb(config, channel_name)
     settings = PairMapSettings(
         master_seed=config["master_seed"],
-        seed=map_domain.NOISE_REFERENCE_SEED,
+        seed=fixed_maps.NOISE_REFERENCE_SEED,
         nside=NSIDE,
         plan=plan,
         a2_k_cmb=a2_k,
@@ -55,7 +55,7 @@ def fixed_pass(config, channel_name, days, every):
     foreground = channel_sky(sky_config, channel, 0)["foreground"]
     transfer_alm = sky_cmb.transfer_cmb_alm(LMAX, 0.0, config["master_seed"], channel.fwhm_arcmin)
     started = time.perf_counter()
-    fixed = map_domain.fixed_pass(
+    fixed = fixed_maps.fixed_pass(
         simulator, settings, foreground, transfer_alm, True, LMAX, calibration_every_chunks=every
     )
     return fixed, a2_k, channel, time.perf_counter() - started

@@ -4,7 +4,7 @@ transfer on the TOD path.
 The likelihood's transfer (``noise_model.csv`` ``sky_transfer_bb``) is the cross spectrum
 of the recovered and the input CMB over the input's, T_ell. The map holds the auto
 spectrum: for a filter that scales each mode by t, T = t and the map holds t^2 of the
-power (the map-domain path emulates the filter so, :func:`map_domain.filtered_cmb_map`);
+power (the map-domain path emulates the filter so, :func:`filter_response.filtered_cmb_map`);
 for a filter that keeps or removes modes whole, the map holds T. This script passes three
 reference skies through one channel's TOD, paper filter (2f removal, notch, 60 s offsets)
 and binning, no HWPSS, no noise (:func:`tod_maps.accumulate` references): the lensed CMB,

@@ -60,7 +60,7 @@ def fixed_pass_setup(channel_name, days, nside, rate_hz, a2_k_cmb, baseline_leng
     """(simulator, settings) of a map-domain fixed pass of ``days`` of one pair at
     ``rate_hz``, the sky scanned at ``nside`` (:func:`paper_settings`, master seed
     ``seed``)."""
-    from hwp_tes_systematics.simulation.map_domain import NOISE_REFERENCE_SEED
+    from hwp_tes_systematics.simulation.fixed_maps import NOISE_REFERENCE_SEED
 
     channel = load_channel(channel_name)
     plan = MissionPlan(START_TDB, days * 86400.0, 86400.0, rate_hz)
@@ -140,7 +140,7 @@ def run_fixed_pass(
     the reference noise realizations (simulation.noise_reference_realizations)."""
     import healpy as hp
 
-    from hwp_tes_systematics.simulation import map_domain
+    from hwp_tes_systematics.simulation import fixed_maps
 
     channel = load_channel(name)
     a2_k_cmb = A2_K_CMB if carries_systematics else 0.0
@@ -150,7 +150,7 @@ def run_fixed_pass(
     alm = sky_cmb.transfer_cmb_alm(lmax, 0.0, 1, channel.fwhm_arcmin)
     binned = [(nside, settings.baseline_length_s), *extra_variants]
     started = time.perf_counter()
-    passes = map_domain.fixed_passes(
+    passes = fixed_maps.fixed_passes(
         simulator,
         settings,
         foreground,

@@ -23,7 +23,7 @@ import numpy as np
 from common import A2_K_CMB, fixed_pass_setup
 
 from hwp_tes_systematics.instrument.channels import load_channel
-from hwp_tes_systematics.simulation import map_domain
+from hwp_tes_systematics.simulation import fixed_maps
 from hwp_tes_systematics.sky import cmb as sky_cmb
 
 
@@ -47,7 +47,7 @@ def main() -> None:
     variants = [(nside, None) for nside in arguments.nsides]
     for demodulated in (False, True):
         started = time.perf_counter()
-        map_domain.fixed_passes(
+        fixed_maps.fixed_passes(
             simulator,
             settings,
             foreground,

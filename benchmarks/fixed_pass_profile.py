@@ -5,7 +5,7 @@ numpy, ducc0 or numba primitive it rests on, timed alone at the pass's array siz
     python benchmarks/fixed_pass_profile.py --nside 512 --variants 512:none --demodulated
     python benchmarks/fixed_pass_profile.py --reference-src ../ref/src   # beside another checkout
 
-The pass is the map-domain fixed pass of one channel (``map_domain.fixed_passes``): one
+The pass is the map-domain fixed pass of one channel (``fixed_maps.fixed_passes``): one
 pair, ``--days`` one-day chunks at ``--rate`` Hz, no noise in the TOD, ``--noise-realizations``
 reference noise realizations (2, the configurations'), the sky scanned at
 ``--nside`` with 60 s baselines, plus the map-makers of ``--variants`` (nside:baseline

@@ -37,7 +37,7 @@ from hwp_tes_systematics.analysis.ilc_residuals import (
 from hwp_tes_systematics.config import deep_merge, default_config_path, load_config
 from hwp_tes_systematics.instrument.channels import load_channel
 from hwp_tes_systematics.io import reuse_freed_memory
-from hwp_tes_systematics.simulation import map_domain
+from hwp_tes_systematics.simulation import fixed_maps, map_domain
 from hwp_tes_systematics.simulation.mapmaking import MATRIX_ENTRIES
 from hwp_tes_systematics.sky import cmb as sky_cmb
 
@@ -80,7 +80,7 @@ def synthetic_full_sky(nside: int, carries_systematics: bool, samples_per_pixel:
                 for weight in range(3):
                     moments[k, :, weight, entry] += h**weight * a[i] * a[j]
     zeros = np.zeros((3, npix))
-    return map_domain.FixedMaps(
+    return fixed_maps.FixedMaps(
         nosys=zeros,
         template_terms=np.zeros((3, n_det, 3, npix)),
         foreground_reference=zeros,

@@ -47,7 +47,8 @@ import pandas as pd
 
 from hwp_tes_systematics import config as cfg
 from hwp_tes_systematics.analysis.spectra import pseudo_spectra
-from hwp_tes_systematics.simulation.map_domain import ChannelSeeds, read_fixed_field
+from hwp_tes_systematics.simulation.fixed_maps import read_fixed_field
+from hwp_tes_systematics.simulation.map_domain import ChannelSeeds
 from hwp_tes_systematics.simulation.tod_maps import TEMPLATE_TERMS, term_weights
 
 BANDS = ((2, 12), (13, 40), (41, 128))

@@ -1,7 +1,7 @@
 """The demodulated seeds' s^2 piece against the full TOD path, on the pipeline's sky.
 
 Demodulation keeps the s^2 term's 2 s_f x CMB (s_f: foreground + dipole), which the
-map-domain seeds model as S^s (a shaping) of a pixel product (:func:`map_domain.static_sky_product`,
+map-domain seeds model as S^s (a shaping) of a pixel product (:func:`fixed_maps.static_sky_product`,
 S^s measured in the fixed pass). tests/test_map_domain_demodulated.py checks it on one
 day with a synthetic foreground; this script checks it where it will be used: the
 pipeline's foreground map of a channel (a run's ``results/sky/foreground_<channel>.fits``),
@@ -33,7 +33,7 @@ from common import fixed_pass_setup
 from hwp_tes_systematics import sky
 from hwp_tes_systematics.diagnose.testbed import nominal
 from hwp_tes_systematics.instrument.channels import load_channel
-from hwp_tes_systematics.simulation import map_domain
+from hwp_tes_systematics.simulation import fixed_maps, map_domain
 from hwp_tes_systematics.simulation.demodulation import DemodulatedEquations
 from hwp_tes_systematics.simulation.tod_maps import (
     accumulate,
@@ -79,7 +79,7 @@ def main(argv=None) -> None:
         foreground = hp.alm2map(hp.map2alm(foreground, lmax=lmax), nside, lmax=lmax)
     fwhm = channel.fwhm_arcmin
     transfer_alm = sky_cmb.transfer_cmb_alm(lmax, 0.0, MASTER_SEED, fwhm)
-    fixed = map_domain.fixed_pass(
+    fixed = fixed_maps.fixed_pass(
         simulator, settings, foreground, transfer_alm, True, lmax, demodulated=True
     )
     print(f"fixed pass: {time.perf_counter() - started:.0f} s", flush=True)

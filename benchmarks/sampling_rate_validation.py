@@ -1,5 +1,5 @@
 """Does a lower TOD sampling rate give the same maps? The fixed pass of the map-domain path
-(:func:`map_domain.fixed_pass`: noiseless maps, template terms, the filter's CMB transfer
+(:func:`fixed_maps.fixed_pass`: noiseless maps, template terms, the filter's CMB transfer
 and noise shaping) at the instrument model's rate and at lower ones.
 
     python benchmarks/sampling_rate_validation.py --channels M1-140 H3-402 --rates 15.5 19
@@ -23,7 +23,7 @@ import numpy as np
 
 from hwp_tes_systematics.config import default_config_path, load_config
 from hwp_tes_systematics.instrument.channels import load_channel
-from hwp_tes_systematics.simulation import map_domain
+from hwp_tes_systematics.simulation import fixed_maps
 from hwp_tes_systematics.simulation.channel_inputs import channel_a2_k_cmb, channel_sky
 from hwp_tes_systematics.simulation.tod import MissionPlan, PairSimulator
 from hwp_tes_systematics.simulation.tod_maps import (
@@ -43,7 +43,7 @@ def fixed_pass(config, channel_name, rate_hz, days):
     a2_k = channel_a2_k_cmb(config, channel_name)
     settings = PairMapSettings(
         master_seed=config["master_seed"],
-        seed=map_domain.NOISE_REFERENCE_SEED,
+        seed=fixed_maps.NOISE_REFERENCE_SEED,
         nside=NSIDE,
         plan=plan,
         a2_k_cmb=a2_k,
@@ -57,7 +57,7 @@ def fixed_pass(config, channel_name, rate_hz, days):
     foreground = channel_sky(sky_config, channel, 0)["foreground"]
     transfer_alm = sky_cmb.transfer_cmb_alm(LMAX, 0.0, config["master_seed"], channel.fwhm_arcmin)
     started = time.perf_counter()
-    fixed = map_domain.fixed_pass(simulator, settings, foreground, transfer_alm, True, LMAX)
+    fixed = fixed_maps.fixed_pass(simulator, settings, foreground, transfer_alm, True, LMAX)
     return fixed, a2_k, time.perf_counter() - started
 
 

@@ -354,7 +354,7 @@ def test_seed_part_share_splits_a_fixed_pass_template_from_its_seeds(benchmarks,
 
     from hwp_tes_systematics.analysis.likelihood import BBModel
     from hwp_tes_systematics.config import load_config
-    from hwp_tes_systematics.simulation.map_domain import write_fixed_maps
+    from hwp_tes_systematics.simulation.fixed_maps import write_fixed_maps
 
     config = load_config(repo / "config/config.yaml")
     config["simulation"]["noise_scale"] = 1e-3  # the synthetic pass's weights are 1 / K^2

@@ -40,16 +40,16 @@ def fixed_pass_products() -> dict[str, np.ndarray]:
     import dataclasses
 
     from hwp_tes_systematics import sky
-    from hwp_tes_systematics.simulation import map_domain
+    from hwp_tes_systematics.simulation import fixed_maps
 
     simulator = m1_140_pair(4 * 3600.0, 2 * 3600.0, SCAN_NSIDE, 19.0, noise_model="keshner")
-    settings = pipeline_settings(simulator, seed=map_domain.NOISE_REFERENCE_SEED, noise_scale=0.0)
+    settings = pipeline_settings(simulator, seed=fixed_maps.NOISE_REFERENCE_SEED, noise_scale=0.0)
     cls = np.zeros((4, LMAX + 1))
     cls[:3, 2:] = 1e-9 * (np.arange(2, LMAX + 1) / 10.0) ** -2.5
     foreground = hp.alm2map(sky.gaussian_alm(cls, LMAX, np.random.default_rng(3)), SCAN_NSIDE)
     foreground[0] += 3e-3  # an intensity offset as large as the dipole
     transfer_alm = sky_cmb.transfer_cmb_alm(LMAX, 0.0, 7, simulator.channel.fwhm_arcmin)
-    passes = map_domain.fixed_passes(
+    passes = fixed_maps.fixed_passes(
         simulator,
         settings,
         foreground,

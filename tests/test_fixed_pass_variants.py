@@ -1,4 +1,4 @@
-"""Several map-makers in one fixed TOD pass (map_domain.fixed_passes, simulation.fixed_pass_*).
+"""Several map-makers in one fixed TOD pass (fixed_maps.fixed_passes, simulation.fixed_pass_*).
 
 One M1-140 pair, six hours at 19 Hz, the sky scanned at nside 32: the pass also bins at
 nside 16 and without baselines. Each variant must be what a pass of its own gives: the
@@ -16,7 +16,7 @@ import pytest
 from helpers import m1_140_pair, pipeline_settings
 
 from hwp_tes_systematics import sky
-from hwp_tes_systematics.simulation import map_domain, tod_maps
+from hwp_tes_systematics.simulation import fixed_maps, tod_maps
 from hwp_tes_systematics.simulation.hwpss_removal import offset_residual, remove_hwp_harmonics
 from hwp_tes_systematics.sky import cmb as sky_cmb
 
@@ -34,23 +34,23 @@ def passes():
     same pass accumulated in NESTED pixels, the passes' arguments)."""
     simulator = m1_140_pair(6 * 3600.0, 3 * 3600.0, SCAN_NSIDE, 19.0, noise_model="keshner")
     channel = simulator.channel
-    settings = pipeline_settings(simulator, seed=map_domain.NOISE_REFERENCE_SEED, noise_scale=0.0)
+    settings = pipeline_settings(simulator, seed=fixed_maps.NOISE_REFERENCE_SEED, noise_scale=0.0)
     cls = np.zeros((4, LMAX + 1))
     cls[:3, 2:] = 1e-9 * (np.arange(2, LMAX + 1) / 10.0) ** -2.5
     foreground = hp.alm2map(sky.gaussian_alm(cls, LMAX, np.random.default_rng(3)), SCAN_NSIDE)
     foreground[0] += 3e-3  # an intensity offset as large as the dipole
     transfer_alm = sky_cmb.transfer_cmb_alm(LMAX, 0.0, 7, channel.fwhm_arcmin)
     arguments = (simulator, settings, foreground, transfer_alm, True, LMAX)
-    together = map_domain.fixed_passes(*arguments, extra_variants=VARIANTS)
+    together = fixed_maps.fixed_passes(*arguments, extra_variants=VARIANTS)
     tod_maps.NESTED_FROM_NSIDE, ring_from = 1, tod_maps.NESTED_FROM_NSIDE
     try:  # the same accumulated in NESTED order (what nside >= 256 does)
-        nested = map_domain.fixed_passes(*arguments, extra_variants=VARIANTS)
+        nested = fixed_maps.fixed_passes(*arguments, extra_variants=VARIANTS)
     finally:
         tod_maps.NESTED_FROM_NSIDE = ring_from
     no_baselines = dataclasses.replace(settings, baseline_length_s=None)
     separate = {
-        (SCAN_NSIDE, 60.0): map_domain.fixed_pass(*arguments),
-        (SCAN_NSIDE, None): map_domain.fixed_pass(simulator, no_baselines, *arguments[2:]),
+        (SCAN_NSIDE, 60.0): fixed_maps.fixed_pass(*arguments),
+        (SCAN_NSIDE, None): fixed_maps.fixed_pass(simulator, no_baselines, *arguments[2:]),
     }
     return together, separate, nested, arguments
 
@@ -144,11 +144,11 @@ def test_map_makers_of_one_resolution_share_one_copy_of_the_moments(passes, tmp_
     together, *_ = passes
     holder, sharer = together[(SCAN_NSIDE, 60.0)], together[(SCAN_NSIDE, None)]
     attributes = {"detectors": ["a", "b"], "nside": SCAN_NSIDE}
-    map_domain.write_fixed_maps(tmp_path / "holder.h5", holder, attributes)
-    map_domain.write_fixed_maps(tmp_path / "sharer.h5", sharer, attributes, moments_in="holder.h5")
+    fixed_maps.write_fixed_maps(tmp_path / "holder.h5", holder, attributes)
+    fixed_maps.write_fixed_maps(tmp_path / "sharer.h5", sharer, attributes, moments_in="holder.h5")
     assert (tmp_path / "sharer.h5").stat().st_size < 0.6 * (tmp_path / "holder.h5").stat().st_size
-    assert map_domain.moments_file(tmp_path / "sharer.h5") == tmp_path / "holder.h5"
-    read, _ = map_domain.read_fixed_maps(tmp_path / "sharer.h5")
+    assert fixed_maps.moments_file(tmp_path / "sharer.h5") == tmp_path / "holder.h5"
+    read, _ = fixed_maps.read_fixed_maps(tmp_path / "sharer.h5")
     np.testing.assert_array_equal(read.moments, sharer.moments)
     np.testing.assert_array_equal(read.nosys, sharer.nosys)
     # a channel without systematics stores neither (zero) template terms nor moments
@@ -158,8 +158,8 @@ def test_map_makers_of_one_resolution_share_one_copy_of_the_moments(passes, tmp_
         moments=np.zeros(0),
         template_terms=0 * sharer.template_terms,
     )
-    map_domain.write_fixed_maps(tmp_path / "plain.h5", plain, attributes)
-    read, _ = map_domain.read_fixed_maps(tmp_path / "plain.h5")
+    fixed_maps.write_fixed_maps(tmp_path / "plain.h5", plain, attributes)
+    read, _ = fixed_maps.read_fixed_maps(tmp_path / "plain.h5")
     np.testing.assert_array_equal(read.template_terms, plain.template_terms)
     assert read.moments.size == 0
 
@@ -169,7 +169,7 @@ def test_calibration_in_single_precision_measures_what_double_does(passes, monke
     S_ell and S^h_ell within 2e-5 of a float64 filtering, and leave the maps untouched."""
     _, separate, _, arguments = passes
     monkeypatch.setattr(tod_maps, "CALIBRATION_DTYPE", np.float64)
-    double = map_domain.fixed_pass(*arguments)
+    double = fixed_maps.fixed_pass(*arguments)
     single = separate[(SCAN_NSIDE, 60.0)]
     for name in ("nosys", "template_terms", "matrix", "moments"):
         np.testing.assert_array_equal(getattr(single, name), getattr(double, name), err_msg=name)
@@ -185,7 +185,7 @@ def test_a_demodulated_variant_shares_the_pass_and_measures_its_filter(passes):
     are its own (the low-pass below 0.95 f_HWP keeps the sky band: T_BB near the binned
     map-maker's above the notch's ell ~40, not equal)."""
     together, _, _, arguments = passes
-    demodulated = map_domain.fixed_passes(
+    demodulated = fixed_maps.fixed_passes(
         *arguments, extra_variants=VARIANTS, demodulated_variants=[(SCAN_NSIDE, 60.0)]
     )
     fixed = demodulated[(SCAN_NSIDE, 60.0, "demodulated")]
@@ -215,12 +215,12 @@ def test_demodulated_variants_of_two_resolutions_share_one_demodulation(passes):
     rounding; the single-precision calibration TODs' spectra to 1e-6)."""
     _, _, _, arguments = passes
     key = (COARSE_NSIDE, 60.0, "demodulated")
-    both = map_domain.fixed_passes(
+    both = fixed_maps.fixed_passes(
         *arguments,
         extra_variants=VARIANTS,
         demodulated_variants=[(SCAN_NSIDE, 60.0), key[:2]],
     )[key]
-    alone = map_domain.fixed_passes(
+    alone = fixed_maps.fixed_passes(
         *arguments, extra_variants=VARIANTS, demodulated_variants=[key[:2]]
     )[key]
     assert_same(both, alone, key)

@@ -12,7 +12,7 @@ from hwp_tes_systematics.analysis.ilc_residuals import SeedMaps, systematic_bb, 
 from hwp_tes_systematics.analysis.likelihood import BBModel, fisher_bias, fit_r
 from hwp_tes_systematics.analysis.systematics import case_names, maps_for_sigma
 from hwp_tes_systematics.config import deep_merge, load_config
-from hwp_tes_systematics.simulation import map_domain
+from hwp_tes_systematics.simulation import fixed_maps, map_domain
 from hwp_tes_systematics.simulation.mapmaking import MATRIX_ENTRIES
 from hwp_tes_systematics.simulation.maps_file import read_channel_maps
 from hwp_tes_systematics.simulation.tod_maps import templates_from_terms
@@ -276,7 +276,7 @@ def test_template_split_sums_to_the_systematic(synthetic):
     assert np.all(table["bb_noise_h_x_noise_h_k4"][2:] > 0)
 
 
-def synthetic_fixed_pass(nside: int, rng) -> map_domain.FixedMaps:
+def synthetic_fixed_pass(nside: int, rng) -> fixed_maps.FixedMaps:
     """A map-domain fixed pass of two detectors on a random sky: HWPSS moments from eight
     random HWP angles per pixel, random template terms, a few pixels not good."""
 
@@ -292,7 +292,7 @@ def synthetic_fixed_pass(nside: int, rng) -> map_domain.FixedMaps:
     good = np.ones(npix, bool)
     good[rng.choice(npix, 20, replace=False)] = False
     scales = np.array([1e-6, 1e-4, 1e-3])[:, None, None, None]
-    return map_domain.FixedMaps(
+    return fixed_maps.FixedMaps(
         nosys=rng.normal(size=(3, npix)) * 1e-6,
         template_terms=rng.normal(size=(3, 2, 3, npix)) * scales,
         foreground_reference=rng.normal(size=(3, npix)) * 1e-7,

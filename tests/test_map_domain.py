@@ -23,8 +23,8 @@ from helpers import (
 from hwp_tes_systematics import config as config_module
 from hwp_tes_systematics import seeding, sky
 from hwp_tes_systematics.instrument.channels import load_channel
-from hwp_tes_systematics.simulation import map_domain
-from hwp_tes_systematics.simulation.map_domain import shaped_noise_map
+from hwp_tes_systematics.simulation import filter_response, fixed_maps, map_domain
+from hwp_tes_systematics.simulation.filter_response import shaped_noise_map
 from hwp_tes_systematics.simulation.mapmaking import solve_maps
 from hwp_tes_systematics.simulation.tod import MissionPlan, PairSimulator
 from hwp_tes_systematics.simulation.tod_maps import PairMapSettings, accumulate, split_solved_maps
@@ -58,7 +58,7 @@ def m1_140_fixed_pass(inputs, measure_lmax=None):
     transfer_alm = sky_cmb.transfer_cmb_alm(
         LMAX, 0.0, MASTER_SEED, load_channel("M1-140").fwhm_arcmin
     )
-    return map_domain.fixed_pass(
+    return fixed_maps.fixed_pass(
         simulator, settings, foreground, transfer_alm, True, LMAX, measure_lmax=measure_lmax
     )
 
@@ -193,8 +193,8 @@ def test_noise_of_template_and_map_match_the_full_path(setup):
 def test_fixed_maps_round_trip_through_hdf5(setup, tmp_path):
     fixed, _, _ = setup
     path = tmp_path / "fixed.h5"
-    map_domain.write_fixed_maps(path, fixed, {"channel": "M1-140"})
-    read, attributes = map_domain.read_fixed_maps(path)
+    fixed_maps.write_fixed_maps(path, fixed, {"channel": "M1-140"})
+    read, attributes = fixed_maps.read_fixed_maps(path)
     assert attributes["channel"] == "M1-140" and read.carries_systematics
     for field in dataclasses.fields(fixed):
         np.testing.assert_array_equal(getattr(read, field.name), getattr(fixed, field.name))
@@ -210,7 +210,7 @@ def test_calibration_tods_only_on_their_chunks():
     plan = MissionPlan("2032-04-01T00:00:00", 3 * 1800.0, 1800.0, 19.0)
     settings = PairMapSettings(
         master_seed=MASTER_SEED,
-        seed=map_domain.NOISE_REFERENCE_SEED,
+        seed=fixed_maps.NOISE_REFERENCE_SEED,
         nside=8,
         plan=plan,
         a2_k_cmb=0.0,
@@ -222,7 +222,7 @@ def test_calibration_tods_only_on_their_chunks():
     )
     simulator = PairSimulator(channel, plan, 8, noise_model="keshner")
     sky_map = np.zeros((3, hp.nside2npix(8)))
-    calibration = Calibration(8, (sky_map,), map_domain.NOISE_REFERENCE_SEED, every_chunks=2)
+    calibration = Calibration(8, (sky_map,), fixed_maps.NOISE_REFERENCE_SEED, every_chunks=2)
     equations = accumulate(
         simulator, settings, sky_map, template_terms=False, calibration=calibration
     )
@@ -235,7 +235,7 @@ def test_calibration_tods_only_on_their_chunks():
     # realization filtered, then the same unfiltered; the first realization's n is the
     # pass's without them, the second another stream
     with_h = Calibration(
-        8, (sky_map,), map_domain.NOISE_REFERENCE_SEED, 2, hwpss_noise=True, noise_realizations=2
+        8, (sky_map,), fixed_maps.NOISE_REFERENCE_SEED, 2, hwpss_noise=True, noise_realizations=2
     )
     accumulate(simulator, settings, sky_map, template_terms=False, calibration=with_h)
     assert with_h.equations.n_tods == 9
@@ -323,10 +323,10 @@ def test_cmb_filtered_to_a_band_limit():
     direct = hp.alm2map(
         np.array([hp.almxfl(alm[i], transfer[i]) for i in range(3)]), nside, lmax=lmax, pixwin=False
     )
-    full = map_domain.filtered_cmb_map(cmb, alm, transfer, lmax, lmax)
+    full = filter_response.filtered_cmb_map(cmb, alm, transfer, lmax, lmax)
     np.testing.assert_allclose(full, direct, atol=1e-12 * np.abs(direct).max())
     band_limit = 20
-    limited = map_domain.filtered_cmb_map(cmb, alm, transfer, lmax, band_limit)
+    limited = filter_response.filtered_cmb_map(cmb, alm, transfer, lmax, band_limit)
     ell, _ = hp.Alm.getlm(lmax)
     factor = np.where(ell <= band_limit, transfer[:, ell], 1.0)  # (3, nalm)
     expected = hp.alm2map(factor * alm, nside, lmax=lmax, pixwin=False)
@@ -358,10 +358,10 @@ def test_beamed_cmb_synthesised_to_the_beam_band_limit():
     )
     transfer = np.tile(np.linspace(0.2, 0.95, lmax + 1), (3, 1))
     filter_lmax = 200
-    filtered_limited = map_domain.filtered_cmb_map(
+    filtered_limited = filter_response.filtered_cmb_map(
         limited, limited_alm, transfer, band, filter_lmax
     )
-    filtered_full = map_domain.filtered_cmb_map(full, alm, transfer, lmax, filter_lmax)
+    filtered_full = filter_response.filtered_cmb_map(full, alm, transfer, lmax, filter_lmax)
     error = np.abs(filtered_limited - filtered_full).max(axis=1)
     assert np.all(error < 1e-4 * rms), error  # the same multipoles dropped, unfiltered
 

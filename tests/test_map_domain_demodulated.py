@@ -24,7 +24,7 @@ from helpers import (
 
 from hwp_tes_systematics import seeding, sky
 from hwp_tes_systematics.instrument.channels import load_channel
-from hwp_tes_systematics.simulation import map_domain
+from hwp_tes_systematics.simulation import fixed_maps, map_domain
 from hwp_tes_systematics.simulation.demodulation import DemodulatedEquations
 from hwp_tes_systematics.simulation.tod_maps import (
     accumulate,
@@ -61,7 +61,7 @@ def setup():
     transfer_alm = sky_cmb.transfer_cmb_alm(
         LMAX, 0.0, MASTER_SEED, load_channel("M1-140").fwhm_arcmin
     )
-    fixed = map_domain.fixed_pass(
+    fixed = fixed_maps.fixed_pass(
         simulator, settings, foreground, transfer_alm, True, LMAX, demodulated=True
     )
     scanned_foreground = BandLimitedSky.from_map(foreground, LMAX)
@@ -130,7 +130,7 @@ def test_seed_part_of_the_template_matches_the_full_path(setup):
     demodulation keeps the s^2 term's 2 s_f x CMB (its 4 f_HWP part, as the sky's
     polarization), which the s h term's piece (~0 after demodulation) does not carry.
     The seeds model it as S^s (a shaping) of the pixel product of s_f and the CMB
-    (:func:`map_domain.static_sky_product`). Here (1 day) the filter passes E/B only
+    (:func:`fixed_maps.static_sky_product`). Here (1 day) the filter passes E/B only
     above ell ~ 40 (T_EE 0.23 at ell 40-95) and mixes multipoles and E with B, so the
     seeds are checked at ell 48-95 in power, what the analysis reads: modelled over full
     path 0.91-0.95 (E and B), the difference's power 0.43-0.47 of it (1.0 left out).
@@ -179,7 +179,7 @@ def test_noise_of_demodulated_template_and_map_match_the_full_path(setup):
 def test_demodulated_fixed_maps_round_trip_through_hdf5(setup, tmp_path):
     fixed, _ = setup
     path = tmp_path / "fixed.h5"
-    map_domain.write_fixed_maps(path, fixed, {"channel": "M1-140"})
-    read, _ = map_domain.read_fixed_maps(path)
+    fixed_maps.write_fixed_maps(path, fixed, {"channel": "M1-140"})
+    read, _ = fixed_maps.read_fixed_maps(path)
     for field in dataclasses.fields(fixed):
         np.testing.assert_array_equal(getattr(read, field.name), getattr(fixed, field.name))

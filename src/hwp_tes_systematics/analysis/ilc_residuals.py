@@ -35,7 +35,7 @@ import pandas as pd
 
 from .. import config as cfg
 from ..io import atomic_path
-from ..simulation import map_domain
+from ..simulation import fixed_maps, map_domain
 from ..simulation.maps_file import read_channel_maps
 from ..sky import cmb as sky_cmb
 from ..sky import harmonics
@@ -257,7 +257,7 @@ def _term_alms(templates, coefficient, seen, fwhm_arcmin, mask, harmonic) -> np.
 
 
 def fixed_term_alms(
-    config: dict, name: str, fixed: map_domain.FixedMaps, a2_k: float, mask, harmonic
+    config: dict, name: str, fixed: fixed_maps.FixedMaps, a2_k: float, mask, harmonic
 ) -> dict[str, np.ndarray]:
     """The a_lm of a map-domain channel's template terms that every seed shares, once per
     channel: X^0 and X^2 per detector (a seed keeps the fixed pass's s^2 and h^2 terms)

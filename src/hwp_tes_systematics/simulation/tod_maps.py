@@ -115,7 +115,7 @@ class Calibration:
     measures poorly at low ell (the notch removes particular TOD modes: two realizations
     differ by 30 % to 3x at ell 2-11), hence several. With ``template_references`` the
     references' parts of the template follow them, as a map-maker other than the binned
-    one sees them (:func:`map_domain.fixed_passes` with demodulated variants): each
+    one sees them (:func:`fixed_maps.fixed_passes` with demodulated variants): each
     reference times the unit HWPSS, h x (the seed's CMB in the s h term), then each times
     twice the pass's own noiseless signal, 2 s_f x (the seed's CMB in the s^2 term); and
     ``static_sky`` bins s_f unfiltered (the map 2 s_f x is predicted from)."""
@@ -161,7 +161,7 @@ class Calibration:
 @dataclass
 class ExtraBinning:
     """Another map-maker fed by the same TODs in the same pass (the map-domain fixed pass's
-    variants, :func:`map_domain.fixed_passes`): its HEALPix resolution (pixels from the
+    variants, :func:`fixed_maps.fixed_passes`): its HEALPix resolution (pixels from the
     pointing's directions; the sky is scanned at the primary resolution) and baseline
     length (None: none, and the HWP-harmonic fit without a constant, as the primary path
     would run it), with its own normal equations, HWPSS moments (one object may be shared

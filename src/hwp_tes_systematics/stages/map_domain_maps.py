@@ -15,7 +15,7 @@ from .. import config as cfg
 from .. import sky
 from ..analysis import ilc_residuals
 from ..io import reuse_freed_memory, use_threads
-from ..simulation import map_domain
+from ..simulation import fixed_maps, map_domain
 from ..simulation.maps_file import maps_attributes
 from ..simulation.tod import PairSimulator
 from ..simulation.tod_maps import PairMapSettings
@@ -51,7 +51,7 @@ def run_fixed_pass(
     (scan_nside, primary_baseline), extra_variants = variants[0], variants[1:]
     settings = dataclasses.replace(
         PairMapSettings.from_config(
-            config, channel, map_domain.NOISE_REFERENCE_SEED, a2_k_cmb, threads
+            config, channel, fixed_maps.NOISE_REFERENCE_SEED, a2_k_cmb, threads
         ),
         nside=scan_nside,
         baseline_length_s=primary_baseline,
@@ -70,7 +70,7 @@ def run_fixed_pass(
         len(settings.plan.chunks()),
         ", ".join(names),
     )
-    passes = map_domain.fixed_passes(
+    passes = fixed_maps.fixed_passes(
         simulator,
         settings,
         foreground,
@@ -100,7 +100,7 @@ def run_fixed_pass(
         out_h5 = out_h5s[name]
         holder = Path(out_h5s[cfg.moments_variant(config, nside)]).name
         shared = None if holder == Path(out_h5).name else holder
-        map_domain.write_fixed_maps(out_h5, fixed, attributes, moments_in=shared)
+        fixed_maps.write_fixed_maps(out_h5, fixed, attributes, moments_in=shared)
         log.info(
             "%s fixed pass %s: wrote %s (observed %.0f %%; CMB transfer T_BB at ell 2-20, "
             "20-60, 60-128: %.2f, %.2f, %.2f)",
@@ -118,7 +118,7 @@ def run_fixed_pass(
 def run_mask(config: dict, fixed_h5s: list[str], out_h5: str) -> None:
     """The analysis mask from every channel's fixed pass (the pixels a seed observes are
     the fixed pass's ``good`` ones): what the seeds' a_lm are computed on."""
-    observed = [map_domain.read_fixed_field(path, "good") for path in fixed_h5s]
+    observed = [fixed_maps.read_fixed_field(path, "good") for path in fixed_h5s]
     mask = ilc_residuals.analysis_mask(observed, config["component_separation"])
     ilc_residuals.write_mask(out_h5, mask, config["component_separation"])
     log.info(

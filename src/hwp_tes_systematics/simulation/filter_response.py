@@ -1,0 +1,117 @@
+"""The filter as functions of multipole: what the fixed pass measures of the TOD filter
+(HWP-harmonic removal, notch, offsets) on its binned maps, and how the seeds apply it.
+
+T_ell = C_ell(bin F CMB, CMB) / C_ell(CMB) (TT, EE, BB) is the transfer of a reference CMB
+through the filter; the noise shaping S_ell ~ sqrt(sum C_ell(bin F n) / sum C_ell(bin n))
+is that of reference noise realizations, binned SHAPING_BIN_WIDTH multipoles at a time and
+corrected SHAPING_ITERATIONS times for the mask's mode coupling. A seed's filtered map is
+its a_lm times T_ell (:func:`transferred_map`) and its noise white noise times S_ell
+(:func:`shaped_noise_map`): the approximation of the map-domain path
+(:mod:`map_domain`), validated against the TOD path there.
+"""
+
+from __future__ import annotations
+
+import healpy as hp
+import numpy as np
+
+from ..sky import harmonics
+
+SHAPING_BIN_WIDTH = 4  # multipoles averaged in the noise shaping
+SHAPING_ITERATIONS = 2  # corrections of the noise shaping for the mask's mode coupling
+TRANSFER_SPECTRA = ("tt", "ee", "bb")
+
+
+def measure_transfer(output_iqu: np.ndarray, input_iqu: np.ndarray, good: np.ndarray, lmax: int):
+    """T_ell (3, lmax + 1) for TT, EE, BB: the cross pseudo-spectrum of the filtered-binned
+    map with its input over their input pseudo-spectrum, both on the observed pixels
+    ``good``; T_ell = 1 where the input has no power (ell < 2 in polarization)."""
+    masked_output = np.where(good, output_iqu, 0.0)
+    masked_input = np.where(good, input_iqu, 0.0)
+    cross = hp.anafast(masked_output, masked_input, lmax=lmax)[:3]
+    auto = hp.anafast(masked_input, lmax=lmax)[:3]
+    transfer = np.ones_like(auto)
+    np.divide(cross, auto, out=transfer, where=auto > 0)
+    return transfer
+
+
+def measure_noise_shaping(filtered_iqu, unfiltered_iqu, good: np.ndarray, lmax: int) -> np.ndarray:
+    """S_ell (3, lmax + 1) for TT, EE, BB such that :func:`shaped_noise_map` of the
+    unfiltered noise realizations bin n has, summed over them, the pseudo-spectrum of
+    the filtered ones, bin F n, on ``good``: starting from sqrt(sum C_ell(bin F n) /
+    sum C_ell(bin n)), corrected SHAPING_ITERATIONS times by sqrt(sum C_ell(bin F n) /
+    sum C_ell(shaped)) (the mask couples multipoles, so shaping by S does not give S^2
+    exactly on a partial sky); averaged over SHAPING_BIN_WIDTH multipoles.
+    ``filtered_iqu``, ``unfiltered_iqu``: (3, npix) maps of one realization or
+    sequences of them, in the same order."""
+    filtered, unfiltered = _realizations(filtered_iqu), _realizations(unfiltered_iqu)
+
+    def summed(maps):
+        return sum(_binned_pseudo_spectra(m, good, lmax) for m in maps)
+
+    target = summed(filtered)
+    shaping = np.sqrt(_ratio(target, summed(unfiltered)))
+    for _ in range(SHAPING_ITERATIONS):
+        shaped = [shaped_noise_map(m, shaping, good, lmax) for m in unfiltered]
+        shaping *= np.sqrt(_ratio(target, summed(shaped)))
+    return shaping
+
+
+def _realizations(maps) -> list[np.ndarray]:
+    """A (3, npix) map or a sequence of them, as a list of (3, npix) maps."""
+    maps = np.asarray(maps)
+    return [maps] if maps.ndim == 2 else list(maps)
+
+
+def _binned_pseudo_spectra(maps_iqu: np.ndarray, good: np.ndarray, lmax: int) -> np.ndarray:
+    """TT, EE, BB pseudo-spectra on ``good``, summed over SHAPING_BIN_WIDTH multipoles
+    (each multipole holds its bin's sum; ell < 2 holds its own value)."""
+    spectra = hp.anafast(np.where(good, maps_iqu, 0.0), lmax=lmax)[:3]
+    for first in range(2, lmax + 1, SHAPING_BIN_WIDTH):
+        window = slice(first, min(first + SHAPING_BIN_WIDTH, lmax + 1))
+        spectra[:, window] = spectra[:, window].sum(axis=1, keepdims=True)
+    return spectra
+
+
+def _ratio(numerator: np.ndarray, denominator: np.ndarray) -> np.ndarray:
+    """numerator / denominator, 1 where the denominator is 0 and below ell = 2."""
+    ratio = np.ones_like(numerator)
+    np.divide(numerator, denominator, out=ratio, where=denominator > 0)
+    ratio[:, :2] = 1.0
+    return ratio
+
+
+def shaped_noise_map(noise_iqu: np.ndarray, shaping: np.ndarray, good: np.ndarray, lmax: int):
+    """The noise map (zero off ``good``) with its T, E, B a_lm up to lmax times
+    ``shaping``: n + alm2map((shaping - 1) a_lm), so the power beyond lmax (white
+    pixel noise has it) is kept unshaped. One Jacobi iteration of the analysis above
+    lmax = nside, none at or below it (where the quadrature alone is accurate to ~1e-3,
+    on a correction that is itself (shaping - 1) of the noise)."""
+    nside = hp.npix2nside(good.size)
+    masked = np.where(good, noise_iqu, 0.0)
+    alm = harmonics.map2alm(masked, lmax, iter=0 if lmax <= nside else 1)
+    change = np.array([hp.almxfl(alm[i], shaping[i, : lmax + 1] - 1.0) for i in range(3)])
+    return masked + harmonics.alm2map(change, nside, lmax)
+
+
+def transferred_map(maps_iqu: np.ndarray, transfer: np.ndarray, good: np.ndarray, lmax: int):
+    """(3, npix) alm2map(transfer_ell a_lm) of the map (zero off ``good``), band-limited
+    to ``lmax`` (nothing kept above it: unlike :func:`shaped_noise_map`, for a map that
+    the map-maker does not pass at any ell as the binned one does)."""
+    nside = hp.npix2nside(good.size)
+    masked = np.where(good, maps_iqu, 0.0)
+    alm = harmonics.map2alm(masked, lmax, iter=0 if lmax <= nside else 1)
+    alm = np.array([hp.almxfl(alm[i], transfer[i, : lmax + 1]) for i in range(3)])
+    return harmonics.alm2map(alm, nside, lmax)
+
+
+def filtered_cmb_map(
+    cmb_iqu: np.ndarray, alm: np.ndarray, transfer: np.ndarray, lmax: int, filter_lmax: int
+):
+    """(3, npix) map of the a_lm times T_ell per T, E, B up to ``filter_lmax`` [K_CMB]:
+    cmb + alm2map((T_ell - 1) a_lm), with ``cmb_iqu`` the map of ``alm`` (band ``lmax``),
+    so above ``filter_lmax`` the CMB is kept unfiltered."""
+    nside = hp.npix2nside(cmb_iqu.shape[-1])
+    band = hp.resize_alm(alm, lmax, lmax, filter_lmax, filter_lmax)
+    change = np.array([hp.almxfl(band[i], transfer[i, : filter_lmax + 1] - 1.0) for i in range(3)])
+    return cmb_iqu + harmonics.alm2map(change, nside, filter_lmax)
