@@ -235,3 +235,52 @@ def test_job_counts_are_the_dags(configfile, tmp_path):
     assert total and int(total.group(1)) == JOB_COUNTS[configfile], (result.stdout + result.stderr)[
         -3000:
     ]
+
+
+def beside_the_paper_rows() -> list[tuple[str, list[str], list[str]]]:
+    """(label, requirement.json paths, [sigma_r, 68 % point, Fisher, crossing] cells) of
+    each row of docs/results/one_year.md's table of readings that names its run folders
+    (``.../`` is docs/resolution/, ``{a,b}`` one folder each)."""
+    rows = []
+    for line in (REPO / "docs/results/one_year.md").read_text().splitlines():
+        cells = [cell.strip() for cell in line.strip().strip("|").split("|")]
+        if len(cells) != 7 or not cells[2].startswith("`") or "docs" not in cells[2] + "...":
+            continue
+        folder = cells[2].strip("`").replace(".../", "docs/resolution/")
+        braces = re.search(r"\{([^}]+)\}", folder)
+        folders = (
+            [folder.replace(braces[0], part) for part in braces[1].split(",")]
+            if braces
+            else [folder]
+        )
+        paths = [f"{f}/requirement.json" for f in folders]
+        if all((REPO / path).is_file() for path in paths):
+            rows.append((cells[0], paths, cells[3:7]))
+    return rows
+
+
+def test_the_results_page_readings_are_their_runs_requirement_json():
+    """docs/results/one_year.md's readings beside the paper quote each run folder's
+    requirement.json (sigma_r, the 68 %-point requirement, the Fisher peak shift and the
+    paper's estimator's budget crossing), rounded as quoted."""
+    rows = beside_the_paper_rows()
+    assert len(rows) >= 10, rows
+    for label, paths, cells in rows:
+        runs = [json.loads((REPO / path).read_text()) for path in paths]
+        values = {
+            "sigma_r": [run["sigma_r_fisher"] for run in runs],
+            "68 % point": [run["headline"]["requirement_sigma_g1_per_k"] for run in runs],
+            "Fisher": [
+                run["headline"]["fisher_peak_shift_requirement_sigma_g1_per_k"] for run in runs
+            ],
+            "crossing": [run["headline"]["paper_estimator_budget_crossing_per_k"] for run in runs],
+        }
+        for (key, expected), cell in zip(values.items(), cells, strict=True):
+            if cell.startswith("<"):  # a bound, not a value
+                continue
+            quotes = [q for q in quoted(cell) if q[0] > 0]
+            numbers = quotes if len(paths) == 1 else quotes[: len(paths)]
+            if len(paths) > 1 and "+-" in cell:  # "a +- e / b +- e": every other number
+                numbers = quotes[0::2][: len(paths)]
+            for value, quote in zip(expected, numbers[: len(expected)], strict=False):
+                assert matches(value, quote), f"{label}: {key} {quote[0]:g}, run has {value:.4g}"
