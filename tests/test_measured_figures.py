@@ -139,6 +139,7 @@ JOB_COUNTS = {
     "config/config.yaml": 70,
     "config/one_year.yaml": 197,
     "tests/configs/tiny.yaml": 26,
+    "config/one_year.yaml config/paper.yaml config/full_focal_plane.yaml": 757,
 }
 PAGES = [REPO / "README.md"] + sorted(
     p for p in (REPO / "docs").rglob("*.md") if not {"_build", "_generated"} & set(p.parts)
@@ -219,16 +220,14 @@ def test_no_page_quotes_a_test_count():
 @pytest.mark.slow
 @pytest.mark.parametrize("configfile", JOB_COUNTS)
 def test_job_counts_are_the_dags(configfile, tmp_path):
-    """A dry run of each configuration schedules JOB_COUNTS[configfile] jobs (the default's
-    with no --configfile: the embedded configuration)."""
+    """A dry run of each configuration (its files merged in order) schedules
+    JOB_COUNTS[configfile] jobs (the default's with no --configfile: the embedded
+    configuration)."""
     from helpers import make_workdir, snakemake
 
     workdir = make_workdir(REPO, tmp_path / "workdir")
-    extra = (
-        ("-n",)
-        if configfile == "config/config.yaml"
-        else ("-n", "--configfile", str(REPO / configfile))
-    )
+    files = [str(REPO / name) for name in configfile.split()]
+    extra = ("-n",) if configfile == "config/config.yaml" else ("-n", "--configfile", *files)
     result = snakemake(workdir, extra=extra)
     assert result.returncode == 0, result.stderr[-3000:]
     total = re.search(r"^total\s+(\d+)$", result.stdout + result.stderr, re.MULTILINE)
