@@ -529,3 +529,41 @@ def test_focal_plane_cost_covers_the_ptep_focal_plane(repo):
     assert abs(sum(float(row[4]) for row in channels) - float(total[4])) <= len(channels)
     by_detectors = sorted((int(row[1]), float(row[5])) for row in channels if row[2] == "19")
     assert by_detectors[0][1] < by_detectors[-1][1]
+
+
+def test_same_results_tells_equal_runs_from_changed_ones(tmp_path, repo):
+    """benchmarks/same_results.py: two copies of a run's files are the same (exit 0); a
+    number changed beyond --rtol, or a key gone, is named (exit 1)."""
+    import json
+    import shutil
+    import subprocess
+
+    run = repo / "docs" / "one_year"
+    for name in ("before", "after"):
+        (tmp_path / name / "diagnose" / "example").mkdir(parents=True)
+        shutil.copy(run / "requirement.json", tmp_path / name / "requirement.json")
+        shutil.copy(run / "delta_r.csv", tmp_path / name / "delta_r.csv")
+        (tmp_path / name / "diagnose/example/diagnosis.json").write_text('{"a": [1.0, "x"]}')
+
+    def status():
+        done = subprocess.run(
+            [
+                sys.executable,
+                str(repo / "benchmarks/same_results.py"),
+                *(tmp_path / n for n in ("before", "after")),
+            ],
+            capture_output=True,
+            text=True,
+            check=False,
+        )
+        return done.returncode, done.stdout
+
+    code, out = status()
+    assert code == 0 and "0 beyond 1e-09" in out
+    result = json.loads((tmp_path / "after/requirement.json").read_text())
+    result["headline"]["requirement_sigma_g1_per_k"] *= 1 + 1e-6
+    del result["headline"]["note"]
+    (tmp_path / "after/requirement.json").write_text(json.dumps(result))
+    code, out = status()
+    assert code == 1
+    assert "/headline/requirement_sigma_g1_per_k" in out and "/headline/note: only in before" in out
