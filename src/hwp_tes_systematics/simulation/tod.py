@@ -295,16 +295,27 @@ class PairSimulator:
         vectors = np.empty((len(owners_of), n_samples, 3))
         quaternions = np.empty((n_samples, 4))
         for direction, owners in enumerate(owners_of):
-            detector_quaternions = observation.quat[owners[0]].quats
-            if len(detector_quaternions) != 1:
-                raise ValueError(
-                    f"{self.detectors[owners[0]].name}: a time-dependent detector quaternion "
-                    f"({len(detector_quaternions)} samples); expected one"
+            detector_quaternion = observation.quat[owners[0]]
+            if len(detector_quaternion.quats) > 1:  # time-dependent (a drifting pointing):
+                # litebird_sim composes it with the boresight sample by sample
+                lbs.PointingProvider(bore2galactic).get_pointings(
+                    detector_quat=detector_quaternion,
+                    start_time=start,
+                    start_time_global=start,
+                    sampling_rate_hz=sampling_rate_hz,
+                    nsamples=n_samples,
+                    pointing_buffer=galactic[direction],
+                    compute_hwp_angle=False,
                 )
+                theta, phi = galactic[direction, :, 0], galactic[direction, :, 1]
+                vectors[direction] = np.stack(
+                    [np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], -1
+                )
+                continue
             provider.get_rotated_quaternions(
                 first_s,
                 sampling_rate_hz,
-                detector_quaternions[0],
+                detector_quaternion.quats[0],
                 rot_left=False,
                 out=quaternions,
             )
