@@ -285,7 +285,8 @@ def test_a_real_diagnosis_shows_its_stages(capsys, tmp_path):
 def test_significant_keeps_two_figures():
     assert significant(4.98e-3 / 4.9e-3) == "1.0"  # format(.., ".2g") gives "1"
     assert significant(12.3) == "12" and significant(0.0123) == "0.012"
-    assert significant(5.0) == "5.0" and significant(123.0) == "1.2e+02"
+    assert significant(5.0) == "5.0" and significant(123.0) == "120"
+    assert significant(189.0) == "190" and significant(2.5e7) == "2.5e+07"
     assert significant(0.999) == "1.0" and significant(9.96, 3) == "9.96"
 
 

@@ -172,10 +172,13 @@ def _context(requirement) -> str:
 
 def significant(value: float, digits: int = 2) -> str:
     """``value`` to ``digits`` significant figures, trailing zeros kept: 4.98e-3 / 4.9e-3
-    is "1.0", not "1" (what ``format(value, ".2g")`` gives)."""
+    is "1.0", not "1" (what ``format(value, ".2g")`` gives); a ratio from 10^digits up to
+    1e6 as a rounded integer (189 -> "190", not "1.9e+02")."""
     if not math.isfinite(value) or value == 0:
         return format(value, "g")
     text = format(value, f"#.{digits}g")
+    if "e+" in text and abs(value) < 1e6:
+        return str(int(float(text)))
     return text if "e" in text else text.rstrip(".")
 
 
