@@ -4,7 +4,7 @@
 
 Compares, in the two ``results/`` folders, ``requirement.json`` and
 ``diagnose/example/diagnosis.json`` leaf by leaf (numbers to ``--rtol`` of their size,
-everything else exactly; ``config_sha256`` and timing or path entries skipped) and
+everything else exactly; ``config_sha256``, which hashes the configuration, skipped) and
 ``delta_r.csv`` column by column. Prints, per file, the leaves compared, how many are
 identical, the largest relative difference and every leaf beyond the tolerance; exits 1
 if any is beyond it or a file or key is missing on one side.
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pandas as pd
 
-SKIPPED = ("config_sha256", "elapsed", "wall", "seconds", "path", "file", "version", "created")
+SKIPPED = {"config_sha256"}  # leaf names not compared
 
 
 def leaves(value, prefix=""):
@@ -41,7 +41,7 @@ def leaves(value, prefix=""):
 def compare(before: dict, after: dict, rtol: float) -> tuple[int, int, float, list[str]]:
     """(leaves compared, identical, largest relative difference, problems)."""
     problems, identical, largest = [], 0, 0.0
-    keys = [k for k in sorted(set(before) | set(after)) if not any(s in k for s in SKIPPED)]
+    keys = [k for k in sorted(set(before) | set(after)) if k.rsplit("/", 1)[-1] not in SKIPPED]
     for key in keys:
         if key not in before or key not in after:
             problems.append(f"{key}: only in {'after' if key not in before else 'before'}")

@@ -124,12 +124,13 @@ def dipole_total_from_lin_t(vectors, velocities_km_s, frequency_ghz: float, out=
     from litebird_sim.constants import C_LIGHT_KM_OVER_S, H_OVER_K_B, T_CMB_K
 
     out = np.empty(np.shape(vectors)[0]) if out is None else out
-    x = H_OVER_K_B * frequency_ghz * 1e9 / T_CMB_K
+    h_nu_over_k = H_OVER_K_B * frequency_ghz * 1e9
+    x = h_nu_over_k / T_CMB_K
     f_x = x * np.exp(x) / (np.exp(x) - 1)
     _dipole_kernel(
         vectors,
         velocities_km_s,
-        H_OVER_K_B * frequency_ghz * 1e9,
+        h_nu_over_k,
         T_CMB_K,
         C_LIGHT_KM_OVER_S,
         1 / np.expm1(x),

@@ -29,6 +29,7 @@ from functools import cached_property
 
 import astropy.time
 import ducc0
+import healpy as hp
 import numpy as np
 
 from .. import seeding
@@ -307,9 +308,8 @@ class PairSimulator:
                     pointing_buffer=galactic[direction],
                     compute_hwp_angle=False,
                 )
-                theta, phi = galactic[direction, :, 0], galactic[direction, :, 1]
-                vectors[direction] = np.stack(
-                    [np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], -1
+                vectors[direction] = hp.ang2vec(
+                    galactic[direction, :, 0], galactic[direction, :, 1]
                 )
                 continue
             provider.get_rotated_quaternions(
