@@ -33,6 +33,9 @@ DOUBLE_RTOL = 1e-9
 SINGLE_ATOL = 2e-5
 SINGLE_PRECISION = ("transfer", "noise_shaping", "noise_h_shaping", "cmb_h_transfer")
 SINGLE_PRECISION += ("cmb_s_shaping",)
+# products measured after the reference was written (their physics is tested elsewhere:
+# tests/test_map_domain.py::test_the_bb_excess_is_what_the_filter_adds_beyond_the_transfer)
+LATER_FIELDS = ("cmb_bb_excess",)
 
 
 def fixed_pass_products() -> dict[str, np.ndarray]:
@@ -73,7 +76,11 @@ def fixed_pass_products() -> dict[str, np.ndarray]:
 @pytest.mark.slow
 def test_the_fixed_pass_equals_the_reference_to_rounding():
     expected = dict(np.load(REFERENCE))
-    products = fixed_pass_products()
+    products = {
+        key: value
+        for key, value in fixed_pass_products().items()
+        if key.split("/")[1] not in LATER_FIELDS
+    }
     assert sorted(products) == sorted(expected)
     for key, value in products.items():
         reference = expected[key]

@@ -305,3 +305,51 @@ def test_the_map_holds_the_transfer_squared_and_only_recovered_power_reads_r_bac
         check, _, _ = compare_model_with_data(settings, noise, noise, residuals)
         assert check["consistent"] is consistent, (analysis, check["failing_bins"])
         assert check["data_transfer"] == "sky_power_transfer_bb"
+
+
+def mixing_filter_tables(model, rng, r_input, b_power, t, n_seeds=60):
+    """Seeds' spectra tables of a filter that mixes modes: the recovered CMB is the sky's B
+    modes at power ``b_power`` x C_in (cross t C_in) plus a leakage 0.05 C_lens, kept apart
+    as the map-domain path keeps it (``bb_cmb_leakage_k2``, ``bb_cmb_recovered_b_k2``)."""
+    nu = np.maximum((2 * model.ell + 1) * model.f_sky, 1.0)
+    tables = []
+    for noise in noise_draws(model, rng, n_seeds):
+        cmb_in = (model.c_lens + r_input * model.c_gw_r1) * rng.chisquare(nu) / nu
+        from_b = b_power * cmb_in
+        leakage = 0.05 * model.c_lens * rng.chisquare(nu) / nu
+        table = spectra_table(model, noise, cmb_in, t, from_b + leakage)
+        table["bb_cmb_leakage_k2"] = leakage
+        table["bb_cmb_recovered_b_k2"] = from_b
+        tables.append(table)
+    return tables
+
+
+def test_a_filter_that_mixes_modes_needs_the_measured_b_power_to_read_r_back(base, repo):
+    """A filter that mixes modes leaves more of the sky's B power in the map than t^2
+    (here a = t^2 + 0.3 above ell 10): with the leakage kept apart, the noise model of
+    seeds without r measures a, and recovered_power reads r = 0.05 back on seeds with
+    it; without the split it takes t^2 as the tensor response and reads r high (the
+    leakage measured at the run's own r hides this: the r recovery of a run is no test
+    of the tensor response)."""
+    from hwp_tes_systematics.analysis.consistency import r_recovery_check
+    from hwp_tes_systematics.config import load_config
+
+    config = load_config(repo / "config/config.yaml")
+    config["likelihood"].update({"lmin": 2, "lmax": LMAX})
+    config["simulation"]["cmb_r"] = R_INPUT
+    rng = np.random.default_rng(23)
+    t = np.clip((base.ell - 10) / 50.0, 0.0, 0.6)
+    a = t**2 + np.where(base.ell > 10, 0.3, 0.0)
+    without_r = mixing_filter_tables(base, rng, 0.0, a, t)
+    with_r = mixing_filter_tables(base, rng, R_INPUT, a, t)
+    noise = lk.noise_model(without_r)
+    measured = noise["sky_b_power_transfer_bb"].to_numpy()
+    np.testing.assert_allclose(measured[11:], a[11:], rtol=1e-12)
+    recovery = r_recovery_check(config, noise, with_r)
+    assert recovery["recovered_power"]["consistent"], recovery["recovered_power"]["pull"]
+    split = ["bb_cmb_leakage_k2", "bb_cmb_recovered_b_k2"]
+    without = lk.noise_model([table.drop(columns=split) for table in without_r])
+    assert "sky_b_power_transfer_bb" not in without
+    recovery = r_recovery_check(config, without, with_r)
+    assert recovery["recovered_power"]["consistent"] is False
+    assert recovery["recovered_power"]["r_mean"] > 1.2 * R_INPUT

@@ -46,6 +46,9 @@ N_TEMPLATE_TERMS = 3  # s^2, s h, h^2
 SPECTRA = ("tt", "ee", "bb", "te", "eb", "tb")  # hp.alm2cl order
 # the a_lm a channel contributes to a realization's HILC (ChannelAlms), at the common beam
 ALM_KINDS = ("nosys", "cmb_reference", "foreground_reference", "cmb_input")
+# on the map-domain path, the part of cmb_reference that is the filters' leakage of T and E
+# into B (map_domain.realize_seed); zero for a channel without it
+LEAKAGE_KIND = "cmb_leakage"
 TERM_KINDS = tuple(f"x{j}" for j in range(N_TEMPLATE_TERMS))  # c_j(A) sum_k z_k T^j_k
 # on the map-domain path, a seed's own part of the s h term X^1, in two pieces
 PIECE_KINDS = tuple(f"x1_{piece}" for piece in map_domain.SH_TERM_PIECES)
@@ -151,6 +154,9 @@ class ChannelAlms:
         if cmb_input is None:
             cmb_input = _input_cmb_map(config, seed, fwhm, unseen.shape[-1])
         alms["cmb_input"] = harmonic.alm(np.where(unseen, hp.UNSEEN, cmb_input), fwhm, mask)
+        if LEAKAGE_KIND in data:
+            leakage = np.where(unseen, hp.UNSEEN, data[LEAKAGE_KIND])
+            alms[LEAKAGE_KIND] = harmonic.alm(leakage, fwhm, mask)
         if np.any(draws):
             seen = ~unseen[0]
             pieces = data.get("sh_term_pieces", {})
@@ -439,6 +445,8 @@ class SeedMaps:
         kinds = (*ALM_KINDS, *TERM_KINDS)
         if any(kind in c.alms for c in channels for kind in PIECE_KINDS):
             kinds = (*kinds, *PIECE_KINDS)
+        if any(LEAKAGE_KIND in c.alms for c in channels):
+            kinds = (*kinds, LEAKAGE_KIND)
         channel_alms = {kind: np.array([c.term(kind) for c in channels]) for kind in kinds}
         basis = config.get("mitigation", {}).get("template_fit")
         template_fits = []
@@ -501,7 +509,9 @@ class SeedMaps:
         "cmb_filter_loss_alm" (3, nalm), "weights" (3, n_bins, n_channels)}: the residual
         against the filtered CMB reference, its foreground part, the input CMB through the
         weights, and what the filters took from it (sum_c w_c (a_ref,c - a_in,c); the
-        residual against the unfiltered input is residual_alm + cmb_filter_loss_alm)."""
+        residual against the unfiltered input is residual_alm + cmb_filter_loss_alm); on
+        the map-domain path also "cmb_leakage_alm", the filters' T and E leakage into B
+        through the weights (a part of the recovered CMB)."""
         data = self.data_alms(sigma_g1_per_k)
         _, weights = hilc.harmonic_ilc(data, self.bins, self.lmax)
         cmb = self.channel_alms["cmb_reference"]
@@ -511,13 +521,16 @@ class SeedMaps:
         def combined(alms):
             return hilc.apply_ilc(alms, weights, self.bins, self.lmax)
 
-        return {
+        result = {
             "residual_alm": combined(data - cmb),
             "foreground_residual_alm": combined(foreground),
             "cmb_input_alm": combined(cmb_input),
             "cmb_filter_loss_alm": combined(cmb - cmb_input),
             "weights": weights,
         }
+        if LEAKAGE_KIND in self.channel_alms:
+            result["cmb_leakage_alm"] = combined(self.channel_alms[LEAKAGE_KIND])
+        return result
 
     def systematic_term_alms(self, weights: np.ndarray) -> np.ndarray:
         """X_j (3 terms, 3 T/E/B, nalm) at sigma = 1 [K_CMB K]: the template terms of every
@@ -599,6 +612,7 @@ class SeedMaps:
             self.common_fwhm_arcmin,
             cmb_input_alm=result["cmb_input_alm"],
             cmb_filter_loss_alm=result["cmb_filter_loss_alm"],
+            cmb_leakage_alm=result.get("cmb_leakage_alm"),
         )
 
     def systematic_spectra(
@@ -675,6 +689,7 @@ def residual_spectra_table(
     common_fwhm_arcmin: float,
     cmb_input_alm=None,
     cmb_filter_loss_alm=None,
+    cmb_leakage_alm=None,
 ) -> pd.DataFrame:
     """EE and BB [K_CMB^2] of the residual, its foreground part and the rest (noise), with
     the same normalisation (:func:`unit_beam_spectra`), and the mask's fsky_eff.
@@ -686,7 +701,10 @@ def residual_spectra_table(
     input + loss, with the input: their ratio is the sky's end-to-end transfer T_ell),
     ``cmb_recovered`` (the recovered CMB's own spectrum) and ``recovered`` (the spectrum
     of the HILC's CMB map itself, recovered CMB + residual: what an experiment measures,
-    on which an injected r is recovered, :func:`consistency.check_r_recovery`)."""
+    on which an injected r is recovered, :func:`consistency.check_r_recovery`). With
+    the filters' leakage through the weights (the map-domain path), also
+    ``cmb_leakage`` (its spectrum) and ``cmb_recovered_b`` (the recovered CMB less it:
+    the power of the sky's B modes, which an r scales)."""
     table = {"ell": np.arange(lmax + 1)}
     pairs = [
         ("residual", residual_alm, None),
@@ -701,6 +719,12 @@ def residual_spectra_table(
             ("cmb_recovered", cmb_input_alm + cmb_filter_loss_alm, None),
             ("recovered", residual_alm + cmb_input_alm + cmb_filter_loss_alm, None),
         ]
+        if cmb_leakage_alm is not None:
+            recovered_b = cmb_input_alm + cmb_filter_loss_alm - cmb_leakage_alm
+            pairs += [
+                ("cmb_leakage", cmb_leakage_alm, None),
+                ("cmb_recovered_b", recovered_b, None),
+            ]
     for label, alm, alm2 in pairs:
         cl = unit_beam_spectra(alm, alm2, lmax, fractions["w2"], common_fwhm_arcmin)
         for index in (1, 2):

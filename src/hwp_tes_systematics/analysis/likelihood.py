@@ -518,8 +518,9 @@ ANALYSES = {
     "paper_literal": "residual against the unfiltered input CMB (the paper's words read "
     "literally: it keeps the CMB the filters removed), unfiltered model",
     "recovered_power": "residual against the CMB through the same filters; the model's CMB "
-    "is the power the recovered map holds: T_ell^2 C_lens plus the filters' E-to-B leakage "
-    "measured in the run, and T_ell^2 r C_GW (T_ell the measured B-to-B transfer)",
+    "is the power the recovered map holds: P_ell C_lens plus the filters' E-to-B leakage "
+    "measured in the run, and P_ell r C_GW (P_ell the power of the sky's B modes the map "
+    "holds, measured where the seeds carry the leakage apart, else T_ell^2)",
 }
 RESIDUAL_COLUMN = {
     "paper_recipe": "bb_residual_k2",
@@ -566,10 +567,22 @@ def _clipped_sky_transfer(noise: pd.DataFrame, lmax: int, source: str = "") -> n
     return np.clip(transfer, 0.0, None)
 
 
+def sky_b_power_transfer(noise: pd.DataFrame, lmax: int, source: str = "") -> np.ndarray:
+    """The power of the sky's B modes the recovered map holds over their input power,
+    ell = 0..lmax (1 below ell = 2, clipped at 0): the noise model's measured
+    ``sky_b_power_transfer_bb`` where the run split the filters' leakage out (the
+    map-domain path), else T_ell^2 (a filter that scales each mode)."""
+    if "sky_b_power_transfer_bb" not in noise:
+        return _clipped_sky_transfer(noise, lmax, source) ** 2
+    power = noise["sky_b_power_transfer_bb"].to_numpy()[: lmax + 1].copy()
+    power[:2] = 1.0
+    return np.clip(power, 0.0, None)
+
+
 def cmb_leakage_bb(noise: pd.DataFrame, lmax: int, source: str = "") -> np.ndarray:
-    """The recovered CMB's BB that the B-to-B transfer does not explain [K^2], ell =
-    0..lmax: mean over seeds of C(recovered CMB) - T_ell^2 C(input CMB) (E-to-B leakage of
-    the filters and the mask), from the noise model."""
+    """The recovered CMB's BB that the sky's B modes do not explain [K^2], ell =
+    0..lmax: the filters' and the mask's leakage of T and E into B, from the noise model
+    (:func:`noise_model`)."""
     if "cmb_leakage_bb_k2" not in noise:
         raise ValueError(
             f"{source or 'noise model'}: no cmb_leakage_bb_k2 column for likelihood.model = "
@@ -581,8 +594,8 @@ def cmb_leakage_bb(noise: pd.DataFrame, lmax: int, source: str = "") -> np.ndarr
 def analysis_transfer(noise: pd.DataFrame, lmax: int, analysis: str, source: str = ""):
     """The T_ell (ell = 0..lmax) by which ``analysis`` multiplies C_lens: the measured
     sky transfer for ``transfer_in_model``; for ``recovered_power`` the recovered map's
-    lensing power over C_lens, T_ell^2 + leakage / C_lens; None (no transfer) for the
-    others."""
+    lensing power over C_lens, P_ell + leakage / C_lens with P_ell
+    :func:`sky_b_power_transfer`; None (no transfer) for the others."""
     if check_analysis(analysis) not in ("transfer_in_model", "recovered_power"):
         return None
     transfer = _clipped_sky_transfer(noise, lmax, source)
@@ -592,7 +605,7 @@ def analysis_transfer(noise: pd.DataFrame, lmax: int, analysis: str, source: str
     leakage = np.divide(
         cmb_leakage_bb(noise, lmax, source), c_lens, out=np.zeros(lmax + 1), where=c_lens > 0
     )
-    return transfer**2 + leakage
+    return sky_b_power_transfer(noise, lmax, source) + leakage
 
 
 def noise_model(nosys_spectra) -> pd.DataFrame:
@@ -605,7 +618,11 @@ def noise_model(nosys_spectra) -> pd.DataFrame:
     CMB) (what the B-to-B transfer does not explain: E-to-B leakage; r-independent), and
     the power the map holds of a lensing-only sky over C_lens, T_ell^2 + leakage / C_lens
     (``sky_power_transfer_bb``, ``_sem`` over seeds; T_ell^2 for a filter that scales
-    each mode). ``nosys_spectra``: the seeds' residual
+    each mode). Where the seeds carry the filters' leakage apart (``bb_cmb_leakage_k2``,
+    the map-domain path), the leakage is its mean and the power of the sky's B modes is
+    measured, ``sky_b_power_transfer_bb`` = sum over seeds of C(recovered CMB less the
+    leakage) over the sum of C(input CMB) (the likelihood's tensor response,
+    :func:`sky_b_power_transfer`; else T_ell^2). ``nosys_spectra``: the seeds' residual
     spectra, as CSV paths or tables."""
     tables = [t if isinstance(t, pd.DataFrame) else pd.read_csv(t) for t in nosys_spectra]
     out = pd.DataFrame({"ell": tables[0]["ell"]})
@@ -619,9 +636,20 @@ def noise_model(nosys_spectra) -> pd.DataFrame:
         out["sky_transfer_bb_sem"] = sem
         if all("bb_cmb_recovered_k2" in t for t in tables):
             recovered = np.array([t["bb_cmb_recovered_k2"] for t in tables])
-            leakage = recovered - transfer**2 * auto  # per seed: r-independent
+            b_power = np.full_like(auto, 1.0)  # per seed: C(sky's B modes recovered) / C(in)
+            if all("bb_cmb_leakage_k2" in t for t in tables):
+                leakage = np.array([t["bb_cmb_leakage_k2"] for t in tables])
+                from_b = np.array([t["bb_cmb_recovered_b_k2"] for t in tables])
+                np.divide(from_b, auto, out=b_power, where=auto > 0)
+                total = auto.sum(axis=0)
+                out["sky_b_power_transfer_bb"] = np.divide(
+                    from_b.sum(axis=0), total, out=np.ones(total.size), where=total > 0
+                )
+            else:
+                leakage = recovered - transfer**2 * auto  # per seed: r-independent
+                b_power *= transfer**2
             c_lens = sky.lensing_bb(int(out["ell"].iloc[-1]))
-            power = transfer**2 + np.divide(
+            power = b_power + np.divide(
                 leakage, c_lens, out=np.zeros_like(leakage), where=c_lens > 0
             )
             power[:, :2] = 1.0
@@ -667,9 +695,7 @@ def model_from_noise_table(
     transfer = analysis_transfer(noise, lmax, analysis, source)
     if transfer is None:
         return model
-    tensor = (
-        _clipped_sky_transfer(noise, lmax, source) ** 2 if analysis == "recovered_power" else None
-    )
+    tensor = sky_b_power_transfer(noise, lmax, source) if analysis == "recovered_power" else None
     return model.with_transfer(transfer, tensor)
 
 

@@ -8,6 +8,15 @@ corrected SHAPING_ITERATIONS times for the mask's mode coupling. A seed's filter
 its a_lm times T_ell (:func:`transferred_map`) and its noise white noise times S_ell
 (:func:`shaped_noise_map`): the approximation of the map-domain path
 (:mod:`map_domain`), validated against the TOD path there.
+
+T_ell is a cross spectrum: a filter that scales each mode by t gives T = t and t^2 of the
+power, one that keeps or removes modes whole gives T and T of the power, and one that
+mixes modes (the notch and the offsets along a scan, E into B) gives more power than
+T^2. What the filtered map holds of BB beyond the emulation T a_lm is measured as two
+excess ratios E_ell (:func:`measure_excess_bb`), over the reference's BB, by origin: its
+B modes (the B-to-B auto transfer is T^2 + E_B) and its T and E modes (the filter's own
+leakage into B, beyond the mask's, which the emulation keeps); the seeds add Gaussian B
+fields of those powers (:func:`excess_bb_alms`).
 """
 
 from __future__ import annotations
@@ -20,6 +29,7 @@ from ..sky import harmonics
 SHAPING_BIN_WIDTH = 4  # multipoles averaged in the noise shaping
 SHAPING_ITERATIONS = 2  # corrections of the noise shaping for the mask's mode coupling
 TRANSFER_SPECTRA = ("tt", "ee", "bb")
+EXCESS_ORIGINS = ("b_modes", "te_modes")  # rows of the BB excess (measure_excess_bb)
 
 
 def measure_transfer(output_iqu: np.ndarray, input_iqu: np.ndarray, good: np.ndarray, lmax: int):
@@ -115,3 +125,61 @@ def filtered_cmb_map(
     band = hp.resize_alm(alm, lmax, lmax, filter_lmax, filter_lmax)
     change = np.array([hp.almxfl(band[i], transfer[i, : filter_lmax + 1] - 1.0) for i in range(3)])
     return cmb_iqu + harmonics.alm2map(change, nside, filter_lmax)
+
+
+def measure_excess_bb(
+    outputs_iqu: tuple[np.ndarray, np.ndarray],
+    input_alm: np.ndarray,
+    transfer: np.ndarray,
+    good: np.ndarray,
+    lmax: int,
+) -> np.ndarray:
+    """(2, lmax + 1) the BB the filtered reference holds beyond its emulation, over the
+    reference's BB, by origin (EXCESS_ORIGINS): with ``outputs_iqu`` = (F CMB, F CMB_B)
+    the filtered-binned maps of the reference and of its B modes alone, and Em(x) =
+    :func:`filtered_cmb_map` of x with ``transfer``,
+
+        E_B  = [C_BB(F CMB_B) - C_BB(Em(CMB_B))] / C_BB(CMB_B)
+        E_TE = [C_BB(F CMB - F CMB_B) - C_BB(Em(CMB - CMB_B))] / C_BB(CMB_B)
+
+    pseudo-spectra on ``good`` (so the mask's own mixing, which the emulation keeps,
+    cancels), summed over SHAPING_BIN_WIDTH multipoles before the ratio (one
+    realization's scatter); 0 below ell = 2. ``input_alm``: the reference's a_lm (3,
+    nalm) at its band (the map-maker's, >= ``lmax``)."""
+    nside = hp.npix2nside(good.size)
+    band = hp.Alm.getlmax(input_alm.shape[-1])
+    b_alm = np.zeros_like(input_alm)
+    b_alm[2] = input_alm[2]
+    excess = np.zeros((len(EXCESS_ORIGINS), lmax + 1))
+    reference_b = harmonics.alm2map(b_alm, nside, band)
+    total = _binned_pseudo_spectra(reference_b, good, lmax)[2]
+    full_output, b_output = outputs_iqu
+    for row, (output, alm) in enumerate(
+        ((b_output, b_alm), (full_output - b_output, input_alm - b_alm))
+    ):
+        unfiltered = harmonics.alm2map(alm, nside, band)
+        emulated = filtered_cmb_map(unfiltered, alm, transfer, band, lmax)
+        difference = (
+            _binned_pseudo_spectra(output, good, lmax)[2]
+            - _binned_pseudo_spectra(emulated, good, lmax)[2]
+        )
+        np.divide(difference, total, out=excess[row], where=total > 0)
+    excess[:, :2] = 0.0
+    return excess
+
+
+def excess_bb_alms(
+    excess: np.ndarray, unit_alms: np.ndarray, reference_bb_k2: np.ndarray, lmax: int
+) -> np.ndarray:
+    """(2, 3, nalm) the B-mode a_lm [K_CMB] a seed adds to its emulated filtered CMB, by
+    origin (EXCESS_ORIGINS), up to ``lmax``: a_B = sqrt(max(E_ell, 0) C_ell^BB) u_lm,
+    with ``excess`` E_ell of :func:`measure_excess_bb`, ``reference_bb_k2`` the model BB
+    of the seed's CMB at the channel's beam [K_CMB^2] and ``unit_alms`` (2, nalm) B
+    fields of unit power (:func:`sky.cmb.filter_excess_unit_alms`, the same for every
+    channel: the filters' mixing is taken as common to the channels, which the HILC
+    then cannot average down)."""
+    out = np.zeros((len(EXCESS_ORIGINS), 3, unit_alms.shape[-1]), dtype=complex)
+    for row in range(len(EXCESS_ORIGINS)):
+        power = np.clip(excess[row, : lmax + 1], 0.0, None) * reference_bb_k2[: lmax + 1]
+        out[row, 2] = hp.almxfl(unit_alms[row], np.sqrt(power))
+    return out

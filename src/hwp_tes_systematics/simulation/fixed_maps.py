@@ -17,7 +17,7 @@ import numpy as np
 
 from ..io import atomic_path
 from ..sky.harmonics import BandLimitedSky
-from .filter_response import measure_noise_shaping, measure_transfer
+from .filter_response import measure_excess_bb, measure_noise_shaping, measure_transfer
 from .mapmaking import MATRIX_ENTRIES, PixelMoments, solve_maps, symmetric_matrices
 from .tod_maps import (
     TEMPLATE_TERMS,
@@ -58,6 +58,10 @@ class FixedMaps:
     cmb_s_shaping: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
     # (3, npix) s_f = foreground + dipole, as static_sky_map makes it [K_CMB]; (0,) without S^s
     static_sky: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+    # (2, measure_lmax + 1) E_ell, the BB the filtered map holds beyond T_ell a_lm over the
+    # reference's BB, from its B modes and from its T and E modes
+    # (filter_response.measure_excess_bb) [1]; (0,): not measured (the seeds add none)
+    cmb_bb_excess: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
 
     def matrices(self, pixels) -> np.ndarray:
         """(n, 3, 3) M of the pixels."""
@@ -118,7 +122,8 @@ def fixed_passes(
     """{(nside, baseline length): FixedMaps} of the seed-independent TOD pass of one
     channel (see the module docstring): no CMB, no noise; the sky (``foreground_iqu_k``,
     and ``transfer_alm``, beam-smoothed, band ``lmax``, scanned alone to measure T_ell)
-    scanned at ``settings.nside``, and ``noise_realizations`` reference noise
+    scanned at ``settings.nside``, its B modes alone beside it to measure the BB excess
+    :func:`filter_response.measure_excess_bb`, and ``noise_realizations`` reference noise
     realizations giving S_ell and S^h_ell, both on every ``calibration_every_chunks``-th
     chunk (:class:`tod_maps.Calibration`). The TODs are binned at (settings.nside, settings.baseline_length_s) and at every
     (nside, baseline length) of ``extra_variants`` in the same pass
@@ -141,7 +146,11 @@ def fixed_passes(
             f"fixed pass variants {extra_variants}: the sky is scanned at nside "
             f"{settings.nside}, so no variant may be finer"
         )
+    transfer_alm = np.asarray(transfer_alm)
     transfer_input = hp.alm2map(transfer_alm, settings.nside, lmax=lmax, pixwin=False)
+    b_alm = np.zeros_like(transfer_alm)  # the reference's B modes alone
+    b_alm[2] = transfer_alm[2]
+    b_input = hp.alm2map(b_alm, settings.nside, lmax=lmax, pixwin=False)
     n_det = simulator.n_detectors
     nsides = {settings.nside} | {nside for nside, _ in extra_variants}
     moments_of = {n: PixelMoments(n, n_det) if carries_systematics else None for n in nsides}
@@ -159,14 +168,14 @@ def fixed_passes(
             "of its resolution in the pass (their HWPSS moments are shared)"
         )
     noiseless = dataclasses.replace(settings, noise_scale=0.0)
-    scanned_foreground, scanned_reference = foreground_iqu_k, transfer_input
+    scanned_foreground, scanned_references = foreground_iqu_k, (transfer_input, b_input)
     if band_limited_sky:
         threads = settings.threads
         scanned_foreground = BandLimitedSky.from_map(foreground_iqu_k, lmax, threads)
-        scanned_reference = BandLimitedSky(transfer_alm, lmax, threads)
+        scanned_references = tuple(BandLimitedSky(a, lmax, threads) for a in (transfer_alm, b_alm))
     calibration = Calibration(
         settings.nside,
-        (scanned_reference,),
+        scanned_references,
         NOISE_REFERENCE_SEED,
         calibration_every_chunks,
         hwpss_noise=carries_systematics,
@@ -193,16 +202,17 @@ def fixed_passes(
     ]
 
     def reference_at(nside):
-        """(the reference CMB map at a map-maker's resolution, its band)."""
+        """(the reference CMB map at a map-maker's resolution and its a_lm at its band)."""
         band = min(lmax, 3 * nside - 1)
         if nside == settings.nside:
-            return transfer_input, band
-        alm = hp.resize_alm(transfer_alm, lmax, lmax, band, band)
-        return hp.alm2map(alm, nside, lmax=band, pixwin=False), band
+            return transfer_input, transfer_alm
+        alm = np.asarray(hp.resize_alm(transfer_alm, lmax, lmax, band, band))
+        return hp.alm2map(alm, nside, lmax=band, pixwin=False), alm
 
     results = {}
     for (nside, baseline), variant_equations, calibration_equations, moments in binned:
-        reference, band = reference_at(nside)
+        reference = reference_at(nside)
+        band = hp.Alm.getlmax(reference[1].shape[-1])
         results[(nside, baseline)] = _solve_fixed_pass(
             simulator,
             settings,
@@ -216,7 +226,8 @@ def fixed_passes(
         )
         log.info("fixed pass variant nside %d, baselines %s: solved", nside, baseline)
     for extra in demodulated:
-        reference, band = reference_at(extra.nside)
+        reference = reference_at(extra.nside)
+        band = hp.Alm.getlmax(reference[1].shape[-1])
         results[(extra.nside, extra.baseline_length_s, "demodulated")] = _solve_demodulated(
             simulator,
             settings,
@@ -261,7 +272,7 @@ def _solve_demodulated(
     maps = extra.equations.solve()
     maps[:, :, ~good] = hp.UNSEEN
     solved = extra.calibration_equations.solve()
-    transfer_output, filtered = solved[0], solved[calibration.n_reference_tods :]
+    transfer_outputs, filtered = solved[:2], solved[calibration.n_reference_tods :]
     unfiltered, _, white_good = solve_maps(extra.white_equations, settings.max_condition_number)
     calibrated = white_good & (extra.calibration_equations.hits > 0)
     fixed = _fixed_maps(
@@ -271,7 +282,7 @@ def _solve_demodulated(
         extra.matrix_equations.matrix,
         extra.matrix_equations.hits,  # every sample's, as the binned map-maker's (the
         # demodulated streams are binned at every D-th: tod_maps._demodulated_streams)
-        (transfer_output, np.asarray(filtered), unfiltered, calibrated),
+        (transfer_outputs, np.asarray(filtered), unfiltered, calibrated),
         extra.moments,
         transfer_input,
         carries_systematics,
@@ -280,11 +291,11 @@ def _solve_demodulated(
     )
     if calibration.template_references:
         scanned = len(calibration.references_iqu_k)
-        binned = hwpss_cmb_map(fixed, transfer_input)
+        binned = hwpss_cmb_map(fixed, transfer_input[0])
         fixed.cmb_h_transfer = measure_transfer(solved[scanned], binned, calibrated, measure_lmax)
         static = hp.ud_grade(static_sky, extra.nside)  # averages the solved sub-pixels
         fixed.static_sky = np.where(static == hp.UNSEEN, 0.0, static)
-        product = static_sky_product(fixed.static_sky, transfer_input)
+        product = static_sky_product(fixed.static_sky, transfer_input[0])
         fixed.cmb_s_shaping = measure_noise_shaping(
             solved[2 * scanned], product, calibrated, measure_lmax
         )
@@ -369,7 +380,7 @@ def _solve_fixed_pass(
     calibration_maps, _, calibrated = solve_maps(
         calibration_equations, settings.max_condition_number
     )
-    transfer_output = calibration_maps[0]
+    transfer_outputs = calibration_maps[:2]  # the reference, its B modes alone
     noise_maps = calibration_maps[calibration.n_reference_tods :]
     # per realization n and, with systematics, h n (``kinds``); all filtered, then unfiltered
     filtered, unfiltered = np.split(np.asarray(noise_maps), 2)
@@ -379,7 +390,7 @@ def _solve_fixed_pass(
         solution,
         equations.matrix,
         equations.hits,
-        (transfer_output, filtered, unfiltered, calibrated),
+        (transfer_outputs, filtered, unfiltered, calibrated),
         moments,
         transfer_input,
         carries_systematics,
@@ -402,12 +413,14 @@ def _fixed_maps(
     kinds: int,
 ) -> FixedMaps:
     """FixedMaps from a map-maker's solution (maps (n_tods, 3, npix), condition, good),
-    the binned solve's M and hits, and its calibration maps (the filtered reference CMB,
-    the filtered noise maps, the same noise binned unfiltered, the calibrated pixels):
-    T_ell against ``transfer_input``, S_ell per noise kind (``kinds``), up to
-    ``measure_lmax``."""
+    the binned solve's M and hits, and its calibration maps (the filtered reference CMB
+    and its B modes alone, the filtered noise maps, the same noise binned unfiltered, the
+    calibrated pixels): T_ell against ``transfer_input`` (the reference's map and a_lm),
+    the BB excess, S_ell per noise kind (``kinds``), up to ``measure_lmax``."""
     maps, condition, good = solution
-    transfer_output, filtered, unfiltered, calibrated = calibration
+    transfer_outputs, filtered, unfiltered, calibrated = calibration
+    reference_map, reference_alm = transfer_input
+    transfer = measure_transfer(transfer_outputs[0], reference_map, calibrated, measure_lmax)
     solved = split_solved_maps(
         maps, simulator.n_detectors, settings.a2_k_cmb, template_terms=carries_systematics
     )
@@ -422,7 +435,7 @@ def _fixed_maps(
         nosys=solved["nosys"],
         template_terms=solved["template_terms"],
         foreground_reference=foreground_reference,
-        transfer=measure_transfer(transfer_output, transfer_input, calibrated, measure_lmax),
+        transfer=transfer,
         noise_shaping=shapings[0],
         noise_h_shaping=shapings[1] if kinds == 2 else np.zeros(0),
         matrix=matrix,
@@ -431,6 +444,9 @@ def _fixed_maps(
         condition=condition,
         good=good,
         carries_systematics=carries_systematics,
+        cmb_bb_excess=measure_excess_bb(
+            transfer_outputs, reference_alm, transfer, calibrated, measure_lmax
+        ),
     )
 
 

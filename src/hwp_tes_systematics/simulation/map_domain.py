@@ -24,9 +24,9 @@ removal, notch, baselines and binning as the full path (:func:`tod_maps.accumula
 
 Each seed then costs map operations only:
 
-    nosys            = m_f + T CMB_seed + S M^-1 sum_k b_k
+    nosys            = m_f + T CMB_seed + X_seed + S M^-1 sum_k b_k
     s h term of k    = (s_f h term of k) + T^h M^-1 H_k CMB_seed + S^h M^-1 c_k
-    cmb_reference    = T CMB_seed
+    cmb_reference    = T CMB_seed + X_seed
 
 and, for a demodulated map-maker only, the s^2 term of k gets the seed's 2 s_f CMB_seed
 as detector k's share of S^s P(s_f, CMB_seed) (:func:`static_sky_product`,
@@ -34,6 +34,12 @@ as detector k's share of S^s P(s_f, CMB_seed) (:func:`static_sky_product`,
 of cross spectra gave 48-76 % of the full path's B power at 30 days, as the filter's
 E-to-B mixing is no transfer; benchmarks/s2_seed_part_validation.py),
 
+with X_seed the BB the filter adds beyond T (mode mixing: T is a cross spectrum, and a
+filter that mixes modes leaves more than T^2 of the power), two Gaussian B fields with
+the excess the pass measured against the reference CMB by origin, its B modes and its
+T and E modes (:func:`filter_response.measure_excess_bb`; the latter, the filter's
+leakage into B, also kept alone as ``cmb_leakage``: the likelihood's tensor response is
+the rest), drawn from streams common to the channels (:func:`sky.cmb.filter_excess_unit_alms`),
 with (b_k, c_k) ~ N(0, noise_scale^2 [[M_k, H_k], [H_k, Q_k]]) the binned white noise and
 binned h n of detector k, drawn jointly per pixel (exact for white noise: b_k = sum w a^T n,
 c_k = sum w a^T h n, var(n) = 1 / w), T^h = 1 for the binned map-maker (the filter's
@@ -75,7 +81,12 @@ from .. import config as cfg
 from .. import seeding
 from ..sky import cmb as sky_cmb
 from ..sky import harmonics
-from .filter_response import filtered_cmb_map, shaped_noise_map, transferred_map
+from .filter_response import (
+    excess_bb_alms,
+    filtered_cmb_map,
+    shaped_noise_map,
+    transferred_map,
+)
 from .fixed_maps import (
     BinnedNoise,
     FixedMaps,
@@ -126,6 +137,7 @@ def realize_seed(
     rng_of_detector,
     operators: SeedOperators | None = None,
     full_terms: bool = True,
+    cmb_excess_alm: np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """The maps of one seed from the fixed pass (see the module docstring): nosys,
     template_terms, templates, cmb_reference, foreground_reference (UNSEEN where the
@@ -141,12 +153,21 @@ def realize_seed(
     ``operators``: the :class:`SeedOperators` of (fixed, noise_scale), shared by the seeds
     of a channel (built here, filtering up to ``lmax``, if None). ``full_terms`` False
     leaves out template_terms and templates (the fixed pass's terms plus the pieces: the
-    seeds' a_lm take the fixed part's once, :func:`ilc_residuals.fixed_term_alms`)."""
+    seeds' a_lm take the fixed part's once, :func:`ilc_residuals.fixed_term_alms`).
+    ``cmb_excess_alm``: (2, 3, nalm) the filters' excess BB of the seed by origin
+    (:func:`filter_response.excess_bb_alms`, band ``operators.filter_lmax``), added to
+    the filtered CMB; its second (T and E modes) also as ``cmb_leakage``."""
     nside = hp.npix2nside(fixed.good.size)
     good = fixed.good
     operators = operators or SeedOperators(fixed, noise_scale, lmax)
     cmb = harmonics.alm2map(cmb_alm, nside, lmax)
     cmb_filtered = filtered_cmb_map(cmb, cmb_alm, fixed.transfer, lmax, operators.filter_lmax)
+    leakage = None
+    if cmb_excess_alm is not None:
+        b_part, leakage = (
+            harmonics.alm2map(alm, nside, operators.filter_lmax) for alm in cmb_excess_alm
+        )
+        cmb_filtered += b_part + leakage
     b, c = operators.noise.draw(rng_of_detector)
 
     def filtered_noise(vectors, shaping):  # the binned white noise, shaped by the filter
@@ -182,6 +203,8 @@ def realize_seed(
         "cmb_input": cmb,
         "sh_term_pieces": pieces,
     }
+    if leakage is not None:
+        maps["cmb_leakage"] = np.where(good, leakage, hp.UNSEEN)
     if full_terms:
         terms = fixed.template_terms.copy()
         terms[SH_TERM] += pieces["cmb_h"] + pieces["noise_h"]
@@ -253,6 +276,18 @@ class ChannelSeeds:
         terms = self.fixed.template_terms
         return np.where(self.fixed.good, templates_from_terms(terms, a2_k_cmb), 0.0)
 
+    def cmb_excess_alm(self, seed: int) -> np.ndarray | None:
+        """(2, 3, nalm) the filters' excess BB of ``seed`` at band ``filter_lmax``
+        (:func:`filter_response.excess_bb_alms` of the pass's E_ell, the model BB at
+        ``simulation.cmb_r`` and the channel's beam); None if the pass did not measure it."""
+        if not self.fixed.cmb_bb_excess.size:
+            return None
+        lmax = self.filter_lmax
+        beam = hp.gauss_beam(np.radians(self.fwhm_arcmin / 60.0), lmax=lmax, pol=True)[:, 2]
+        reference_bb = sky_cmb.cmb_spectra(self.config["simulation"]["cmb_r"], lmax)[2] * beam**2
+        units = sky_cmb.filter_excess_unit_alms(lmax, self.config["master_seed"], seed)
+        return excess_bb_alms(self.fixed.cmb_bb_excess, units, reference_bb, lmax)
+
     def noise_generator(self, seed: int):
         """rng_of_detector(k) of a seed: detector k's stream ("map-domain noise", channel,
         seed, detector)."""
@@ -279,6 +314,7 @@ class ChannelSeeds:
             self.noise_generator(seed),
             self.operators,
             full_terms,
+            self.cmb_excess_alm(seed),
         )
         maps["attrs"] = {**self.attributes, "seed": seed, "realization": "map_domain"}
         return maps

@@ -239,3 +239,18 @@ def band_limited_seed_cmb(lmax: int, r: float, master_seed: int, seed: int, fwhm
     alm = seed_cmb_alm(lmax, r, master_seed, seed, fwhm_arcmin)
     band = beam_band_limit(fwhm_arcmin, lmax)
     return hp.resize_alm(alm, lmax, lmax, band, band), band
+
+
+def filter_excess_unit_alms(lmax: int, master_seed: int, seed: int) -> np.ndarray:
+    """(2, nalm) B-mode a_lm of unit power, ell = 2..lmax, of seed ``seed``: the fields a
+    map-domain seed scales into the filters' excess BB by origin (B modes, T and E modes;
+    :func:`simulation.filter_response.excess_bb_alms`). Streams ("cmb filter excess",
+    seed, origin), the same for every channel; ordered by ell as :func:`gaussian_alm`."""
+    unit = np.zeros((4, lmax + 1))
+    unit[2, 2:] = 1.0
+    return np.array(
+        [
+            gaussian_alm(unit, lmax, seeding.rng(master_seed, "cmb filter excess", seed, row))[2]
+            for row in range(2)
+        ]
+    )
