@@ -352,7 +352,11 @@ def test_unknown_channel_of_a_recording_is_named_with_the_valid_ones(base, tmp_p
     out = tmp_path / "out"
     with pytest.raises(InstrumentModelError) as error:
         diagnose_recordings.run(
-            load_config(default_config_path()), str(path), "sky.fits", str(out), str(out / "d.json")
+            load_config(default_config_path()),
+            str(path),
+            "sky.fits",
+            str(out / "d.json"),
+            str(out / "d.md"),
         )
     assert f"{path}: the detectors' 'channel': unknown channel {channel!r}" in str(error.value)
     assert not out.exists()
@@ -366,8 +370,9 @@ def test_the_command_line_refuses_a_hostile_recording_naming_it(base, tmp_path, 
 
     from hwp_tes_systematics import cli
 
-    root = logging.getLogger()
-    handlers, level = list(root.handlers), root.level  # main() configures logging
+    root, package = logging.getLogger(), logging.getLogger("hwp_tes_systematics")
+    # main() configures logging (the root's handlers and level, the package's level)
+    handlers, level, package_level = list(root.handlers), root.level, package.level
 
     from hwp_tes_systematics import sky
 
@@ -387,6 +392,7 @@ def test_the_command_line_refuses_a_hostile_recording_naming_it(base, tmp_path, 
     finally:
         root.handlers[:] = handlers
         root.setLevel(level)
+        package.setLevel(package_level)
     err = capsys.readouterr().err
     assert status == 2
     assert f"error: {path}: dataset 'tod' declares shape (2, 10000000000) float64" in err

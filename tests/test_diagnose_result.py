@@ -30,6 +30,30 @@ def test_json_round_trip(result, tmp_path):
     assert Diagnosis.read(path) == result
 
 
+def test_the_report_goes_to_the_exact_paths_and_survives_a_failing_figure(
+    result, tmp_path, monkeypatch
+):
+    """write_outputs writes the JSON and the Markdown where it is told (the rule's declared
+    outputs, ReportPaths); a figure that raises is named in the Markdown and loses
+    neither file."""
+    from hwp_tes_systematics.diagnose import figures
+    from hwp_tes_systematics.diagnose.report import ReportPaths, write_outputs
+
+    def failing(*args):
+        raise ValueError("sigma: None")
+
+    monkeypatch.setattr(figures, "diagnosis_figures", failing)
+    paths = ReportPaths(tmp_path / "a" / "out.json", tmp_path / "b" / "report.md")
+    write_outputs(result, paths, None, None, None, None, None, None, figures=True)
+    assert Diagnosis.read(paths.json) == result
+    text = paths.markdown.read_text()
+    assert "The figures could not be drawn (ValueError: sigma: None)" in text
+    assert sorted(p.name for p in tmp_path.rglob("*") if p.is_file()) == ["out.json", "report.md"]
+    assert ReportPaths.of(tmp_path) == ReportPaths(
+        tmp_path / "diagnosis.json", tmp_path / "diagnosis.md"
+    )
+
+
 def test_accessors(result):
     assert result.mismatch_found
     assert result.effect_names == ["tes_nonlinearity_cubic"]

@@ -41,6 +41,5 @@ rule diagnose:
         paths.benchmark("diagnose", "{recording}")
     params:
         config=config_sections("instrument", "optics", "kw_conversion", "diagnose"),
-        out_dir=lambda wildcards, output: os.path.dirname(output.diagnosis),
     script:
         "../scripts/diagnose.py"

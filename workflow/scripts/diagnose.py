@@ -9,6 +9,6 @@ diagnose_recordings.run(
     snakemake.params.config,
     recording_h5=snakemake.input.recording,
     sky_fits=snakemake.input.sky,
-    out_dir=snakemake.params.out_dir,
     out_json=snakemake.output.diagnosis,
+    out_md=snakemake.output.report,
 )

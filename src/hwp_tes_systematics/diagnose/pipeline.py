@@ -1,14 +1,18 @@
-"""``diagnose``: the pipeline (nominal model and adjustments, residual, noise, locate, fit, unexplained).
+"""``diagnose``: the pipeline, as named steps, each a function of the previous steps' outputs.
 
-    d_nom                           sky + dipole + A_2 cos 2(chi - theta) (:mod:`.model`)
-    nominal adjustments             gain, offset, 2f amplitude/phase, polarisation angle,
-                                    sky scales, noise (fitted, never effects; :mod:`.nominal`)
-    r = recording - adjusted d_nom
-    where r differs from noise      (lines, HWP-angle harmonics, transients, drifts, sky; :mod:`.locate`)
-    which effects explain r         (stepwise selection with the BIC over the catalog, jointly
-                                    with the adjustments; noise refitted, selection checked
-                                    again; :mod:`.fit`)
-    what is left                    (significant structure no effect explains; :mod:`.unexplained`)
+    1 nominal fit    d_nom = sky + dipole + A_2 cos 2(chi - theta) (:mod:`.model`) and its
+                     adjustments: gain, offset, 2f amplitude/phase, polarisation angle, sky
+                     scales, noise (fitted, never effects; :mod:`.nominal`): NominalFit,
+                     r = recording - adjusted d_nom     (:func:`fit_nominal_model`)
+    2 locate         where r differs from noise: lines, HWP-angle harmonics, transients,
+                     drifts, sky (:func:`.locate.locate`)
+    3 select         which effects explain r: stepwise by the BIC over the catalog, jointly
+                     with the adjustments; noise refitted, selection checked again
+                     (:mod:`.fit`): Selection      (:func:`select_effects`)
+    4 explain        each effect's parameters, evidence and look-alikes (:func:`explain_effects`);
+                     what is left, structure no effect explains (:mod:`.unexplained`)
+    5 bound          g1 against the requirement (:func:`bound_g1`)
+    6 report         the Diagnosis (:func:`report`); written by :func:`.report.write_outputs`
 
 Returns the ``diagnosis.json``-shaped dict::
 
@@ -29,6 +33,7 @@ selected effect). With ``out_dir``, writes diagnosis.json, diagnosis.md and the 
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
@@ -51,7 +56,7 @@ from .nominal import (
     refit_noise,
 )
 from .recording import Recording
-from .report import Diagnosis, write_outputs
+from .report import Diagnosis, ReportPaths, write_outputs
 from .requirement_check import (
     NONLINEARITY_FAMILY,
     bound_nonlinearity,
@@ -77,7 +82,15 @@ class _Progress:
 
 NOISE_REFIT_CHANGE = 0.02  # select again when the noise PSD at the effects moved by > 2 %
 
-__all__ = ["diagnose", "nominal_tod"]
+__all__ = [
+    "bound_g1",
+    "diagnose",
+    "explain_effects",
+    "fit_nominal_model",
+    "nominal_tod",
+    "report",
+    "select_effects",
+]
 
 
 def _nominal_noise_models(recording: Recording, nominal_noise) -> list[NoiseModel]:
@@ -275,64 +288,73 @@ def _jsonable(value):
     return value
 
 
-def diagnose(
+@dataclasses.dataclass
+class NominalFit:
+    """Step 1 (:func:`fit_nominal_model`): the recording against its adjusted simulation."""
+
+    recording: Recording
+    sky_source: str  # where the sky came from (a path, or "array")
+    a2_k: np.ndarray  # (n_det,) nominal A_2 [K]
+    nominal: list[NoiseModel]  # the configured noise, or the recording's estimate
+    estimates: list  # the noise estimated on the first residual (noise.NoiseEstimate)
+    adjusted: object  # nominal.fit_nominal's result (its noise follows the later steps)
+    noise_models: list  # the noise the fit weighs with (a pole added if it rolls off)
+    residual: np.ndarray  # (n_det, n_samples) recording - adjusted d_nom [K], 0 where invalid
+    residual_f: np.ndarray  # its real FFT
+
+    @property
+    def context(self):
+        """The adjusted model's :class:`.model.Context`."""
+        return self.adjusted.context
+
+
+@dataclasses.dataclass
+class Selection:
+    """Step 3 (:func:`select_effects`): the effects the BIC keeps, fitted jointly."""
+
+    problem: FitProblem  # the template bank and normal equations of the last pass
+    steps: object  # fit.stepwise's result of the last pass (ranked, delta_chi2, ...)
+    final: object  # the joint fit of the selected effects
+    history: list  # every step of every pass
+    fluctuation: object  # a fitted gain fluctuation (fluctuations.fit_fluctuations) or None
+    rolloff: object  # the noise's roll-off fitted beside the effects (rolloff.fit_rolloff)
+    noise_models: list  # the noise of the final fit
+    residual_after: np.ndarray  # (n_det, n_samples) the residual less the final fit [K]
+    partial: dict  # {effect: the residual with that effect alone put back}
+
+
+def fit_nominal_model(
     recording: Recording,
     sky_iqu,
     a2_k,
-    nominal_noise=None,
-    out_dir=None,
-    delta_bic_threshold: float = -10.0,
-    max_effects: int = 6,
-    workers: int = 1,
-    figures: bool = True,
-    sky_residual_nside: int | None = SKY_RESIDUAL_NSIDE,
-    requirement=None,
-) -> Diagnosis:
-    """Diagnose ``recording`` against its simulation (module docstring); never told the effect.
-
-    ``sky_iqu``: (3, npix) I, Q, U map [K_CMB, Galactic, RING] or the path of a FITS map;
-    ``a2_k``: the nominal HWPSS amplitude A_2 [K] (scalar or one per detector);
-    ``nominal_noise``: the configured noise (see :func:`_nominal_noise_models`; default:
-    the recording's detector metadata); ``delta_bic_threshold``: an effect is kept if it
-    lowers the BIC by more than this (default -10); ``requirement``: the ``requirement.json``
-    of a workflow run a found nonlinearity is compared with (default: the shipped one-year
-    result; :mod:`.requirement_check`). Returns the :class:`.report.Diagnosis`
-    (what ``diagnosis.json`` holds); with ``out_dir`` the report is also written there.
-    """
-    if not isinstance(recording, Recording):
-        raise TypeError(f"recording: expected a Recording, got {type(recording).__name__}")
-    # a requirement file given is read first: a bad one stops before the long diagnosis
-    requirement_given = None if requirement is None else load_requirement(requirement)
-    progress = _Progress(recording.source)
-    progress(
-        "nominal model (%d detectors x %d samples, %.2f h)",
-        recording.n_detectors,
-        recording.n_samples,
-        recording.duration_s / 3600,
-    )
+    nominal_noise,
+    sky_residual_nside,
+    delta_bic_threshold: float,
+    workers: int,
+) -> NominalFit:
+    """Step 1: d_nom of the recording, the noise estimated on its residual where none is
+    configured, the nominal adjustments fitted (gain, 2f amplitude and phase, polarisation
+    angle, sky scales, offsets, sky residual, noise: never effects), and the noise's
+    roll-off (:mod:`.rolloff`) taken into the noise model if it lowers the BIC by more than
+    ``delta_bic_threshold`` (white + 1/f alone would pass it for a ~1 Hz knee)."""
     sky, sky_source = load_sky(sky_iqu)
     a2 = per_detector(a2_k, recording.n_detectors, "a2_k")
     nominal = _nominal_noise_models(recording, nominal_noise)
     base = build_context(recording, sky, a2)
     residual0 = np.where(base.valid, recording.tod - base.d_nom, 0.0)
-
-    estimates = []
-    for k in range(base.n_detectors):
-        estimates.append(
-            estimate_noise(
-                residual0[k],
-                base.sampling_rate_hz,
-                base.valid[k],
-                base.f_hwp_hz,
-                base.f_spin_hz,
-                nominal[k].fmin_hz if nominal[k] is not None else 1e-5,
-                start=nominal[k],
-            )
+    estimates = [
+        estimate_noise(
+            residual0[k],
+            base.sampling_rate_hz,
+            base.valid[k],
+            base.f_hwp_hz,
+            base.f_spin_hz,
+            nominal[k].fmin_hz if nominal[k] is not None else 1e-5,
+            start=nominal[k],
         )
+        for k in range(base.n_detectors)
+    ]
     nominal = [m if m is not None else e.model for m, e in zip(nominal, estimates, strict=True)]
-    # Nominal adjustments (gain, 2f amplitude and phase, polarisation angle, sky scales,
-    # offsets, sky residual, noise): fitted on every recording, never an effect.
-    progress("fitting the nominal adjustments")
     adjusted = fit_nominal(
         base,
         recording.tod,
@@ -343,8 +365,6 @@ def diagnose(
     ctx = adjusted.context
     noise_models = adjusted.noise
     residual = np.where(ctx.valid, recording.tod - ctx.d_nom, 0.0)
-    # a noise that rolls off (the detector's pole, :mod:`.rolloff`) is in the noise model from
-    # here on: white + 1/f alone would pass it for a ~1 Hz knee and leave excess bands
     modes = fitted_modes(residual.shape[1])
     residual_f = scipy.fft.rfft(residual, axis=-1, workers=workers)  # locate's and FitProblem's too
     ln_n_eff = math.log(2 * modes.sum() * ctx.n_detectors)
@@ -357,19 +377,34 @@ def diagnose(
         ctx, early, line_free_f, noise_models, modes, ln_n_eff
     ):
         noise_models = adjusted.noise = early.noise
-    del line_free_f
-    progress("locating where the residual differs from noise")
-    mismatch = locate(ctx, residual, noise_models, nominal, workers=workers, residual_f=residual_f)
+    return NominalFit(
+        recording, sky_source, a2, nominal, estimates, adjusted, noise_models, residual, residual_f
+    )
 
-    # The noise was fitted before any effect was removed: a strong effect leaks power
-    # beyond the line bins and inflates it. Refit it on the residual of the best fit and,
-    # if it moved by more than 2 % where the effects are, select again with the new weights,
-    # starting from the effects found (each checked again, then the others tried).
+
+def select_effects(
+    fit: NominalFit, delta_bic_threshold: float, max_effects: int, workers: int, progress
+) -> Selection:
+    """Step 3: the catalog's effects selected stepwise by the BIC, jointly with the
+    adjustments (:func:`.fit.stepwise`). The noise was fitted before any effect was
+    removed, and a strong effect leaks power beyond its line bins: it is refitted on the
+    residual of the best fit and, if it moved by more than NOISE_REFIT_CHANGE where the
+    effects are, or a gain fluctuation (:mod:`.fluctuations`, an excess noise in the 2f
+    sidebands) is taken into it, the selection runs again with the new weights, starting
+    from the effects found. Then the fluctuation and the noise's roll-off are fitted
+    again beside the final effects. Updates ``fit.adjusted.noise``."""
+    ctx, adjusted, nominal = fit.context, fit.adjusted, fit.nominal
+    noise_models = fit.noise_models
     previous = ()
     history = []
     fluctuation = None
     problem = FitProblem(
-        ctx, recording.tod, noise_models, workers=workers, nominal=NOMINAL, residual_f=residual_f
+        ctx,
+        fit.recording.tod,
+        noise_models,
+        workers=workers,
+        nominal=NOMINAL,
+        residual_f=fit.residual_f,
     )
     for attempt in range(2):
         if attempt:  # same templates and residual, new noise weights
@@ -377,19 +412,17 @@ def diagnose(
         progress(
             "selecting effects (pass %d%s)", attempt + 1, ", noise refitted" if attempt else ""
         )
-        selection = stepwise(
+        steps = stepwise(
             problem,
             delta_bic_threshold=delta_bic_threshold,
             max_effects=max_effects,
             initial=previous,
         )
-        final = problem.fit(selection.final.selected, keep_model=True)
-        history += selection.steps
+        final = problem.fit(steps.final.selected, keep_model=True)
+        history += steps.steps
         log.debug("selected: %s", ", ".join(final.selected) or "nothing")
         if attempt == 1:
             break
-        # a fluctuating gain is an excess noise in the 2f sidebands (:mod:`.fluctuations`):
-        # tested on this residual; if taken, everything is selected again with it
         remaining_f = problem.residual_f - np.array(final.model_f)
         fluctuation = fit_fluctuations(
             ctx, remaining_f, noise_models, problem.modes, problem.ln_n_eff, also_from=nominal
@@ -447,17 +480,39 @@ def diagnose(
                 adjusted.noise = fluctuation.base_noise
             else:  # the pole's wings were what it took: neither is kept
                 fluctuation = None
+    return Selection(
+        problem,
+        steps,
+        final,
+        history,
+        fluctuation,
+        rolloff,
+        noise_models,
+        residual_after,
+        partial,
+    )
 
+
+def explain_effects(
+    fit: NominalFit, selection: Selection, delta_bic_threshold: float, workers: int
+) -> list[dict]:
+    """Step 4: each selected effect as the report gives it (ranked by its drop-one
+    Delta chi^2): its parameters with errors, its evidence in words, the effects it is
+    not told apart from in this recording (selected within the threshold of it, or whose
+    telling signature is below detection); the gain fluctuation and the noise's roll-off
+    where fitted; a family's members merged (:func:`merge_members`)."""
+    ctx, final, steps = fit.context, selection.final, selection.steps
+    noise_models, problem = selection.noise_models, selection.problem
     ties = {  # named as the report names them (a member by its family)
         name: sorted({reported_name(n) for n in others})
-        for name, others in look_alikes(history, delta_bic_threshold).items()
+        for name, others in look_alikes(selection.history, delta_bic_threshold).items()
     }
-    found = {family_of(n) for n in selection.ranked}
+    found = {family_of(n) for n in steps.ranked}
     effects_out = []
-    for name in selection.ranked:
-        fit = final.effects[name]
-        evidence = Evidence(ctx, partial[name], noise_models, ctx.a2_k, workers)
-        text = CATALOG[name].evidence(evidence, fit)
+    for name in steps.ranked:
+        fitted = final.effects[name]
+        evidence = Evidence(ctx, selection.partial[name], noise_models, ctx.a2_k, workers)
+        text = CATALOG[name].evidence(evidence, fitted)
         if ties.get(name):
             text += (
                 f"; NOT told apart in this recording from {', '.join(ties[name])} (within "
@@ -466,7 +521,7 @@ def diagnose(
             )
         unresolved = [
             other
-            for other in CATALOG[name].unresolved_look_alikes(evidence, fit)
+            for other in CATALOG[name].unresolved_look_alikes(evidence, fitted)
             if other not in ties.get(name, []) and other not in found
         ]
         if unresolved:
@@ -481,19 +536,21 @@ def diagnose(
                 "name": name,
                 "title": effect.title,
                 "parameters": effect.reported_parameters(
-                    fit, ctx.detector_names, ctx.sampling_rate_hz, problem.units[name]
+                    fitted, ctx.detector_names, ctx.sampling_rate_hz, problem.units[name]
                 ),
                 "main_parameters": list(effect.main_parameters),
-                "delta_chi2": selection.delta_chi2[name],
-                "delta_bic": selection.delta_bic[name],
+                "delta_chi2": steps.delta_chi2[name],
+                "delta_bic": steps.delta_bic[name],
                 "evidence": text,
                 "signature": effect.signature,
                 "look_alikes": ties.get(name, []),
             }
         )
-    if fluctuation is not None:
-        dipole = dipole_signature(ctx, fluctuation, noise_models)
-        effects_out.append(CATALOG["gain_fluctuations"].report_entry(ctx, fluctuation, dipole))
+    if selection.fluctuation is not None:
+        dipole = dipole_signature(ctx, selection.fluctuation, noise_models)
+        gain_fluctuations = CATALOG["gain_fluctuations"]
+        effects_out.append(gain_fluctuations.report_entry(ctx, selection.fluctuation, dipole))
+    rolloff = selection.rolloff
     if rolloff.delta_bic < delta_bic_threshold:
         time_constant = CATALOG["detector_time_constant"]
         entry = next((e for e in effects_out if e["name"] == time_constant.name), None)
@@ -501,46 +558,57 @@ def diagnose(
             effects_out.append(time_constant.rolloff_entry(ctx, rolloff))
         else:  # also seen in the lines: the noise's roll-off added to its evidence
             entry["evidence"] += "; " + time_constant.rolloff_evidence(ctx, rolloff)
-    effects_out = merge_members(effects_out)
-    nonlinearity = next(
-        (e for e in effects_out if family_of(e["name"]) == NONLINEARITY_FAMILY), None
-    )
-    requirement = requirement_given or load_requirement()
+    return merge_members(effects_out)
+
+
+def bound_g1(effects: list[dict], selection: Selection, requirement: dict) -> dict:
+    """Step 5: the nonlinearity against the requirement of a workflow run: the fitted g1
+    if the nonlinearity was selected, else what the recording says of g1 all the same
+    (its fit beside the effects found; :mod:`.requirement_check`)."""
+    nonlinearity = next((e for e in effects if family_of(e["name"]) == NONLINEARITY_FAMILY), None)
     if nonlinearity is not None:
-        requirement_check = {
-            "effect": nonlinearity["name"],
-            **compare_nonlinearity(nonlinearity, requirement),
-        }
-    else:  # what the recording says of g1 all the same: its fit beside the effects found
-        requirement_check = {"effect": None, **_nonlinearity_bound(problem, final, requirement)}
-    lines = _line_table(mismatch, ctx, residual, residual_after, noise_models)
+        return {"effect": nonlinearity["name"], **compare_nonlinearity(nonlinearity, requirement)}
+    bound = _nonlinearity_bound(selection.problem, selection.final, requirement)
+    return {"effect": None, **bound}
+
+
+def report(
+    fit: NominalFit,
+    selection: Selection,
+    mismatch,
+    effects: list[dict],
+    unexplained: list[dict],
+    requirement_check: dict,
+    delta_bic_threshold: float,
+) -> Diagnosis:
+    """Step 6: the :class:`.report.Diagnosis` (what ``diagnosis.json`` holds; the module
+    docstring) of the steps' outputs."""
+    recording, ctx, adjusted = fit.recording, fit.context, fit.adjusted
+    steps, final, noise_models = selection.steps, selection.final, selection.noise_models
+    lines = _line_table(mismatch, ctx, fit.residual, selection.residual_after, noise_models)
     corrections = final.effects[NOMINAL.name]
     adjustments = adjustments_report(
-        adjusted, corrections.values, corrections.sigmas, nominal, recording.pol_angles_rad
+        adjusted, corrections.values, corrections.sigmas, fit.nominal, recording.pol_angles_rad
     )
     n_nuisance = len(NOMINAL.parameters) * ctx.n_detectors + 3 * ctx.n_detectors + ctx.n_detectors
     n_nuisance += adjusted.sky_residual_pixels
-    progress("looking for unexplained structure")
-    unexplained = find_unexplained(ctx, residual_after, noise_models, selection, workers)
-    for entry in effects_out:
-        _left_at_its_signature(entry, unexplained)
     result = {
-        "mismatch_found": bool(effects_out) or bool(unexplained),
-        "effects": effects_out,
+        "mismatch_found": bool(effects) or bool(unexplained),
+        "effects": effects,
         "unexplained": unexplained,
         "nominal_adjustments": adjustments,
-        "chi2_before": selection.baseline.chi2,
+        "chi2_before": steps.baseline.chi2,
         "chi2_after": final.chi2,
-        "dof": selection.n_eff - final.n_params - n_nuisance,
+        "dof": steps.n_eff - final.n_params - n_nuisance,
         "n_nuisance_parameters": n_nuisance,
-        "n_eff": selection.n_eff,
+        "n_eff": steps.n_eff,
         "n_params": final.n_params,
-        "bic_before": selection.baseline.bic(selection.ln_n_eff),
-        "bic_after": final.bic(selection.ln_n_eff),
+        "bic_before": steps.baseline.bic(steps.ln_n_eff),
+        "bic_after": final.bic(steps.ln_n_eff),
         "delta_bic_threshold": delta_bic_threshold,
         "information_criterion": "BIC = chi2 + k ln N_eff (N_eff = real Fourier dof used)",
         "requirement_check": requirement_check,
-        "steps": [dict(step.as_dict(), step=i + 1) for i, step in enumerate(history)],
+        "steps": [dict(step.as_dict(), step=i + 1) for i, step in enumerate(selection.history)],
         "lines": lines,
         "noise": {
             "nominal": [
@@ -550,9 +618,9 @@ def diagnose(
                     "alpha": m.alpha,
                     "fmin_hz": m.fmin_hz,
                 }
-                for m in nominal
+                for m in fit.nominal
             ],
-            "estimated": [e.as_dict() for e in estimates],
+            "estimated": [e.as_dict() for e in fit.estimates],
             # the noise the final fit weighs with (refitted beside the effects found and a
             # gain fluctuation's sidebands; "estimated" is the recording's before any fit)
             "final": [
@@ -564,7 +632,7 @@ def diagnose(
                 }
                 for m in (getattr(m, "base", m) for m in noise_models)
             ],
-            "rolloff": rolloff.as_dict(),
+            "rolloff": selection.rolloff.as_dict(),
         },
         "locate": mismatch.as_dict(),
         "recording": {
@@ -576,26 +644,98 @@ def diagnose(
             "start_time_mjd": float(recording.start_time.mjd),
             "start_time_scale": recording.start_time.scale,
             "flagged_fraction": float(np.mean(recording.flags)),
-            "sky": sky_source,
-            "a2_k": a2.tolist(),
+            "sky": fit.sky_source,
+            "a2_k": fit.a2_k.tolist(),
             "f_hwp_hz": ctx.f_hwp_hz,
         },
     }
-    result = Diagnosis(_jsonable(result))
+    return Diagnosis(_jsonable(result))
+
+
+def diagnose(
+    recording: Recording,
+    sky_iqu,
+    a2_k,
+    nominal_noise=None,
+    out_dir=None,
+    delta_bic_threshold: float = -10.0,
+    max_effects: int = 6,
+    workers: int = 1,
+    figures: bool = True,
+    sky_residual_nside: int | None = SKY_RESIDUAL_NSIDE,
+    requirement=None,
+) -> Diagnosis:
+    """Diagnose ``recording`` against its simulation (module docstring); never told the effect.
+
+    ``sky_iqu``: (3, npix) I, Q, U map [K_CMB, Galactic, RING] or the path of a FITS map;
+    ``a2_k``: the nominal HWPSS amplitude A_2 [K] (scalar or one per detector);
+    ``nominal_noise``: the configured noise (see :func:`_nominal_noise_models`; default:
+    the recording's detector metadata); ``delta_bic_threshold``: an effect is kept if it
+    lowers the BIC by more than this (default -10); ``requirement``: the ``requirement.json``
+    of a workflow run a found nonlinearity is compared with (default: the shipped one-year
+    result; :mod:`.requirement_check`). Returns the :class:`.report.Diagnosis`
+    (what ``diagnosis.json`` holds); with ``out_dir`` (a folder, or the exact paths as a
+    :class:`.report.ReportPaths`) the report is also written there.
+    The steps: :func:`fit_nominal_model`, :func:`.locate.locate`, :func:`select_effects`,
+    :func:`explain_effects`, :func:`bound_g1`, :func:`.unexplained.find_unexplained`,
+    :func:`report`.
+    """
+    if not isinstance(recording, Recording):
+        raise TypeError(f"recording: expected a Recording, got {type(recording).__name__}")
+    # a requirement file given is read first: a bad one stops before the long diagnosis
+    requirement_given = None if requirement is None else load_requirement(requirement)
+    progress = _Progress(recording.source)
+    progress(
+        "nominal model (%d detectors x %d samples, %.2f h)",
+        recording.n_detectors,
+        recording.n_samples,
+        recording.duration_s / 3600,
+    )
+    progress("fitting the nominal adjustments")
+    fit = fit_nominal_model(
+        recording,
+        sky_iqu,
+        a2_k,
+        nominal_noise,
+        sky_residual_nside,
+        delta_bic_threshold,
+        workers,
+    )
+    progress("locating where the residual differs from noise")
+    mismatch = locate(
+        fit.context,
+        fit.residual,
+        fit.noise_models,
+        fit.nominal,
+        workers=workers,
+        residual_f=fit.residual_f,
+    )
+    selection = select_effects(fit, delta_bic_threshold, max_effects, workers, progress)
+    effects = explain_effects(fit, selection, delta_bic_threshold, workers)
+    requirement_check = bound_g1(effects, selection, requirement_given or load_requirement())
+    progress("looking for unexplained structure")
+    unexplained = find_unexplained(
+        fit.context, selection.residual_after, selection.noise_models, selection.steps, workers
+    )
+    for entry in effects:
+        _left_at_its_signature(entry, unexplained)
+    result = report(
+        fit, selection, mismatch, effects, unexplained, requirement_check, delta_bic_threshold
+    )
     if out_dir is not None:
-        progress("writing the report and figures in %s", out_dir)
+        progress("writing the report and figures: %s", ReportPaths.of(out_dir).markdown)
         write_outputs(
             result,
             out_dir,
-            ctx,
-            problem,
-            residual,
-            residual_after,
+            fit.context,
+            selection.problem,
+            fit.residual,
+            selection.residual_after,
             mismatch,
-            noise_models,
+            selection.noise_models,
             figures=figures,
         )
-    progress("done: %s", ", ".join(e["name"] for e in effects_out) or "no effect selected")
+    progress("done: %s", ", ".join(e["name"] for e in effects) or "no effect selected")
     return result
 
 

@@ -7,12 +7,36 @@ holds and writes what it found.
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import logging
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 
 from ..io import atomic_path
 from .effects import format_temperature
+
+log = logging.getLogger(__name__)
+
+
+@dataclasses.dataclass(frozen=True)
+class ReportPaths:
+    """Where a diagnosis is written: ``json`` (diagnosis.json), ``markdown`` (diagnosis.md)
+    and its figures, PNGs beside the Markdown that links them by name."""
+
+    json: Path
+    markdown: Path
+
+    @classmethod
+    def of(cls, where) -> ReportPaths:
+        """``where`` as given (ReportPaths), or a folder: its diagnosis.json and .md."""
+        if isinstance(where, ReportPaths):
+            return where
+        return cls(Path(where) / "diagnosis.json", Path(where) / "diagnosis.md")
+
+    @property
+    def figures_dir(self) -> Path:
+        return self.markdown.parent
 
 
 class Diagnosis(Mapping):
@@ -103,26 +127,36 @@ class Diagnosis(Mapping):
 
 
 def write_outputs(
-    result, out_dir, ctx, problem, residual, residual_after, mismatch, noise_models, figures=True
+    result, where, ctx, problem, residual, residual_after, mismatch, noise_models, figures=True
 ) -> None:
-    """diagnosis.json, diagnosis.md and the PNG figures in ``out_dir``."""
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    with atomic_path(out_dir / "diagnosis.json") as temporary:
+    """The report at ``where`` (:class:`ReportPaths`, or a folder for its default names):
+    the JSON first, then the figures, then the Markdown. A figure that fails is logged
+    and named in the Markdown; the JSON and the Markdown are written all the same."""
+    paths = ReportPaths.of(where)
+    for folder in {paths.json.parent, paths.figures_dir}:
+        folder.mkdir(parents=True, exist_ok=True)
+    with atomic_path(paths.json) as temporary:
         temporary.write_text(Diagnosis(result).to_json())
-    figure_files = {}
+    figure_files, figures_error = {}, None
     if figures:
         from .figures import diagnosis_figures
 
-        figure_files = diagnosis_figures(
-            out_dir, ctx, residual, residual_after, mismatch, noise_models, result
-        )
-    with atomic_path(out_dir / "diagnosis.md") as temporary:
-        temporary.write_text(markdown_report(result, figure_files))
+        try:
+            figure_files = diagnosis_figures(
+                paths.figures_dir, ctx, residual, residual_after, mismatch, noise_models, result
+            )
+        except Exception as error:  # the figures are a view: the report must not be lost
+            log.exception("%s: the figures could not be drawn", paths.figures_dir)
+            figures_error = f"{type(error).__name__}: {error}"
+    with atomic_path(paths.markdown) as temporary:
+        temporary.write_text(markdown_report(result, figure_files, figures_error))
 
 
-def markdown_report(result: dict, figure_files: dict | None = None) -> str:
-    """The human-readable report: what physics was left out, how sure, the evidence."""
+def markdown_report(
+    result: dict, figure_files: dict | None = None, figures_error: str | None = None
+) -> str:
+    """The human-readable report: what physics was left out, how sure, the evidence; its
+    figures ({title: file name}), or why they could not be drawn."""
     rec = result["recording"]
     out = [
         "# Diagnosis of a recording against its simulation",
@@ -265,8 +299,10 @@ def markdown_report(result: dict, figure_files: dict | None = None) -> str:
             f"{final['net_k_sqrt_s'] * 1e6:.2f} uK sqrt(s), f_knee {final['fknee_hz'] * 1e3:.3g} "
             f"mHz, alpha {final['alpha']:.2f}"
         )
-    if figure_files:
+    if figure_files or figures_error:
         out += ["", "## Figures", ""]
-        for title, name in figure_files.items():
+        for title, name in (figure_files or {}).items():
             out.append(f"![{title}]({name})")
+        if figures_error:
+            out.append(f"The figures could not be drawn ({figures_error}); the log has the trace.")
     return "\n".join(out) + "\n"

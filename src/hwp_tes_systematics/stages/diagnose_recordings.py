@@ -9,11 +9,13 @@ from __future__ import annotations
 
 import json
 import logging
+from pathlib import Path
 
 from .. import config as cfg
 from .. import sky
 from ..diagnose import diagnose
 from ..diagnose.recording import read_recording, write_recording
+from ..diagnose.report import ReportPaths
 from ..diagnose.simulate import simulate_recording
 from ..instrument.channels import check_channel_name
 from ..simulation.channel_inputs import (
@@ -71,8 +73,8 @@ def make_example(config: dict, out_h5: str, out_sky: str) -> None:
     )
 
 
-def run(config: dict, recording_h5: str, sky_fits: str, out_dir: str, out_json: str) -> None:
-    """Diagnose one recording; writes diagnosis.json, diagnosis.md and figures in out_dir."""
+def run(config: dict, recording_h5: str, sky_fits: str, out_json: str, out_md: str) -> None:
+    """Diagnose one recording; writes ``out_json``, ``out_md`` and the figures beside it."""
     recording = read_recording(recording_h5)
     # channel_a2_k_cmb gives 0 for a name outside the systematics channels: a name the
     # instrument model does not know is an error here, not an ideal HWP
@@ -86,7 +88,7 @@ def run(config: dict, recording_h5: str, sky_fits: str, out_dir: str, out_json: 
         recording,
         sky_fits,
         a2_k,
-        out_dir=out_dir,
+        out_dir=ReportPaths(Path(out_json), Path(out_md)),
         delta_bic_threshold=config["diagnose"]["delta_bic_threshold"],
     )
     with open(out_json) as handle:  # written by diagnose(); check it is complete JSON
