@@ -2,7 +2,7 @@
 
 Demodulation keeps the s^2 term's 2 s_f x CMB (s_f: foreground + dipole), which the
 map-domain seeds model as S^s (a shaping) of a pixel product (:func:`fixed_maps.static_sky_product`,
-S^s measured in the fixed pass). tests/test_map_domain_demodulated.py checks it on one
+S^s measured in the fixed pass). tests/simulation/test_map_domain_demodulated.py checks it on one
 day with a synthetic foreground; this script checks it where it will be used: the
 pipeline's foreground map of a channel (a run's ``results/sky/foreground_<channel>.fits``),
 its dipole, the paper's notch, no baselines, days to months of scanning.

@@ -2,7 +2,7 @@
 
 Build (warnings are errors, nothing is downloaded):
     sphinx-build -W -b html docs docs/_build/html
-``tests/test_docs.py`` runs the same build. At every build the effect catalog page is
+``tests/project/test_docs.py`` runs the same build. At every build the effect catalog page is
 written from the code's effect classes (``hwp_tes_systematics.diagnose.catalog``), so it
 cannot drift from ``src/hwp_tes_systematics/diagnose/effects.py``.
 """
@@ -42,7 +42,7 @@ autodoc_typehints = "none"  # the docstrings state the units; signatures stay sh
 html_theme = "furo"
 html_title = f"hwp_tes_systematics {release}"
 html_static_path = ["_static"]
-html_css_files = ["custom.css"]  # hides the code-host note (tests/test_docs.py)
+html_css_files = ["custom.css"]  # hides the code-host note (tests/project/test_docs.py)
 html_show_sourcelink = False
 
 

@@ -60,3 +60,54 @@ def tiny_local_run(repo, tmp_path_factory):
                 json.dumps({"returncode": result.returncode, "stderr": result.stderr[-20000:]})
             )
         return workdir, SimpleNamespace(**json.loads(outcome.read_text()))
+
+
+# The test pyramid: each test gets one kind (its marker), from its file and tier.
+#   unit      fast checks of one function or file format (pytest -m unit: seconds)
+#   physics   a result against an analytic expectation or the reference path it replaces
+#   rule      one Snakemake rule (or a few) on tiny inputs
+#   workflow  a whole command: the DAG, a profile, the installed package, the docs build,
+#             a benchmark, the command line on a recording
+TEST_KINDS = ("unit", "physics", "rule", "workflow")
+PHYSICS_FILES = {
+    # instrument, sky
+    "test_radiometry.py", "test_tes.py", "test_hwp_power.py", "test_nonlinearity_lines.py",
+    "test_focal_plane.py", "test_sky.py",
+    # simulation
+    "test_baselines.py", "test_data_model.py", "test_demodulation.py",
+    "test_fixed_pass_reference.py", "test_fixed_pass_variants.py", "test_map_domain.py",
+    "test_map_domain_demodulated.py", "test_notch.py", "test_tod_maps.py",
+    # analysis
+    "test_hilc.py", "test_ilc_residuals.py", "test_likelihood.py", "test_model_consistency.py",
+    "test_requirement.py", "test_spectra.py", "test_template_fit.py",
+    "test_fixed_instruments.py",
+    # diagnose
+    "test_diagnose_clean.py", "test_diagnose_effects.py", "test_diagnose_fluctuations.py",
+    "test_diagnose_gaps.py", "test_diagnose_linalg.py", "test_diagnose_noise.py",
+    "test_diagnose_nominal.py", "test_diagnose_pairs.py", "test_diagnose_pointing.py",
+    "test_diagnose_rolloff.py", "test_diagnose_segments.py", "test_diagnose_sky_sources.py",
+}  # fmt: skip
+RULE_FILES = {"test_rules_inputs.py", "test_rules_maps.py"}
+WORKFLOW_FILES = {"test_end_to_end.py", "test_profiles.py", "test_slurm.py", "test_install.py"}
+
+
+def test_kind(path: Path, slow: bool) -> str:
+    """The kind (TEST_KINDS) of a test in file ``path``, ``slow`` if marked so: by its
+    file; a slow test elsewhere runs a whole command (workflow); unit tests are fast."""
+    if path.name in RULE_FILES:
+        return "rule"
+    if path.name in WORKFLOW_FILES:
+        return "workflow"
+    if path.name in PHYSICS_FILES:
+        return "physics"
+    return "workflow" if slow else "unit"
+
+
+test_kind.__test__ = False  # a helper, not a test
+
+
+@pytest.hookimpl(tryfirst=True)  # before -m selects on the markers
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        kind = test_kind(Path(str(item.path)), item.get_closest_marker("slow") is not None)
+        item.add_marker(getattr(pytest.mark, kind))

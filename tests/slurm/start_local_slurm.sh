@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# A one-node SLURM cluster on this machine, for tests/test_slurm.py and .ci/run.
+# A one-node SLURM cluster on this machine, for tests/workflow/test_slurm.py and .ci/run.
 #
 #   sudo bash tests/slurm/start_local_slurm.sh               # install if missing, then start
 #   sudo bash tests/slurm/start_local_slurm.sh --no-install  # start only what is installed
@@ -29,7 +29,7 @@ if [[ "${1:-}" == "--no-install" ]]; then install=0; fi
 
 t0=$EPOCHREALTIME
 say() { printf 'start_local_slurm: %s\n' "$*"; }
-# the last failure's reason, for tests/test_slurm.py's skip message (removed on success)
+# the last failure's reason, for tests/workflow/test_slurm.py's skip message (removed on success)
 LAST_ERROR=${TMPDIR:-/tmp}/start_local_slurm.last_error
 die() {
     printf 'start_local_slurm: ERROR: %s\n' "$1" >&2

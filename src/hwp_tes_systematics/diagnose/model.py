@@ -263,7 +263,7 @@ def focal_plane_axes(pointings_ecl: np.ndarray):
     A rotation of the detector quaternion by delta about the focal plane's x (y) axis
     (litebird_sim's pointing systematics, ``RotQuaternion(quat_rotation_x(delta)) * quat``)
     moves the pointing by delta along u (v), the same direction in the focal plane at every
-    sample (checked to 1e-6 arcmin over half an hour: tests/test_diagnose_pointing.py).
+    sample (checked to 1e-6 arcmin over half an hour: tests/diagnose/test_diagnose_pointing.py).
     """
     theta, phi, psi = pointings_ecl[:, 0], pointings_ecl[:, 1], pointings_ecl[:, 2]
     n, e_theta, e_phi = unit_vectors(theta, phi)

@@ -58,7 +58,7 @@ part: without S the map-domain noise is too high (by 2x in variance at 1 day, ns
 As the residual subtracts cmb_reference, the CMB cancels there exactly and enters only
 through the HILC weights, as in the full path.
 
-Approximated, and measured against the full path (tests/test_map_domain.py,
+Approximated, and measured against the full path (tests/simulation/test_map_domain.py,
 benchmarks/map_domain_validation.py): the filter as multipole functions (an
 along-scan filter; good on a large observed sky, poor on a few hours' stripe); white
 noise (the 1/f part is left out: it reaches I, not Q/U, with a HWP); the filter's

@@ -168,7 +168,7 @@ def beam_band_limit(fwhm_arcmin: float, lmax: int, power_floor: float = BEAM_POW
 
     A 70.5' beam (L1-040): L = 551; 30.8' (M1-140): 1261; above it the beam has removed all
     but 1e-10 of the power, so a map synthesised up to L equals the full-band one to
-    < 1e-4 of its rms in every pixel (``tests/test_map_domain.py``), at (L / lmax)^2 of the cost.
+    < 1e-4 of its rms in every pixel (``tests/simulation/test_map_domain.py``), at (L / lmax)^2 of the cost.
     """
     fwhm_arcmin = _check_fwhm(fwhm_arcmin)
     if fwhm_arcmin == 0:

@@ -3,7 +3,7 @@
 The same transforms as healpy's ``alm2map(alm, nside, lmax, pixwin=False)`` and
 ``map2alm(maps, lmax, iter, pol=True, use_weights=False, use_pixel_weights=False)`` (T
 with spin 0, E and B with spin 2, healpy's a_lm layout and polarisation convention; to
-~1e-13, ``tests/test_harmonics.py``), called on ducc0's SHT directly: on one thread at
+~1e-13, ``tests/sky/test_harmonics.py``), called on ducc0's SHT directly: on one thread at
 nside 512, healpy 1.20's take 3.5 times (lmax 700) and 2.3 times (lmax 128) as long
 (measured), and a map-domain seed transforms about ten maps.
 

@@ -30,7 +30,7 @@ class PointingOffset(Effect):
     pointing systematics make it). dS/dx: the dipole's gradient (exact, from litebird_sim)
     and the sky map's as the nominal model scans it (:func:`..model.pointing_gradients`),
     first order in the offset (the dipole's second-order term is ~ offset [rad] of the
-    first: 1e-3 at 3.4 arcmin, measured in tests/test_diagnose_pointing.py).
+    first: 1e-3 at 3.4 arcmin, measured in tests/diagnose/test_diagnose_pointing.py).
     """
 
     name = "pointing_offset"

@@ -38,7 +38,7 @@ def test_profiles_parse_and_name_existing_rules(repo):
 @pytest.mark.parametrize("name", ["default", "slurm"])
 def test_profile_dry_run_on_tiny_config(repo, tmp_path, name):
     """Snakemake accepts the profile and the DAG it implies (the groups included) without
-    a scheduler; tests/test_slurm.py runs the SLURM profile on a real one."""
+    a scheduler; tests/workflow/test_slurm.py runs the SLURM profile on a real one."""
     workdir = make_workdir(repo, tmp_path)
     result = subprocess.run(
         [sys.executable, "-m", "snakemake", "--profile", str(repo / "profiles" / name)]

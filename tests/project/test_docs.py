@@ -16,7 +16,7 @@ import hwp_tes_systematics
 from hwp_tes_systematics.diagnose.catalog import effect_catalog_markdown
 from hwp_tes_systematics.diagnose.effects import CATALOG
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 DOCS = REPO / "docs"
 # where effect classes are defined: the catalog's subpackage and the injection-only effects
 EFFECT_SOURCES = [

@@ -9,7 +9,7 @@ pytestmark = pytest.mark.slow
 
 
 def test_whole_workflow_on_tiny_config(tiny_local_run):
-    workdir, result = tiny_local_run  # shared with tests/test_slurm.py
+    workdir, result = tiny_local_run  # shared with tests/workflow/test_slurm.py
     assert result.returncode == 0, result.stderr[-4000:]
     requirement = json.loads((workdir / "results/requirement.json").read_text())
     assert np.isfinite(requirement["requirement_sigma_g1_per_k"])

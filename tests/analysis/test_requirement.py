@@ -295,7 +295,7 @@ def test_figure8_command_redraws_a_committed_run(tmp_path, capsys):
         except SystemExit as exit:  # argparse's errors
             return exit.code
 
-    run = Path(__file__).parents[1] / "docs" / "one_year"
+    run = Path(__file__).parents[2] / "docs" / "one_year"
     out = tmp_path / "fig8.png"
     assert status_of("figure8", run / "requirement.json", "--out", out) == 0
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

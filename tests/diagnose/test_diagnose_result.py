@@ -9,7 +9,7 @@ import pytest
 
 from hwp_tes_systematics.diagnose import Diagnosis
 
-EXAMPLE = Path(__file__).parent / "data" / "example_diagnosis.json"
+EXAMPLE = Path(__file__).parents[1] / "data" / "example_diagnosis.json"
 
 
 @pytest.fixture
@@ -91,7 +91,7 @@ def test_a_found_nonlinearity_against_the_shipped_requirement(result):
     )
 
     requirement = load_requirement()
-    shipped = json.loads((Path(__file__).parents[1] / "docs/one_year/requirement.json").read_text())
+    shipped = json.loads((Path(__file__).parents[2] / "docs/one_year/requirement.json").read_text())
     assert requirement["sigma_g1_per_k"] == shipped["headline"]["requirement_sigma_g1_per_k"]
     check = compare_nonlinearity(result.effect("tes_nonlinearity_cubic"), requirement)
     assert len(check["detectors"]) == 2

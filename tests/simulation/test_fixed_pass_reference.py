@@ -9,7 +9,7 @@ rounding: the speed-ups reorder sums and reuse memory, they do not change the nu
 
 The reference (tests/data/fixed_pass_reference.npz) was written at commit c508fb9 with
 
-    PYTHONPATH=<checkout of c508fb9>/src:tests python tests/test_fixed_pass_reference.py \
+    PYTHONPATH=<checkout of c508fb9>/src:tests python tests/simulation/test_fixed_pass_reference.py \
         tests/data/fixed_pass_reference.npz
 """
 
@@ -23,7 +23,7 @@ from helpers import m1_140_pair, pipeline_settings
 
 from hwp_tes_systematics.sky import cmb as sky_cmb
 
-REFERENCE = Path(__file__).parent / "data" / "fixed_pass_reference.npz"
+REFERENCE = Path(__file__).parents[1] / "data" / "fixed_pass_reference.npz"
 SCAN_NSIDE, LMAX = 8, 23
 BINNED = [(4, 60.0), (8, None)]
 DEMODULATED = [(8, 60.0), (8, None)]
@@ -34,7 +34,7 @@ SINGLE_ATOL = 2e-5
 SINGLE_PRECISION = ("transfer", "noise_shaping", "noise_h_shaping", "cmb_h_transfer")
 SINGLE_PRECISION += ("cmb_s_shaping",)
 # products measured after the reference was written (their physics is tested elsewhere:
-# tests/test_map_domain.py::test_the_bb_excess_is_what_the_filter_adds_beyond_the_transfer)
+# tests/simulation/test_map_domain.py::test_the_bb_excess_is_what_the_filter_adds_beyond_the_transfer)
 LATER_FIELDS = ("cmb_bb_excess",)
 
 

@@ -499,12 +499,13 @@ def test_fixed_pass_profile_prints_each_stage_beside_its_floor_and_another_check
         cells = [cell.strip() for cell in lines[stage].split("|")[2:-1]]
         assert len(cells) == 5, lines[stage]  # pass, floor, ratio, reference, reference / pass
         assert float(cells[0]) > 0 and float(cells[3]) > 0
-    # 8 rows x 2 detectors, forward and inverse, each over the chunk and its margins
+    # 9 rows x 2 detectors (the CMB reference and its B modes alone among them), forward
+    # and inverse, each over the chunk and its margins
     from hwp_tes_systematics.simulation.notch import chunk_span
 
     n_inner = round(0.02 * 86400 * 19.0)
     _, n_fft, _ = chunk_span(0, n_inner, 19.0, 1200.0)
-    assert f"2f removal + notch {16 * n_fft / n_inner:.1f}" in done.stdout
+    assert f"2f removal + notch {18 * n_fft / n_inner:.1f}" in done.stdout
 
 
 @pytest.mark.slow

@@ -4,7 +4,7 @@ modules as leaves (imported by their scripts only), the moved modules' old names
 import ast
 from pathlib import Path
 
-PACKAGE = Path(__file__).resolve().parents[1] / "src" / "hwp_tes_systematics"
+PACKAGE = Path(__file__).resolve().parents[2] / "src" / "hwp_tes_systematics"
 
 
 def imported_modules(path: Path) -> set[str]:
@@ -50,7 +50,7 @@ def layer_of(module: str) -> tuple[int, str]:
     for index, layer in enumerate(LAYERS):
         if group in layer:
             return index, group
-    raise AssertionError(f"{module}: in no layer of tests/test_package_layout.py LAYERS")
+    raise AssertionError(f"{module}: in no layer of tests/project/test_package_layout.py LAYERS")
 
 
 def package_imports():
@@ -91,3 +91,23 @@ def test_the_old_module_names_are_gone():
     with pytest.raises(ModuleNotFoundError):
         importlib.import_module("hwp_tes_systematics.tod")
     assert importlib.import_module("hwp_tes_systematics.simulation.tod").PairSimulator
+
+
+def test_the_tests_mirror_the_package_and_each_file_has_a_kind():
+    """tests/<folder>/test_*.py: a folder per layer of the package (instrument, sky,
+    simulation, analysis, diagnose), then workflow and project; no test file at the top;
+    every file conftest.py names as physics, rule or workflow exists."""
+    import conftest
+
+    tests = PACKAGE.parents[1] / "tests"
+    folders = {p.parent.name for p in tests.rglob("test_*.py")}
+    layers = {"instrument", "sky", "simulation", "analysis", "diagnose"}
+    assert layers <= {p.name for p in PACKAGE.iterdir() if p.is_dir()}
+    assert folders == layers | {"workflow", "project"}
+    assert not list(tests.glob("test_*.py"))
+    names = {p.name for p in tests.rglob("test_*.py")}
+    named = conftest.PHYSICS_FILES | conftest.RULE_FILES | conftest.WORKFLOW_FILES
+    assert named <= names, sorted(named - names)
+    assert conftest.test_kind(Path("test_rules_maps.py"), True) == "rule"
+    assert conftest.test_kind(Path("test_cli.py"), False) == "unit"
+    assert conftest.test_kind(Path("test_cli.py"), True) == "workflow"

@@ -4,7 +4,7 @@ One M1-140 pair, 1 day at nside 32 and 19 Hz, the sky scanned band-limited
 (``simulation.sky_scanning: band_limited``, as a demodulated analysis requires): the
 fixed pass's demodulated variant (``fixed_pass(..., demodulated=True)``) plus each
 seed's map products (:func:`map_domain.realize_seed`) must give what
-``accumulate(demodulated=...)`` gives seed by seed, as tests/test_map_domain.py checks
+``accumulate(demodulated=...)`` gives seed by seed, as tests/simulation/test_map_domain.py checks
 for the binned map-maker. The tolerances are stated with the measured values.
 """
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 ONE_YEAR = "docs/one_year"
 RESOLUTION = "docs/resolution"
 ROWS = {  # README row label (start) -> the requirement.json files it quotes, in order
