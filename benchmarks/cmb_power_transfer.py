@@ -12,7 +12,9 @@ its E and T modes alone and its B modes alone, and prints per multipole band, on
 observed pixels (pseudo-spectra of the masked maps, input and output on the same mask):
 
 - T_cross = C(out, in) / C(in) and T_auto = C(out) / C(in) of the B-only sky (B to B),
-  beside T_cross^2;
+  beside T_cross^2 (the band's ratio squared) and the band's mean of T_ell^2 (per
+  multipole, weighted by the input's power: what a filter that scales each mode by
+  T_ell leaves; a band's T_cross^2 is below it where T_ell varies across the band);
 - the leakage into B: the BB of the T-and-E-only sky's output over the lensing BB input
   (temperature and E modes the filter and the offsets turn into B);
 - the full sky's T_cross and T_auto (what the noise model measures, and what the map holds).
@@ -104,8 +106,10 @@ def main(argv=None) -> None:
     _, e_leak, _ = spectra(outputs["te_only"], skies["te_only"])
     modes = 2 * np.arange(lmax + 1) + 1.0
     print(
-        "ell band | B->B: T_cross, T_auto, T_cross^2 | T,E->B leakage / C_BB | full: T_cross, T_auto"
+        "ell band | B->B: T_cross, T_auto, T_cross^2, mean T_ell^2 | T,E->B leakage / C_BB | "
+        "full: T_cross, T_auto"
     )
+    t_ell = np.divide(b_cross, b_in, out=np.zeros_like(b_in), where=b_in > 0)
     for first, last in BANDS:
         if last > lmax:
             break
@@ -114,8 +118,10 @@ def main(argv=None) -> None:
         leak = band(e_leak, modes, first, last) / band(b_in, modes, first, last)
         full_cross = band(f_cross, modes, first, last) / band(f_in, modes, first, last)
         full_auto = band(f_auto, modes, first, last) / band(f_in, modes, first, last)
+        t_squared = band(t_ell**2, modes * b_in, first, last)
         print(
-            f"  {first:3d}-{last:3d} | {t_cross:6.3f} {t_auto:6.3f} {t_cross**2:6.3f} | "
+            f"  {first:3d}-{last:3d} | {t_cross:6.3f} {t_auto:6.3f} {t_cross**2:6.3f} "
+            f"{t_squared:6.3f} | "
             f"{leak:6.3f} | {full_cross:6.3f} {full_auto:6.3f}"
         )
 

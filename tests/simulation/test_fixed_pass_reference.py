@@ -36,6 +36,9 @@ SINGLE_PRECISION += ("cmb_s_shaping",)
 # products measured after the reference was written (their physics is tested elsewhere:
 # tests/simulation/test_map_domain.py::test_the_bb_excess_is_what_the_filter_adds_beyond_the_transfer)
 LATER_FIELDS = ("cmb_bb_excess",)
+# fields whose rows changed definition after it: the transfer's BB, now from the reference's
+# B modes alone (filter_response.measure_cmb_response; tested in tests/simulation/test_map_domain.py)
+LATER_ROWS = {"transfer": slice(0, 2)}
 
 
 def fixed_pass_products() -> dict[str, np.ndarray]:
@@ -85,6 +88,9 @@ def test_the_fixed_pass_equals_the_reference_to_rounding():
     for key, value in products.items():
         reference = expected[key]
         assert value.shape == reference.shape, key
+        rows = LATER_ROWS.get(key.split("/")[1])
+        if rows is not None:
+            value, reference = value[rows], reference[rows]
         if value.dtype == bool:
             np.testing.assert_array_equal(value, reference, err_msg=key)
             continue

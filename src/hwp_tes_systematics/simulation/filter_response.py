@@ -1,8 +1,8 @@
 """The filter as functions of multipole: what the fixed pass measures of the TOD filter
 (HWP-harmonic removal, notch, offsets) on its binned maps, and how the seeds apply it.
 
-T_ell = C_ell(bin F CMB, CMB) / C_ell(CMB) (TT, EE, BB) is the transfer of a reference CMB
-through the filter; the noise shaping S_ell ~ sqrt(sum C_ell(bin F n) / sum C_ell(bin n))
+T_ell = C_ell(bin F CMB, CMB) / C_ell(CMB) (TT, EE; BB from the reference's B modes alone,
+:func:`measure_cmb_response`) is the transfer of a reference CMB through the filter; the noise shaping S_ell ~ sqrt(sum C_ell(bin F n) / sum C_ell(bin n))
 is that of reference noise realizations, binned SHAPING_BIN_WIDTH multipoles at a time and
 corrected SHAPING_ITERATIONS times for the mask's mode coupling. A seed's filtered map is
 its a_lm times T_ell (:func:`transferred_map`) and its noise white noise times S_ell
@@ -125,6 +125,30 @@ def filtered_cmb_map(
     band = hp.resize_alm(alm, lmax, lmax, filter_lmax, filter_lmax)
     change = np.array([hp.almxfl(band[i], transfer[i, : filter_lmax + 1] - 1.0) for i in range(3)])
     return cmb_iqu + harmonics.alm2map(change, nside, filter_lmax)
+
+
+def measure_cmb_response(
+    outputs_iqu: tuple[np.ndarray, np.ndarray],
+    input_iqu: np.ndarray,
+    input_alm: np.ndarray,
+    good: np.ndarray,
+    lmax: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(T_ell (3, lmax + 1), E_ell (2, lmax + 1)) of the filter on a reference CMB, from
+    ``outputs_iqu`` = (F CMB, F CMB_B), the filtered-binned reference and its B modes
+    alone: T_ell of TT and EE from the whole reference, of BB from its B modes alone (in
+    one realization, the T and E modes the filter leaks into B correlate with its B
+    modes by chance, which a whole-reference T_BB reads as transfer: on M1-140's sampled
+    year T_BB^2 came out 0.17 at ell 2-10 where its B modes alone give T_BB = 0.004), and the
+    BB excess of :func:`measure_excess_bb` against that T_ell. ``input_iqu``: the
+    reference's map, ``input_alm`` its a_lm (band >= ``lmax``)."""
+    full_output, b_output = outputs_iqu
+    transfer = measure_transfer(full_output, input_iqu, good, lmax)
+    b_alm = np.zeros_like(input_alm)
+    b_alm[2] = input_alm[2]
+    b_input = harmonics.alm2map(b_alm, hp.npix2nside(good.size), hp.Alm.getlmax(b_alm.shape[-1]))
+    transfer[2] = measure_transfer(b_output, b_input, good, lmax)[2]
+    return transfer, measure_excess_bb(outputs_iqu, input_alm, transfer, good, lmax)
 
 
 def measure_excess_bb(

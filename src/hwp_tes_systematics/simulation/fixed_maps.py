@@ -17,7 +17,7 @@ import numpy as np
 
 from ..io import atomic_path
 from ..sky.harmonics import BandLimitedSky
-from .filter_response import measure_excess_bb, measure_noise_shaping, measure_transfer
+from .filter_response import measure_cmb_response, measure_noise_shaping, measure_transfer
 from .mapmaking import MATRIX_ENTRIES, PixelMoments, solve_maps, symmetric_matrices
 from .tod_maps import (
     TEMPLATE_TERMS,
@@ -420,7 +420,9 @@ def _fixed_maps(
     maps, condition, good = solution
     transfer_outputs, filtered, unfiltered, calibrated = calibration
     reference_map, reference_alm = transfer_input
-    transfer = measure_transfer(transfer_outputs[0], reference_map, calibrated, measure_lmax)
+    transfer, excess = measure_cmb_response(
+        transfer_outputs, reference_map, reference_alm, calibrated, measure_lmax
+    )
     solved = split_solved_maps(
         maps, simulator.n_detectors, settings.a2_k_cmb, template_terms=carries_systematics
     )
@@ -444,9 +446,7 @@ def _fixed_maps(
         condition=condition,
         good=good,
         carries_systematics=carries_systematics,
-        cmb_bb_excess=measure_excess_bb(
-            transfer_outputs, reference_alm, transfer, calibrated, measure_lmax
-        ),
+        cmb_bb_excess=excess,
     )
 
 
