@@ -2,9 +2,10 @@
 (HWP-harmonic removal, notch, offsets) on its binned maps, and how the seeds apply it.
 
 T_ell = C_ell(bin F CMB, CMB) / C_ell(CMB) (TT, EE; BB from the reference's B modes alone,
-:func:`measure_cmb_response`) is the transfer of a reference CMB through the filter; the noise shaping S_ell ~ sqrt(sum C_ell(bin F n) / sum C_ell(bin n))
-is that of reference noise realizations, binned SHAPING_BIN_WIDTH multipoles at a time and
-corrected SHAPING_ITERATIONS times for the mask's mode coupling. A seed's filtered map is
+:func:`measure_cmb_response`) is the transfer of a reference CMB through the filter; the
+noise shaping S_ell ~ sqrt(sum C_ell(bin F n) / sum C_ell(bin n)) is that of reference
+noise realizations, binned SHAPING_BIN_WIDTH multipoles at a time and corrected
+SHAPING_ITERATIONS times for the mask's mode coupling. A seed's filtered map is
 its a_lm times T_ell (:func:`transferred_map`) and its noise white noise times S_ell
 (:func:`shaped_noise_map`): the approximation of the map-domain path
 (:mod:`map_domain`), validated against the TOD path there.
