@@ -91,7 +91,7 @@ RULE_FILES = {"test_rules_inputs.py", "test_rules_maps.py"}
 WORKFLOW_FILES = {"test_end_to_end.py", "test_profiles.py", "test_slurm.py", "test_install.py"}
 
 
-def test_kind(path: Path, slow: bool) -> str:
+def kind_of_test(path: Path, slow: bool) -> str:
     """The kind (TEST_KINDS) of a test in file ``path``, ``slow`` if marked so: by its
     file; a slow test elsewhere runs a whole command (workflow); unit tests are fast."""
     if path.name in RULE_FILES:
@@ -103,11 +103,8 @@ def test_kind(path: Path, slow: bool) -> str:
     return "workflow" if slow else "unit"
 
 
-test_kind.__test__ = False  # a helper, not a test
-
-
 @pytest.hookimpl(tryfirst=True)  # before -m selects on the markers
 def pytest_collection_modifyitems(config, items):
     for item in items:
-        kind = test_kind(Path(str(item.path)), item.get_closest_marker("slow") is not None)
+        kind = kind_of_test(Path(str(item.path)), item.get_closest_marker("slow") is not None)
         item.add_marker(getattr(pytest.mark, kind))

@@ -108,6 +108,6 @@ def test_the_tests_mirror_the_package_and_each_file_has_a_kind():
     names = {p.name for p in tests.rglob("test_*.py")}
     named = conftest.PHYSICS_FILES | conftest.RULE_FILES | conftest.WORKFLOW_FILES
     assert named <= names, sorted(named - names)
-    assert conftest.test_kind(Path("test_rules_maps.py"), True) == "rule"
-    assert conftest.test_kind(Path("test_cli.py"), False) == "unit"
-    assert conftest.test_kind(Path("test_cli.py"), True) == "workflow"
+    assert conftest.kind_of_test(Path("test_rules_maps.py"), True) == "rule"
+    assert conftest.kind_of_test(Path("test_cli.py"), False) == "unit"
+    assert conftest.kind_of_test(Path("test_cli.py"), True) == "workflow"

@@ -636,18 +636,15 @@ def noise_model(nosys_spectra) -> pd.DataFrame:
         out["sky_transfer_bb_sem"] = sem
         if all("bb_cmb_recovered_k2" in t for t in tables):
             recovered = np.array([t["bb_cmb_recovered_k2"] for t in tables])
-            b_power = np.full_like(auto, 1.0)  # per seed: C(sky's B modes recovered) / C(in)
+            # per seed: C(the sky's B modes in the recovered map) / C(input)
             if all("bb_cmb_leakage_k2" in t for t in tables):
                 leakage = np.array([t["bb_cmb_leakage_k2"] for t in tables])
                 from_b = np.array([t["bb_cmb_recovered_b_k2"] for t in tables])
-                np.divide(from_b, auto, out=b_power, where=auto > 0)
-                total = auto.sum(axis=0)
-                out["sky_b_power_transfer_bb"] = np.divide(
-                    from_b.sum(axis=0), total, out=np.ones(total.size), where=total > 0
-                )
+                b_power = np.divide(from_b, auto, out=np.ones_like(auto), where=auto > 0)
+                out["sky_b_power_transfer_bb"] = measured_transfer(from_b, auto)[0]
             else:
                 leakage = recovered - transfer**2 * auto  # per seed: r-independent
-                b_power *= transfer**2
+                b_power = np.broadcast_to(transfer**2, auto.shape)
             c_lens = sky.lensing_bb(int(out["ell"].iloc[-1]))
             power = b_power + np.divide(
                 leakage, c_lens, out=np.zeros_like(leakage), where=c_lens > 0

@@ -33,6 +33,13 @@ TRANSFER_SPECTRA = ("tt", "ee", "bb")
 EXCESS_ORIGINS = ("b_modes", "te_modes")  # rows of the BB excess (measure_excess_bb)
 
 
+def b_modes_alone(alm: np.ndarray) -> np.ndarray:
+    """T, E, B a_lm (3, nalm) with T and E set to zero: the B modes of ``alm`` alone."""
+    b_alm = np.zeros_like(alm)
+    b_alm[2] = alm[2]
+    return b_alm
+
+
 def measure_transfer(output_iqu: np.ndarray, input_iqu: np.ndarray, good: np.ndarray, lmax: int):
     """T_ell (3, lmax + 1) for TT, EE, BB: the cross pseudo-spectrum of the filtered-binned
     map with its input over their input pseudo-spectrum, both on the observed pixels
@@ -145,8 +152,7 @@ def measure_cmb_response(
     reference's map, ``input_alm`` its a_lm (band >= ``lmax``)."""
     full_output, b_output = outputs_iqu
     transfer = measure_transfer(full_output, input_iqu, good, lmax)
-    b_alm = np.zeros_like(input_alm)
-    b_alm[2] = input_alm[2]
+    b_alm = b_modes_alone(input_alm)
     b_input = harmonics.alm2map(b_alm, hp.npix2nside(good.size), hp.Alm.getlmax(b_alm.shape[-1]))
     transfer[2] = measure_transfer(b_output, b_input, good, lmax)[2]
     return transfer, measure_excess_bb(outputs_iqu, input_alm, transfer, good, lmax)
@@ -173,17 +179,14 @@ def measure_excess_bb(
     nalm) at its band (the map-maker's, >= ``lmax``)."""
     nside = hp.npix2nside(good.size)
     band = hp.Alm.getlmax(input_alm.shape[-1])
-    b_alm = np.zeros_like(input_alm)
-    b_alm[2] = input_alm[2]
-    excess = np.zeros((len(EXCESS_ORIGINS), lmax + 1))
-    reference_b = harmonics.alm2map(b_alm, nside, band)
-    total = _binned_pseudo_spectra(reference_b, good, lmax)[2]
+    b_alm = b_modes_alone(input_alm)
     full_output, b_output = outputs_iqu
-    for row, (output, alm) in enumerate(
-        ((b_output, b_alm), (full_output - b_output, input_alm - b_alm))
-    ):
-        unfiltered = harmonics.alm2map(alm, nside, band)
-        emulated = filtered_cmb_map(unfiltered, alm, transfer, band, lmax)
+    origins = [(b_output, b_alm), (full_output - b_output, input_alm - b_alm)]
+    unfiltered = [harmonics.alm2map(alm, nside, band) for _, alm in origins]
+    total = _binned_pseudo_spectra(unfiltered[0], good, lmax)[2]  # the reference's B modes
+    excess = np.zeros((len(EXCESS_ORIGINS), lmax + 1))
+    for row, ((output, alm), unfiltered_map) in enumerate(zip(origins, unfiltered, strict=True)):
+        emulated = filtered_cmb_map(unfiltered_map, alm, transfer, band, lmax)
         difference = (
             _binned_pseudo_spectra(output, good, lmax)[2]
             - _binned_pseudo_spectra(emulated, good, lmax)[2]

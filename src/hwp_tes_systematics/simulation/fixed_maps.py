@@ -17,7 +17,12 @@ import numpy as np
 
 from ..io import atomic_path
 from ..sky.harmonics import BandLimitedSky
-from .filter_response import measure_cmb_response, measure_noise_shaping, measure_transfer
+from .filter_response import (
+    b_modes_alone,
+    measure_cmb_response,
+    measure_noise_shaping,
+    measure_transfer,
+)
 from .mapmaking import MATRIX_ENTRIES, PixelMoments, solve_maps, symmetric_matrices
 from .tod_maps import (
     TEMPLATE_TERMS,
@@ -148,9 +153,7 @@ def fixed_passes(
         )
     transfer_alm = np.asarray(transfer_alm)
     transfer_input = hp.alm2map(transfer_alm, settings.nside, lmax=lmax, pixwin=False)
-    b_alm = np.zeros_like(transfer_alm)  # the reference's B modes alone
-    b_alm[2] = transfer_alm[2]
-    b_input = hp.alm2map(b_alm, settings.nside, lmax=lmax, pixwin=False)
+    b_alm = b_modes_alone(transfer_alm)
     n_det = simulator.n_detectors
     nsides = {settings.nside} | {nside for nside, _ in extra_variants}
     moments_of = {n: PixelMoments(n, n_det) if carries_systematics else None for n in nsides}
@@ -168,11 +171,13 @@ def fixed_passes(
             "of its resolution in the pass (their HWPSS moments are shared)"
         )
     noiseless = dataclasses.replace(settings, noise_scale=0.0)
-    scanned_foreground, scanned_references = foreground_iqu_k, (transfer_input, b_input)
     if band_limited_sky:
         threads = settings.threads
         scanned_foreground = BandLimitedSky.from_map(foreground_iqu_k, lmax, threads)
         scanned_references = tuple(BandLimitedSky(a, lmax, threads) for a in (transfer_alm, b_alm))
+    else:
+        b_input = hp.alm2map(b_alm, settings.nside, lmax=lmax, pixwin=False)
+        scanned_foreground, scanned_references = foreground_iqu_k, (transfer_input, b_input)
     calibration = Calibration(
         settings.nside,
         scanned_references,
@@ -202,17 +207,16 @@ def fixed_passes(
     ]
 
     def reference_at(nside):
-        """(the reference CMB map at a map-maker's resolution and its a_lm at its band)."""
+        """((the reference CMB map at a map-maker's resolution, its a_lm), their band)."""
         band = min(lmax, 3 * nside - 1)
         if nside == settings.nside:
-            return transfer_input, transfer_alm
+            return (transfer_input, transfer_alm), band
         alm = np.asarray(hp.resize_alm(transfer_alm, lmax, lmax, band, band))
-        return hp.alm2map(alm, nside, lmax=band, pixwin=False), alm
+        return (hp.alm2map(alm, nside, lmax=band, pixwin=False), alm), band
 
     results = {}
     for (nside, baseline), variant_equations, calibration_equations, moments in binned:
-        reference = reference_at(nside)
-        band = hp.Alm.getlmax(reference[1].shape[-1])
+        reference, band = reference_at(nside)
         results[(nside, baseline)] = _solve_fixed_pass(
             simulator,
             settings,
@@ -226,8 +230,7 @@ def fixed_passes(
         )
         log.info("fixed pass variant nside %d, baselines %s: solved", nside, baseline)
     for extra in demodulated:
-        reference = reference_at(extra.nside)
-        band = hp.Alm.getlmax(reference[1].shape[-1])
+        reference, band = reference_at(extra.nside)
         results[(extra.nside, extra.baseline_length_s, "demodulated")] = _solve_demodulated(
             simulator,
             settings,
