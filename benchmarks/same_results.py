@@ -1,9 +1,11 @@
 """Are two runs' results the same? For a restructuring that must not change behaviour.
 
     python benchmarks/same_results.py BEFORE/results AFTER/results [--rtol 1e-9]
+    python benchmarks/same_results.py BEFORE AFTER --json   # every *.json of two folders
 
 Compares, in the two ``results/`` folders, ``requirement.json`` and
-``diagnose/example/diagnosis.json`` leaf by leaf (numbers to ``--rtol`` of their size,
+``diagnose/example/diagnosis.json`` (with ``--json``: every ``*.json`` of the two folders,
+e.g. the diagnoses of ``diagnose_snapshot.py``) leaf by leaf (numbers to ``--rtol`` of their size,
 everything else exactly; ``config_sha256``, which hashes the configuration, skipped) and
 ``delta_r.csv`` column by column. Prints, per file, the leaves compared, how many are
 identical, the largest relative difference and every leaf beyond the tolerance; exits 1
@@ -20,7 +22,7 @@ from pathlib import Path
 
 import pandas as pd
 
-SKIPPED = {"config_sha256"}  # leaf names not compared
+SKIPPED = {"config_sha256", "source"}  # leaf names not compared (a hash, a file path)
 
 
 def leaves(value, prefix=""):
@@ -68,9 +70,14 @@ def main() -> int:
     parser.add_argument("before", type=Path)
     parser.add_argument("after", type=Path)
     parser.add_argument("--rtol", type=float, default=1e-9)
+    parser.add_argument("--json", action="store_true", help="every *.json of the two folders")
     arguments = parser.parse_args()
     failed = False
-    for name in ("requirement.json", "diagnose/example/diagnosis.json", "delta_r.csv"):
+    names = ("requirement.json", "diagnose/example/diagnosis.json", "delta_r.csv")
+    if arguments.json:
+        folders = (arguments.before, arguments.after)
+        names = sorted({p.name for folder in folders for p in folder.glob("*.json")})
+    for name in names:
         paths = [arguments.before / name, arguments.after / name]
         if not all(p.is_file() for p in paths):
             print(f"{name}: missing in {[str(p) for p in paths if not p.is_file()]}")

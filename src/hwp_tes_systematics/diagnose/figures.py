@@ -6,6 +6,7 @@ import numpy as np
 
 from ..figures import save_figure, subplots
 from ..simulation.spectral import amplitude_spectrum
+from .effects import CATALOG
 
 MAX_POINTS = 20000
 
@@ -143,7 +144,7 @@ def diagnosis_figures(
     files["residual versus HWP angle"] = "residual_vs_hwp_angle.png"
     events = []
     for effect in result["effects"]:
-        if effect["name"] == "glitches":
+        if getattr(CATALOG.get(effect["name"]), "events", False):  # the times of its events
             for p in effect["parameters"].values():
                 if p["parameter"] == "time":
                     events.append(

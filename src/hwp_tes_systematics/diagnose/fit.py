@@ -82,14 +82,7 @@ import numpy as np
 import scipy.fft
 import scipy.optimize
 
-from .effects import (
-    CATALOG,
-    RESPONSE_STAGE,
-    SELECTION_THRESHOLD,
-    SIGNAL_EFFECTS,
-    Effect,
-    GlitchEvent,
-)
+from .effects import CATALOG, SELECTION_THRESHOLD, Effect, GlitchEvent
 from .linalg import cross, realify, share_across_detectors, solve_normal
 from .model import Context
 from .noise import NoiseModel, fitted_modes, independent_fraction, periodogram_scale
@@ -163,9 +156,7 @@ class FitProblem:
         if effects is None:
             # noise-kind effects are tested on the selection's residual (:mod:`.pipeline`)
             effects = {n: e for n, e in CATALOG.items() if e.selectable and e.kind != "noise"}
-        effects = dict(effects)
-        if ctx.n_detectors < 2:
-            effects.pop("crosstalk", None)
+        effects = {n: e for n, e in effects.items() if e.min_detectors <= ctx.n_detectors}
         self.effects = effects
         self.nominal = nominal
         self.units = {name: e.param_units(ctx) for name, e in effects.items()}
@@ -463,9 +454,10 @@ class FitProblem:
         ~2 g1 d P(g1 d^2) (P: the adjustments' projection), ~1e-3 of the 4f line at
         g1 A_2 = 0.04; rebuilt on d_nom + the refitted adjustments it converges in one pass
         (a fixed point, rate ~2 g1 A_2)."""
-        if not any(n in RESPONSE_STAGE for n in selected):
+        stages = {self.effects[n].stage for n in selected if n in self.effects}
+        if "response" not in stages:
             return False
-        return self.n_nominal > 0 or any(n in SIGNAL_EFFECTS for n in selected)
+        return self.n_nominal > 0 or "signal" in stages
 
     def _linear_effect_fits(self, selected, values, covariances) -> dict[str, EffectFit]:
         """Per-effect values and sigmas; the nominal adjustments under ``self.nominal.name``."""
@@ -593,7 +585,7 @@ class FitProblem:
             position = self.n_nominal
             for name in linear:
                 width = self.slices[name].stop - self.slices[name].start
-                if name in RESPONSE_STAGE:
+                if self.effects[name].stage == "response":
                     nl_rows = np.concatenate([nl_rows, np.arange(position, position + width)])
                     responses.append(self.effects[name])
                 position += width

@@ -22,7 +22,7 @@ from ..config import default_config_path, load_config
 from ..simulation.channel_inputs import channel_conversion
 from .pipeline import diagnose
 from .recording import read_recording, write_recording
-from .simulate import simulate_recording
+from .simulate import injectable, simulate_recording
 
 CHANNEL = "M1-140"
 NSIDE = 32
@@ -113,18 +113,6 @@ def supplied_sky(errors: dict) -> np.ndarray:
     return errors["sky_scale"] * sky_map() + errors["sky_residual"] * other
 
 
-def _on_true_hwpss(name: str, params: dict, a2_true: np.ndarray, errors: dict, a2_k: float):
-    """An effect of the HWPSS acts on the recording's TRUE HWPSS: a modulation modulates
-    it; a drift of the HWP temperature is a relative drift of its emission, so c_j in K
-    (given for the nominal A_2, ``a2_k``) scales with each detector's true A_2."""
-    if name == "hwpss_sine_modulation":
-        return name, dict(params, a2_k=a2_true, hwpss_phase_rad=np.radians(errors["phase_deg"]))
-    if name == "hwp_temperature_drift":
-        relative = a2_true / a2_k
-        return name, {p: np.asarray(v, dtype=float) * relative for p, v in params.items()}
-    return name, params
-
-
 def recorded_with_errors(
     tmp_path,
     effects,
@@ -149,7 +137,12 @@ def recorded_with_errors(
     simulator = _simulated_base(channel, float(hours), "2032-04-01T00:00:00", NSIDE)[0]
     detectors = [{"net_ukrts": d.net_ukrts, "fknee_mhz": d.fknee_mhz} for d in simulator.detectors]
     a2_true = a2_k * (1.0 + errors["a2_relative"])
-    effects = [_on_true_hwpss(name, params, a2_true, errors, a2_k) for name, params in effects]
+    # an effect of the HWPSS acts on the recording's true HWPSS (Effect.on_true_hwpss)
+    phase = np.radians(errors["phase_deg"])
+    effects = [
+        (name, injectable(name).on_true_hwpss(params, a2_true, a2_k, phase))
+        for name, params in effects
+    ]
     # the optical signal first (the true 2f HWPSS, then the effects), the detector's gain
     # error on all of it, then the noise
     a2_error, gain_error, noise_error = error_effects(errors, detectors, a2_k)

@@ -21,11 +21,15 @@ the full forward model used to inject the effect into a simulated recording (the
 equations the diagnosis fits). Legendre polynomials P_j(x) run over the recording,
 x = 2 (t - t0) / (t_end - t0) - 1.
 
-The catalog (each effect's model in its class docstring; its parameters, signature and
-how it is told from its look-alikes in its attributes) is generated from these classes:
-``python -m hwp_tes_systematics effect-catalog`` prints it (:mod:`.catalog`; the
-documentation's effect catalog page). The effects a simulation can inject but the
-selection never offers are in :mod:`.simulate`.
+An effect is one class in one module of this package, registered by ``@register``
+(:func:`.base.register`; the package imports every module): ``role`` "catalog" (the
+diagnosis fits it, :data:`CATALOG`), "injection" (a simulated recording may carry it, a
+nominal adjustment covers it, :data:`INJECTION_ONLY`: :mod:`.injection_only`, the
+electrothermal TES) or "outside" (simulated only, the diagnosis must leave it in
+``unexplained``: :mod:`.outside_catalog`). The catalog page (each effect's model in its
+class docstring; its parameters, signature and how it is told from its look-alikes in its
+attributes) is generated from the registries: ``python -m hwp_tes_systematics
+effect-catalog`` prints it (:mod:`..catalog`; the documentation's effect catalog page).
 
 How each parameter is fitted: jointly with the others, by (weighted) linear least
 squares in the whitened Fourier domain for the linear effects; tau by
@@ -36,19 +40,29 @@ by maximising the Whittle likelihood (see :mod:`.fit` and :mod:`.noise`).
 
 from __future__ import annotations
 
+import importlib
+import pkgutil
+
 from .base import (
+    CATALOG,
     DRIFT_DEGREE,
     GAIN_DEGREES,
     HWPSS_HARMONICS,
     INJECTION_HARMONICS,
+    INJECTION_ONLY,
+    INJECTION_STAGES,
     MODULATION_MAX,
     MODULATION_MIN,
     MODULATION_STEP_S,
     NONLINEARITY_HARMONICS,
+    OUTSIDE_CATALOG,
+    REGISTRIES,
     SELECTION_THRESHOLD,
     Effect,
     format_temperature,
     modulation_degree,
+    register,
+    unregister,
 )
 from .gain import (
     GainDrift,
@@ -85,33 +99,9 @@ from .time_constant import (
     single_pole_derivative,
 )
 
-CATALOG: dict[str, Effect] = {
-    effect.name: effect
-    for effect in (
-        TesNonlinearity(),
-        TesNonlinearityCubic(),
-        DetectorTimeConstant(),
-        HwpssHarmonics(),
-        *(HwpssHarmonic(n) for n in HWPSS_HARMONICS),
-        HwpssIntensityCoupling(),
-        HwpIntensityLeakage4f(),
-        GainDrift(),
-        GainDriftCommon(),
-        HwpTemperatureDrift(),
-        HwpssSlowModulation(),
-        PointingOffset(),
-        PointingOffsetCommon(),
-        PointingDrift(),
-        Glitches(),
-        GainFluctuations(),
-        HwpEmissionFluctuations(),
-    )
-}
-
-
-# Effects on the signal, which the detector nonlinearity then acts on (they come before it).
-SIGNAL_EFFECTS = frozenset(name for name, e in CATALOG.items() if e.stage == "signal")
-RESPONSE_STAGE = frozenset(name for name, e in CATALOG.items() if e.stage == "response")
+# every module of this package: an effect registers itself (``@register``) in its own file
+for _module in pkgutil.iter_modules(__path__):
+    importlib.import_module(f"{__name__}.{_module.name}")
 
 
 def reported_name(name: str) -> str:
@@ -153,13 +143,15 @@ __all__ = [
     "GLITCH_TAIL_CUT",
     "HWPSS_HARMONICS",
     "INJECTION_HARMONICS",
+    "INJECTION_ONLY",
+    "INJECTION_STAGES",
     "MODULATION_MAX",
     "MODULATION_MIN",
     "MODULATION_STEP_S",
     "NONLINEARITY_HARMONICS",
-    "RESPONSE_STAGE",
+    "OUTSIDE_CATALOG",
+    "REGISTRIES",
     "SELECTION_THRESHOLD",
-    "SIGNAL_EFFECTS",
     "DetectorTimeConstant",
     "Effect",
     "GainDrift",
@@ -189,7 +181,9 @@ __all__ = [
     "glitch_tod",
     "harmonic_templates",
     "modulation_degree",
+    "register",
     "reported_name",
     "single_pole",
     "single_pole_derivative",
+    "unregister",
 ]

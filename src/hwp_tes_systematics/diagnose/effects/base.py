@@ -1,5 +1,6 @@
-"""The effect interface (:class:`Effect`) and what every effect shares: the per-detector
-parameter helper, temperature formatting, the harmonic and degree choices."""
+"""The effect interface (:class:`Effect`), the registries effects join (:func:`register`),
+and what every effect shares: the per-detector parameter helper, temperature formatting,
+the harmonic and degree choices."""
 
 from __future__ import annotations
 
@@ -40,6 +41,13 @@ def _value(params: dict, name: str, n_detectors: int) -> np.ndarray:
     return per_detector(params.get(name, 0.0), n_detectors, name)
 
 
+# The order in which a simulated recording carries its effects
+# (:func:`..simulate.simulate_recording`): the detectors moved, the optical signal, the
+# detector noise, a response on signal and noise together, the detector's response to the
+# total, transients added after it. ``Effect.injection_stage`` names an effect's.
+INJECTION_STAGES = ("pointing", "signal", "noise", "through_noise", "response", "events")
+
+
 class Effect:
     """A candidate effect: named per-detector parameters, forward model, signature, evidence.
 
@@ -54,6 +62,11 @@ class Effect:
     parameters: ClassVar[dict[str, str]] = {}  # parameter -> unit, one value per detector
     main_parameters: tuple[str, ...] = ()
     kind: str = "linear"  # "linear", "nonlinear", "events" or "noise"
+    # where :func:`register` puts it: "catalog" (the diagnosis fits it, :data:`CATALOG`),
+    # "injection" (simulated recordings only: a nominal adjustment covers it,
+    # :data:`INJECTION_ONLY`) or "outside" (simulated recordings only: the diagnosis has no
+    # model of it and must leave it in ``unexplained``, :data:`OUTSIDE_CATALOG`)
+    role: ClassVar[str] = "catalog"
     selectable: bool = True  # False: injection only (a nominal adjustment covers it)
     # where it acts: "signal" (on the optical signal, before the detector's response),
     # "response" (the detector's response to the total: the nonlinearity acts on the
@@ -70,6 +83,30 @@ class Effect:
     shared: bool = False
     # -2 ln(prior odds) against the effect, added to its BIC (0: none; see GainDriftCommon)
     prior_penalty: float = 0.0
+    # the fewest detectors a recording needs for the fit to offer it (crosstalk: a pair)
+    min_detectors: ClassVar[int] = 1
+
+    @classmethod
+    def instances(cls) -> tuple[Effect, ...]:
+        """The effects :func:`register` adds for this class: one (a parametrised class, one
+        per parameter value, e.g. a line per HWP harmonic)."""
+        return (cls(),)
+
+    def injection_stage(self, params: dict) -> str:
+        """Where a simulated recording injects it with ``params`` (:data:`INJECTION_STAGES`):
+        its ``stage``."""
+        return self.stage
+
+    def inject(self, ctx: Context, params: dict, tod: np.ndarray) -> np.ndarray:
+        """The simulated recording's TOD ``tod`` with the effect injected: ``apply``."""
+        return self.apply(ctx, params, tod)
+
+    def on_true_hwpss(self, params: dict, a2_true_k, a2_nominal_k: float, phase_rad) -> dict:
+        """The parameters of an effect injected into a recording whose true HWPSS has
+        amplitude ``a2_true_k`` [K] and 2f phase ``phase_rad`` (one each per detector) where
+        ``params`` were given for the nominal ``a2_nominal_k``: unchanged, unless the effect
+        acts on the HWPSS itself (:func:`..testbed.recorded_with_errors`)."""
+        return params
 
     def shared_scale(self, ctx: Context) -> np.ndarray:
         """s_k of a shared effect, (n_det,): detector k's parameters are s_k times the common ones."""
@@ -158,3 +195,36 @@ class Effect:
 
     def __repr__(self) -> str:
         return f"<effect {self.name}>"
+
+
+# The registries, filled by :func:`register` in the order the effect modules are imported.
+CATALOG: dict[str, Effect] = {}  # the effects the diagnosis fits
+INJECTION_ONLY: dict[str, Effect] = {}  # simulated only: a nominal adjustment covers them
+OUTSIDE_CATALOG: dict[str, Effect] = {}  # simulated only: the diagnosis has no model of them
+REGISTRIES = {"catalog": CATALOG, "injection": INJECTION_ONLY, "outside": OUTSIDE_CATALOG}
+
+
+def register(cls: type[Effect]) -> type[Effect]:
+    """Class decorator: ``cls.instances()`` join the registry of ``cls.role``. An effect is
+    one registered class in one file of this package (the package imports every module):
+    the diagnosis, the simulator, the catalog page and the CLI find it there."""
+    if cls.role not in REGISTRIES:
+        raise ValueError(
+            f"{cls.__name__}.role = {cls.role!r}; expected one of {sorted(REGISTRIES)}"
+        )
+    for effect in cls.instances():
+        for role, registry in REGISTRIES.items():
+            if effect.name in registry:
+                raise ValueError(
+                    f"{cls.__name__}: an effect named {effect.name!r} is registered already "
+                    f"({type(registry[effect.name]).__name__}, role {role!r})"
+                )
+        REGISTRIES[cls.role][effect.name] = effect
+    return cls
+
+
+def unregister(cls: type[Effect]) -> None:
+    """Remove the effects of exactly ``cls`` from the registries (a test's own effect)."""
+    for registry in REGISTRIES.values():
+        for name in [n for n, e in registry.items() if type(e) is cls]:
+            del registry[name]

@@ -7,7 +7,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from .base import GAIN_DEGREES, Effect, _value
+from .base import GAIN_DEGREES, Effect, _value, register
 
 
 def _one_relative_drift(fit, param: str, of: str, why: str = "") -> str:
@@ -19,6 +19,7 @@ def _one_relative_drift(fit, param: str, of: str, why: str = "") -> str:
     )
 
 
+@register
 class GainDrift(Effect):
     """Relative gain drift: d_obs = [1 + sum_j g_j P_j(x)] d, j = 1..3 (g0: a nominal adjustment).
 
@@ -91,6 +92,7 @@ class GainDrift(Effect):
         return "; ".join(parts)
 
 
+@register
 class GainDriftCommon(GainDrift):
     """A gain drift the same in every detector (a common mode, e.g. of the bath temperature).
 
@@ -122,6 +124,7 @@ class GainDriftCommon(GainDrift):
         return _one_relative_drift(fit, "g1", "") + "; " + super().evidence(ev, fit)
 
 
+@register
 class GainFluctuations(Effect):
     """A gain fluctuating as a random process, g(t) with PSD P_g(f) = a^2 (f_ref / f)^beta:
     d_obs = (1 + g(t)) d, seen as broadband sidebands of the 2f HWPSS,

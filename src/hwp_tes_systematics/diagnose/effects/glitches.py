@@ -12,7 +12,7 @@ import scipy.fft
 import scipy.optimize
 
 from ..model import unit_vectors
-from .base import Effect, format_temperature
+from .base import Effect, format_temperature, register
 
 
 @dataclass(frozen=True)
@@ -114,6 +114,7 @@ def fit_glitch(
     )
 
 
+@register
 class Glitches(Effect):
     """Cosmic-ray glitches: sum_i A_i exp(-(t - t_i)/tau_i) for t >= t_i.
 

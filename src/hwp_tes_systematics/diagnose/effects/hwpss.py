@@ -21,6 +21,7 @@ from .base import (
     _value,
     format_temperature,
     modulation_degree,
+    register,
 )
 from .gain import _one_relative_drift
 
@@ -34,6 +35,7 @@ def harmonic_templates(ctx: Context, harmonics) -> np.ndarray:
     return np.stack(rows, axis=1)
 
 
+@register
 class HwpssHarmonics(Effect):
     """HWP synchronous signal left out of the nominal model (which has only A_2 cos 2(chi-theta)).
 
@@ -68,6 +70,7 @@ class HwpssHarmonics(Effect):
         return tod + np.einsum("kj,kjn->kn", values, harmonic_templates(ctx, INJECTION_HARMONICS))
 
 
+@register
 class HwpssHarmonic(Effect):
     """One line of the HWP synchronous signal: c_n cos n(chi - theta) + s_n sin n(chi - theta).
 
@@ -85,6 +88,11 @@ class HwpssHarmonic(Effect):
         self.title = f"HWP synchronous signal: the {n} f_HWP line"
         self.parameters = {f"c{n}": "K", f"s{n}": "K"}
         self.main_parameters = (f"c{n}",)
+
+    @classmethod
+    def instances(cls) -> tuple[Effect, ...]:
+        """One line per harmonic the selection offers (:data:`HWPSS_HARMONICS`)."""
+        return tuple(cls(n) for n in HWPSS_HARMONICS)
 
     def templates(self, ctx):
         return harmonic_templates(ctx, (self.n,))
@@ -148,6 +156,7 @@ def intensity_templates(ctx, n: int) -> np.ndarray:
     return np.stack([ctx.intensity * np.cos(angle), ctx.intensity * np.sin(angle)], axis=1)
 
 
+@register
 class HwpssIntensityCoupling(Effect):
     """Intensity modulated by the HWP (paper's a_n^opt I term): I(t) [a_c cos 2(chi-theta) + a_s sin].
 
@@ -193,6 +202,7 @@ class HwpssIntensityCoupling(Effect):
         return "; ".join(parts)
 
 
+@register
 class HwpIntensityLeakage4f(Effect):
     """The HWP's intensity-to-polarisation leakage at 4 f_HWP: I(t) [b_c cos 4(chi-theta) + b_s sin].
 
@@ -242,6 +252,7 @@ class HwpIntensityLeakage4f(Effect):
         return "; ".join(parts)
 
 
+@register
 class HwpTemperatureDrift(Effect):
     """Slow drift of the 2f HWPSS amplitude: A_2,k [sum_{j=1..3} r_j P_j(x)] cos(2 (chi - theta) - phi).
 
@@ -272,6 +283,12 @@ class HwpTemperatureDrift(Effect):
     def shared_scale(self, ctx):
         """s_k = A_2,k: c_j,k = A_2,k r_j."""
         return np.asarray(ctx.a2_k, dtype=float)
+
+    def on_true_hwpss(self, params, a2_true_k, a2_nominal_k, phase_rad):
+        """A relative drift of the HWP's emission: c_j [K], given for the nominal A_2,
+        scale with each detector's true A_2."""
+        relative = np.asarray(a2_true_k, dtype=float) / a2_nominal_k
+        return {p: np.asarray(v, dtype=float) * relative for p, v in params.items()}
 
     def shared_units(self, ctx=None):
         return {f"r{j}": "1" for j in range(1, self.degree(ctx) + 1)}
@@ -332,6 +349,7 @@ class HwpTemperatureDrift(Effect):
         return "; ".join(parts)
 
 
+@register
 class HwpssSlowModulation(HwpTemperatureDrift):
     """Slow modulation of the 2f HWPSS amplitude of ANY shape (drift, periodic, smoothed steps).
 
@@ -364,6 +382,7 @@ class HwpssSlowModulation(HwpTemperatureDrift):
         return MODULATION_MIN if ctx is None else modulation_degree(ctx.duration_s)
 
 
+@register
 class HwpEmissionFluctuations(Effect):
     """The HWP's emission fluctuating as a random process (its temperature): A_2 (1 + e(t))
     with e of PSD a^2 (f_ref / f)^beta; the same sidebands of the 2f HWPSS as a gain

@@ -7,9 +7,10 @@ from typing import ClassVar
 import numpy as np
 
 from ...instrument.nonlinearity import apply_nonlinearity
-from .base import Effect, _value, format_temperature
+from .base import Effect, _value, format_temperature, register
 
 
+@register
 class TesNonlinearity(Effect):
     """d_obs = d + g1 d^2 on the total signal (TES gain compression; the paper's model).
 
@@ -100,6 +101,7 @@ class TesNonlinearity(Effect):
         return ["hwpss_harmonics"] if snr2 < 9.0 else []
 
 
+@register
 class TesNonlinearityCubic(TesNonlinearity):
     """d_obs = d + g1 d^2 + g2 d^3: the quadratic model with a cubic term.
 
@@ -119,3 +121,51 @@ class TesNonlinearityCubic(TesNonlinearity):
         "tes_nonlinearity is its nested special case (g2 = 0): the BIC keeps the cubic term "
         "only when its own lines pay for g2 (the backward step drops the other)"
     )
+
+
+@register
+class TesElectrothermal(Effect):
+    """The nonlinearity through the electrothermal TES model: optical power P = P0 + d / C
+    [W], current I = I(P) from ``tes.solve_operating_point`` and the linearly calibrated
+    response d_rec = C [I(P) - I(P0)] / S0, S0 = dI/dP at P0, C [K/W].
+
+    Simulated recordings only (``role = "injection"``): the diagnosis fits its Taylor
+    expansion, ``tes_nonlinearity`` (and ``tes_nonlinearity_cubic``). ``tes_parameters``
+    given are used as they are; otherwise the channel's TES is built from ``p0_w`` with
+    ``psat_factor`` (default 2.5), ``resistance_fraction`` (0.7) and ``overrides``.
+    """
+
+    name = "tes_electrothermal"
+    title = "TES nonlinearity through the electrothermal model"
+    parameters: ClassVar[dict[str, str]] = {"p0_w": "W", "kelvin_per_watt": "K/W"}
+    main_parameters = ("p0_w",)
+    stage = "response"
+    role = "injection"
+    selectable = False
+    signature = TesNonlinearity.signature
+    discrimination = "the diagnosis reads it as tes_nonlinearity (cubic where d^3 shows)"
+
+    def apply(self, ctx, params, tod=None):
+        from scipy.interpolate import CubicSpline
+
+        from ...instrument import tes
+
+        tod = ctx.d_nom if tod is None else tod
+        p0_w = float(params["p0_w"])
+        kelvin_per_watt = float(params["kelvin_per_watt"])
+        tes_params = params.get("tes_parameters")
+        if tes_params is None:
+            tes_params = tes.tes_parameters_for_channel(
+                p0_w,
+                psat_factor=float(params.get("psat_factor", 2.5)),
+                resistance_fraction=float(params.get("resistance_fraction", 0.7)),
+                **dict(params.get("overrides", {})),
+            )
+        power_w = p0_w + tod / kelvin_per_watt
+        lo, hi = float(power_w.min()), float(power_w.max())
+        margin = 0.01 * (hi - lo) + 1e-18
+        grid = np.linspace(max(lo - margin, 0.0), hi + margin, 2001)
+        spline = CubicSpline(grid, tes.solve_operating_point(tes_params, grid).current_a)
+        current0 = float(tes.solve_operating_point(tes_params, p0_w).current_a)
+        responsivity0 = float(tes.responsivity_a_per_w(tes_params, p0_w))
+        return kelvin_per_watt * (spline(power_w) - current0) / responsivity0

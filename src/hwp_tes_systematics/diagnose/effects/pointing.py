@@ -7,7 +7,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from .base import Effect
+from .base import Effect, register
 
 SECONDS_PER_HOUR = 3600.0
 
@@ -21,6 +21,7 @@ def _gradient(ctx) -> np.ndarray:
     return ctx.pointing_gradient
 
 
+@register
 class PointingOffset(Effect):
     """A fixed pointing offset: d_obs = d_nom + x dS/dx + y dS/dy, S = I(p) + P(p) + D(p).
 
@@ -54,6 +55,11 @@ class PointingOffset(Effect):
     def templates(self, ctx):
         return _gradient(ctx).copy()
 
+    def injection_stage(self, params):
+        """A simulated recording moves its detectors (litebird_sim quaternions), not the
+        first-order templates: :func:`..simulate.simulate_recording`."""
+        return "pointing"
+
     def apply(self, ctx, params, tod=None):
         return self._linear_apply(ctx, params, tod)
 
@@ -85,6 +91,7 @@ class PointingOffset(Effect):
         return "the residual follows the dipole's and the sky's gradient: " + "; ".join(parts)
 
 
+@register
 class PointingOffsetCommon(PointingOffset):
     """A pointing offset the same for every detector: the boresight (the focal plane) moved.
 
@@ -115,6 +122,7 @@ class PointingOffsetCommon(PointingOffset):
         )
 
 
+@register
 class PointingDrift(PointingOffsetCommon):
     """The boresight offset drifting linearly: x(t) = x + x' (t - t_mid), the same for y.
 

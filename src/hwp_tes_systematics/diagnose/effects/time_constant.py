@@ -9,7 +9,7 @@ import numpy as np
 import scipy.fft
 import scipy.optimize
 
-from .base import Effect, _value, format_temperature
+from .base import Effect, _value, format_temperature, register
 
 
 def single_pole(freqs_hz: np.ndarray, tau_s: float) -> np.ndarray:
@@ -22,6 +22,7 @@ def single_pole_derivative(freqs_hz: np.ndarray, tau_s: float) -> np.ndarray:
     return -2j * np.pi * freqs_hz / (1.0 + 2j * np.pi * freqs_hz * tau_s) ** 2
 
 
+@register
 class DetectorTimeConstant(Effect):
     """Single-pole detector response: d_obs = IFFT[D(f) / (1 + 2 pi i f tau)] (circular FFT).
 
@@ -117,6 +118,12 @@ class DetectorTimeConstant(Effect):
         spectrum = scipy.fft.rfft(ctx.d_nom, axis=-1)
         change = self.linearised_f(freqs, spectrum)
         return scipy.fft.irfft(change, n=ctx.n_samples, axis=-1)[:, None, :]
+
+    def injection_stage(self, params):
+        """With ``through_noise``, on the optical signal and the detector noise together
+        (photon and phonon noise pass the TES's pole), before the nonlinearity: the noise
+        then rolls off (:mod:`..rolloff`); else on the optical signal alone."""
+        return "through_noise" if params.get("through_noise", False) else "signal"
 
     def apply(self, ctx, params, tod=None):
         tod = ctx.d_nom if tod is None else tod
