@@ -1,0 +1,284 @@
+"""Backfitting: a set of effects with a nonlinear one (the time constant, by variable
+projection), events (glitches, detected and fitted one by one) or the nonlinearity acting
+on the other effects, fitted piece by piece until chi^2 settles (:mod:`.`, "Fitting a
+set of effects"); and the screen that skips a nonlinear fit its linearised template
+shows cannot pass."""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+import scipy.fft
+import scipy.optimize
+
+from ..effects import SELECTION_THRESHOLD, GlitchEvent
+from ..linalg import cross, realify, solve_normal
+from .results import EffectFit, FitResult
+
+if TYPE_CHECKING:
+    from .bank import FitProblem
+
+BACKFIT_PASSES = 4
+# with the nonlinearity composed: its templates converge by ~2 g1 A_2 per rebuild
+# (g1 A_2 = 0.04: 0.3 % of g1, then 0.02 %, ...) until the cross term is below
+# Delta chi^2 = 0.01 (estimated ~6 passes from a cross term of ~1e4; the H3-402 tests at
+# g1 A_2 = 0.04 converge within the eight)
+COMPOSED_PASSES = 8
+CONVERGED_CHI2 = 0.05  # backfitting stops when chi^2 changes by less than this
+
+
+def nonlinear_screen(problem: FitProblem, selected) -> FitResult | None:
+    """Skip the fit of a nonlinear effect when even its linearised template cannot pass.
+
+    With linear effects only besides it, the linearised effect (for tau the template
+    -d d_nom/dt, exact to first order) is fitted beside them; if its Delta chi^2 is below
+    half its BIC penalty plus |threshold|, it cannot be selected and the fit without it
+    is returned (its parameter reported at the linearised value). A large tau, where
+    the linearisation is poor, has a huge linearised Delta chi^2 and is fitted.
+    """
+    effect = problem.nonlinear_of(selected)
+    if effect is None:
+        return None
+    name = effect.name
+    (parameter,) = effect.parameters
+    others = tuple(n for n in selected if n != name)
+    if any(problem.effects[n].kind != "linear" for n in others) or problem.composed(selected):
+        return None
+    base = problem.fit(others)
+    rows = problem.rows(others)
+    delta, taus, sigmas = 0.0, [], []
+    for k in range(problem.n_det):
+        lin = problem.linearised_f[name][k][None, :]
+        aug = np.vstack([lin, problem.bank[k][rows]]) if rows.size else lin
+        gram = problem.gram_nom[k][np.ix_(rows, rows)] if rows.size else np.zeros((0, 0))
+        full = np.zeros((rows.size + 1, rows.size + 1))
+        full[1:, 1:] = gram
+        full[0] = cross(lin, aug, problem.w_nom[k])[0]
+        full[:, 0] = full[0]
+        rhs = np.concatenate(
+            [cross(lin, problem.residual_f[k], problem.w_nom[k]), problem.rhs_nom[k][rows]]
+        )
+        a, cov = solve_normal(full, rhs)
+        chi2 = problem.yy_nom[k] - 2 * rhs @ a + a @ full @ a
+        delta += base.chi2_per_detector[k] - chi2
+        taus.append(a[0])
+        sigmas.append(math.sqrt(max(cov[0, 0], 0.0)))
+    if delta >= 0.5 * (problem.n_det * problem.ln_n_eff + abs(SELECTION_THRESHOLD)):
+        return None
+    effects = dict(base.effects)
+    effects[name] = EffectFit(
+        name, values={parameter: np.array(taus)}, sigmas={parameter: np.array(sigmas)}
+    )
+    return FitResult(
+        selected=selected,
+        chi2=base.chi2,
+        chi2_per_detector=base.chi2_per_detector,
+        n_params=base.n_params + problem.n_det,
+        prior_penalty=base.prior_penalty,
+        effects=effects,
+        model_f=None,
+    )
+
+
+def fit_nonlinear(problem: FitProblem, effect, k, y, bank, gram, w, start):
+    """Variable projection: the nonlinear ``effect``'s parameter theta by least_squares
+    with the linear parameters profiled out, from its linearised solution.
+
+    Returns (theta, sigma_theta, linear parameters, their covariance).
+    """
+    sw = np.sqrt(2.0 * w)
+    if start is None:
+        # the linearised solution: the effect's first-order template beside the others
+        lin = problem.linearised_f[effect.name][k][None, :]
+        aug = np.vstack([lin, bank]) if bank.shape[0] else lin
+        a, _ = solve_normal(cross(aug, aug, w), cross(aug, y, w))
+        start = float(a[0])
+    start = float(np.clip(start, *effect.start_range))
+
+    def residual(theta):
+        r = y - problem.nonlinear_model(effect, k, theta[0])
+        if bank.shape[0]:
+            a, _ = solve_normal(gram, cross(bank, r, w))
+            r = r - a @ bank
+        return realify(r * sw)
+
+    low, high = effect.bounds
+    solution = scipy.optimize.least_squares(
+        residual, [start], bounds=([low], [high]), x_scale=[max(start, 1e-4)], method="trf"
+    )
+    theta = float(solution.x[0])
+    r = y - problem.nonlinear_model(effect, k, theta)
+    a = solve_normal(gram, cross(bank, r, w))[0] if bank.shape[0] else np.zeros(0)
+    jacobian = problem.nonlinear_model(effect, k, theta, derivative=True)[None, :]
+    full = np.vstack([jacobian, bank]) if bank.shape[0] else jacobian
+    _, cov = solve_normal(cross(full, full, w), np.zeros(full.shape[0]))
+    return theta, math.sqrt(max(cov[0, 0], 0.0)), a, cov[1:, 1:]
+
+
+def detect_events(problem: FitProblem, effect, k: int, r_f: np.ndarray, s: np.ndarray) -> list:
+    """The events of ``effect`` (glitches) in the residual r_f (rfft) of detector k, kept
+    when their own significance pays their BIC penalty (``parameters_per_event`` ln N_eff)."""
+    return effect.detect(
+        r_f,
+        s,
+        problem.valid[k],
+        problem.ctx.times_s,
+        problem.scale[k],
+        k,
+        threshold_sigma=problem.glitch_threshold_sigma,
+        min_significance=math.sqrt(effect.parameters_per_event * problem.ln_n_eff),
+        workers=problem.workers,
+    )
+
+
+def fit_iterative(problem: FitProblem, selected) -> FitResult:
+    """Backfitting of the linear, nonlinear (time constant) and events (glitches) parts
+    (module docstring)."""
+    ctx = problem.ctx
+    n_det = problem.n_det
+    linear = [n for n in selected if n in problem.slices]
+    rows = problem.rows(linear)
+    nonlinear = problem.nonlinear_of(selected)
+    events_effect = problem.events_of(selected)
+    composed = problem.composed(selected)
+    nl_rows = np.zeros(0, dtype=int)
+    responses = []  # the response effects selected, in bank-row order
+    if composed:
+        position = problem.n_nominal
+        for name in linear:
+            width = problem.slices[name].stop - problem.slices[name].start
+            if problem.effects[name].stage == "response":
+                nl_rows = np.concatenate([nl_rows, np.arange(position, position + width)])
+                responses.append(problem.effects[name])
+            position += width
+    others = np.ones(rows.size)  # 1 on the rows the nonlinearity acts on (not its own)
+    others[nl_rows] = 0.0
+    events_f = [np.zeros(problem.freqs.size, complex) for _ in range(n_det)]
+    events: list[GlitchEvent] = []
+    theta = [None] * n_det  # the nonlinear effect's parameter per detector
+    theta_sigma = [0.0] * n_det
+    values = [np.zeros(rows.size) for _ in range(n_det)]
+    covariances = [np.zeros((rows.size, rows.size)) for _ in range(n_det)]
+    models = [np.zeros(problem.freqs.size, complex) for _ in range(n_det)]
+    banks = [problem.bank[k][rows] for k in range(n_det)]
+    recomposed = [False] * n_det  # the nonlinearity rows of banks[k] were recomputed
+    built_on = [None] * n_det  # the extra signal they were recomputed with (None: none)
+    used_banks = list(banks)
+    nonlinear_parts = [0.0] * n_det
+    passes = COMPOSED_PASSES if composed else BACKFIT_PASSES if events_effect is not None else 1
+    previous_chi2 = math.inf
+    for _ in range(passes):
+        updated = False  # did the nonlinearity templates change in this pass?
+        for k in range(n_det):
+            w = problem.w_nom[k]
+            bank = banks[k]
+            gram = problem.gram_nom[k][np.ix_(rows, rows)]
+            if recomposed[k]:  # else the precomputed block is exact
+                gram[nl_rows] = cross(bank[nl_rows], bank, w)
+                gram[:, nl_rows] = gram[nl_rows].T
+            y = problem.residual_f[k] - events_f[k]
+            if nonlinear is not None:
+                theta[k], theta_sigma[k], a, cov = fit_nonlinear(
+                    problem, nonlinear, k, y, bank, gram, w, theta[k]
+                )
+                m_nonlinear = problem.nonlinear_model(nonlinear, k, theta[k])
+            else:
+                a, cov = solve_normal(gram, cross(bank, y, w))
+                m_nonlinear = 0.0
+            values[k], covariances[k] = a, cov
+            used_banks[k], nonlinear_parts[k] = bank, m_nonlinear
+            models[k] = (a @ bank if rows.size else 0.0) + m_nonlinear + events_f[k]
+            if composed:  # the nonlinearity acts on d_nom + the other fitted effects
+                signal_f = (a * others) @ bank + m_nonlinear  # no copy of the bank's rows
+                extra = scipy.fft.irfft(signal_f, n=problem.n, workers=problem.workers)
+                # and the offset before the nonlinearity: the adjusted offset matched the
+                # recorded mean, which holds the model's mean (g1 <d^2> ~ g1 A_2^2 / 2);
+                # left in, it makes 2 g1 O d, which the gain takes and rescales d^2 by
+                # ~4 g1 O (0.3 % of g1 at g1 A_2 = 0.04). The DC mode is not fitted.
+                model = scipy.fft.irfft(
+                    a @ bank + m_nonlinear, n=problem.n, workers=problem.workers
+                )
+                extra -= float(np.mean(model[problem.valid[k]]))
+                # chi^2 of the cross term 2 g1 d_nom x (extra - the extra the templates
+                # were last built with): skip the rebuild when negligible
+                change = extra if built_on[k] is None else extra - built_on[k]
+                sigma2 = (
+                    float(np.median(problem.s_nom[k][problem.modes]))
+                    / problem.scale[k]
+                    * ctx.sampling_rate_hz
+                    / 2
+                )
+                g1 = a[nl_rows[0]]
+                cross_chi2 = (
+                    4
+                    * g1**2
+                    * float(np.sum((ctx.d_nom[k] * change * problem.valid[k]) ** 2))
+                    / sigma2
+                )
+                if cross_chi2 < 0.01:
+                    continue
+                signal = ctx.d_nom[k] + extra
+                updated = True
+                recomposed[k] = True
+                built_on[k] = extra
+                banks[k] = bank.copy()
+                templates = np.concatenate([e.response_templates(signal) for e in responses])
+                banks[k][nl_rows] = scipy.fft.rfft(
+                    templates * problem.valid[k],
+                    axis=-1,
+                    workers=problem.workers,
+                )
+        values, covariances, shared = problem.share(linear, values, covariances)
+        if shared:
+            for k in range(n_det):
+                models[k] = values[k] @ used_banks[k] + nonlinear_parts[k] + events_f[k]
+        if events_effect is not None:
+            events = []
+            for k in range(n_det):
+                events += detect_events(
+                    problem,
+                    events_effect,
+                    k,
+                    problem.residual_f[k] - models[k] + events_f[k],
+                    problem.s_nom[k],
+                )
+            events = events_effect.detector_events(ctx, events)
+            found = problem.masked_rfft(events_effect.events_tod(ctx.times_s, n_det, events))
+            for k in range(n_det):
+                models[k] = models[k] - events_f[k] + found[k]
+                events_f[k] = found[k]
+        if not (updated or events_effect is not None):
+            break
+        total = sum(problem.chi2_of(k, models[k]) for k in range(n_det))
+        # while the nonlinearity's templates still move, chi^2 does not tell: it is
+        # blind to the scale of d against g1 (g1 (1 + e)^2 d^2 with the gain taking
+        # the linear part), which the rebuilds settle at the rate ~2 g1 A_2 per pass
+        if abs(previous_chi2 - total) < CONVERGED_CHI2 and not updated:
+            break
+        previous_chi2 = total
+    chi2s = np.array([problem.chi2_of(k, models[k]) for k in range(n_det)])
+    fits = problem.with_shared(problem.linear_effect_fits(selected, values, covariances), shared)
+    parts = problem.linear_parts(selected, used_banks, values)
+    if nonlinear is not None:
+        (parameter,) = nonlinear.parameters
+        fits[nonlinear.name] = EffectFit(
+            nonlinear.name,
+            values={parameter: np.array(theta, dtype=float)},
+            sigmas={parameter: np.array(theta_sigma)},
+        )
+        parts[nonlinear.name] = nonlinear_parts
+    if events_effect is not None:
+        fits[events_effect.name] = EffectFit(events_effect.name, events=events)
+        parts[events_effect.name] = events_f
+    return FitResult(
+        selected=selected,
+        chi2=float(chi2s.sum()),
+        chi2_per_detector=chi2s,
+        n_params=problem.count_parameters(selected, len(events)),
+        prior_penalty=problem.prior_penalty(selected),
+        effects=fits,
+        model_f=models,
+        parts=parts,
+    )

@@ -1,0 +1,382 @@
+"""The template bank of a recording and its normal equations (:class:`FitProblem`): the
+whitened Fourier residual, the noise weights, the linear fit of any set of effects, and
+the fit's cache; a set with nonlinear or event effects, or with the nonlinearity acting on
+the other effects, goes to :mod:`.backfit` (the likelihood and the methods: :mod:`.`)."""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import numpy as np
+import scipy.fft
+import scipy.optimize
+
+from ..effects import CATALOG, SELECTION_THRESHOLD, Effect
+from ..linalg import cross, share_across_detectors, solve_normal
+from ..model import Context
+from ..noise import NoiseModel, fitted_modes, independent_fraction, periodogram_scale
+from . import backfit
+from .results import EffectFit, FitResult
+
+DELTA_BIC_THRESHOLD = SELECTION_THRESHOLD  # effects.base: the effects read it too
+GLITCH_THRESHOLD_SIGMA = 5.0
+# an offset fitted with the effects when samples are flagged (not reported)
+GAP_OFFSET = "gap_offset"
+
+
+class FitProblem:
+    """Residual, noise and template bank of a recording; fits any subset of the catalog."""
+
+    def __init__(
+        self,
+        ctx: Context,
+        tod: np.ndarray,
+        nominal_noise: list[NoiseModel],
+        effects: dict[str, Effect] | None = None,
+        glitch_threshold_sigma: float = GLITCH_THRESHOLD_SIGMA,
+        workers: int = 1,
+        nominal: Effect | None = None,
+        residual_f: np.ndarray | None = None,
+    ):
+        """``residual_f``: the rfft of the residual where(valid, tod - d_nom, 0) if the
+        caller has taken it already (computed from ``tod`` otherwise)."""
+        self.ctx = ctx
+        self.workers = workers
+        if effects is None:
+            # noise-kind effects are tested on the selection's residual (:mod:`.pipeline`)
+            effects = {n: e for n, e in CATALOG.items() if e.selectable and e.kind != "noise"}
+        effects = {n: e for n, e in effects.items() if e.min_detectors <= ctx.n_detectors}
+        self.effects = effects
+        self.nominal = nominal
+        self.units = {name: e.param_units(ctx) for name, e in effects.items()}
+        self.glitch_threshold_sigma = glitch_threshold_sigma
+        n, fs = ctx.n_samples, ctx.sampling_rate_hz
+        self.n = n
+        self.n_det = ctx.n_detectors
+        self.freqs = scipy.fft.rfftfreq(n, 1.0 / fs)
+        self.modes = modes = fitted_modes(n)
+        self.valid = np.asarray(ctx.valid, dtype=bool)
+        # v_k, the fraction of valid samples, plays two parts: each gapped periodogram mode
+        # holds v_k independent ones (the likelihood's weight) and v_k scales the
+        # periodogram of the zero-filled residual (noise.periodogram_scale)
+        self.independent = [independent_fraction(v) for v in self.valid]
+        self.n_eff = int(2 * modes.sum() * sum(self.independent))
+        self.ln_n_eff = math.log(self.n_eff)
+        self.scale = [periodogram_scale(n, fs, v) for v in self.independent]
+        if residual_f is None:
+            residual = np.where(self.valid, tod - ctx.d_nom, 0.0)
+            residual_f = scipy.fft.rfft(residual, axis=-1, workers=workers)
+        self.residual_f = residual_f
+
+        # Linear template bank per detector, rows grouped by effect; the nominal
+        # adjustments (always fitted, never selected) come first.
+        self.linear_names = [name for name, e in effects.items() if e.kind == "linear"]
+        self.slices: dict[str, slice] = {}
+        size = 0
+        # the nominal adjustments' parameters, and an offset when samples are flagged: the
+        # offset is fitted before (nominal.fit_nominal) and sits in the DC mode, which the
+        # likelihood leaves out; with a gap a constant is no longer a pure DC mode (its
+        # masked version leaks to low frequencies), so the constant part of any effect
+        # (the nonlinearity's g1 A_2^2 / 2) must be absorbed in the fit itself
+        self.gapped = ~self.valid.all(axis=1)
+        self.nominal_parameters = [] if nominal is None else list(nominal.parameters)
+        if nominal is not None and self.gapped.any():
+            self.nominal_parameters.append(GAP_OFFSET)
+        self.n_nominal = len(self.nominal_parameters)
+        self.nominal_rows = np.arange(self.n_nominal)
+        size = self.n_nominal
+        for name in self.linear_names:
+            k = len(self.units[name])
+            self.slices[name] = slice(size, size + k)
+            size += k
+        self.bank = np.zeros((self.n_det, size, self.freqs.size), dtype=complex)
+        sources = [(name, effects[name]) for name in self.linear_names]
+        if nominal is not None:
+            self.slices[nominal.name] = slice(0, self.n_nominal)
+            sources.insert(0, (nominal.name, nominal))
+        for name, effect in sources:
+            templates = effect.templates(ctx)
+            if name == getattr(nominal, "name", None) and GAP_OFFSET in self.nominal_parameters:
+                # the offset's row: 1 on a detector with flagged samples, 0 on the others
+                # (a parameter without data: solve_normal gives it 0)
+                offset_row = np.broadcast_to(self.gapped[:, None, None], (self.n_det, 1, n))
+                templates = np.concatenate([templates, offset_row.astype(float)], axis=1)
+            start = self.slices[name].start
+            for k in range(self.n_det):
+                for j in range(templates.shape[1]):
+                    self.bank[k, start + j] = scipy.fft.rfft(
+                        templates[k, j] * self.valid[k], workers=workers
+                    )
+            del templates
+        self.d_nom_f = scipy.fft.rfft(ctx.d_nom, axis=-1, workers=workers)
+        # each nonlinear effect's first-order template per detector (its linearised fit)
+        self.linearised_f = {
+            name: [
+                self._masked_one(k, e.linearised_f(self.freqs, self.d_nom_f[k]))
+                for k in range(self.n_det)
+            ]
+            for name, e in effects.items()
+            if e.kind == "nonlinear"
+        }
+        self._set_noise(nominal_noise)
+
+    def _set_noise(self, nominal_noise) -> None:
+        """Noise weights and the normal equations of the whole bank (linear fits take sub-blocks)."""
+        self.nominal_noise = list(nominal_noise)
+        self.s_nom = [self.scale[k] * nominal_noise[k].psd(self.freqs) for k in range(self.n_det)]
+        # v_k / S_f: a gapped detector's chi^2 counts its independent modes (module docstring)
+        self.w_nom = [
+            self.weights(s) * v for s, v in zip(self.s_nom, self.independent, strict=True)
+        ]
+        size = self.bank.shape[1]
+        self.gram_nom, self.rhs_nom, self.yy_nom = [], [], []
+        for k in range(self.n_det):
+            gram = np.empty((size, size))
+            for lo in range(0, size, 8):  # row blocks bound the temporary memory
+                gram[lo : lo + 8] = cross(self.bank[k][lo : lo + 8], self.bank[k], self.w_nom[k])
+            self.gram_nom.append(gram)
+            self.rhs_nom.append(cross(self.bank[k], self.residual_f[k], self.w_nom[k]))
+            self.yy_nom.append(
+                float(cross(self.residual_f[k][None], self.residual_f[k], self.w_nom[k])[0])
+            )
+        self._cache: dict[tuple, FitResult] = {}
+
+    def with_noise(self, nominal_noise) -> FitProblem:
+        """The same problem (template bank, residual) with other noise weights, sharing the bank."""
+        other = copy.copy(self)
+        other._set_noise(nominal_noise)
+        other._cache = {}  # the fits depend on the weights
+        return other
+
+    # ------------------------------------------------------------------ helpers
+    def masked_rfft(self, tod: np.ndarray) -> np.ndarray:
+        """rfft along the last axis of tod (n_det, ..., n) times the valid mask."""
+        mask = self.valid.reshape((self.n_det,) + (1,) * (tod.ndim - 2) + (self.n,))
+        return scipy.fft.rfft(tod * mask, axis=-1, workers=self.workers)
+
+    def _masked_one(self, k: int, spectrum: np.ndarray) -> np.ndarray:
+        """rfft(valid_k x irfft(spectrum)): the masked version of an unmasked spectrum."""
+        if self.valid[k].all():
+            return spectrum
+        tod = scipy.fft.irfft(spectrum, n=self.n, axis=-1, workers=self.workers)
+        return scipy.fft.rfft(tod * self.valid[k], axis=-1, workers=self.workers)
+
+    def weights(self, s: np.ndarray) -> np.ndarray:
+        """1 / S_f on the used modes, 0 elsewhere."""
+        w = np.zeros(self.freqs.size)
+        w[self.modes] = 1.0 / s[self.modes]
+        return w
+
+    def rows(self, names) -> np.ndarray:
+        """Bank rows of the nominal adjustments (always) and of the linear effects ``names``."""
+        idx = [self.nominal_rows] + [
+            np.arange(self.slices[n].start, self.slices[n].stop) for n in names
+        ]
+        return np.concatenate(idx).astype(int)
+
+    def nonlinear_model(
+        self, effect: Effect, k: int, theta: float, derivative: bool = False
+    ) -> np.ndarray:
+        """rfft of valid x the change the nonlinear ``effect`` of parameter ``theta`` makes
+        to detector k's nominal TOD (or its derivative in theta): ``effect.change_f``."""
+        return self._masked_one(k, effect.change_f(self.freqs, self.d_nom_f[k], theta, derivative))
+
+    def nonlinear_of(self, selected) -> Effect | None:
+        """The nonlinear effect among ``selected`` (at most one is fitted at a time)."""
+        found = [self.effects[n] for n in selected if self.effects[n].kind == "nonlinear"]
+        if len(found) > 1:
+            raise ValueError(f"{[e.name for e in found]}: one nonlinear effect at a time")
+        return found[0] if found else None
+
+    def events_of(self, selected) -> Effect | None:
+        """The events effect among ``selected`` (glitches), if any."""
+        found = [self.effects[n] for n in selected if self.effects[n].kind == "events"]
+        return found[0] if found else None
+
+    def chi2_of(self, k: int, model_f) -> float:
+        """Whittle chi^2 of detector k with the problem's noise: sum_f 2 |R_f - M_f|^2 / S_f."""
+        diff = self.residual_f[k] - model_f
+        return 2 * float((diff.real**2 + diff.imag**2) @ self.w_nom[k])
+
+    def count_parameters(self, selected, n_events: int) -> int:
+        total = 0
+        for name in selected:
+            effect = self.effects[name]
+            if effect.kind == "events":
+                total += effect.parameters_per_event * n_events
+            elif effect.shared:
+                total += len(self.units[name])
+            else:
+                total += len(self.units[name]) * self.n_det
+        return total
+
+    def prior_penalty(self, selected) -> float:
+        return float(sum(self.effects[name].prior_penalty for name in selected))
+
+    def share(self, selected, values, covariances):
+        """Impose the shared effects' constraints p_k = s_k r on the per-detector solutions.
+
+        (:func:`.linalg.share_across_detectors`; exact for the linear fit.) Returns the new
+        values and covariances and {effect: (r, sigma_r, chi^2 cost)}.
+        """
+        shared = {}
+        if self.n_det < 2:
+            return values, covariances, shared
+        for name, rows in self._positions(selected).items():
+            if self.effects[name].shared:
+                positions = np.arange(rows.start, rows.stop)
+                scale = self.effects[name].shared_scale(self.ctx)
+                scales = np.repeat(scale[:, None], positions.size, axis=1)
+                values, covariances, r, cov_r, cost = share_across_detectors(
+                    values, covariances, positions, scales
+                )
+                shared[name] = (r, np.sqrt(np.clip(np.diag(cov_r), 0, None)), cost)
+        return values, covariances, shared
+
+    def _positions(self, selected) -> dict[str, slice]:
+        """Where each linear effect of ``selected`` sits in a fit's parameter vector (the
+        bank rows :meth:`rows` takes: the nominal adjustments, then these in order)."""
+        positions = {}
+        offset = self.n_nominal
+        for name in selected:
+            if name in self.slices:
+                width = self.slices[name].stop - self.slices[name].start
+                positions[name] = slice(offset, offset + width)
+                offset += width
+        return positions
+
+    def with_shared(self, fits: dict, shared: dict) -> dict:
+        """The EffectFits with the shared effects' common values filled in."""
+        for name, (r, sigma, cost) in shared.items():
+            units = self.effects[name].shared_units(self.ctx)
+            fits[name].shared_values = {p: float(v) for p, v in zip(units, r, strict=True)}
+            fits[name].shared_sigmas = {p: float(v) for p, v in zip(units, sigma, strict=True)}
+            fits[name].shared_units = units
+            fits[name].sharing_chi2 = float(cost)
+            fits[name].sharing_dof = len(units) * (self.n_det - 1)
+        return fits
+
+    def _ordered(self, selected) -> tuple[str, ...]:
+        order = list(self.effects)
+        return tuple(sorted(set(selected), key=order.index))
+
+    # ------------------------------------------------------------------ fits
+    def fit(self, selected, keep_model: bool = False) -> FitResult:
+        """Fit the effects ``selected`` jointly (see the module docstring).
+
+        Results are cached; their Fourier model (n_det x N_f complex) is kept only with
+        ``keep_model`` (it is refitted when asked for later), to bound the memory.
+        """
+        selected = self._ordered(selected)
+        cached = self._cache.get(selected)
+        if cached is None or (keep_model and cached.model_f is None):
+            kinds = {self.effects[name].kind for name in selected}
+            cached = None if keep_model else backfit.nonlinear_screen(self, selected)
+            if cached is not None:
+                pass
+            elif kinds <= {"linear"} and not self.composed(selected):
+                cached = self._fit_linear(selected)
+            else:
+                cached = backfit.fit_iterative(self, selected)
+            if not keep_model:
+                cached.model_f = None
+                cached.parts = None
+            self._cache[selected] = cached
+        return cached
+
+    def composed(self, selected) -> bool:
+        """Does the nonlinearity act on fitted signal? On the other signal effects, and on
+        the nominal adjustments refitted beside it: the adjusted model d_nom was fitted to
+        the recording WITH the nonlinearity's DC and 2f terms, so d_nom^2 is off by
+        ~2 g1 d P(g1 d^2) (P: the adjustments' projection), ~1e-3 of the 4f line at
+        g1 A_2 = 0.04; rebuilt on d_nom + the refitted adjustments it converges in one pass
+        (a fixed point, rate ~2 g1 A_2)."""
+        stages = {self.effects[n].stage for n in selected if n in self.effects}
+        if "response" not in stages:
+            return False
+        return self.n_nominal > 0 or "signal" in stages
+
+    def linear_effect_fits(self, selected, values, covariances) -> dict[str, EffectFit]:
+        """Per-effect values and sigmas; the nominal adjustments under ``self.nominal.name``."""
+        fits = {}
+        offset = 0
+        names = ([self.nominal.name] if self.nominal is not None else []) + list(selected)
+        for name in names:
+            if name not in self.slices:
+                continue
+            params = list(
+                self.nominal_parameters
+                if name == getattr(self.nominal, "name", None)
+                else self.units[name]
+            )
+            fit = EffectFit(name)
+            for j, param in enumerate(params):
+                i = offset + j
+                fit.values[param] = np.array([values[k][i] for k in range(self.n_det)])
+                fit.sigmas[param] = np.array(
+                    [math.sqrt(max(covariances[k][i, i], 0.0)) for k in range(self.n_det)]
+                )
+            offset += len(params)
+            fits[name] = fit
+        return fits
+
+    def _fit_linear(self, selected) -> FitResult:
+        rows = self.rows([n for n in selected if n in self.slices])
+        grams = [self.gram_nom[k][np.ix_(rows, rows)] for k in range(self.n_det)]
+        rhss = [self.rhs_nom[k][rows] for k in range(self.n_det)]
+        solved = [solve_normal(gram, rhs) for gram, rhs in zip(grams, rhss, strict=True)]
+        values, covariances, shared = self.share(
+            selected, [a for a, _ in solved], [cov for _, cov in solved]
+        )
+        chi2s, models = [], []
+        for k in range(self.n_det):
+            gram, rhs, a = grams[k], rhss[k], values[k]
+            chi2s.append(self.yy_nom[k] - 2 * rhs @ a + a @ gram @ a)
+            model = a @ self.bank[k][rows] if rows.size else np.zeros(self.freqs.size, complex)
+            models.append(model)
+        parts = self.linear_parts(selected, [self.bank[k][rows] for k in range(self.n_det)], values)
+        return FitResult(
+            selected=selected,
+            chi2=float(np.sum(chi2s)),
+            chi2_per_detector=np.array(chi2s),
+            n_params=self.count_parameters(selected, 0),
+            prior_penalty=self.prior_penalty(selected),
+            effects=self.with_shared(
+                self.linear_effect_fits(selected, values, covariances), shared
+            ),
+            model_f=models,
+            parts=parts,
+        )
+
+    def linear_parts(self, selected, banks, values) -> dict:
+        """Per-effect Fourier models of the linear effects (rows in ``selected`` order)."""
+        return {
+            name: [values[k][rows] @ banks[k][rows] for k in range(self.n_det)]
+            for name, rows in self._positions(selected).items()
+        }
+
+    def residual_after(self, result: FitResult) -> np.ndarray:
+        """Time-domain residual after subtracting the fitted model, (n_det, n) (masked)."""
+        if result.model_f is None:
+            result = self.fit(result.selected, keep_model=True)
+        diff = self.residual_f - np.array(result.model_f)
+        return scipy.fft.irfft(diff, n=self.n, axis=-1, workers=self.workers) * self.valid
+
+    def partial_residuals(self, result: FitResult) -> dict[str, np.ndarray]:
+        """For each selected effect: the residual minus the OTHER effects' fitted models.
+
+        What the data show of that effect alone, (n_det, n) time domain (masked).
+        """
+        if result.parts is None:
+            result = self.fit(result.selected, keep_model=True)
+        total = np.array(result.model_f)
+        out = {}
+        for name in result.selected:
+            own = np.array(result.parts[name]) if name in result.parts else 0.0
+            diff = self.residual_f - (total - own)
+            out[name] = scipy.fft.irfft(diff, n=self.n, axis=-1, workers=self.workers) * self.valid
+        return out
+
+    def residual_before(self) -> np.ndarray:
+        return scipy.fft.irfft(self.residual_f, n=self.n, axis=-1, workers=self.workers)

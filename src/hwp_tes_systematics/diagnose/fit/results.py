@@ -1,0 +1,44 @@
+"""What a fit gives: the fitted parameters of each effect and the fit of a set of effects."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..effects import GlitchEvent
+
+
+@dataclass
+class EffectFit:
+    """Fitted parameters of one effect: per-detector values and 1-sigma uncertainties."""
+
+    name: str
+    values: dict[str, np.ndarray] = field(default_factory=dict)  # parameter -> (n_det,)
+    sigmas: dict[str, np.ndarray] = field(default_factory=dict)
+    events: list[GlitchEvent] = field(default_factory=list)
+    # a shared effect (``Effect.shared``): its common parameters, and the chi^2 that sharing
+    # them costs against a separate fit per detector, for sharing_dof fewer parameters
+    shared_values: dict[str, float] = field(default_factory=dict)
+    shared_sigmas: dict[str, float] = field(default_factory=dict)
+    shared_units: dict[str, str] = field(default_factory=dict)
+    sharing_chi2: float = 0.0
+    sharing_dof: int = 0
+
+
+@dataclass
+class FitResult:
+    """The fit of one set of effects."""
+
+    selected: tuple[str, ...]
+    chi2: float
+    chi2_per_detector: np.ndarray
+    n_params: int
+    effects: dict[str, EffectFit]
+    model_f: list[np.ndarray] | None = field(repr=False)  # rfft of the masked model per detector
+    parts: dict | None = field(default=None, repr=False)  # effect -> per-detector rfft model
+
+    prior_penalty: float = 0.0  # sum of the selected effects' Effect.prior_penalty
+
+    def bic(self, ln_n_eff: float) -> float:
+        return self.chi2 + self.n_params * ln_n_eff + self.prior_penalty

@@ -1,0 +1,336 @@
+"""The selection (:func:`stepwise`): effects added by the BIC, removed when later ones make
+them redundant, swapped for look-alikes that fit better (:mod:`.`, "Selection")."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from .bank import DELTA_BIC_THRESHOLD, FitProblem
+from .results import FitResult
+
+
+@dataclass
+class Step:
+    """One step of the selection: an effect added, removed or swapped."""
+
+    step: int
+    added: str | None
+    removed: str | None
+    chi2_before: float
+    chi2_after: float
+    bic_before: float
+    bic_after: float
+    n_params_after: int
+    candidates: dict[str, dict]  # name -> {"delta_chi2", "delta_bic"}
+    note: str = ""
+
+    @property
+    def delta_chi2(self) -> float:
+        return self.chi2_after - self.chi2_before
+
+    @property
+    def delta_bic(self) -> float:
+        return self.bic_after - self.bic_before
+
+    def as_dict(self) -> dict:
+        return {
+            "step": self.step,
+            "added": self.added,
+            "removed": self.removed,
+            "chi2_before": self.chi2_before,
+            "chi2_after": self.chi2_after,
+            "delta_chi2": self.delta_chi2,
+            "bic_before": self.bic_before,
+            "bic_after": self.bic_after,
+            "delta_bic": self.delta_bic,
+            "n_params_after": self.n_params_after,
+            "candidates": self.candidates,
+            "note": self.note,
+        }
+
+
+@dataclass
+class Selection:
+    """Outcome of the stepwise selection."""
+
+    baseline: FitResult
+    final: FitResult
+    steps: list[Step]
+    ln_n_eff: float
+    n_eff: int
+    threshold: float
+    delta_chi2: dict[str, float]  # effect -> chi^2(final without it) - chi^2(final)
+    delta_bic: dict[str, float]  # effect -> BIC(final) - BIC(final without it)  (< 0)
+
+    @property
+    def ranked(self) -> list[str]:
+        """Selected effects, most important first (largest drop-one Delta chi^2)."""
+        return sorted(self.final.selected, key=lambda n: -self.delta_chi2[n])
+
+
+def _change(current, after, ln_n, **extra) -> dict:
+    """A step's candidate entry: Delta chi^2 and Delta BIC from ``current`` to ``after``."""
+    return {
+        "delta_chi2": after.chi2 - current.chi2,
+        "delta_bic": after.bic(ln_n) - current.bic(ln_n),
+        **extra,
+    }
+
+
+def _step(steps, current, after, ln_n, candidates, added=None, removed=None, note=""):
+    steps.append(
+        Step(
+            step=len(steps) + 1,
+            added=added,
+            removed=removed,
+            chi2_before=current.chi2,
+            chi2_after=after.chi2,
+            bic_before=current.bic(ln_n),
+            bic_after=after.bic(ln_n),
+            n_params_after=after.n_params,
+            candidates=candidates,
+            note=note,
+        )
+    )
+
+
+def _backward(problem, templates, current, threshold, removed_sets, steps, keep=1):
+    """Remove the effects that the others made redundant (BIC rises by < |threshold|).
+
+    Stops at ``keep`` effects (1 after a forward step; 0 when checking a start set).
+    """
+    ln_n = problem.ln_n_eff
+    while len(templates) > keep:
+        removals = {n: problem.fit(tuple(m for m in templates if m != n)) for n in templates}
+        costs = {n: r.bic(ln_n) - current.bic(ln_n) for n, r in removals.items()}
+        weakest = min(costs, key=costs.get)
+        reduced = frozenset(m for m in templates if m != weakest)
+        if costs[weakest] >= -threshold or reduced in removed_sets:
+            break
+        removed_sets.add(reduced)
+        after = removals[weakest]
+        _step(
+            steps,
+            current,
+            after,
+            ln_n,
+            {weakest: {"delta_chi2": after.chi2 - current.chi2, "delta_bic": -costs[weakest]}},
+            removed=weakest,
+            note=f"{weakest} made redundant by the other effects",
+        )
+        templates = tuple(m for m in templates if m != weakest)
+        current = after
+    return templates, current
+
+
+def select_templates(problem, names, threshold, max_effects, steps: list, initial=()):
+    """Forward selection with backward elimination of the template effects ``names``.
+
+    ``initial``: effects to start from (a previous selection, checked first by the
+    backward step), instead of the nominal model alone.
+    """
+    ln_n = problem.ln_n_eff
+    templates: tuple = tuple(initial)
+    current = problem.fit(templates)
+    removed_sets: set = set()
+    if templates:
+        _step(
+            steps,
+            problem.fit(()),
+            current,
+            ln_n,
+            {},
+            note=f"noise refitted: start again from {list(templates)}",
+        )
+        templates, current = _backward(
+            problem, templates, current, threshold, removed_sets, steps, keep=0
+        )
+    while len({problem.effects[n].family for n in templates}) < max_effects:
+        remaining = [
+            n
+            for n in names
+            if n not in templates and frozenset(templates + (n,)) not in removed_sets
+        ]
+        if not remaining:
+            break
+        trials = {n: problem.fit(templates + (n,)) for n in remaining}
+        table = {n: _change(current, trial, ln_n) for n, trial in trials.items()}
+        for n, trial in trials.items():  # an effect with unphysical parameters is not taken
+            why = problem.effects[n].unphysical(trial.effects[n])
+            if why is not None:
+                table[n]["unphysical"] = why
+        allowed = [n for n in table if "unphysical" not in table[n]]
+        best = min(allowed, key=lambda n: table[n]["delta_bic"]) if allowed else None
+        if best is None or table[best]["delta_bic"] >= threshold:
+            _step(steps, current, current, ln_n, table, note="no candidate passes the threshold")
+            break
+        _step(steps, current, trials[best], ln_n, table, added=best)
+        templates += (best,)
+        current = trials[best]
+        templates, current = _backward(problem, templates, current, threshold, removed_sets, steps)
+    templates, current = _swap_look_alikes(problem, names, templates, current, steps)
+    templates = _one_family_for_a_line(problem, templates, current, threshold, steps)
+    return _without_unphysical(problem, templates, steps)
+
+
+def _without_unphysical(problem, templates, steps) -> tuple:
+    """Remove, one at a time, a selected effect whose parameters the final fit puts outside
+    its physical bounds (``Effect.unphysical``): what it absorbed is left to the other
+    effects or to ``unexplained``, not reported as its physics."""
+    ln_n = problem.ln_n_eff
+    current = problem.fit(templates)
+    while (out := _first_unphysical(problem, templates, current)) is not None:
+        name, why = out
+        templates = tuple(t for t in templates if t != name)
+        after = problem.fit(templates)
+        _step(
+            steps,
+            current,
+            after,
+            ln_n,
+            {name: _change(current, after, ln_n, unphysical=why)},
+            removed=name,
+            note=f"{name} removed: its parameters are outside physical bounds ({why})",
+        )
+        current = after
+    return templates
+
+
+def _first_unphysical(problem, templates, fit) -> tuple[str, str] | None:
+    """(name, why) of the first effect of ``templates`` whose parameters in ``fit`` are
+    outside its physical bounds, or None."""
+    for name in templates:
+        if name in fit.effects:
+            why = problem.effects[name].unphysical(fit.effects[name])
+            if why is not None:
+                return name, why
+    return None
+
+
+def _swappable(effect) -> bool:
+    return effect.kind == "linear" and effect.stage == "signal"
+
+
+def _swap_look_alikes(problem, names, templates, current, steps):
+    """Replace a selected effect by an unselected one when that lowers the BIC.
+
+    Forward selection never revisits a choice: the effect taken first (with the noise
+    weights of that moment) stays even when a look-alike fits better once the noise is
+    refitted or the other effects are in, e.g. an HWP temperature drift taken before a
+    gain drift whose dipole drift shows only with the refitted 1/f noise. Tried for the
+    linear signal effects (cheap fits); each swap is a step naming what it replaced.
+    """
+    ln_n = problem.ln_n_eff
+    seen = {frozenset(templates)}
+    while True:
+        best = None
+        for out in [n for n in templates if _swappable(problem.effects[n])]:
+            kept = tuple(t for t in templates if t != out)
+            for candidate in names:
+                if candidate in templates or not _swappable(problem.effects[candidate]):
+                    continue
+                if frozenset(kept + (candidate,)) in seen:
+                    continue
+                trial = problem.fit(kept + (candidate,))
+                if problem.effects[candidate].unphysical(trial.effects[candidate]):
+                    continue
+                gain = trial.bic(ln_n) - current.bic(ln_n)
+                if gain < 0 and (best is None or gain < best[3]):
+                    best = (out, candidate, trial, gain)
+        if best is None:
+            return templates, current
+        out, candidate, trial, gain = best
+        _step(
+            steps,
+            current,
+            trial,
+            ln_n,
+            {candidate: _change(current, trial, ln_n)},
+            added=candidate,
+            removed=out,
+            note=f"{out} swapped for {candidate}: a lower BIC",
+        )
+        templates = tuple(t for t in templates if t != out) + (candidate,)
+        seen.add(frozenset(templates))
+        current = trial
+
+
+def _one_family_for_a_line(problem, templates, current, threshold, steps):
+    """Mechanism parsimony: when a family found line by line (``Effect.reported_as``: the
+    HWPSS harmonics) is among the selected effects, an effect whose lines one more member
+    of that family fits as well (chi^2 within |threshold|) is replaced by it.
+
+    E.g. lines at f_HWP and at 4 f_HWP, the 4f line in phase with twice the 2f phase and
+    no 2 f_HWP +- f_spin sidebands: the nonlinearity fits the 4f line with one parameter
+    per detector where the harmonic needs two, but with the harmonics already present
+    "two HWPSS lines" is one mechanism where "a line and a nonlinearity" is two. A
+    nonlinearity whose sidebands are seen is kept (replacing it raises chi^2 by more).
+    """
+    ln_n = problem.ln_n_eff
+    while True:
+        families = {problem.effects[n].reported_as for n in templates} - {None}
+        members = [
+            m
+            for m, e in problem.effects.items()
+            if e.reported_as in families and m not in templates
+        ]
+        others = [n for n in templates if problem.effects[n].reported_as is None]
+        best = None
+        for name in others:
+            kept = tuple(t for t in templates if t != name)
+            for member in members:
+                trial = problem.fit(kept + (member,))
+                if trial.chi2 - current.chi2 < -threshold and (
+                    best is None or trial.chi2 < best[2].chi2
+                ):
+                    best = (name, member, trial)
+        if best is None:
+            return templates
+        name, member, trial = best
+        _step(
+            steps,
+            current,
+            trial,
+            ln_n,
+            {member: _change(current, trial, ln_n)},
+            added=member,
+            removed=name,
+            note=f"{name} replaced by {member}: one family explains the lines as well",
+        )
+        templates = tuple(t for t in templates if t != name) + (member,)
+        current = trial
+
+
+def stepwise(
+    problem: FitProblem,
+    delta_bic_threshold: float = DELTA_BIC_THRESHOLD,
+    max_effects: int = 6,
+    candidates=None,
+    initial=(),
+) -> Selection:
+    """Forward stepwise selection over the catalog with the BIC (module docstring).
+
+    ``initial``: start from these effects (checked by a backward step first).
+    """
+    ln_n = problem.ln_n_eff
+    names = list(problem.effects) if candidates is None else list(candidates)
+    names = [n for n in names if n in problem.effects]
+    steps: list[Step] = []
+    baseline = problem.fit(())
+    templates = select_templates(problem, names, delta_bic_threshold, max_effects, steps, initial)
+    final = problem.fit(templates)
+    delta_chi2, delta_bic = {}, {}
+    for name in final.selected:
+        without = problem.fit(tuple(n for n in final.selected if n != name))
+        delta_chi2[name] = without.chi2 - final.chi2
+        delta_bic[name] = final.bic(ln_n) - without.bic(ln_n)
+    return Selection(
+        baseline=baseline,
+        final=final,
+        steps=steps,
+        ln_n_eff=ln_n,
+        n_eff=problem.n_eff,
+        threshold=delta_bic_threshold,
+        delta_chi2=delta_chi2,
+        delta_bic=delta_bic,
+    )
