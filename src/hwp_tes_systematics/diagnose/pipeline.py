@@ -41,10 +41,9 @@ import time
 import numpy as np
 import scipy.fft
 
-from .effects import CATALOG, family_of, reported_name
+from .effects import CATALOG, Effect, family_of, reported_name
 from .evidence import Evidence
 from .fit import FitProblem, stepwise
-from .fluctuations import dipole_signature, fit_fluctuations
 from .locate import line_at, locate
 from .model import build_context, load_sky, nominal_tod, per_detector
 from .noise import NoiseModel, estimate_noise, fitted_modes
@@ -63,7 +62,6 @@ from .requirement_check import (
     compare_nonlinearity,
     load_requirement,
 )
-from .rolloff import fit_rolloff
 from .unexplained import find_unexplained
 
 log = logging.getLogger(__name__)
@@ -316,8 +314,8 @@ class Selection:
     steps: object  # fit.stepwise's result of the last pass (ranked, delta_chi2, ...)
     final: object  # the joint fit of the selected effects
     history: list  # every step of every pass
-    fluctuation: object  # a fitted gain fluctuation (fluctuations.fit_fluctuations) or None
-    rolloff: object  # the noise's roll-off fitted beside the effects (rolloff.fit_rolloff)
+    fluctuation: object  # the fitted excess noise (noise_effect("excess").fit_noise) or None
+    rolloff: object  # the noise's roll-off beside the effects (noise_effect("rolloff").fit_noise)
     noise_models: list  # the noise of the final fit
     residual_after: np.ndarray  # (n_det, n_samples) the residual less the final fit [K]
     partial: dict  # {effect: the residual with that effect alone put back}
@@ -372,7 +370,7 @@ def fit_nominal_model(
     # 4f of a nonlinearity, 21 mK on H3-402 at g1 = 3e-3) cut by a gap leaks over the whole
     # band and passed for a pole of 27 ms, which corrupted every later noise fit
     line_free_f = residual_f - scipy.fft.rfft(adjusted.nuisance_lines_tod, axis=-1, workers=workers)
-    early = fit_rolloff(ctx, line_free_f, noise_models, modes, ln_n_eff)
+    early = noise_effect("rolloff").fit_noise(ctx, line_free_f, noise_models, modes, ln_n_eff)
     if early.delta_bic < delta_bic_threshold and not _sidebands_fit_better(
         ctx, early, line_free_f, noise_models, modes, ln_n_eff
     ):
@@ -424,7 +422,7 @@ def select_effects(
         if attempt == 1:
             break
         remaining_f = problem.residual_f - np.array(final.model_f)
-        fluctuation = fit_fluctuations(
+        fluctuation = noise_effect("excess").fit_noise(
             ctx, remaining_f, noise_models, problem.modes, problem.ln_n_eff, also_from=nominal
         )
         if fluctuation.delta_bic < delta_bic_threshold:
@@ -444,7 +442,7 @@ def select_effects(
     remaining_f = problem.residual_f - np.array(final.model_f)  # of the final fit
 
     def fluctuation_beside(noise):
-        return fit_fluctuations(
+        return noise_effect("excess").fit_noise(
             ctx, remaining_f, noise, problem.modes, problem.ln_n_eff, also_from=nominal
         )
 
@@ -458,7 +456,7 @@ def select_effects(
     residual_after = problem.residual_after(final)
     partial = problem.partial_residuals(final)
     # the time constant's one signature the lines lack: the noise's roll-off (:mod:`.rolloff`)
-    rolloff = fit_rolloff(
+    rolloff = noise_effect("rolloff").fit_noise(
         ctx,
         remaining_f,
         noise_models,  # with a fitted fluctuation's sidebands, held
@@ -547,17 +545,17 @@ def explain_effects(
             }
         )
     if selection.fluctuation is not None:
-        dipole = dipole_signature(ctx, selection.fluctuation, noise_models)
-        gain_fluctuations = CATALOG["gain_fluctuations"]
-        effects_out.append(gain_fluctuations.report_entry(ctx, selection.fluctuation, dipole))
+        excess = noise_effect("excess")
+        effects_out.append(excess.noise_entry(ctx, selection.fluctuation, noise_models))
     rolloff = selection.rolloff
     if rolloff.delta_bic < delta_bic_threshold:
-        time_constant = CATALOG["detector_time_constant"]
-        entry = next((e for e in effects_out if e["name"] == time_constant.name), None)
+        pole = noise_effect("rolloff")
+        entry = next((e for e in effects_out if e["name"] == pole.name), None)
+        new = pole.noise_entry(ctx, rolloff, noise_models)
         if entry is None:
-            effects_out.append(time_constant.rolloff_entry(ctx, rolloff))
+            effects_out.append(new)
         else:  # also seen in the lines: the noise's roll-off added to its evidence
-            entry["evidence"] += "; " + time_constant.rolloff_evidence(ctx, rolloff)
+            entry["evidence"] += "; " + new["evidence"]
     return merge_members(effects_out)
 
 
@@ -745,5 +743,17 @@ def _sidebands_fit_better(ctx, early, residual_f, noise_models, modes, ln_n_eff)
     pole rolls the noise off, and a pole taken for them (up to its bound, ~46 ms, with the
     white level collapsing beneath) corrupts every later noise fit. The fluctuation itself
     is tested after the effects are fitted; here it only stops the pole."""
-    sidebands = fit_fluctuations(ctx, residual_f, noise_models, modes, ln_n_eff)
+    sidebands = noise_effect("excess").fit_noise(ctx, residual_f, noise_models, modes, ln_n_eff)
     return sidebands.delta_bic < early.delta_bic
+
+
+def noise_effect(signature: str) -> Effect:
+    """The catalog's effect with this signature in the noise (``Effect.noise_signature``:
+    "excess" or "rolloff"), fitted beside the selection."""
+    found = [e for e in CATALOG.values() if e.noise_signature == signature]
+    if len(found) != 1:
+        names = [e.name for e in found]
+        raise LookupError(
+            f"one catalog effect with noise_signature {signature!r} expected: {names}"
+        )
+    return found[0]

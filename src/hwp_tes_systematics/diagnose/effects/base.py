@@ -85,12 +85,26 @@ class Effect:
     prior_penalty: float = 0.0
     # the fewest detectors a recording needs for the fit to offer it (crosstalk: a pair)
     min_detectors: ClassVar[int] = 1
+    # its signature in the noise of the residual, fitted beside the selection's effects
+    # (:func:`..pipeline.select_effects`): "excess" (excess power in the sidebands of the
+    # HWPSS, a random process) or "rolloff" (the noise rolling off, a pole); else None
+    noise_signature: ClassVar[str | None] = None
 
     @classmethod
     def instances(cls) -> tuple[Effect, ...]:
         """The effects :func:`register` adds for this class: one (a parametrised class, one
         per parameter value, e.g. a line per HWP harmonic)."""
         return (cls(),)
+
+    def fit_noise(self, ctx: Context, residual_f, noise, used, ln_n_eff: float, **options):
+        """The fit of its noise signature to the residual's rfft ``residual_f`` per detector,
+        beside the noise models ``noise`` (its fit's result has ``delta_bic`` and
+        ``delta_chi2`` against the noise alone); ``used`` the modes of the likelihood."""
+        raise NotImplementedError(f"{self.name} has no signature in the noise")
+
+    def noise_entry(self, ctx: Context, fit, noise) -> dict:
+        """The report's entry for its fitted noise signature ``fit`` (:meth:`fit_noise`)."""
+        raise NotImplementedError(f"{self.name} has no signature in the noise")
 
     def injection_stage(self, params: dict) -> str:
         """Where a simulated recording injects it with ``params`` (:data:`INJECTION_STAGES`):

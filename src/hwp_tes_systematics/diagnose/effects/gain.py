@@ -157,6 +157,22 @@ class GainFluctuations(Effect):
     def unresolved_look_alikes(self, ev, fit) -> list[str]:
         return ["hwp_emission_fluctuations"]
 
+    noise_signature = "excess"
+
+    def fit_noise(self, ctx, residual_f, noise, used, ln_n_eff, **options):
+        """The Whittle fit of (a, beta, rho) with the noise refitted alongside
+        (:func:`..fluctuations.fit_fluctuations`; ``options``: its ``also_from``)."""
+        from ..fluctuations import fit_fluctuations
+
+        return fit_fluctuations(ctx, residual_f, noise, used, ln_n_eff, **options)
+
+    def noise_entry(self, ctx, fit, noise) -> dict:
+        """:meth:`report_entry` with what the dipole and sky sidebands would add
+        (:func:`..fluctuations.dipole_signature`)."""
+        from ..fluctuations import dipole_signature
+
+        return self.report_entry(ctx, fit, dipole_signature(ctx, fit, noise))
+
     def report_entry(self, ctx, fit, dipole_delta_chi2: float) -> dict:
         """The report's entry for the fitted fluctuation (:class:`..fluctuations.FluctuationFit`);
         ``dipole_delta_chi2``: what its dipole and sky sidebands would add

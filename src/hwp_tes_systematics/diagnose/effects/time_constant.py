@@ -59,6 +59,18 @@ class DetectorTimeConstant(Effect):
     physical_bounds: ClassVar[dict[str, float]] = {"tau": 0.05}
     start_range = (1e-7, 0.5)  # s
 
+    noise_signature = "rolloff"
+
+    def fit_noise(self, ctx, residual_f, noise, used, ln_n_eff, **options):
+        """The roll-off of each detector's noise as a pole (:func:`..rolloff.fit_rolloff`)."""
+        from ..rolloff import fit_rolloff
+
+        return fit_rolloff(ctx, residual_f, noise, used, ln_n_eff, **options)
+
+    def noise_entry(self, ctx, fit, noise) -> dict:
+        """:meth:`rolloff_entry`."""
+        return self.rolloff_entry(ctx, fit)
+
     def rolloff_evidence(self, ctx, fit) -> str:
         """The noise's roll-off (:class:`..rolloff.RolloffFit`) in words: tau per detector,
         the drop at Nyquist, why the lines cannot show it, what else would do it."""
