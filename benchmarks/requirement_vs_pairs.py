@@ -10,7 +10,8 @@ systematic's own power through the HILC weights, delta r = k sigma^2), the commo
 offset's requirement on |mu_g1| (with its linear term and from its own power alone) with
 ``k_mu / k_sigma``, and sigma_r. Each is fitted as a power law ``A N^a`` on the ``--fit``
 runs (least squares in log-log, weighted by the errors where the run gives them), and the
-fit predicts the other runs: the prediction, the run's value and their ratio.
+fit predicts the other runs (the prediction, the run's value and their ratio) and the N of
+``--predict`` not run yet.
 """
 
 from __future__ import annotations
@@ -60,6 +61,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("runs", nargs="+", help="N=path/to/requirement.json")
     parser.add_argument("--fit", nargs="+", type=int, help="the N the power laws are fitted on")
+    parser.add_argument("--predict", nargs="*", type=int, default=[], help="N not run: predicted")
     parser.add_argument("--figure", type=Path, help="the requirement against N (PNG)")
     args = parser.parse_args()
     runs = {}
@@ -100,6 +102,8 @@ def main() -> None:
                 f"; predicts N={n}: {predicted:.3g} (run {value:.3g}, ratio {value / predicted:.3f}"
             )
             line += f", {(value - predicted) / error:+.1f} sigma)" if error else ")"
+        for n in args.predict:
+            line += f"; predicts N={n} (not run): {amplitude * n**slope:.3g}"
         print(line)
     if args.figure:
         from hwp_tes_systematics.figures import save_figure, subplots
