@@ -187,3 +187,15 @@ def test_common_offset_requirement_and_the_region_it_shares_with_the_random_popu
         )
         is None
     )
+    # a common offset of either sign: the requirement is the sign that reaches the budget
+    # first, the same for a cross spectrum of either sign
+    for sign in (1.0, -1.0):
+        for table in tables:
+            table[fi.COMMON_CROSS] = sign * 3e-3 * shape
+        common = fi.common_offset_estimator(tables, model, budget, k_random)
+        b, k = common["b_per_k"], common["k_per_k2"]
+        assert np.sign(b) == sign
+        for mu in (common["requirement_mu_per_k"], -common["requirement_mu_per_k"]):
+            assert abs(2 * mu * b + mu**2 * k) <= budget * (1 + 1e-9)
+        assert common["requirement_mu_per_k"] == pytest.approx(fi.budget_sigma(abs(b), k, budget))
+        assert common["requirement_mu_per_k"] < fi.budget_sigma(-abs(b), k, budget)

@@ -111,7 +111,9 @@ def common_offset_estimator(
 ) -> dict | None:
     """The requirement on a g1 common to every detector of the systematics channels, mu
     (a residual the calibration shares; :meth:`SeedMaps.common_offset_draws`): delta r =
-    2 mu b + mu^2 k from the seeds' ``common_offset`` columns, |mu| < :func:`budget_sigma`;
+    2 mu b + mu^2 k from the seeds' ``common_offset`` columns, |mu| < :func:`budget_sigma`
+    of |b| (the sign of mu is not known: the sign that adds the linear term to the
+    quadratic one reaches the budget first);
     and the region allowed with the random population of spread sigma beside it (Fisher
     bias ``k_random`` sigma^2; the cross term of a zero-mean draw with mu averages out):
     k_random sigma^2 + 2 mu |b| + mu^2 k <= budget, given as the largest |mu| at a few
@@ -138,7 +140,7 @@ def common_offset_estimator(
         "spread sigma beside it, k_random sigma^2 + 2 mu b + mu^2 k <= budget",
         **row,
         "t_linear": b / error if error > 0 else float("nan"),
-        "requirement_mu_per_k": budget_sigma(b, k, budget),
+        "requirement_mu_per_k": budget_sigma(abs(b), k, budget),
         "requirement_mu_debiased_per_k": budget_sigma(debiased, k, budget),
         "requirement_mu_quadratic_only_per_k": float(np.sqrt(budget / k)),
         "k_over_k_random": k / k_random,
