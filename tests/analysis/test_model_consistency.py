@@ -353,3 +353,20 @@ def test_a_filter_that_mixes_modes_needs_the_measured_b_power_to_read_r_back(bas
     recovery = r_recovery_check(config, without, with_r)
     assert recovery["recovered_power"]["consistent"] is False
     assert recovery["recovered_power"]["r_mean"] > 1.2 * R_INPUT
+
+
+def test_the_headline_says_when_r_read_back_fails():
+    """The model check passing does not make the headline "consistent" when the r read
+    back on the no-systematics maps misses the input: the note says so, with the numbers."""
+    from hwp_tes_systematics.stages.requirement import headline_note
+
+    read_back = {"r_mean": 0.030, "r_sem": 0.0044, "r_input": 0.0, "consistent": False}
+    check = {"consistent": True, "r_recovery": {"recovered_power": read_back}}
+    note = headline_note("recovered_power", check, "")
+    assert note.startswith("the model check passes, but r read back") and "0.03 +- 0.0044" in note
+    check["r_recovery"]["recovered_power"]["consistent"] = True
+    assert headline_note("recovered_power", check, "").startswith("consistent")
+    check["r_recovery"] = None  # spectra without the recovered map: the model check alone
+    assert headline_note("recovered_power", check, "").startswith("consistent")
+    check["consistent"] = False
+    assert headline_note("recovered_power", check, "ell 2-4").startswith("NOT a requirement")

@@ -313,10 +313,23 @@ def headline(analysis: str, check: dict, systematic_only: dict, crossing: dict, 
         ],
         "paper_estimator_budget_crossing_per_k": crossing["sigma_g1_per_k"],
         "sigma_r_fisher": model.fisher_sigma_r(0.0),
-        "note": "consistent: the likelihood model describes the data (consistency)"
-        if check["consistent"]
-        else f"NOT a requirement: the likelihood model does not describe the data in {failing}",
+        "note": headline_note(analysis, check, failing),
     }
+
+
+def headline_note(analysis: str, check: dict, failing: str) -> str:
+    """The headline's verdict in words: the model check's, then the r read-back's."""
+    if not check["consistent"]:
+        return f"NOT a requirement: the likelihood model does not describe the data in {failing}"
+    read_back = (check["r_recovery"] or {}).get(analysis, {})
+    if read_back.get("consistent") is False:
+        return (
+            "the model check passes, but r read back on the no-systematics maps is "
+            f"{read_back['r_mean']:.3g} +- {read_back['r_sem']:.2g} for r = "
+            f"{read_back['r_input']:g} (consistency.r_recovery): the model does not describe "
+            "the data at that precision"
+        )
+    return "consistent: the likelihood model describes the data (consistency)"
 
 
 def run_settings(config: dict) -> dict:
