@@ -370,3 +370,49 @@ def test_the_headline_says_when_r_read_back_fails():
     assert headline_note("recovered_power", check, "").startswith("consistent")
     check["consistent"] = False
     assert headline_note("recovered_power", check, "ell 2-4").startswith("NOT a requirement")
+
+
+def test_the_noise_model_takes_the_b_power_from_the_input_b_modes_alone():
+    """With the seeds' B modes alone (map-domain path), the tensor response is their
+    recovered power over their input's, and everything else the recovered CMB holds (the
+    filters' T, E leakage and the mask's E-to-B) is the r-independent leakage: a mask
+    leakage that doubles the input's pseudo-BB is no longer read as B power."""
+    import pandas as pd
+
+    ell = np.arange(60)
+    c_lens = 1e-18 * np.ones(ell.size)
+    tables = []
+    for seed in range(4):
+        scatter = 1.0 + 0.05 * (seed - 1.5)
+        b_input = c_lens * scatter  # the input's B modes alone
+        mask_leak = 1.0 * c_lens  # the mask's E-to-B in the pseudo-spectrum
+        b_only = 0.8 * b_input  # P_BB = 0.8
+        recovered = b_only + 0.8 * mask_leak + 0.1 * c_lens  # + the filters' T, E leakage
+        tables.append(
+            pd.DataFrame(
+                {
+                    "ell": ell,
+                    "bb_noise_residual_k2": 1e-17,
+                    "bb_foreground_residual_k2": 1e-19,
+                    "fsky_eff": 0.5,
+                    "bb_cmb_input_k2": b_input + mask_leak,
+                    "bb_cmb_recovered_x_input_k2": 0.8 * (b_input + mask_leak),
+                    "bb_cmb_recovered_k2": recovered,
+                    "bb_cmb_leakage_k2": 0.1 * c_lens,
+                    "bb_cmb_recovered_b_k2": recovered - 0.1 * c_lens,
+                    "bb_cmb_recovered_b_only_k2": b_only,
+                    "bb_cmb_input_b_k2": b_input,
+                }
+            )
+        )
+    noise = lk.noise_model(tables)
+    assert np.allclose(noise["sky_b_power_transfer_bb"][2:], 0.8)
+    assert np.allclose(noise["cmb_leakage_bb_k2"][2:], 0.9 * c_lens[2:])
+    # the model's r = 0 CMB, sky_power_transfer_bb C_lens, is the seeds' recovered CMB
+    data = np.mean([t["bb_cmb_recovered_k2"] for t in tables], axis=0)
+    model = noise["sky_power_transfer_bb"].to_numpy() * c_lens
+    assert np.allclose(model[2:], data[2:], rtol=0.01)
+    # without the B modes alone the mask's leakage is scaled as B power and then set
+    # against a full-sky C_lens that lacks it: the model falls short of the data
+    old = lk.noise_model([t.drop(columns=list(lk.B_ONLY_COLUMNS)) for t in tables])
+    assert np.all(old["sky_power_transfer_bb"].to_numpy()[2:] * c_lens[2:] < 0.6 * data[2:])

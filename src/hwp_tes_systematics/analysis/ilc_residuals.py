@@ -49,6 +49,9 @@ ALM_KINDS = ("nosys", "cmb_reference", "foreground_reference", "cmb_input")
 # on the map-domain path, the part of cmb_reference that is the filters' leakage of T and E
 # into B (map_domain.realize_seed); zero for a channel without it
 LEAKAGE_KIND = "cmb_leakage"
+# on the map-domain path, the seed's CMB B modes alone before and after the filters
+# (map_domain.realize_seed): what an r scales; the rest of the recovered CMB is not
+B_ONLY_KINDS = ("cmb_input_b", "cmb_reference_b")
 TERM_KINDS = tuple(f"x{j}" for j in range(N_TEMPLATE_TERMS))  # c_j(A) sum_k z_k T^j_k
 # on the map-domain path, a seed's own part of the s h term X^1, in two pieces
 PIECE_KINDS = tuple(f"x1_{piece}" for piece in map_domain.SH_TERM_PIECES)
@@ -154,9 +157,9 @@ class ChannelAlms:
         if cmb_input is None:
             cmb_input = _input_cmb_map(config, seed, fwhm, unseen.shape[-1])
         alms["cmb_input"] = harmonic.alm(np.where(unseen, hp.UNSEEN, cmb_input), fwhm, mask)
-        if LEAKAGE_KIND in data:
-            leakage = np.where(unseen, hp.UNSEEN, data[LEAKAGE_KIND])
-            alms[LEAKAGE_KIND] = harmonic.alm(leakage, fwhm, mask)
+        for kind in (LEAKAGE_KIND, *B_ONLY_KINDS):
+            if kind in data:
+                alms[kind] = harmonic.alm(np.where(unseen, hp.UNSEEN, data[kind]), fwhm, mask)
         if np.any(draws):
             seen = ~unseen[0]
             pieces = data.get("sh_term_pieces", {})
@@ -447,6 +450,8 @@ class SeedMaps:
             kinds = (*kinds, *PIECE_KINDS)
         if any(LEAKAGE_KIND in c.alms for c in channels):
             kinds = (*kinds, LEAKAGE_KIND)
+        if all(kind in c.alms for c in channels for kind in B_ONLY_KINDS):
+            kinds = (*kinds, *B_ONLY_KINDS)
         channel_alms = {kind: np.array([c.term(kind) for c in channels]) for kind in kinds}
         basis = config.get("mitigation", {}).get("template_fit")
         template_fits = []
@@ -511,7 +516,9 @@ class SeedMaps:
         weights, and what the filters took from it (sum_c w_c (a_ref,c - a_in,c); the
         residual against the unfiltered input is residual_alm + cmb_filter_loss_alm); on
         the map-domain path also "cmb_leakage_alm", the filters' T and E leakage into B
-        through the weights (a part of the recovered CMB)."""
+        through the weights (a part of the recovered CMB), and "cmb_input_b_alm",
+        "cmb_recovered_b_only_alm", the input CMB's B modes alone through the weights
+        before and after the filters."""
         data = self.data_alms(sigma_g1_per_k)
         _, weights = hilc.harmonic_ilc(data, self.bins, self.lmax)
         cmb = self.channel_alms["cmb_reference"]
@@ -530,6 +537,9 @@ class SeedMaps:
         }
         if LEAKAGE_KIND in self.channel_alms:
             result["cmb_leakage_alm"] = combined(self.channel_alms[LEAKAGE_KIND])
+        if all(kind in self.channel_alms for kind in B_ONLY_KINDS):
+            result["cmb_input_b_alm"] = combined(self.channel_alms["cmb_input_b"])
+            result["cmb_recovered_b_only_alm"] = combined(self.channel_alms["cmb_reference_b"])
         return result
 
     def systematic_term_alms(self, weights: np.ndarray) -> np.ndarray:
@@ -613,6 +623,8 @@ class SeedMaps:
             cmb_input_alm=result["cmb_input_alm"],
             cmb_filter_loss_alm=result["cmb_filter_loss_alm"],
             cmb_leakage_alm=result.get("cmb_leakage_alm"),
+            cmb_input_b_alm=result.get("cmb_input_b_alm"),
+            cmb_recovered_b_only_alm=result.get("cmb_recovered_b_only_alm"),
         )
 
     def systematic_spectra(
@@ -690,6 +702,8 @@ def residual_spectra_table(
     cmb_input_alm=None,
     cmb_filter_loss_alm=None,
     cmb_leakage_alm=None,
+    cmb_input_b_alm=None,
+    cmb_recovered_b_only_alm=None,
 ) -> pd.DataFrame:
     """EE and BB [K_CMB^2] of the residual, its foreground part and the rest (noise), with
     the same normalisation (:func:`unit_beam_spectra`), and the mask's fsky_eff.
@@ -703,8 +717,10 @@ def residual_spectra_table(
     of the HILC's CMB map itself, recovered CMB + residual: what an experiment measures,
     on which an injected r is recovered, :func:`consistency.check_r_recovery`). With
     the filters' leakage through the weights (the map-domain path), also
-    ``cmb_leakage`` (its spectrum) and ``cmb_recovered_b`` (the recovered CMB less it:
-    the power of the sky's B modes, which an r scales)."""
+    ``cmb_leakage`` (its spectrum) and ``cmb_recovered_b`` (the recovered CMB less it);
+    with the input's B modes alone before and after the filters, ``cmb_input_b`` and
+    ``cmb_recovered_b_only`` (their spectra: the power of the sky's B modes, which an r
+    scales, the mask's E-to-B leakage apart)."""
     table = {"ell": np.arange(lmax + 1)}
     pairs = [
         ("residual", residual_alm, None),
@@ -724,6 +740,11 @@ def residual_spectra_table(
             pairs += [
                 ("cmb_leakage", cmb_leakage_alm, None),
                 ("cmb_recovered_b", recovered_b, None),
+            ]
+        if cmb_input_b_alm is not None and cmb_recovered_b_only_alm is not None:
+            pairs += [
+                ("cmb_input_b", cmb_input_b_alm, None),
+                ("cmb_recovered_b_only", cmb_recovered_b_only_alm, None),
             ]
     for label, alm, alm2 in pairs:
         cl = unit_beam_spectra(alm, alm2, lmax, fractions["w2"], common_fwhm_arcmin)

@@ -608,6 +608,10 @@ def analysis_transfer(noise: pd.DataFrame, lmax: int, analysis: str, source: str
     return sky_b_power_transfer(noise, lmax, source) + leakage
 
 
+# the seeds' recovered CMB from the input's B modes alone, and that input (map-domain path)
+B_ONLY_COLUMNS = ("bb_cmb_recovered_b_only_k2", "bb_cmb_input_b_k2")
+
+
 def noise_model(nosys_spectra) -> pd.DataFrame:
     """N_ell and C_FGres [K^2]: means over seeds of the no-systematics BB residuals; and
     the sky's measured end-to-end BB transfer T_ell (filters, binning, mask, HILC):
@@ -622,8 +626,12 @@ def noise_model(nosys_spectra) -> pd.DataFrame:
     the map-domain path), the leakage is its mean and the power of the sky's B modes is
     measured, ``sky_b_power_transfer_bb`` = sum over seeds of C(recovered CMB less the
     leakage) over the sum of C(input CMB) (the likelihood's tensor response,
-    :func:`sky_b_power_transfer`; else T_ell^2). ``nosys_spectra``: the seeds' residual
-    spectra, as CSV paths or tables."""
+    :func:`sky_b_power_transfer`; else T_ell^2). Where the seeds also carry the input's B
+    modes alone (``B_ONLY_COLUMNS``), the B power is measured on them, sum C(recovered
+    from B) over sum C(input B), and the leakage is everything else the recovered CMB
+    holds, C(recovered) - C(recovered from B): the filters' T and E leakage and the mask's
+    E-to-B leakage of the pseudo-spectra, which no full-sky C_lens holds.
+    ``nosys_spectra``: the seeds' residual spectra, as CSV paths or tables."""
     tables = [t if isinstance(t, pd.DataFrame) else pd.read_csv(t) for t in nosys_spectra]
     out = pd.DataFrame({"ell": tables[0]["ell"]})
     out["n_ell_bb_k2"] = np.mean([t["bb_noise_residual_k2"] for t in tables], axis=0)
@@ -637,7 +645,14 @@ def noise_model(nosys_spectra) -> pd.DataFrame:
         if all("bb_cmb_recovered_k2" in t for t in tables):
             recovered = np.array([t["bb_cmb_recovered_k2"] for t in tables])
             # per seed: C(the sky's B modes in the recovered map) / C(input)
-            if all("bb_cmb_leakage_k2" in t for t in tables):
+            if all(c in t for t in tables for c in B_ONLY_COLUMNS):
+                # the input's B modes alone: the leakage is all the T and E modes put in
+                # B (the filters' and the mask's), the B power the rest
+                b_only, b_input = (np.array([t[c] for t in tables]) for c in B_ONLY_COLUMNS)
+                leakage = recovered - b_only
+                b_power = np.divide(b_only, b_input, out=np.ones_like(auto), where=b_input > 0)
+                out["sky_b_power_transfer_bb"] = measured_transfer(b_only, b_input)[0]
+            elif all("bb_cmb_leakage_k2" in t for t in tables):
                 leakage = np.array([t["bb_cmb_leakage_k2"] for t in tables])
                 from_b = np.array([t["bb_cmb_recovered_b_k2"] for t in tables])
                 b_power = np.divide(from_b, auto, out=np.ones_like(auto), where=auto > 0)

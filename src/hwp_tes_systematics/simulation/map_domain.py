@@ -82,6 +82,7 @@ from .. import seeding
 from ..sky import cmb as sky_cmb
 from ..sky import harmonics
 from .filter_response import (
+    b_modes_alone,
     excess_bb_alms,
     filtered_cmb_map,
     shaped_noise_map,
@@ -156,7 +157,10 @@ def realize_seed(
     seeds' a_lm take the fixed part's once, :func:`ilc_residuals.fixed_term_alms`).
     ``cmb_excess_alm``: (2, 3, nalm) the filters' excess BB of the seed by origin
     (:func:`filter_response.excess_bb_alms`, band ``operators.filter_lmax``), added to
-    the filtered CMB; its second (T and E modes) also as ``cmb_leakage``."""
+    the filtered CMB; its second (T and E modes) also as ``cmb_leakage``; with it, also
+    the seed's B modes alone before and after the filter, ``cmb_input_b`` and
+    ``cmb_reference_b`` (T B + the excess of B origin: what the sky's B modes, and an r,
+    put in the map; the rest of the recovered CMB is r-independent)."""
     nside = hp.npix2nside(fixed.good.size)
     good = fixed.good
     operators = operators or SeedOperators(fixed, noise_scale, lmax)
@@ -168,6 +172,11 @@ def realize_seed(
             harmonics.alm2map(alm, nside, operators.filter_lmax) for alm in cmb_excess_alm
         )
         cmb_filtered += b_part + leakage
+        b_alm = b_modes_alone(cmb_alm)
+        cmb_b = harmonics.alm2map(b_alm, nside, lmax)
+        cmb_b_filtered = (
+            filtered_cmb_map(cmb_b, b_alm, fixed.transfer, lmax, operators.filter_lmax) + b_part
+        )
     b, c = operators.noise.draw(rng_of_detector)
 
     def filtered_noise(vectors, shaping):  # the binned white noise, shaped by the filter
@@ -205,6 +214,8 @@ def realize_seed(
     }
     if leakage is not None:
         maps["cmb_leakage"] = np.where(good, leakage, hp.UNSEEN)
+        maps["cmb_input_b"] = cmb_b
+        maps["cmb_reference_b"] = np.where(good, cmb_b_filtered, hp.UNSEEN)
     if full_terms:
         terms = fixed.template_terms.copy()
         terms[SH_TERM] += pieces["cmb_h"] + pieces["noise_h"]

@@ -33,7 +33,13 @@ def residual_spectra(hilc_h5) -> pd.DataFrame:
         foreground = hilc["foreground_residual_alm"][()]
         cmb = {
             name: hilc[name][()] if name in hilc else None
-            for name in ("cmb_input_alm", "cmb_filter_loss_alm", "cmb_leakage_alm")
+            for name in (
+                "cmb_input_alm",
+                "cmb_filter_loss_alm",
+                "cmb_leakage_alm",
+                "cmb_input_b_alm",
+                "cmb_recovered_b_only_alm",
+            )
         }
         attrs = dict(hilc.attrs)
     fractions = {key: attrs[key] for key in ("w2", "fsky_eff")}
