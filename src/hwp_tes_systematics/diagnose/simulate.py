@@ -24,7 +24,7 @@ import numpy as np
 
 from .. import seeding
 from ..simulation import data_model
-from .effects import CATALOG, INJECTION_ONLY, OUTSIDE_CATALOG, REGISTRIES, Effect
+from .effects import CATALOG, INJECTION_ONLY, INJECTION_STAGES, OUTSIDE_CATALOG, REGISTRIES, Effect
 from .effects.base import _value
 from .model import Context, per_detector
 from .recording import DEFAULT_START_TDB, Recording, _json_safe
@@ -161,7 +161,8 @@ def simulate_recording(
     ``("tes_electrothermal", {"p0_w", "kelvin_per_watt", ...})``; a
     ``detector_time_constant`` with ``"through_noise": True`` filters the noise as well,
     the noise then rolls off: :mod:`.rolloff`). The noise comes from its own stream
-    ``(master_seed, "noise", channel, noise_seed, 0, detector)``. The truth is kept in ``recording.injected`` (never written to a file).
+    ``(master_seed, "noise", channel, noise_seed, 0, detector)``. The truth is kept in
+    ``recording.injected`` (never written to a file).
     ``pol_angle_offsets_rad``: the true polarisation angles are theta + delta while the
     recording's metadata keeps the nominal theta (a polarisation-angle error): the sky
     polarisation is rho [Q cos 2(a - delta) + U sin 2(a - delta)] and the HWPSS
@@ -224,12 +225,12 @@ def simulate_recording(
     signal = sky_intensity + sky_polarization + dipole + hwpss
 
     for effect, params in at("signal"):
-        signal = effect.inject(ctx, params, signal)
+        signal = effect.apply(ctx, params, signal)
     noise_params = next((params for _, params in at("noise")), None)
     tod = signal + _noise(simulator, pointing, master_seed, noise_seed, noise_params)
-    for stage in ("through_noise", "response", "events"):
+    for stage in INJECTION_STAGES[INJECTION_STAGES.index("noise") + 1 :]:  # on signal + noise
         for effect, params in at(stage):
-            tod = effect.inject(ctx, params, tod)
+            tod = effect.apply(ctx, params, tod)
 
     return Recording(
         tod=tod,

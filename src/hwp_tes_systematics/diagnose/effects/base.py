@@ -111,10 +111,6 @@ class Effect:
         its ``stage``."""
         return self.stage
 
-    def inject(self, ctx: Context, params: dict, tod: np.ndarray) -> np.ndarray:
-        """The simulated recording's TOD ``tod`` with the effect injected: ``apply``."""
-        return self.apply(ctx, params, tod)
-
     def on_true_hwpss(self, params: dict, a2_true_k, a2_nominal_k: float, phase_rad) -> dict:
         """The parameters of an effect injected into a recording whose true HWPSS has
         amplitude ``a2_true_k`` [K] and 2f phase ``phase_rad`` (one each per detector) where
