@@ -6,9 +6,11 @@ For each run's ``results/`` folder (a map-domain run with the seeds' spectra
 ``spectra/seed*/nosys.csv`` and ``spectra/noise_model.csv``) and bins of ell, prints the
 input CMB's pseudo-BB over the theory C_lens (above 1: the mask's E-to-B leakage, which
 the pseudo-C_ell estimator keeps), the model's CMB term (``sky_power_transfer_bb`` x
-C_lens, the ``recovered_power`` model's r = 0 CMB) over the data's (the seeds' mean
-recovered CMB BB), the data's CMB share of its total BB, and the model's total (CMB +
-N_ell + C_FGres) over the data's: what the r read on the no-systematics maps sees.
+C_lens, the ``recovered_power`` model's r = 0 CMB, with the HILC's chance correlation
+of the CMB and the residual where the noise model holds it) over the data's (the seeds'
+mean recovered CMB BB), the data's CMB share of its total BB, and the model's total (CMB
++ N_ell + C_FGres, + the noise x foreground cross term where measured) over the data's:
+what the r read on the no-systematics maps sees.
 """
 
 from __future__ import annotations
@@ -43,6 +45,8 @@ def main() -> None:
         )
         model_cmb = noise["sky_power_transfer_bb"].to_numpy() * c_lens
         model = model_cmb + noise["n_ell_bb_k2"].to_numpy() + noise["c_fg_res_bb_k2"].to_numpy()
+        if "noise_x_foreground_bb_k2" in noise:  # the HILC's chance correlation, where measured
+            model = model + noise["noise_x_foreground_bb_k2"].to_numpy()
         for first, last in BINS:
             s = slice(first, last + 1)
             print(

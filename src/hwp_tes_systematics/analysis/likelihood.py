@@ -605,7 +605,19 @@ def analysis_transfer(noise: pd.DataFrame, lmax: int, analysis: str, source: str
     leakage = np.divide(
         cmb_leakage_bb(noise, lmax, source), c_lens, out=np.zeros(lmax + 1), where=c_lens > 0
     )
-    return sky_b_power_transfer(noise, lmax, source) + leakage
+    return (sky_b_power_transfer(noise, lmax, source) + leakage) * hilc_cmb_power_ratio(noise, lmax)
+
+
+def hilc_cmb_power_ratio(noise: pd.DataFrame, lmax: int) -> np.ndarray:
+    """The HILC map's CMB power with its chance correlation with the residual over the
+    recovered CMB's own, f_ell = 1 + 2 C(CMB, residual) / C(CMB), ell = 0..lmax (noise
+    model's ``hilc_cmb_power_ratio_bb``; ones where the run did not measure it). The
+    weights, fitted on the data, anticorrelate the CMB with the residual (the ILC bias,
+    Delabrouille et al. 2009): f < 1 where the CMB is a large part of the map. Taken to
+    scale with the CMB's power (assumption), it multiplies the lensing and tensor terms."""
+    if "hilc_cmb_power_ratio_bb" not in noise:
+        return np.ones(lmax + 1)
+    return noise["hilc_cmb_power_ratio_bb"].to_numpy()[: lmax + 1]
 
 
 # the seeds' recovered CMB from the input's B modes alone, and that input (map-domain path)
@@ -631,11 +643,25 @@ def noise_model(nosys_spectra) -> pd.DataFrame:
     from B) over sum C(input B), and the leakage is everything else the recovered CMB
     holds, C(recovered) - C(recovered from B): the filters' T and E leakage and the mask's
     E-to-B leakage of the pseudo-spectra, which no full-sky C_lens holds.
+    The HILC's weights, fitted on the data, correlate the parts of its map by chance:
+    ``noise_x_foreground_bb_k2`` is the mean residual BB less N_ell and C_FGres, and, where
+    the seeds carry the map's own BB (``bb_recovered_k2``), ``cmb_x_residual_bb_k2`` the
+    map's BB less the residual's and the recovered CMB's (twice their cross spectrum),
+    ``hilc_cmb_power_ratio_bb`` = 1 + sum over seeds of it over the sum of C(recovered CMB)
+    (:func:`hilc_cmb_power_ratio`), and ``sky_power_transfer_bb`` holds the cross term.
     ``nosys_spectra``: the seeds' residual spectra, as CSV paths or tables."""
     tables = [t if isinstance(t, pd.DataFrame) else pd.read_csv(t) for t in nosys_spectra]
     out = pd.DataFrame({"ell": tables[0]["ell"]})
     out["n_ell_bb_k2"] = np.mean([t["bb_noise_residual_k2"] for t in tables], axis=0)
     out["c_fg_res_bb_k2"] = np.mean([t["bb_foreground_residual_k2"] for t in tables], axis=0)
+    # the residual's BB less its parts: twice the noise x foreground cross spectrum, which
+    # the HILC's weights, fitted on the data, make negative (chance correlation)
+    if all("bb_residual_k2" in t for t in tables):
+        out["noise_x_foreground_bb_k2"] = (
+            np.mean([t["bb_residual_k2"] for t in tables], axis=0)
+            - out["n_ell_bb_k2"]
+            - out["c_fg_res_bb_k2"]
+        )
     if all("bb_cmb_input_k2" in t for t in tables):
         cross = np.array([t["bb_cmb_recovered_x_input_k2"] for t in tables])
         auto = np.array([t["bb_cmb_input_k2"] for t in tables])
@@ -661,9 +687,26 @@ def noise_model(nosys_spectra) -> pd.DataFrame:
                 leakage = recovered - transfer**2 * auto  # per seed: r-independent
                 b_power = np.broadcast_to(transfer**2, auto.shape)
             c_lens = sky.lensing_bb(int(out["ell"].iloc[-1]))
-            power = b_power + np.divide(
-                leakage, c_lens, out=np.zeros_like(leakage), where=c_lens > 0
-            )
+            in_map = leakage
+            if all("bb_recovered_k2" in t and "bb_residual_k2" in t for t in tables):
+                # the map's BB less the residual's and the recovered CMB's: twice their
+                # cross spectrum, the HILC's chance correlation (ILC bias), taken to scale
+                # with the CMB's power: a factor on the tensor response too
+                map_bb = np.array([t["bb_recovered_k2"] for t in tables])
+                residual = np.array([t["bb_residual_k2"] for t in tables])
+                cross = map_bb - residual - recovered
+                ratio = np.ones(cross.shape[1])
+                np.divide(
+                    recovered.sum(axis=0) + cross.sum(axis=0),
+                    recovered.sum(axis=0),
+                    out=ratio,
+                    where=recovered.sum(axis=0) > 0,
+                )
+                ratio[:2] = 1.0
+                out["cmb_x_residual_bb_k2"] = cross.mean(axis=0)
+                out["hilc_cmb_power_ratio_bb"] = ratio
+                in_map = leakage + cross
+            power = b_power + np.divide(in_map, c_lens, out=np.zeros_like(in_map), where=c_lens > 0)
             power[:, :2] = 1.0
             out["cmb_leakage_bb_k2"] = leakage.mean(axis=0)
             out["sky_power_transfer_bb"] = power.mean(axis=0)
@@ -690,24 +733,32 @@ def model_from_noise_table(
     noise: pd.DataFrame, lmin: int, lmax: int, analysis: str = "paper_recipe", source: str = ""
 ) -> BBModel:
     """The likelihood's BB model of ``analysis`` (:data:`ANALYSES`) from the noise model
-    table: N_ell and C_FGres as measured, C_lens and C_GW times
-    :func:`analysis_transfer` when it is not None."""
+    table: C_FGres as measured, N_ell as measured plus the noise x foreground cross term
+    (so that N + C_FGres is the residual's mean BB), C_lens times
+    :func:`analysis_transfer` when it is not None, and C_GW times the same, or for
+    ``recovered_power`` times the tensor response P_ell f_ell
+    (:func:`sky_b_power_transfer`, :func:`hilc_cmb_power_ratio`)."""
     if lmax > noise["ell"].iloc[-1]:
         raise ValueError(
             f"likelihood.lmax = {lmax} exceeds the spectra's lmax "
             f"{noise['ell'].iloc[-1]} ({source or 'noise model'})"
         )
+    n_ell = noise["n_ell_bb_k2"].to_numpy()[: lmax + 1]
+    if "noise_x_foreground_bb_k2" in noise:
+        n_ell = n_ell + noise["noise_x_foreground_bb_k2"].to_numpy()[: lmax + 1]
     model = BBModel.from_ptep(
         f_sky=float(noise["fsky_eff"].iloc[0]),
         lmin=lmin,
         lmax=lmax,
-        n_ell=noise["n_ell_bb_k2"].to_numpy()[: lmax + 1],
+        n_ell=n_ell,
         c_fg_res=noise["c_fg_res_bb_k2"].to_numpy()[: lmax + 1],
     )
     transfer = analysis_transfer(noise, lmax, analysis, source)
     if transfer is None:
         return model
-    tensor = sky_b_power_transfer(noise, lmax, source) if analysis == "recovered_power" else None
+    tensor = None
+    if analysis == "recovered_power":
+        tensor = sky_b_power_transfer(noise, lmax, source) * hilc_cmb_power_ratio(noise, lmax)
     return model.with_transfer(transfer, tensor)
 
 

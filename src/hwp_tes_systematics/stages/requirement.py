@@ -213,7 +213,7 @@ def model_checks(
 ) -> tuple[dict, dict]:
     """(the model check on all seeds with its held-out and r read-back checks, the
     information and bias per bin): :func:`model_check`, then
-    :func:`consistency.held_out_check` and :func:`consistency.r_recovery_check`."""
+    :func:`consistency.held_out_check` and :func:`consistency.held_out_r_recovery`."""
     check, distribution = model_check(
         config, model, noise, nosys_residuals, systematic_csvs, fig_ell_distribution
     )
@@ -227,7 +227,7 @@ def model_checks(
                 for split in check["held_out"]["splits"]
             ),
         )
-    check["r_recovery"] = consistency.r_recovery_check(config, noise, nosys_tables)
+    check["r_recovery"] = consistency.held_out_r_recovery(config, nosys_tables)
     return check, distribution
 
 
@@ -324,10 +324,10 @@ def headline_note(analysis: str, check: dict, failing: str) -> str:
     read_back = (check["r_recovery"] or {}).get(analysis, {})
     if read_back.get("consistent") is False:
         return (
-            "the model check passes, but r read back on the no-systematics maps is "
-            f"{read_back['r_mean']:.3g} +- {read_back['r_sem']:.2g} for r = "
-            f"{read_back['r_input']:g} (consistency.r_recovery): the model does not describe "
-            "the data at that precision"
+            "the model check passes, but r read back on the no-systematics maps of "
+            f"held-out seeds is {read_back['r_mean']:.3g} +- {read_back['r_sem']:.2g} for "
+            f"r = {read_back['r_input']:g} (consistency.r_recovery): the model does not "
+            "describe the data at that precision"
         )
     return "consistent: the likelihood model describes the data (consistency)"
 
