@@ -490,3 +490,34 @@ def test_r_read_back_on_held_out_seeds_fails_where_the_seeds_differ(base, repo):
     assert failing["consistent"] is False
     assert [split["r_mean"] > 0 for split in failing["splits"]] == [True, False]
     assert held_out_r_recovery(config, alternating[:7]) is None
+
+
+def test_the_tensor_response_is_measured_on_the_tensor_probe_not_the_lensing_b_modes(base):
+    """Where the filters leave no sky (ell < 11 here) the mask brings lensing power in from
+    other multipoles, so the lensing B modes' recovered power over their input (P_ell) is
+    0.2 there; a tensor probe, whose reionization bump is 100 times the power coupled in,
+    measures the map's response R_ell ~ 0.002. The recovered_power model takes R_ell from
+    the probe, and the tensor information from ell < 11 falls with it."""
+    rng = np.random.default_rng(41)
+    nu = np.maximum((2 * base.ell + 1) * base.f_sky, 1.0)
+    response = np.where(base.ell < 11, 0.002, 0.5)
+    b_power = np.where(base.ell < 11, 0.2, 0.5)
+    tables = ilc_bias_tables(base, rng, 0.0, 0.0)
+    for table in tables:
+        table["bb_cmb_recovered_b_only_k2"] = b_power * table["bb_cmb_input_b_k2"]
+        probe = base.c_gw_r1 * rng.chisquare(nu) / nu
+        table["bb_tensor_input_b_k2"] = probe
+        table["bb_tensor_recovered_b_k2"] = response * probe
+    noise = lk.noise_model(tables)
+    np.testing.assert_allclose(noise["tensor_response_bb"][2:], response[2:], rtol=0.25)
+    assert np.all(noise["tensor_response_bb_sem"][2:] > 0)
+    model = lk.model_from_noise_table(noise, 2, LMAX, "recovered_power")
+    np.testing.assert_allclose(
+        model.c_gw_r1[2:], noise["tensor_response_bb"][2:] * base.c_gw_r1[2:], rtol=1e-12
+    )
+    lensing_b = lk.model_from_noise_table(
+        noise.drop(columns=["tensor_response_bb"]), 2, LMAX, "recovered_power"
+    )
+    low = slice(2, 11)
+    information = lk.fisher_information_per_ell(model)
+    assert information[low].sum() < 0.01 * lk.fisher_information_per_ell(lensing_b)[low].sum()

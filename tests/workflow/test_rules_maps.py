@@ -152,6 +152,15 @@ def test_map_domain_alms_reproduce_and_equal_the_maps_path(repo, tmp_path, tiny_
     np.testing.assert_allclose(
         written["bb_residual_k2"], nosys_from_maps["bb_residual_k2"], rtol=1e-9, atol=0
     )
+    # the seed's tensor probe, put in at r = 1 and recovered: its power over C_GW is about
+    # 1 on the mask as put in (cosmic variance of one seed) and less after the filters
+    from hwp_tes_systematics.analysis.likelihood import tensor_response_columns
+
+    response = tensor_response_columns([written])
+    ell = slice(8, 33)
+    put_in = np.median(response["tensor_input_over_theory_bb"][ell])
+    assert 0.5 < put_in < 2.0, put_in
+    assert np.median(response["tensor_response_bb"][ell]) < put_in
     # the TOD path's CMB realization of the same seed, through the filter's transfer
     maps0 = read_maps(map_paths["M1-140"])[0]
     full0, _ = read_maps(tod_workdir / "results/maps/M1-140/seed0.h5")

@@ -52,6 +52,9 @@ LEAKAGE_KIND = "cmb_leakage"
 # on the map-domain path, the seed's CMB B modes alone before and after the filters
 # (map_domain.realize_seed): what an r scales; the rest of the recovered CMB is not
 B_ONLY_KINDS = ("cmb_input_b", "cmb_reference_b")
+# on the map-domain path, the seed's tensor probe (B modes alone at r = 1) before and after
+# the filters (map_domain.realize_seed): the map's response to r
+TENSOR_KINDS = ("tensor_input_b", "tensor_reference_b")
 TERM_KINDS = tuple(f"x{j}" for j in range(N_TEMPLATE_TERMS))  # c_j(A) sum_k z_k T^j_k
 # on the map-domain path, a seed's own part of the s h term X^1, in two pieces
 PIECE_KINDS = tuple(f"x1_{piece}" for piece in map_domain.SH_TERM_PIECES)
@@ -157,7 +160,7 @@ class ChannelAlms:
         if cmb_input is None:
             cmb_input = _input_cmb_map(config, seed, fwhm, unseen.shape[-1])
         alms["cmb_input"] = harmonic.alm(np.where(unseen, hp.UNSEEN, cmb_input), fwhm, mask)
-        for kind in (LEAKAGE_KIND, *B_ONLY_KINDS):
+        for kind in (LEAKAGE_KIND, *B_ONLY_KINDS, *TENSOR_KINDS):
             if kind in data:
                 alms[kind] = harmonic.alm(np.where(unseen, hp.UNSEEN, data[kind]), fwhm, mask)
         if np.any(draws):
@@ -450,8 +453,9 @@ class SeedMaps:
             kinds = (*kinds, *PIECE_KINDS)
         if any(LEAKAGE_KIND in c.alms for c in channels):
             kinds = (*kinds, LEAKAGE_KIND)
-        if all(kind in c.alms for c in channels for kind in B_ONLY_KINDS):
-            kinds = (*kinds, *B_ONLY_KINDS)
+        for optional in (B_ONLY_KINDS, TENSOR_KINDS):
+            if all(kind in c.alms for c in channels for kind in optional):
+                kinds = (*kinds, *optional)
         channel_alms = {kind: np.array([c.term(kind) for c in channels]) for kind in kinds}
         basis = config.get("mitigation", {}).get("template_fit")
         template_fits = []
@@ -518,7 +522,8 @@ class SeedMaps:
         the map-domain path also "cmb_leakage_alm", the filters' T and E leakage into B
         through the weights (a part of the recovered CMB), and "cmb_input_b_alm",
         "cmb_recovered_b_only_alm", the input CMB's B modes alone through the weights
-        before and after the filters."""
+        before and after the filters; with the seed's tensor probe, "tensor_input_b_alm"
+        and "tensor_recovered_b_alm", the same for B modes alone at r = 1."""
         data = self.data_alms(sigma_g1_per_k)
         _, weights = hilc.harmonic_ilc(data, self.bins, self.lmax)
         cmb = self.channel_alms["cmb_reference"]
@@ -540,6 +545,9 @@ class SeedMaps:
         if all(kind in self.channel_alms for kind in B_ONLY_KINDS):
             result["cmb_input_b_alm"] = combined(self.channel_alms["cmb_input_b"])
             result["cmb_recovered_b_only_alm"] = combined(self.channel_alms["cmb_reference_b"])
+        if all(kind in self.channel_alms for kind in TENSOR_KINDS):
+            result["tensor_input_b_alm"] = combined(self.channel_alms["tensor_input_b"])
+            result["tensor_recovered_b_alm"] = combined(self.channel_alms["tensor_reference_b"])
         return result
 
     def systematic_term_alms(self, weights: np.ndarray) -> np.ndarray:
@@ -625,6 +633,8 @@ class SeedMaps:
             cmb_leakage_alm=result.get("cmb_leakage_alm"),
             cmb_input_b_alm=result.get("cmb_input_b_alm"),
             cmb_recovered_b_only_alm=result.get("cmb_recovered_b_only_alm"),
+            tensor_input_b_alm=result.get("tensor_input_b_alm"),
+            tensor_recovered_b_alm=result.get("tensor_recovered_b_alm"),
         )
 
     def systematic_spectra(
@@ -704,6 +714,8 @@ def residual_spectra_table(
     cmb_leakage_alm=None,
     cmb_input_b_alm=None,
     cmb_recovered_b_only_alm=None,
+    tensor_input_b_alm=None,
+    tensor_recovered_b_alm=None,
 ) -> pd.DataFrame:
     """EE and BB [K_CMB^2] of the residual, its foreground part and the rest (noise), with
     the same normalisation (:func:`unit_beam_spectra`), and the mask's fsky_eff.
@@ -720,7 +732,9 @@ def residual_spectra_table(
     ``cmb_leakage`` (its spectrum) and ``cmb_recovered_b`` (the recovered CMB less it);
     with the input's B modes alone before and after the filters, ``cmb_input_b`` and
     ``cmb_recovered_b_only`` (their spectra: the power of the sky's B modes, which an r
-    scales, the mask's E-to-B leakage apart)."""
+    scales, the mask's E-to-B leakage apart); with the tensor probe (B modes alone at
+    r = 1) before and after the filters, ``tensor_input_b`` and ``tensor_recovered_b``
+    (the map's response to r, over C_GW^{r=1})."""
     table = {"ell": np.arange(lmax + 1)}
     pairs = [
         ("residual", residual_alm, None),
@@ -745,6 +759,11 @@ def residual_spectra_table(
             pairs += [
                 ("cmb_input_b", cmb_input_b_alm, None),
                 ("cmb_recovered_b_only", cmb_recovered_b_only_alm, None),
+            ]
+        if tensor_input_b_alm is not None and tensor_recovered_b_alm is not None:
+            pairs += [
+                ("tensor_input_b", tensor_input_b_alm, None),
+                ("tensor_recovered_b", tensor_recovered_b_alm, None),
             ]
     for label, alm, alm2 in pairs:
         cl = unit_beam_spectra(alm, alm2, lmax, fractions["w2"], common_fwhm_arcmin)

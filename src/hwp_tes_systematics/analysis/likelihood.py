@@ -518,9 +518,11 @@ ANALYSES = {
     "paper_literal": "residual against the unfiltered input CMB (the paper's words read "
     "literally: it keeps the CMB the filters removed), unfiltered model",
     "recovered_power": "residual against the CMB through the same filters; the model's CMB "
-    "is the power the recovered map holds: P_ell C_lens plus the filters' E-to-B leakage "
-    "measured in the run, and P_ell r C_GW (P_ell the power of the sky's B modes the map "
-    "holds, measured where the seeds carry the leakage apart, else T_ell^2)",
+    "is the power the recovered map holds: P_ell C_lens plus the filters' and the mask's "
+    "leakage into B measured in the run, and R_ell r C_GW (R_ell the map's response to r, "
+    "measured on the seeds' tensor probes where they carry them, else the power of the "
+    "lensing B modes the map holds, else T_ell^2), both times the HILC's chance "
+    "correlation f_ell",
 }
 RESIDUAL_COLUMN = {
     "paper_recipe": "bb_residual_k2",
@@ -606,6 +608,20 @@ def analysis_transfer(noise: pd.DataFrame, lmax: int, analysis: str, source: str
         cmb_leakage_bb(noise, lmax, source), c_lens, out=np.zeros(lmax + 1), where=c_lens > 0
     )
     return (sky_b_power_transfer(noise, lmax, source) + leakage) * hilc_cmb_power_ratio(noise, lmax)
+
+
+def tensor_response(noise: pd.DataFrame, lmax: int, source: str = "") -> np.ndarray:
+    """The BB an r = 1 adds to the recovered map over C_GW^{r=1}, ell = 0..lmax (1 below
+    ell = 2, clipped at 0): the noise model's ``tensor_response_bb``, measured on the
+    seeds' tensor probes, where the run has them; else the power of the lensing B modes
+    the map holds (:func:`sky_b_power_transfer`), which overstates it where the filters
+    have removed the sky and the mask brings power in from other multipoles (the tensor's
+    reionization bump falls where the lensing spectrum is flat)."""
+    if "tensor_response_bb" not in noise:
+        return sky_b_power_transfer(noise, lmax, source)
+    response = noise["tensor_response_bb"].to_numpy()[: lmax + 1].copy()
+    response[:2] = 1.0
+    return np.clip(response, 0.0, None)
 
 
 def hilc_cmb_power_ratio(noise: pd.DataFrame, lmax: int) -> np.ndarray:
@@ -713,9 +729,39 @@ def noise_model(nosys_spectra) -> pd.DataFrame:
             out["sky_power_transfer_bb_sem"] = (
                 power.std(axis=0, ddof=1) / np.sqrt(len(power)) if len(power) > 1 else 0.0
             )
+    if all(c in t for t in tables for c in TENSOR_COLUMNS):
+        out = out.join(tensor_response_columns(tables))
     out["fsky_eff"] = float(np.mean([t["fsky_eff"].iloc[0] for t in tables]))
     out["n_seeds"] = len(tables)
     return out
+
+
+# the seeds' tensor probe (B modes alone at r = 1) recovered, and as put in (map-domain path)
+TENSOR_COLUMNS = ("bb_tensor_recovered_b_k2", "bb_tensor_input_b_k2")
+
+
+def tensor_response_columns(tables: list[pd.DataFrame]) -> pd.DataFrame:
+    """The map's response to r from the seeds' tensor probes: ``tensor_response_bb`` =
+    mean over seeds of C(recovered probe) / C_GW^{r=1}, the BB an r = 1 adds to the map
+    per unit of the full-sky spectrum the model scales (filters, mask and weights, with
+    the multipoles they mix; ``_sem`` over seeds), and ``tensor_input_over_theory_bb``,
+    the same for the probe as put in (the mask's coupling alone: about 1 where C_GW is
+    smooth). 1 and 0 below ell = 2."""
+    recovered, put_in = (np.array([t[c] for t in tables]) for c in TENSOR_COLUMNS)
+    c_gw = sky.tensor_bb_r1(recovered.shape[1] - 1)
+    has_power = (np.arange(c_gw.size) >= 2) & (c_gw > 0)
+    out = {}
+    for name, spectra in (
+        ("tensor_response_bb", recovered),
+        ("tensor_input_over_theory_bb", put_in),
+    ):
+        ratio = np.divide(spectra, c_gw, out=np.ones_like(spectra), where=has_power)
+        out[name] = ratio.mean(axis=0)
+        if name == "tensor_response_bb":
+            out[f"{name}_sem"] = (
+                ratio.std(axis=0, ddof=1) / np.sqrt(len(ratio)) if len(ratio) > 1 else 0.0 * c_gw
+            )
+    return pd.DataFrame(out)
 
 
 def measured_transfer(cross: np.ndarray, auto: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -736,8 +782,8 @@ def model_from_noise_table(
     table: C_FGres as measured, N_ell as measured plus the noise x foreground cross term
     (so that N + C_FGres is the residual's mean BB), C_lens times
     :func:`analysis_transfer` when it is not None, and C_GW times the same, or for
-    ``recovered_power`` times the tensor response P_ell f_ell
-    (:func:`sky_b_power_transfer`, :func:`hilc_cmb_power_ratio`)."""
+    ``recovered_power`` times the tensor response R_ell f_ell
+    (:func:`tensor_response`, :func:`hilc_cmb_power_ratio`)."""
     if lmax > noise["ell"].iloc[-1]:
         raise ValueError(
             f"likelihood.lmax = {lmax} exceeds the spectra's lmax "
@@ -758,7 +804,7 @@ def model_from_noise_table(
         return model
     tensor = None
     if analysis == "recovered_power":
-        tensor = sky_b_power_transfer(noise, lmax, source) * hilc_cmb_power_ratio(noise, lmax)
+        tensor = tensor_response(noise, lmax, source) * hilc_cmb_power_ratio(noise, lmax)
     return model.with_transfer(transfer, tensor)
 
 

@@ -199,15 +199,16 @@ def measure_excess_bb(
 def excess_bb_alms(
     excess: np.ndarray, unit_alms: np.ndarray, reference_bb_k2: np.ndarray, lmax: int
 ) -> np.ndarray:
-    """(2, 3, nalm) the B-mode a_lm [K_CMB] a seed adds to its emulated filtered CMB, by
-    origin (EXCESS_ORIGINS), up to ``lmax``: a_B = sqrt(max(E_ell, 0) C_ell^BB) u_lm,
-    with ``excess`` E_ell of :func:`measure_excess_bb`, ``reference_bb_k2`` the model BB
-    of the seed's CMB at the channel's beam [K_CMB^2] and ``unit_alms`` (2, nalm) B
+    """(n, 3, nalm) the B-mode a_lm [K_CMB] a seed adds to its emulated filtered CMB, by
+    origin (EXCESS_ORIGINS; n = 2, or the first n of them), up to ``lmax``:
+    a_B = sqrt(max(E_ell, 0) C_ell^BB) u_lm, with ``excess`` E_ell of :func:`measure_excess_bb`, ``reference_bb_k2`` the model BB
+    of the seed's CMB at the channel's beam [K_CMB^2] and ``unit_alms`` (n, nalm) B
     fields of unit power (:func:`sky.cmb.filter_excess_unit_alms`, the same for every
     channel: the filters' mixing is taken as common to the channels, which the HILC
     then cannot average down)."""
-    out = np.zeros((len(EXCESS_ORIGINS), 3, unit_alms.shape[-1]), dtype=complex)
-    for row in range(len(EXCESS_ORIGINS)):
+    unit_alms = np.atleast_2d(unit_alms)
+    out = np.zeros((unit_alms.shape[0], 3, unit_alms.shape[-1]), dtype=complex)
+    for row in range(unit_alms.shape[0]):
         power = np.clip(excess[row, : lmax + 1], 0.0, None) * reference_bb_k2[: lmax + 1]
         out[row, 2] = hp.almxfl(unit_alms[row], np.sqrt(power))
     return out

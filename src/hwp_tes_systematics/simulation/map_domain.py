@@ -139,6 +139,7 @@ def realize_seed(
     operators: SeedOperators | None = None,
     full_terms: bool = True,
     cmb_excess_alm: np.ndarray | None = None,
+    tensor_alms: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> dict[str, np.ndarray]:
     """The maps of one seed from the fixed pass (see the module docstring): nosys,
     template_terms, templates, cmb_reference, foreground_reference (UNSEEN where the
@@ -160,7 +161,12 @@ def realize_seed(
     the filtered CMB; its second (T and E modes) also as ``cmb_leakage``; with it, also
     the seed's B modes alone before and after the filter, ``cmb_input_b`` and
     ``cmb_reference_b`` (T B + the excess of B origin: what the sky's B modes, and an r,
-    put in the map; the rest of the recovered CMB is r-independent)."""
+    put in the map; the rest of the recovered CMB is r-independent). ``tensor_alms``:
+    (the seed's tensor probe, B modes alone at r = 1 (:func:`sky.cmb.tensor_b_alm`, band
+    ``lmax``), its excess of B origin (band ``operators.filter_lmax``)), giving
+    ``tensor_input_b`` and ``tensor_reference_b``, the probe before and after the filters:
+    the map's response to r, which the lensing B modes cannot give where the filters and
+    the mask mix multipoles (the spectra's shapes differ)."""
     nside = hp.npix2nside(fixed.good.size)
     good = fixed.good
     operators = operators or SeedOperators(fixed, noise_scale, lmax)
@@ -216,6 +222,14 @@ def realize_seed(
         maps["cmb_leakage"] = np.where(good, leakage, hp.UNSEEN)
         maps["cmb_input_b"] = cmb_b
         maps["cmb_reference_b"] = np.where(good, cmb_b_filtered, hp.UNSEEN)
+    if tensor_alms is not None:
+        tensor_alm, tensor_excess = tensor_alms
+        tensor = harmonics.alm2map(tensor_alm, nside, lmax)
+        tensor_filtered = filtered_cmb_map(
+            tensor, tensor_alm, fixed.transfer, lmax, operators.filter_lmax
+        ) + harmonics.alm2map(tensor_excess, nside, operators.filter_lmax)
+        maps["tensor_input_b"] = tensor
+        maps["tensor_reference_b"] = np.where(good, tensor_filtered, hp.UNSEEN)
     if full_terms:
         terms = fixed.template_terms.copy()
         terms[SH_TERM] += pieces["cmb_h"] + pieces["noise_h"]
@@ -299,6 +313,22 @@ class ChannelSeeds:
         units = sky_cmb.filter_excess_unit_alms(lmax, self.config["master_seed"], seed)
         return excess_bb_alms(self.fixed.cmb_bb_excess, units, reference_bb, lmax)
 
+    def tensor_alms(self, seed: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """(the tensor probe's a_lm at band ``lmax``, its filters' excess of B origin at
+        band ``filter_lmax``) of ``seed`` (:func:`realize_seed`'s ``tensor_alms``); None if
+        the pass did not measure the excess (the seeds then carry no B modes alone)."""
+        if not self.fixed.cmb_bb_excess.size:
+            return None
+        master_seed = self.config["master_seed"]
+        alm = sky_cmb.tensor_b_alm(self.lmax, master_seed, seed, self.fwhm_arcmin)
+        band = sky_cmb.beam_band_limit(self.fwhm_arcmin, self.lmax)
+        lmax = self.filter_lmax
+        beam = hp.gauss_beam(np.radians(self.fwhm_arcmin / 60.0), lmax=lmax, pol=True)[:, 2]
+        reference_bb = sky_cmb.tensor_bb_r1(lmax) * beam**2
+        unit = sky_cmb.tensor_excess_unit_alm(lmax, master_seed, seed)[None]
+        excess = excess_bb_alms(self.fixed.cmb_bb_excess[:1], unit, reference_bb, lmax)[0]
+        return hp.resize_alm(alm, self.lmax, self.lmax, band, band), excess
+
     def noise_generator(self, seed: int):
         """rng_of_detector(k) of a seed: detector k's stream ("map-domain noise", channel,
         seed, detector)."""
@@ -326,6 +356,7 @@ class ChannelSeeds:
             self.operators,
             full_terms,
             self.cmb_excess_alm(seed),
+            self.tensor_alms(seed),
         )
         maps["attrs"] = {**self.attributes, "seed": seed, "realization": "map_domain"}
         return maps

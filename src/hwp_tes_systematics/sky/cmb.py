@@ -241,6 +241,25 @@ def band_limited_seed_cmb(lmax: int, r: float, master_seed: int, seed: int, fwhm
     return hp.resize_alm(alm, lmax, lmax, band, band), band
 
 
+def tensor_b_alm(lmax: int, master_seed: int, seed: int, fwhm_arcmin: float) -> np.ndarray:
+    """(3, nalm) [K_CMB] B modes alone of a primordial tensor sky at r = 1
+    (:func:`tensor_bb_r1`), beam-smoothed: seed ``seed``'s probe of the map's response to
+    r, stream ("cmb tensor b", seed), independent of the seed's CMB."""
+    cls = np.zeros((4, int(lmax) + 1))
+    cls[2] = tensor_bb_r1(lmax)
+    alm = gaussian_alm(cls, lmax, seeding.rng(master_seed, "cmb tensor b", int(seed)))
+    return smooth_alm(alm, fwhm_arcmin, lmax)
+
+
+def tensor_excess_unit_alm(lmax: int, master_seed: int, seed: int) -> np.ndarray:
+    """(nalm,) a B-mode a_lm of unit power, ell = 2..lmax: the field a map-domain seed
+    scales into the filters' excess BB of its tensor probe's B modes, stream ("tensor
+    filter excess", seed), the same for every channel."""
+    unit = np.zeros((4, lmax + 1))
+    unit[2, 2:] = 1.0
+    return gaussian_alm(unit, lmax, seeding.rng(master_seed, "tensor filter excess", seed))[2]
+
+
 def filter_excess_unit_alms(lmax: int, master_seed: int, seed: int) -> np.ndarray:
     """(2, nalm) B-mode a_lm of unit power, ell = 2..lmax, of seed ``seed``: the fields a
     map-domain seed scales into the filters' excess BB by origin (B modes, T and E modes;

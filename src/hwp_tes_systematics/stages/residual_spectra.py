@@ -39,6 +39,8 @@ def residual_spectra(hilc_h5) -> pd.DataFrame:
                 "cmb_leakage_alm",
                 "cmb_input_b_alm",
                 "cmb_recovered_b_only_alm",
+                "tensor_input_b_alm",
+                "tensor_recovered_b_alm",
             )
         }
         attrs = dict(hilc.attrs)
