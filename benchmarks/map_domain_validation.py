@@ -49,7 +49,8 @@ import healpy as hp
 import numpy as np
 import pandas as pd
 
-from hwp_tes_systematics.analysis.likelihood import BBModel, fisher_bias, model_from_noise_csv
+from hwp_tes_systematics.analysis.likelihood import BBModel, fisher_bias
+from hwp_tes_systematics.analysis.noise_model import model_from_noise_csv
 from hwp_tes_systematics.analysis.spectra import pseudo_spectra
 from hwp_tes_systematics.config import analysis_variant, load_config
 from hwp_tes_systematics.simulation.map_domain import ChannelSeeds

@@ -20,7 +20,8 @@ from pathlib import Path
 import numpy as np
 from map_domain_validation import template_bb
 
-from hwp_tes_systematics.analysis.likelihood import fisher_bias, model_from_noise_csv
+from hwp_tes_systematics.analysis.likelihood import fisher_bias
+from hwp_tes_systematics.analysis.noise_model import model_from_noise_csv
 from hwp_tes_systematics.config import analysis_variant, load_config
 from hwp_tes_systematics.simulation.map_domain import ChannelSeeds
 

@@ -6,6 +6,7 @@ import pytest
 
 from hwp_tes_systematics.analysis import consistency
 from hwp_tes_systematics.analysis import likelihood as lk
+from hwp_tes_systematics.analysis import noise_model as nm
 
 LMAX = 128
 F_SKY = 0.65
@@ -98,7 +99,7 @@ def test_a_residual_holding_the_filtered_cmb_fails_the_power_check(base):
 def test_measured_transfer_is_the_ratio_of_the_seed_sums():
     cross = np.array([[0.0, 0.0, 2.0, 1.0], [0.0, 0.0, 4.0, 3.0]])
     auto = np.array([[0.0, 0.0, 4.0, 2.0], [0.0, 0.0, 4.0, 2.0]])
-    transfer, sem = lk.measured_transfer(cross, auto)
+    transfer, sem = nm.measured_transfer(cross, auto)
     np.testing.assert_allclose(transfer, [1.0, 1.0, 0.75, 1.0])
     np.testing.assert_allclose(sem, [0.0, 0.0, 0.25, 0.5])  # ratios (0.5, 1), (0.5, 1.5)
 
@@ -204,11 +205,11 @@ def test_held_out_check_fails_when_the_seeds_do_not_share_a_noise_model(base, re
     held_out = held_out_check(config, alternating)
     assert not held_out["consistent"]
     assert all(not split["consistent"] for split in held_out["splits"])
-    noise = lk.noise_model(alternating)
+    noise = nm.measure(alternating)
     in_sample = consistency.check_model(
-        lk.model_from_noise_table(noise, 2, LMAX, "paper_recipe"),
-        lk.analysis_transfer(noise, LMAX, "transfer_in_model"),
-        lk.sky_transfer_bb(noise, LMAX),
+        nm.model_from_noise_table(noise, 2, LMAX, "paper_recipe"),
+        nm.analysis_transfer(noise, LMAX, "transfer_in_model"),
+        nm.sky_transfer_bb(noise, LMAX),
         noise["sky_transfer_bb_sem"].to_numpy(),
         [table["bb_residual_k2"].to_numpy() for table in alternating],
     )
@@ -294,7 +295,7 @@ def test_the_map_holds_the_transfer_squared_and_only_recovered_power_reads_r_bac
     config["likelihood"].update({"lmin": 2, "lmax": LMAX})
     config["simulation"]["cmb_r"] = R_INPUT
     tables = recovered_map_tables(base, np.random.default_rng(21), R_INPUT, n_seeds=60)
-    noise = lk.noise_model(tables)
+    noise = nm.measure(tables)
     recovery = r_recovery_check(config, noise, tables)
     assert recovery["recovered_power"]["consistent"], recovery["recovered_power"]["pull"]
     assert recovery["transfer_in_model"]["consistent"] is False
@@ -342,13 +343,13 @@ def test_a_filter_that_mixes_modes_needs_the_measured_b_power_to_read_r_back(bas
     a = t**2 + np.where(base.ell > 10, 0.3, 0.0)
     without_r = mixing_filter_tables(base, rng, 0.0, a, t)
     with_r = mixing_filter_tables(base, rng, R_INPUT, a, t)
-    noise = lk.noise_model(without_r)
+    noise = nm.measure(without_r)
     measured = noise["sky_b_power_transfer_bb"].to_numpy()
     np.testing.assert_allclose(measured[11:], a[11:], rtol=1e-12)
     recovery = r_recovery_check(config, noise, with_r)
     assert recovery["recovered_power"]["consistent"], recovery["recovered_power"]["pull"]
     split = ["bb_cmb_leakage_k2", "bb_cmb_recovered_b_k2"]
-    without = lk.noise_model([table.drop(columns=split) for table in without_r])
+    without = nm.measure([table.drop(columns=split) for table in without_r])
     assert "sky_b_power_transfer_bb" not in without
     recovery = r_recovery_check(config, without, with_r)
     assert recovery["recovered_power"]["consistent"] is False
@@ -405,7 +406,7 @@ def test_the_noise_model_takes_the_b_power_from_the_input_b_modes_alone():
                 }
             )
         )
-    noise = lk.noise_model(tables)
+    noise = nm.measure(tables)
     assert np.allclose(noise["sky_b_power_transfer_bb"][2:], 0.8)
     assert np.allclose(noise["cmb_leakage_bb_k2"][2:], 0.9 * c_lens[2:])
     # the model's r = 0 CMB, sky_power_transfer_bb C_lens, is the seeds' recovered CMB
@@ -414,7 +415,7 @@ def test_the_noise_model_takes_the_b_power_from_the_input_b_modes_alone():
     assert np.allclose(model[2:], data[2:], rtol=0.01)
     # without the B modes alone the mask's leakage is scaled as B power and then set
     # against a full-sky C_lens that lacks it: the model falls short of the data
-    old = lk.noise_model([t.drop(columns=list(lk.B_ONLY_COLUMNS)) for t in tables])
+    old = nm.measure([t.drop(columns=list(nm.B_ONLY_COLUMNS)) for t in tables])
     assert np.all(old["sky_power_transfer_bb"].to_numpy()[2:] * c_lens[2:] < 0.6 * data[2:])
 
 
@@ -447,10 +448,10 @@ def test_the_hilc_chance_correlation_scales_the_cmb_in_the_model(base, repo):
     config["likelihood"].update({"lmin": 2, "lmax": LMAX})
     config["simulation"]["cmb_r"] = R_INPUT
     rng = np.random.default_rng(31)
-    noise = lk.noise_model(ilc_bias_tables(base, rng, 0.0, 0.2))
+    noise = nm.measure(ilc_bias_tables(base, rng, 0.0, 0.2))
     np.testing.assert_allclose(noise["hilc_cmb_power_ratio_bb"][2:], 0.8, rtol=1e-12)
     np.testing.assert_allclose(noise["noise_x_foreground_bb_k2"], 0.0, atol=1e-30)
-    model = lk.model_from_noise_table(noise, 2, LMAX, "recovered_power")
+    model = nm.model_from_noise_table(noise, 2, LMAX, "recovered_power")
     np.testing.assert_allclose(model.c_gw_r1[2:], 0.56 * base.c_gw_r1[2:], rtol=1e-12)
     # the map's CMB power over C_lens, per seed: 0.7 x 0.8 to the seeds' scatter
     np.testing.assert_allclose(noise["sky_power_transfer_bb"][2:], 0.56, rtol=0.05)
@@ -484,7 +485,7 @@ def test_r_read_back_on_held_out_seeds_fails_where_the_seeds_differ(base, repo):
             for column in ("bb_cmb_recovered_k2", "bb_cmb_recovered_b_only_k2"):
                 table[column] *= 1.3
             table["bb_recovered_k2"] = 0.9 * table["bb_cmb_recovered_k2"] + table["bb_residual_k2"]
-    in_sample = r_recovery_check(config, lk.noise_model(alternating), alternating)
+    in_sample = r_recovery_check(config, nm.measure(alternating), alternating)
     assert abs(in_sample["recovered_power"]["r_mean"]) < in_sample["recovered_power"]["r_sem"]
     failing = held_out_r_recovery(config, alternating)["recovered_power"]
     assert failing["consistent"] is False
@@ -508,14 +509,14 @@ def test_the_tensor_response_is_measured_on_the_tensor_probe_not_the_lensing_b_m
         probe = base.c_gw_r1 * rng.chisquare(nu) / nu
         table["bb_tensor_input_b_k2"] = probe
         table["bb_tensor_recovered_b_k2"] = response * probe
-    noise = lk.noise_model(tables)
+    noise = nm.measure(tables)
     np.testing.assert_allclose(noise["tensor_response_bb"][2:], response[2:], rtol=0.25)
     assert np.all(noise["tensor_response_bb_sem"][2:] > 0)
-    model = lk.model_from_noise_table(noise, 2, LMAX, "recovered_power")
+    model = nm.model_from_noise_table(noise, 2, LMAX, "recovered_power")
     np.testing.assert_allclose(
         model.c_gw_r1[2:], noise["tensor_response_bb"][2:] * base.c_gw_r1[2:], rtol=1e-12
     )
-    lensing_b = lk.model_from_noise_table(
+    lensing_b = nm.model_from_noise_table(
         noise.drop(columns=["tensor_response_bb"]), 2, LMAX, "recovered_power"
     )
     low = slice(2, 11)

@@ -154,7 +154,7 @@ def test_map_domain_alms_reproduce_and_equal_the_maps_path(repo, tmp_path, tiny_
     )
     # the seed's tensor probe, put in at r = 1 and recovered: its power over C_GW is about
     # 1 on the mask as put in (cosmic variance of one seed) and less after the filters
-    from hwp_tes_systematics.analysis.likelihood import tensor_response_columns
+    from hwp_tes_systematics.analysis.noise_model import tensor_response_columns
 
     response = tensor_response_columns([written])
     ell = slice(8, 33)

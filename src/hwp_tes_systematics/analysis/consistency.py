@@ -40,14 +40,16 @@ import numpy as np
 import pandas as pd
 
 from .likelihood import (
-    ANALYSES,
     BBModel,
-    analysis_transfer,
     fisher_bias_per_ell,
     fisher_information_per_ell,
     linear_r_estimate,
+)
+from .noise_model import (
+    ANALYSES,
+    analysis_transfer,
+    measure,
     model_from_noise_table,
-    noise_model,
     residual_bb,
 )
 
@@ -298,8 +300,8 @@ def held_out_check(config: dict, nosys_tables: list[pd.DataFrame]) -> dict | Non
     ):
         check, _, _ = compare_model_with_data(
             settings,
-            noise_model(model_half),
-            noise_model(data_half),
+            measure(model_half),
+            measure(data_half),
             [residual_bb(table, analysis, lmax) for table in data_half],
             model_noise_per_seed=[
                 table["bb_residual_k2"].to_numpy()[: lmax + 1] for table in model_half
@@ -370,7 +372,7 @@ def held_out_r_recovery(config: dict, nosys_tables: list[pd.DataFrame]) -> dict 
     for name, (model_half, data_half) in zip(
         ("even -> odd", "odd -> even"), (halves, halves[::-1]), strict=True
     ):
-        noise = noise_model(model_half)
+        noise = measure(model_half)
         on_data = r_recovery_check(config, noise, data_half)
         on_model = r_recovery_check(config, noise, model_half)
         if on_data is None or on_model is None:

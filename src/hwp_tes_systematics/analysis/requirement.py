@@ -41,7 +41,8 @@ import numpy as np
 import pandas as pd
 
 from .ilc_residuals import TEMPLATE_PARTS, SeedMaps
-from .likelihood import fisher_bias, fit_r_common_grid, residual_bb
+from .likelihood import fisher_bias, fit_r_common_grid
+from .noise_model import residual_bb
 from .systematics import NOSYS
 
 log = logging.getLogger(__name__)

@@ -3,7 +3,7 @@ the systematic-only bias.
 
 C_obs = C_res + C_lens and C_mod(r) = r C_GW(r=1) + C_lens + C_FGres + N_ell (paper eq. 10),
 with C_lens and C_GW from the PTEP spectra shipped with litebird_sim and N_ell, C_FGres
-from the noise model; ``likelihood.model`` (:data:`likelihood.ANALYSES`) says what the
+from the noise model; ``likelihood.model`` (:data:`noise_model.ANALYSES`) says what the
 residual is taken against and whether C_lens and C_GW carry the sky's measured transfer.
 All cases of a seed are fitted on one r grid, so the grid's discretisation cancels in
 delta r = |r_sys - r_nosys| (the paper's estimator). The systematic alone (its BB
@@ -22,13 +22,8 @@ import numpy as np
 import pandas as pd
 
 from ..analysis.ilc_residuals import systematic_bb
-from ..analysis.likelihood import (
-    fisher_bias,
-    fit_r_common_grid,
-    fraction_point_shift,
-    model_from_noise_csv,
-    residual_bb,
-)
+from ..analysis.likelihood import fisher_bias, fit_r_common_grid, fraction_point_shift
+from ..analysis.noise_model import model_from_noise_csv, residual_bb
 from ..analysis.systematics import NOSYS, sigma_of_case
 from ..io import atomic_path
 

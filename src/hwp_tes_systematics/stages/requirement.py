@@ -45,7 +45,7 @@ from ..analysis.fixed_instruments import (
     fixed_instruments_summary,
 )
 from ..analysis.ilc_residuals import systematic_bb
-from ..analysis.likelihood import ANALYSES, model_from_noise_table, residual_bb
+from ..analysis.noise_model import ANALYSES, model_from_noise_table, residual_bb
 from ..analysis.requirement import (
     budget_crossing_over_seeds,
     delta_r_table,

@@ -17,7 +17,7 @@ import h5py
 import pandas as pd
 
 from .. import sky
-from ..analysis import likelihood
+from ..analysis import noise_model
 from ..analysis.ilc_residuals import residual_spectra_table
 from ..analysis.systematics import NOSYS, sigma_of_case
 from ..figures.results import plot_residual_spectra
@@ -57,7 +57,7 @@ def run(hilc_h5: str, out_csv: str) -> None:
 
 
 def run_noise_model(nosys_spectra_csvs: list[str], out_csv: str) -> None:
-    write_csv(likelihood.noise_model(nosys_spectra_csvs), out_csv)
+    write_csv(noise_model.measure(nosys_spectra_csvs), out_csv)
     log.info("wrote %s from %d seeds", out_csv, len(nosys_spectra_csvs))
 
 
