@@ -383,91 +383,33 @@ def accumulate(
     """
     clock = clock or StageClock()
     check_chunk_memory(simulator, settings)
-    if demodulated is not None and calibration is not None:
-        raise ValueError("accumulate: demodulated maps of calibration TODs are not supported")
-    if demodulated is not None and extra_binnings:
-        raise ValueError("accumulate: demodulated maps with extra binnings are not supported")
-    if any(e.demodulated for e in extra_binnings) and settings.notch_width_divisor is None:
-        raise ValueError("accumulate: a demodulated extra binning needs the notch's margins")
-    if calibration is not None and calibration.template_references and settings.noise_scale:
-        raise ValueError(
-            "accumulate: the calibration's template references take the TOD as s_f, "
-            f"which needs a noiseless pass (noise_scale = {settings.noise_scale})"
-        )
+    _check_map_makers(settings, calibration, demodulated, extra_binnings)
     n_det = simulator.n_detectors
     linear = g1_per_k is None
     n_terms = len(TEMPLATE_TERMS) if linear and template_terms else 0
     n_binned = 1 + n_terms + len(references_iqu_k)  # rows of the stack binned in ``equations``
     equations = NormalEquations(settings.nside, 1 + n_terms * n_det + len(references_iqu_k))
-    # the binned map-makers first: a demodulated one takes M and the unfiltered noise
-    # from the binned one of its resolution (the same samples), or bins its own
-    binned_of = {settings.nside: (equations, calibration.equations if calibration else None)}
-    for extra in (e for e in extra_binnings if not e.demodulated):
-        extra.equations = NormalEquations(extra.nside, equations.n_tods)
-        if calibration is not None:
-            extra.calibration_equations = NormalEquations(extra.nside, calibration.equations.n_tods)
-        binned_of.setdefault(extra.nside, (extra.equations, extra.calibration_equations))
-    for extra in (e for e in extra_binnings if e.demodulated):
-        extra.equations = DemodulatedEquations(extra.nside, equations.n_tods)
-        if calibration is not None:
-            n_filtered = calibration.equations.n_tods - calibration.n_noise_tods
-            extra.calibration_equations = DemodulatedEquations(extra.nside, n_filtered)
-        if extra.nside not in binned_of:
-            extra.matrix_equations = NormalEquations(extra.nside, 0)
-            if calibration is not None:
-                extra.white_equations = NormalEquations(extra.nside, calibration.n_noise_tods)
+    binned_of = _create_extra_equations(equations, settings.nside, calibration, extra_binnings)
     nested = settings.nside >= NESTED_FROM_NSIDE
     primary_offset = settings.baseline_length_s is not None
     offsets = {primary_offset} | {e.baseline_length_s is not None for e in extra_binnings}
     weights = detector_weights(simulator)
+    # a term's TOD is binned once per detector, with that detector's samples only
+    owners = [None] + [k for _ in range(n_terms) for k in range(n_det)]
+    binned = (_rows_of(n_terms, n_det, equations.n_tods), owners + [None] * len(references_iqu_k))
     peak_rss_mb = 0.0
     unfiltered_noise = None  # the calibration noise TODs before the filter, on its chunks
     for chunk, pointing, inner, signal, hwpss in chunk_tods(simulator, settings, sky_iqu_k, clock):
         calibrating = calibration is not None and calibration.includes(chunk)
-        # at high resolution NESTED pixels for the accumulations (neighbours on the sky are
-        # neighbours in memory: fewer cache misses), those of a coarser resolution by a
-        # shift, converted to RING at the end (:func:`_nest_to_ring`)
         with clock("pixels"):
-            if nested:
-                nest = simulator.pixels_at(pointing, settings.nside, inner, nest=True)
-                pixels_of = {settings.nside: nest}
-                for extra in extra_binnings:
-                    shift = 2 * ((settings.nside // extra.nside).bit_length() - 1)
-                    pixels_of.setdefault(extra.nside, nest >> shift)
-            else:
-                pixels_of = {settings.nside: pointing.pixels[:, inner]}
-                for extra in extra_binnings:
-                    if extra.nside not in pixels_of:
-                        pixels_of[extra.nside] = simulator.pixels_at(pointing, extra.nside, inner)
-        added = set()
-        for target, nside in [(moments, settings.nside)] + [
-            (extra.moments, extra.nside) for extra in extra_binnings
-        ]:
-            if target is None or id(target) in added:
-                continue
-            added.add(id(target))
-            with clock("HWPSS moments"):
-                target.add(
-                    pixels_of[nside],
-                    pointing.cos_2alpha[:, inner],
-                    pointing.sin_2alpha[:, inner],
-                    weights,
-                    simulator.pol_efficiency,
-                    hwpss[:, inner],
-                )
+            pixels_of = _chunk_pixels(simulator, settings.nside, extra_binnings, pointing, inner)
+        moment_targets = [(moments, settings.nside)]
+        moment_targets += [(extra.moments, extra.nside) for extra in extra_binnings]
+        _add_moments(moment_targets, pixels_of, pointing, inner, weights, simulator, hwpss, clock)
         # all TODs of the chunk in one array, for one batched 2f removal + notch
         with clock("nonlinearity terms"):
             unfiltered = np.empty((n_binned, *signal.shape))
-            tod = unfiltered[0]
-            np.multiply(hwpss, settings.a2_k_cmb, out=tod)
-            tod += signal
-            if n_terms:
-                np.square(signal, out=unfiltered[1])
-                np.multiply(signal, hwpss, out=unfiltered[2])
-                np.square(hwpss, out=unfiltered[3])
-            elif not linear:
-                tod += np.asarray(g1_per_k)[:, None] * tod**2
-            del tod
+            _fill_signal_terms(unfiltered, signal, hwpss, settings.a2_k_cmb, n_terms, g1_per_k)
         with clock("reference scans"):
             for index, reference_iqu_k in enumerate(references_iqu_k, start=1 + n_terms):
                 simulator.scan_sky(pointing, reference_iqu_k, out=unfiltered[index])
@@ -496,17 +438,13 @@ def accumulate(
                     calibration_tods, offsets, pointing, simulator, settings
                 )
                 del calibration_tods
-        # a term's TOD is binned once per detector, with that detector's samples only
-        rows = _rows_of(n_terms, n_det, equations.n_tods)
-        owners = [None] + [k for _ in range(n_terms) for k in range(n_det)]
-        owners += [None] * len(references_iqu_k)
         rates = (settings.plan.sampling_rate_hz, simulator.channel.hwp_frequency_hz)
         detector = (weights, simulator.pol_efficiency)
         if demodulated is not None:
             _bin_streams(
                 demodulated,
                 _demodulated_streams(notched, pointing, inner, rates, settings.threads, clock),
-                (rows, owners),
+                binned,
                 pointing.pixels[:, inner],
                 pointing,
                 inner,
@@ -514,59 +452,13 @@ def accumulate(
                 baseline_samples_of(settings),
                 clock,
             )
-        # demodulated once per HWP-harmonic fit and stack, whatever the map-makers' nsides
-        streams_of = {}
-        demodulation = (pointing, inner, rates, settings.threads, clock)
-
-        angles = (
-            pointing.cos_2alpha[:, inner],
-            pointing.sin_2alpha[:, inner],
-            weights,
-            simulator.pol_efficiency,
+        angles = (pointing.cos_2alpha[:, inner], pointing.sin_2alpha[:, inner], *detector)
+        _bin_extra_binnings(
+            extra_binnings,
+            (calibrating, pixels_of, angles, binned, unfiltered_noise),
+            (notched_of, calibration_of),
+            (pointing, inner, rates, settings.threads, clock),
         )
-        for extra in extra_binnings:
-            offset = extra.baseline_length_s is not None
-            if extra.demodulated:
-                _bin_demodulated(
-                    extra,
-                    calibrating,
-                    pixels_of[extra.nside],
-                    pointing,
-                    inner,
-                    detector,
-                    (rows, owners),
-                    (
-                        _shared_streams(streams_of, "filtered", notched_of, offset, demodulation),
-                        _shared_streams(
-                            streams_of, "calibration", calibration_of, offset, demodulation
-                        )
-                        if calibrating
-                        else None,
-                        unfiltered_noise,
-                    ),
-                    settings.plan.sampling_rate_hz,
-                    clock,
-                )
-                continue
-            stacks = [notched_of[offset], calibration_of[offset]]
-            stacks = [None if stack is None else stack[..., inner] for stack in stacks]
-            if offset:  # copies: the baselines are removed in place
-                samples = baseline_samples(extra.baseline_length_s, settings.plan.sampling_rate_hz)
-                stacks = [
-                    None if stack is None else remove_baselines(stack.copy(), samples)
-                    for stack in stacks
-                ]
-            with clock("binning"):
-                _bin_chunk(
-                    extra.equations,
-                    extra.calibration_equations if calibrating else None,
-                    pixels_of[extra.nside],
-                    angles,
-                    (rows, owners),
-                    *stacks,
-                    unfiltered_noise,
-                )
-            del stacks
         samples = baseline_samples_of(settings)
         filtered = remove_baselines(notched[..., inner], samples)
         calibration_filtered = None
@@ -575,14 +467,13 @@ def accumulate(
                 calibration_of[primary_offset][..., inner], samples
             )
         del notched, notched_of, calibration_of
-        streams_of.clear()
         with clock("binning"):
             _bin_chunk(
                 equations,
                 calibration.equations if calibrating else None,
                 pixels_of[settings.nside],
                 angles,
-                (rows, owners),
+                binned,
                 filtered,
                 calibration_filtered,
                 unfiltered_noise,
@@ -595,14 +486,7 @@ def accumulate(
             on_chunk(inner.stop - inner.start, rss_mb)
     if nested:
         _nest_to_ring(equations, moments, calibration, extra_binnings)
-    for extra in extra_binnings:
-        if extra.demodulated and extra.matrix_equations is None:
-            binned, binned_calibration = binned_of[extra.nside]
-            extra.matrix_equations = binned.subset([])
-            if binned_calibration is not None:  # its last TODs: the noise unfiltered
-                n_tods = binned_calibration.n_tods
-                unfiltered = range(n_tods - calibration.n_noise_tods, n_tods)
-                extra.white_equations = binned_calibration.subset(unfiltered)
+    _share_binned_matrices(extra_binnings, binned_of, calibration)
     log.info(
         "%s seed %d: peak RSS during chunks %.0f MB; time per stage: %s",
         simulator.channel.name,
@@ -611,6 +495,168 @@ def accumulate(
         clock.summary(settings.plan.simulated_samples * n_det),
     )
     return equations
+
+
+def _check_map_makers(settings, calibration, demodulated, extra_binnings) -> None:
+    """The map-maker combinations :func:`accumulate` cannot make, as clear errors."""
+    if demodulated is not None and calibration is not None:
+        raise ValueError("accumulate: demodulated maps of calibration TODs are not supported")
+    if demodulated is not None and extra_binnings:
+        raise ValueError("accumulate: demodulated maps with extra binnings are not supported")
+    if any(e.demodulated for e in extra_binnings) and settings.notch_width_divisor is None:
+        raise ValueError("accumulate: a demodulated extra binning needs the notch's margins")
+    if calibration is not None and calibration.template_references and settings.noise_scale:
+        raise ValueError(
+            "accumulate: the calibration's template references take the TOD as s_f, "
+            f"which needs a noiseless pass (noise_scale = {settings.noise_scale})"
+        )
+
+
+def _create_extra_equations(equations, nside: int, calibration, extra_binnings) -> dict:
+    """Create the extra binnings' equations; returns {nside: (binned equations, binned
+    calibration equations)} of the binned map-makers. The binned ones come first: a
+    demodulated one takes M and the unfiltered noise from the binned one of its
+    resolution (the same samples), or bins its own."""
+    binned_of = {nside: (equations, calibration.equations if calibration else None)}
+    for extra in (e for e in extra_binnings if not e.demodulated):
+        extra.equations = NormalEquations(extra.nside, equations.n_tods)
+        if calibration is not None:
+            extra.calibration_equations = NormalEquations(extra.nside, calibration.equations.n_tods)
+        binned_of.setdefault(extra.nside, (extra.equations, extra.calibration_equations))
+    for extra in (e for e in extra_binnings if e.demodulated):
+        extra.equations = DemodulatedEquations(extra.nside, equations.n_tods)
+        if calibration is not None:
+            n_filtered = calibration.equations.n_tods - calibration.n_noise_tods
+            extra.calibration_equations = DemodulatedEquations(extra.nside, n_filtered)
+        if extra.nside not in binned_of:
+            extra.matrix_equations = NormalEquations(extra.nside, 0)
+            if calibration is not None:
+                extra.white_equations = NormalEquations(extra.nside, calibration.n_noise_tods)
+    return binned_of
+
+
+def _chunk_pixels(simulator, nside: int, extra_binnings, pointing, inner) -> dict:
+    """{nside: (n_det, n_inner) pixels} of the chunk's inner samples for every map-maker.
+    At high resolution NESTED pixels (neighbours on the sky are neighbours in memory:
+    fewer cache misses), those of a coarser resolution by a shift, converted to RING at
+    the end (:func:`_nest_to_ring`)."""
+    if nside >= NESTED_FROM_NSIDE:
+        nest = simulator.pixels_at(pointing, nside, inner, nest=True)
+        pixels_of = {nside: nest}
+        for extra in extra_binnings:
+            shift = 2 * ((nside // extra.nside).bit_length() - 1)
+            pixels_of.setdefault(extra.nside, nest >> shift)
+        return pixels_of
+    pixels_of = {nside: pointing.pixels[:, inner]}
+    for extra in extra_binnings:
+        if extra.nside not in pixels_of:
+            pixels_of[extra.nside] = simulator.pixels_at(pointing, extra.nside, inner)
+    return pixels_of
+
+
+def _add_moments(targets, pixels_of, pointing, inner, weights, simulator, hwpss, clock) -> None:
+    """Add the chunk's HWPSS moments to each distinct :class:`mapmaking.PixelMoments` of
+    ``targets`` [(moments or None, nside)] (a resolution's moments are added once)."""
+    added = set()
+    for target, nside in targets:
+        if target is None or id(target) in added:
+            continue
+        added.add(id(target))
+        with clock("HWPSS moments"):
+            target.add(
+                pixels_of[nside],
+                pointing.cos_2alpha[:, inner],
+                pointing.sin_2alpha[:, inner],
+                weights,
+                simulator.pol_efficiency,
+                hwpss[:, inner],
+            )
+
+
+def _fill_signal_terms(unfiltered, signal, hwpss, a2_k_cmb: float, n_terms: int, g1_per_k):
+    """Rows 0..n_terms of the chunk's stack, in place: d = s + A_2 h, then the terms s^2,
+    s h, h^2 of d^2 (``n_terms`` 3), or, with ``g1_per_k``, d + g1 d^2 alone."""
+    tod = unfiltered[0]
+    np.multiply(hwpss, a2_k_cmb, out=tod)
+    tod += signal
+    if n_terms:
+        np.square(signal, out=unfiltered[1])
+        np.multiply(signal, hwpss, out=unfiltered[2])
+        np.square(hwpss, out=unfiltered[3])
+    elif g1_per_k is not None:
+        tod += np.asarray(g1_per_k)[:, None] * tod**2
+
+
+def _baselines_removed(stacks, inner, baseline_length_s, sampling_rate_hz) -> list:
+    """The stacks' inner samples, with the baselines of ``baseline_length_s`` removed
+    (on copies: the removal works in place) when it is not None; None stays None."""
+    stacks = [None if stack is None else stack[..., inner] for stack in stacks]
+    if baseline_length_s is None:
+        return stacks
+    samples = baseline_samples(baseline_length_s, sampling_rate_hz)
+    return [None if stack is None else remove_baselines(stack.copy(), samples) for stack in stacks]
+
+
+def _bin_extra_binnings(extra_binnings, chunk, filtered, demodulation) -> None:
+    """Bin a chunk into each extra binning (:class:`ExtraBinning`), with or without its
+    baselines; a demodulated one through :func:`_bin_demodulated`, the streams demodulated
+    once per stack and baseline choice whatever the map-makers' nsides.
+    ``chunk``: (calibrating, {nside: pixels}, angles, (rows, owners), the unfiltered noise
+    TODs); ``filtered``: ({offset: filtered stack}, {offset: filtered calibration stack});
+    ``demodulation``: (pointing, inner, (sampling rate, HWP frequency), threads, clock)."""
+    calibrating, pixels_of, angles, binned, unfiltered_noise = chunk
+    notched_of, calibration_of = filtered
+    pointing, inner, (rate_hz, _), _, clock = demodulation
+    streams_of = {}
+    for extra in extra_binnings:
+        offset = extra.baseline_length_s is not None
+        if extra.demodulated:
+            _bin_demodulated(
+                extra,
+                calibrating,
+                pixels_of[extra.nside],
+                pointing,
+                inner,
+                angles[2:],
+                binned,
+                (
+                    _shared_streams(streams_of, "filtered", notched_of, offset, demodulation),
+                    _shared_streams(streams_of, "calibration", calibration_of, offset, demodulation)
+                    if calibrating
+                    else None,
+                    unfiltered_noise,
+                ),
+                rate_hz,
+                clock,
+            )
+            continue
+        stacks = _baselines_removed(
+            [notched_of[offset], calibration_of[offset]], inner, extra.baseline_length_s, rate_hz
+        )
+        with clock("binning"):
+            _bin_chunk(
+                extra.equations,
+                extra.calibration_equations if calibrating else None,
+                pixels_of[extra.nside],
+                angles,
+                binned,
+                *stacks,
+                unfiltered_noise,
+            )
+        del stacks
+
+
+def _share_binned_matrices(extra_binnings, binned_of: dict, calibration) -> None:
+    """A demodulated map-maker without its own matrix takes the binned one of its
+    resolution, and the unfiltered noise TODs (the binned calibration's last ones)."""
+    for extra in extra_binnings:
+        if extra.demodulated and extra.matrix_equations is None:
+            binned, binned_calibration = binned_of[extra.nside]
+            extra.matrix_equations = binned.subset([])
+            if binned_calibration is not None:  # its last TODs: the noise unfiltered
+                n_tods = binned_calibration.n_tods
+                unfiltered = range(n_tods - calibration.n_noise_tods, n_tods)
+                extra.white_equations = binned_calibration.subset(unfiltered)
 
 
 def chunk_memory_bytes(n_detectors: int, settings) -> float:
