@@ -494,11 +494,10 @@ def test_r_read_back_on_held_out_seeds_fails_where_the_seeds_differ(base, repo):
 
 
 def test_the_tensor_response_is_measured_on_the_tensor_probe_not_the_lensing_b_modes(base):
-    """Where the filters leave no sky (ell < 11 here) the mask brings lensing power in from
-    other multipoles, so the lensing B modes' recovered power over their input (P_ell) is
-    0.2 there; a tensor probe, whose reionization bump is 100 times the power coupled in,
-    measures the map's response R_ell ~ 0.002. The recovered_power model takes R_ell from
-    the probe, and the tensor information from ell < 11 falls with it."""
+    """A map whose response to the lensing B modes (P_ell = 0.2 at ell < 11, power coupled
+    in from other multipoles) is not its response to a tensor (R_ell = 0.002 there): the
+    noise model measures R_ell on the seeds' tensor probes, the recovered_power model takes
+    it, and the tensor information from ell < 11 falls with it."""
     rng = np.random.default_rng(41)
     nu = np.maximum((2 * base.ell + 1) * base.f_sky, 1.0)
     response = np.where(base.ell < 11, 0.002, 0.5)
