@@ -281,6 +281,13 @@ def compare_model_with_data(
     return check, model_transfer, data_transfer
 
 
+def held_out_splits(nosys_tables: list) -> list[tuple[str, list, list]]:
+    """[(name, the seeds the model is measured on, the seeds it is checked on)]: the seeds
+    at even and at odd positions, both ways."""
+    even, odd = nosys_tables[0::2], nosys_tables[1::2]
+    return [("even -> odd", even, odd), ("odd -> even", odd, even)]
+
+
 def held_out_check(config: dict, nosys_tables: list[pd.DataFrame]) -> dict | None:
     """The model check with the model measured on other seeds than the data: the seeds
     split into even and odd positions, the noise model (N_ell, C_FGres, the sky's
@@ -293,11 +300,8 @@ def held_out_check(config: dict, nosys_tables: list[pd.DataFrame]) -> dict | Non
         return None
     settings = config["likelihood"]
     analysis, lmax = settings["model"], settings["lmax"]
-    halves = (nosys_tables[0::2], nosys_tables[1::2])
     results = []
-    for name, (model_half, data_half) in zip(
-        ("even -> odd", "odd -> even"), (halves, halves[::-1]), strict=True
-    ):
+    for name, model_half, data_half in held_out_splits(nosys_tables):
         check, _, _ = compare_model_with_data(
             settings,
             measure(model_half),
@@ -367,11 +371,8 @@ def held_out_r_recovery(config: dict, nosys_tables: list[pd.DataFrame]) -> dict 
     recovered map's column."""
     if len(nosys_tables) < 2 * MIN_SEEDS_FOR_VERDICT:
         return None
-    halves = (nosys_tables[0::2], nosys_tables[1::2])
     splits = []
-    for name, (model_half, data_half) in zip(
-        ("even -> odd", "odd -> even"), (halves, halves[::-1]), strict=True
-    ):
+    for name, model_half, data_half in held_out_splits(nosys_tables):
         noise = measure(model_half)
         on_data = r_recovery_check(config, noise, data_half)
         on_model = r_recovery_check(config, noise, model_half)
