@@ -308,10 +308,17 @@ class ChannelSeeds:
         if not self.fixed.cmb_bb_excess.size:
             return None
         lmax = self.filter_lmax
-        beam = hp.gauss_beam(np.radians(self.fwhm_arcmin / 60.0), lmax=lmax, pol=True)[:, 2]
-        reference_bb = sky_cmb.cmb_spectra(self.config["simulation"]["cmb_r"], lmax)[2] * beam**2
+        reference_bb = sky_cmb.cmb_spectra(self.config["simulation"]["cmb_r"], lmax)[2]
         units = sky_cmb.filter_excess_unit_alms(lmax, self.config["master_seed"], seed)
-        return excess_bb_alms(self.fixed.cmb_bb_excess, units, reference_bb, lmax)
+        return self._beamed_excess(reference_bb, units)
+
+    def _beamed_excess(self, reference_bb_k2: np.ndarray, units: np.ndarray) -> np.ndarray:
+        """:func:`filter_response.excess_bb_alms` of the pass's first len(units) E_ell rows
+        on ``reference_bb_k2`` (band ``filter_lmax``) at the channel's beam."""
+        lmax = self.filter_lmax
+        beam = hp.gauss_beam(np.radians(self.fwhm_arcmin / 60.0), lmax=lmax, pol=True)[:, 2]
+        excess = self.fixed.cmb_bb_excess[: len(units)]
+        return excess_bb_alms(excess, units, reference_bb_k2[: lmax + 1] * beam**2, lmax)
 
     def tensor_alms(self, seed: int) -> tuple[np.ndarray, np.ndarray] | None:
         """(the tensor probe's a_lm at band ``lmax``, its filters' excess of B origin at
@@ -322,11 +329,8 @@ class ChannelSeeds:
         master_seed = self.config["master_seed"]
         alm = sky_cmb.tensor_b_alm(self.lmax, master_seed, seed, self.fwhm_arcmin)
         band = sky_cmb.beam_band_limit(self.fwhm_arcmin, self.lmax)
-        lmax = self.filter_lmax
-        beam = hp.gauss_beam(np.radians(self.fwhm_arcmin / 60.0), lmax=lmax, pol=True)[:, 2]
-        reference_bb = sky_cmb.tensor_bb_r1(lmax) * beam**2
-        unit = sky_cmb.tensor_excess_unit_alm(lmax, master_seed, seed)[None]
-        excess = excess_bb_alms(self.fixed.cmb_bb_excess[:1], unit, reference_bb, lmax)[0]
+        unit = sky_cmb.tensor_excess_unit_alm(self.filter_lmax, master_seed, seed)[None]
+        excess = self._beamed_excess(sky_cmb.tensor_bb_r1(self.filter_lmax), unit)[0]
         return hp.resize_alm(alm, self.lmax, self.lmax, band, band), excess
 
     def noise_generator(self, seed: int):

@@ -255,9 +255,7 @@ def tensor_excess_unit_alm(lmax: int, master_seed: int, seed: int) -> np.ndarray
     """(nalm,) a B-mode a_lm of unit power, ell = 2..lmax: the field a map-domain seed
     scales into the filters' excess BB of its tensor probe's B modes, stream ("tensor
     filter excess", seed), the same for every channel."""
-    unit = np.zeros((4, lmax + 1))
-    unit[2, 2:] = 1.0
-    return gaussian_alm(unit, lmax, seeding.rng(master_seed, "tensor filter excess", seed))[2]
+    return _unit_b_alm(lmax, seeding.rng(master_seed, "tensor filter excess", seed))
 
 
 def filter_excess_unit_alms(lmax: int, master_seed: int, seed: int) -> np.ndarray:
@@ -265,11 +263,17 @@ def filter_excess_unit_alms(lmax: int, master_seed: int, seed: int) -> np.ndarra
     map-domain seed scales into the filters' excess BB by origin (B modes, T and E modes;
     :func:`simulation.filter_response.excess_bb_alms`). Streams ("cmb filter excess",
     seed, origin), the same for every channel; ordered by ell as :func:`gaussian_alm`."""
-    unit = np.zeros((4, lmax + 1))
-    unit[2, 2:] = 1.0
     return np.array(
         [
-            gaussian_alm(unit, lmax, seeding.rng(master_seed, "cmb filter excess", seed, row))[2]
+            _unit_b_alm(lmax, seeding.rng(master_seed, "cmb filter excess", seed, row))
             for row in range(2)
         ]
     )
+
+
+def _unit_b_alm(lmax: int, rng) -> np.ndarray:
+    """(nalm,) a B-mode a_lm of unit power at ell = 2..lmax from ``rng`` (the order of
+    :func:`gaussian_alm`)."""
+    unit = np.zeros((4, lmax + 1))
+    unit[2, 2:] = 1.0
+    return gaussian_alm(unit, lmax, rng)[2]
