@@ -220,12 +220,13 @@ def measure(nosys_spectra) -> pd.DataFrame:
                 map_bb = np.array([t["bb_recovered_k2"] for t in tables])
                 residual = np.array([t["bb_residual_k2"] for t in tables])
                 cross = map_bb - residual - recovered
+                recovered_sum = recovered.sum(axis=0)
                 ratio = np.ones(cross.shape[1])
                 np.divide(
-                    recovered.sum(axis=0) + cross.sum(axis=0),
-                    recovered.sum(axis=0),
+                    recovered_sum + cross.sum(axis=0),
+                    recovered_sum,
                     out=ratio,
-                    where=recovered.sum(axis=0) > 0,
+                    where=recovered_sum > 0,
                 )
                 ratio[:2] = 1.0
                 out["cmb_x_residual_bb_k2"] = cross.mean(axis=0)
