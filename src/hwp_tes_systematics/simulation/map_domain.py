@@ -178,11 +178,6 @@ def realize_seed(
             harmonics.alm2map(alm, nside, operators.filter_lmax) for alm in cmb_excess_alm
         )
         cmb_filtered += b_part + leakage
-        b_alm = b_modes_alone(cmb_alm)
-        cmb_b = harmonics.alm2map(b_alm, nside, lmax)
-        cmb_b_filtered = (
-            filtered_cmb_map(cmb_b, b_alm, fixed.transfer, lmax, operators.filter_lmax) + b_part
-        )
     b, c = operators.noise.draw(rng_of_detector)
 
     def filtered_noise(vectors, shaping):  # the binned white noise, shaped by the filter
@@ -218,18 +213,21 @@ def realize_seed(
         "cmb_input": cmb,
         "sh_term_pieces": pieces,
     }
+
+    def b_modes(alm, excess_map, prefix):  # B modes alone, before and after the filters
+        unfiltered = harmonics.alm2map(alm, nside, lmax)
+        filtered = filtered_cmb_map(unfiltered, alm, fixed.transfer, lmax, operators.filter_lmax)
+        maps[f"{prefix}_input_b"] = unfiltered
+        maps[f"{prefix}_reference_b"] = np.where(good, filtered + excess_map, hp.UNSEEN)
+
     if leakage is not None:
         maps["cmb_leakage"] = np.where(good, leakage, hp.UNSEEN)
-        maps["cmb_input_b"] = cmb_b
-        maps["cmb_reference_b"] = np.where(good, cmb_b_filtered, hp.UNSEEN)
+        b_modes(b_modes_alone(cmb_alm), b_part, "cmb")
     if tensor_alms is not None:
         tensor_alm, tensor_excess = tensor_alms
-        tensor = harmonics.alm2map(tensor_alm, nside, lmax)
-        tensor_filtered = filtered_cmb_map(
-            tensor, tensor_alm, fixed.transfer, lmax, operators.filter_lmax
-        ) + harmonics.alm2map(tensor_excess, nside, operators.filter_lmax)
-        maps["tensor_input_b"] = tensor
-        maps["tensor_reference_b"] = np.where(good, tensor_filtered, hp.UNSEEN)
+        b_modes(
+            tensor_alm, harmonics.alm2map(tensor_excess, nside, operators.filter_lmax), "tensor"
+        )
     if full_terms:
         terms = fixed.template_terms.copy()
         terms[SH_TERM] += pieces["cmb_h"] + pieces["noise_h"]
