@@ -88,7 +88,7 @@ def gain_sidebands(
     import numpy as np
     import scipy.fft
 
-    from hwp_tes_systematics.diagnose.fluctuations import gain_psd
+    from hwp_tes_systematics.diagnose.effects.fluctuations import gain_psd
 
     rng = np.random.default_rng(seed)
     freqs = scipy.fft.rfftfreq(n, 1 / rate_hz)

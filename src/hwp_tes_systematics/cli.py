@@ -84,7 +84,8 @@ def run_diagnose(
     ``segment_hours``, is diagnosed in segments (:mod:`.diagnose.segments`).
     """
     from .diagnose import diagnose
-    from .diagnose.recording import MIN_SAMPLES, nominal_a2, read_recording, recording_size
+    from .diagnose.recording import nominal_a2, read_recording
+    from .diagnose.recording_checks import MIN_SAMPLES, recording_size
     from .diagnose.segments import diagnose_segments, needs_segments
     from .simulation.channel_inputs import channel_a2_k_cmb
 
@@ -393,7 +394,7 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
     if problem:
         commands["diagnose"].error(problem)
     if arguments.requirement is not None:  # a bad one stops before the long diagnosis
-        from .diagnose.requirement_check import RequirementFileError, load_requirement
+        from .diagnose.bound.requirement_check import RequirementFileError, load_requirement
 
         try:
             load_requirement(arguments.requirement)

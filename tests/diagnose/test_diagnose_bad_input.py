@@ -22,7 +22,8 @@ from hwp_tes_systematics.diagnose import (
     simulate_recording,
     write_recording,
 )
-from hwp_tes_systematics.diagnose.recording import _rle_segment, recording_size
+from hwp_tes_systematics.diagnose.recording import _rle_segment
+from hwp_tes_systematics.diagnose.recording_checks import recording_size
 from hwp_tes_systematics.diagnose.testbed import A2_K, CHANNEL, MASTER_SEED, run, sky_map
 
 HUGE = 10**10  # declared samples: 149 GiB of float64 TOD for two detectors

@@ -108,7 +108,7 @@ def test_cli_diagnoses_a_recording_too_long_for_the_budget_in_segments(tmp_path)
     """--memory-gb below what the recording needs at once: the command cuts it into
     segments that fit, diagnoses each, and reports them combined (--segment-hours asks
     for segments directly)."""
-    from hwp_tes_systematics.diagnose.recording import diagnosis_memory_bytes
+    from hwp_tes_systematics.diagnose.recording_checks import diagnosis_memory_bytes
 
     recording = simulate_recording(
         CHANNEL, 2.2, MASTER_SEED, 4246, sky_map(), A2_K, [("tes_nonlinearity", {"g1": -0.03})]

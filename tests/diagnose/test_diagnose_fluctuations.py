@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from hwp_tes_systematics.diagnose import diagnose, simulate
-from hwp_tes_systematics.diagnose.fluctuations import (
+from hwp_tes_systematics.diagnose.effects.fluctuations import (
     F_REF_HZ,
     WithExcess,
     gain_psd,
@@ -54,8 +54,8 @@ def test_a_gain_fluctuation_leaves_no_time_segment_unexplained():
     import scipy.fft
     from helpers import gain_sidebands
 
+    from hwp_tes_systematics.diagnose.explain.unexplained import TIME_SEGMENTS, _segments
     from hwp_tes_systematics.diagnose.noise import periodogram_scale
-    from hwp_tes_systematics.diagnose.unexplained import TIME_SEGMENTS, _segments
 
     rate, n, net = 20.0, 20 * 3600 * 4, 50e-6
     rng = np.random.default_rng(11)
@@ -148,7 +148,7 @@ def test_the_pair_determinant_stays_positive_where_the_sidebands_dwarf_the_noise
     direct product minus |C|^2 where that is accurate, and positive at rho = 1 with
     sidebands 1e18 times the noise, where the direct difference rounds to <= 0 (the
     "invalid value in log" of H3-402's thermal drift)."""
-    from hwp_tes_systematics.diagnose.fluctuations import pair_determinant
+    from hwp_tes_systematics.diagnose.effects.fluctuations import pair_determinant
 
     rng = np.random.default_rng(5)
     noise = [rng.uniform(1, 2, 2000), rng.uniform(1, 2, 2000)]
@@ -172,7 +172,7 @@ def test_the_pair_determinant_stays_positive_where_the_sidebands_dwarf_the_noise
 def test_the_curvature_of_a_parameter_at_its_bound_is_taken_inside():
     """-2 ln L = (rho - 0.9)^2 / 0.05^2, undefined beyond rho = 1: at the bound the second
     difference moves inside and still gives sigma = 0.05 (centred, it read NaN)."""
-    from hwp_tes_systematics.diagnose.fluctuations import _curvature_sigmas
+    from hwp_tes_systematics.diagnose.effects.fluctuations import _curvature_sigmas
 
     def minus_two_ln_l(p):
         return (p[0] - 0.9) ** 2 / 0.05**2 if p[0] <= 1.0 else math.nan

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from hwp_tes_systematics.diagnose import RecordingError, read_recording
-from hwp_tes_systematics.diagnose.recording import (
+from hwp_tes_systematics.diagnose.recording_checks import (
     DIAGNOSIS_BYTES_PER_DETECTOR_SAMPLE,
     check_memory,
     diagnosis_memory_bytes,

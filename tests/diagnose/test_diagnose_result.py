@@ -36,8 +36,7 @@ def test_the_report_goes_to_the_exact_paths_and_survives_a_failing_figure(
     """write_outputs writes the JSON and the Markdown where it is told (the rule's declared
     outputs, ReportPaths); a figure that raises is named in the Markdown and loses
     neither file."""
-    from hwp_tes_systematics.diagnose import figures
-    from hwp_tes_systematics.diagnose.report import ReportPaths, write_outputs
+    from hwp_tes_systematics.diagnose.report import ReportPaths, figures, write_outputs
 
     def failing(*args):
         raise ValueError("sigma: None")
@@ -85,7 +84,7 @@ def test_a_found_nonlinearity_against_the_shipped_requirement(result):
     """The example's g1 (electrothermal TES, ~-0.04 K^-1, known to ~1e-4) against the shipped
     one-year requirement (sigma_g1 < 4.9e-3 K^-1): known far better than required, and
     about ten times the requirement if left uncorrected."""
-    from hwp_tes_systematics.diagnose.requirement_check import (
+    from hwp_tes_systematics.diagnose.bound.requirement_check import (
         compare_nonlinearity,
         load_requirement,
     )
@@ -107,7 +106,7 @@ def test_a_found_nonlinearity_against_the_shipped_requirement(result):
 def test_a_nonlinearity_not_found_is_bounded_against_the_requirement():
     """No nonlinearity selected: the g1 fitted beside the effects bounds |g1| by |g1| + 2
     sigma per detector; the verdict turns on the larger bound against sigma_g1."""
-    from hwp_tes_systematics.diagnose.requirement_check import (
+    from hwp_tes_systematics.diagnose.bound.requirement_check import (
         bound_nonlinearity,
         load_requirement,
     )
@@ -146,7 +145,7 @@ def test_a_nonlinearity_not_found_is_bounded_against_the_requirement():
 
 
 def test_a_requirement_file_without_a_headline_is_refused(tmp_path):
-    from hwp_tes_systematics.diagnose.requirement_check import (
+    from hwp_tes_systematics.diagnose.bound.requirement_check import (
         RequirementFileError,
         load_requirement,
     )
@@ -161,7 +160,7 @@ def test_a_requirement_file_without_a_headline_is_refused(tmp_path):
 
 def test_physical_bounds_say_what_is_out():
     from hwp_tes_systematics.diagnose.effects import CATALOG
-    from hwp_tes_systematics.diagnose.fit import EffectFit
+    from hwp_tes_systematics.diagnose.select import EffectFit
 
     coupling = CATALOG["hwpss_intensity_coupling"]
     inside = EffectFit("hwpss_intensity_coupling", values={"a2c": [0.02, -0.05], "a2s": [0.0, 0.0]})

@@ -18,9 +18,9 @@ from hwp_tes_systematics.diagnose import (
     simulate_recording,
     write_recording,
 )
-from hwp_tes_systematics.diagnose.fluctuations import WithExcess, sideband_psd
+from hwp_tes_systematics.diagnose.effects.fluctuations import WithExcess, sideband_psd
+from hwp_tes_systematics.diagnose.effects.rolloff import fit_rolloff, rolloff
 from hwp_tes_systematics.diagnose.noise import NoiseModel
-from hwp_tes_systematics.diagnose.rolloff import fit_rolloff, rolloff
 from hwp_tes_systematics.diagnose.testbed import MASTER_SEED, nominal, sky_map
 
 RATE_HZ = 31.0

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from hwp_tes_systematics.diagnose import RecordingError, read_recording
-from hwp_tes_systematics.diagnose.recording import diagnosis_memory_bytes
-from hwp_tes_systematics.diagnose.requirement_check import load_requirement
+from hwp_tes_systematics.diagnose.bound.requirement_check import load_requirement
+from hwp_tes_systematics.diagnose.recording_checks import diagnosis_memory_bytes
 from hwp_tes_systematics.diagnose.segments import (
     VARIES_P,
     combine_segments,
@@ -186,7 +186,7 @@ def test_segments_without_a_nonlinearity_combine_their_bounds_on_g1():
     """No segment finds a nonlinearity: each one's g1 fitted beside its effects
     (requirement_check.parameters) combines as the inverse-variance mean, and the bound is
     |g1| + 2 sigma of that mean."""
-    from hwp_tes_systematics.diagnose.requirement_check import bound_nonlinearity
+    from hwp_tes_systematics.diagnose.bound.requirement_check import bound_nonlinearity
 
     results = []
     for value, sigma in ((1.0e-4, 4e-4), (-3.0e-4, 3e-4)):

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from hwp_tes_systematics import __version__, cli
-from hwp_tes_systematics.diagnose.requirement_check import (
+from hwp_tes_systematics.diagnose.bound.requirement_check import (
     bound_nonlinearity,
     compare_nonlinearity,
     load_requirement,

@@ -5,28 +5,33 @@
     result.mismatch_found, result.effect_names, result["unexplained"]
     result.parameter("tes_nonlinearity", "g1", 0)      # {value, sigma, unit, ...}
 
-Modules: :mod:`.recording` (files), :mod:`.simulate` (recordings with injected effects, the
-injection-only effects), :mod:`.testbed` (recordings with randomized nominal errors, for
-the tests and the rates benchmark), :mod:`.model` (nominal model),
-:mod:`.nominal` (nominal-model adjustments fitted on every recording), :mod:`.effects`
-(catalog: one class per effect with its forward model, templates, signature and
-evidence), :mod:`.noise` (noise estimate, Whittle), :mod:`.rolloff` (the detector's pole in the
-noise), :mod:`.linalg` (whitened least
-squares), :mod:`.locate` (lines, HWP-angle harmonics, transients, drifts, sky),
-:mod:`.fit` (stepwise selection with the BIC), :mod:`.unexplained` (what no effect
-explains), :mod:`.evidence` (measurements for the evidence texts), :mod:`.pipeline`
-(``diagnose``), :mod:`.segments` (a recording longer than memory allows, diagnosed
-segment by segment and combined), :mod:`.report` (diagnosis.json, diagnosis.md) and :mod:`.figures` (its
-PNGs). Imports go one way: recording/model -> effects -> simulate;
-effects -> locate -> nominal/fit/unexplained
--> pipeline -> segments; pipeline -> report -> figures (no cycle).
+The layout follows the diagnosis. Ground floor: :mod:`.recording` (files) and
+:mod:`.recording_checks` (their declared sizes and memory), :mod:`.model` (the nominal
+model d_nom), :mod:`.noise` (noise estimate, Whittle) and :mod:`.linalg` (whitened least
+squares). The physics: :mod:`.effects`, the catalog, one class per effect with its forward
+model, templates, signature, evidence and, for the effects seen in the noise, its own fit
+(:mod:`.effects.fluctuations`, :mod:`.effects.rolloff`); :mod:`.catalog` writes its page.
+The six steps, one folder each, chained by :mod:`.pipeline` (``diagnose``):
+
+    1 :mod:`.nominal`   the nominal adjustments (gain, offsets, 2f, angles, sky, noise)
+    2 :mod:`.locate`    lines, HWP-angle harmonics, transients, drifts, sky
+    3 :mod:`.select`    stepwise selection with the BIC over the template bank
+    4 :mod:`.explain`   each effect's evidence and look-alikes; what no effect explains
+    5 :mod:`.bound`     g1 against a workflow run's requirement
+    6 :mod:`.report`    diagnosis.json, diagnosis.md and the figures
+
+Above them, :mod:`.segments` diagnoses a recording longer than memory allows segment by
+segment; beside them, :mod:`.simulate` and :mod:`.testbed` make recordings with a known
+truth for the tests and the rates benchmark. Imports go one way: ground -> effects ->
+steps 1 to 6 (a step imports only earlier ones) -> pipeline -> segments.
 """
 
 from .effects import CATALOG, catalog_table
 from .model import nominal_tod
 from .pipeline import diagnose
-from .recording import Recording, RecordingError, read_recording, write_recording
-from .report import Diagnosis
+from .recording import Recording, read_recording, write_recording
+from .recording_checks import RecordingError
+from .report.diagnosis import Diagnosis
 from .simulate import simulate_recording
 
 __all__ = [

@@ -166,6 +166,7 @@ def welch_segment(n_samples: int) -> int:
     return int(max(256, 2 ** math.floor(math.log2(max(n_samples // 8, 256)))))
 
 
+NOISE_FMIN_SPINS = 2.0  # the noise is fitted above 2 f_spin (extrapolated below)
 MIN_WELCH_SEGMENTS = 5  # whole valid segments the median is taken over (fewer: shorter segments)
 
 

@@ -48,24 +48,18 @@ import erfa
 import numpy as np
 
 from ..io import atomic_path
+from .recording_checks import (
+    MIN_SAMPLES,
+    RecordingError,
+    _check_file,
+    _declared,
+    _fail,
+    _rle_flag_names,
+    check_memory,
+)
 
 DEFAULT_START_TDB = "2032-04-01T00:00:00"
 REQUIRED_DETECTOR_KEYS = ("name", "pol_angle_rad")
-MIN_SAMPLES = 64
-# What diagnosing a recording needs in memory, checked from the declared sizes before
-# anything is read: the peak RSS of diagnose() grows by 1269 B per detector-sample
-# (M1-140 pair at 31 Hz, 2 h -> 6 h: 429 -> 1509 MiB above the 451-613 MiB of the loaded
-# package; `python benchmarks/diagnose_memory.py --hours 2 6`, with the pointing effects'
-# templates; 1190 B before them), on top of ~0.7 GB.
-DIAGNOSIS_BYTES_PER_DETECTOR_SAMPLE = 1300
-DIAGNOSIS_BASE_BYTES = 0.7e9
-# A dataset (tod, pointings, hwp_angle, RLE flags) storing less than 1/this of the bytes
-# its shape declares is either compressible data (accepted if every chunk is stored) or
-# never written (refused): gzip on float64 TOD, pointing or HWP angle gains < 10x; a
-# dataset created with a shape and never written stores nothing.
-MAX_DECLARED_OVER_STORED = 100
-REAL_KINDS = "fiu"  # numpy dtype kinds accepted for tod, pointings, hwp_angle
-FLAG_KINDS = "biu"  # for flags and RLE flags
 FINITE_DETECTOR_KEYS = (
     "pol_angle_rad",
     "pol_efficiency",
@@ -74,10 +68,6 @@ FINITE_DETECTOR_KEYS = (
     "alpha",
     "fmin_hz",
 )
-
-
-class RecordingError(ValueError):
-    """A recording file that cannot be used; the message names the file and the problem."""
 
 
 @dataclass
@@ -132,13 +122,6 @@ class Recording:
             }
             for d in self.detectors
         ]
-
-
-# --------------------------------------------------------------------------- reading
-
-
-def _fail(path, problem: str):
-    raise RecordingError(f"{path}: {problem}")
 
 
 def _read_start_time(path, dataset) -> astropy.time.Time:
@@ -225,53 +208,6 @@ def _read_detectors(path, dataset, n_det: int) -> list[dict]:
     return detectors
 
 
-def _rle_flag_names(handle) -> list[str]:
-    return sorted(name for name in handle if name.startswith("flags_") and name[6:].isdigit())
-
-
-def _check_flags(path, handle, n_det: int, n: int) -> None:
-    """The flags' declared shapes and dtypes, and the RLE flags' run lengths, checked
-    before any flag array of the recording's size is made."""
-    import h5py
-
-    if "flags" in handle:
-        flags = handle["flags"]
-        if not isinstance(flags, h5py.Dataset):
-            _fail(path, "'flags' is not a dataset: expected (n_det, n_samples) booleans")
-        if flags.shape != (n_det, n):
-            _fail(path, f"dataset 'flags' has shape {flags.shape}, expected {(n_det, n)}")
-        _check_dtype(path, "flags", flags, FLAG_KINDS, "booleans or integers (non-zero = bad)")
-    for name in _rle_flag_names(handle):
-        index = int(name[6:])
-        if index >= n_det:
-            _fail(path, f"dataset {name!r} refers to detector {index} of {n_det}")
-        dataset = handle[name]
-        if not isinstance(dataset, h5py.Dataset) or dataset.ndim != 2 or dataset.shape[0] != 2:
-            shape = getattr(dataset, "shape", "a group")
-            _fail(
-                path,
-                f"dataset {name!r} has shape {shape}: expected (2, n_runs), run lengths "
-                "then values (litebird_sim's run-length-encoded flags)",
-            )
-        if dataset.shape[1] > n:
-            _fail(
-                path,
-                f"dataset {name!r} declares {dataset.shape[1]} runs, more than the {n} "
-                "samples of 'tod' (expected at most one run per sample)",
-            )
-        _check_dtype(path, name, dataset, FLAG_KINDS, "integer run lengths and flag values")
-        _check_stored(path, name, dataset)
-        runs = np.asarray(dataset[0], dtype=np.int64) if dataset.shape[1] else np.zeros(0)
-        if (runs < 0).any():
-            _fail(path, f"dataset {name!r} has negative run lengths: expected lengths >= 0")
-        if int(runs.sum()) != n:
-            _fail(
-                path,
-                f"dataset {name!r} decodes to {int(runs.sum())} samples, 'tod' has {n} "
-                "(expected the run lengths to add up to the samples of 'tod')",
-            )
-
-
 def _rle_segment(dataset, start: int, stop: int) -> np.ndarray:
     """Samples start:stop of one detector's RLE flags (checked by :func:`_check_flags`),
     decoded without decoding the rest: (stop - start,) bool."""
@@ -320,144 +256,6 @@ def read_recording(path, memory_budget_bytes=None, samples=None) -> Recording:
             "or corrupt, e.g. by an interrupted copy or write; copy or write it again "
             "(compare its size or checksum with the original)",
         )
-
-
-def recording_size(path) -> tuple[int, int, float]:
-    """(detectors, samples, sampling rate [Hz]) a recording file declares, its datasets'
-    shapes checked and none of its data read."""
-    import h5py
-
-    path = Path(path)
-    try:
-        _check_file(path)
-        with h5py.File(path, "r") as handle:
-            _, n_det, n, sampling_rate_hz = _declared(path, handle)
-    except OSError as error:
-        _fail(path, f"cannot be read as HDF5 ({error}): the file is truncated or corrupt")
-    return n_det, n, sampling_rate_hz
-
-
-def diagnosis_memory_bytes(n_detectors: int, n_samples: int) -> float:
-    """The memory diagnosing a recording of this size needs [bytes] (estimate, see
-    DIAGNOSIS_BYTES_PER_DETECTOR_SAMPLE)."""
-    return DIAGNOSIS_BASE_BYTES + DIAGNOSIS_BYTES_PER_DETECTOR_SAMPLE * n_detectors * n_samples
-
-
-def available_memory_bytes() -> float:
-    """The memory the system can give this process now [bytes] (psutil)."""
-    import psutil
-
-    return float(psutil.virtual_memory().available)
-
-
-def check_memory(path, n_det: int, n: int, sampling_rate_hz: float, budget_bytes=None) -> None:
-    """Refuse, before reading, a recording whose diagnosis would not fit ``budget_bytes``
-    (default: the available memory), saying the sizes and what to do."""
-    budget = available_memory_bytes() if budget_bytes is None else float(budget_bytes)
-    needed = diagnosis_memory_bytes(n_det, n)
-    if needed <= budget:
-        return
-    per_segment = max(0.0, budget - DIAGNOSIS_BASE_BYTES) / (
-        DIAGNOSIS_BYTES_PER_DETECTOR_SAMPLE * n_det
-    )
-    hours = n / sampling_rate_hz / 3600.0
-    _fail(
-        path,
-        f"declares {n_det} detector(s) x {n:.4g} samples ({hours:.4g} h at "
-        f"{sampling_rate_hz:g} Hz): diagnosing it needs ~{needed / 2**30:.3g} GiB "
-        f"(~{DIAGNOSIS_BYTES_PER_DETECTOR_SAMPLE} B per detector-sample), more than the "
-        f"{budget / 2**30:.3g} GiB available; diagnose it in segments of at most "
-        f"{per_segment / sampling_rate_hz / 3600.0:.3g} h (the command line does so by "
-        "itself, --segment-hours; from Python: diagnose.segments.diagnose_segments), or on "
-        "a machine with more memory",
-    )
-
-
-def _check_file(path: Path) -> None:
-    import h5py
-
-    if not path.exists():
-        _fail(path, "no such file")
-    if not path.is_file() or not h5py.is_hdf5(path):
-        _fail(path, "not an HDF5 file (expected a litebird_sim observation file)")
-
-
-def _declared(path: Path, handle) -> tuple:
-    """(tod dataset, detectors, samples, sampling rate) of an open file, shapes checked."""
-    import h5py
-
-    for name in ("tod", "pointings", "hwp_angle"):
-        if name not in handle or not isinstance(handle[name], h5py.Dataset):
-            hint = (
-                " (write the observation with write_full_pointings=True)" if name != "tod" else ""
-            )
-            _fail(path, f"missing dataset {name!r}{hint}")
-    dataset = handle["tod"]
-    if dataset.ndim != 2:
-        _fail(path, f"dataset 'tod' has shape {dataset.shape}, expected (n_det, n_samples)")
-    for name in ("tod", "pointings", "hwp_angle"):
-        _check_dtype(path, name, handle[name], REAL_KINDS, "real numbers (float64)")
-        _check_stored(path, name, handle[name])
-    n_det, n = dataset.shape
-    if n < MIN_SAMPLES or n_det < 1:
-        _fail(path, f"dataset 'tod' has shape {dataset.shape}: too few samples/detectors")
-    pointings = handle["pointings"]
-    if pointings.shape != (n_det, n, 3):
-        _fail(
-            path,
-            f"length mismatch: 'pointings' has shape {pointings.shape}, 'tod' {(n_det, n)} "
-            f"(expected {(n_det, n, 3)})",
-        )
-    hwp = handle["hwp_angle"]
-    if hwp.shape != (n,):
-        _fail(path, f"length mismatch: 'hwp_angle' has shape {hwp.shape}, 'tod' has {n} samples")
-    try:
-        sampling_rate_hz = float(dataset.attrs["sampling_rate_hz"])
-    except KeyError:
-        _fail(path, "dataset 'tod' has no 'sampling_rate_hz' attribute")
-    except (TypeError, ValueError):
-        _fail(
-            path,
-            f"attribute 'sampling_rate_hz' of dataset 'tod' = "
-            f"{dataset.attrs['sampling_rate_hz']!r}: expected a number of Hz",
-        )
-    if not (math.isfinite(sampling_rate_hz) and sampling_rate_hz > 0):
-        _fail(path, f"sampling_rate_hz = {sampling_rate_hz!r}: expected a rate > 0 Hz")
-    _check_flags(path, handle, n_det, n)
-    return dataset, n_det, n, sampling_rate_hz
-
-
-def _check_dtype(path, name: str, dataset, kinds: str, expected: str) -> None:
-    if dataset.dtype.kind not in kinds or dataset.dtype.names is not None:
-        _fail(path, f"dataset {name!r} has dtype {dataset.dtype}: expected {expected}")
-
-
-def _check_stored(path, name: str, dataset) -> None:
-    """Refuse a dataset whose data were never (all) written: its stored bytes are below
-    1/MAX_DECLARED_OVER_STORED of what its shape declares and, chunked, not every chunk
-    is stored (a written chunk of compressible data is stored however small). A virtual
-    or external dataset is not checked here (the memory check still applies)."""
-    if dataset.is_virtual or dataset.external:
-        return
-    declared = math.prod(dataset.shape) * dataset.dtype.itemsize
-    stored = dataset.id.get_storage_size()
-    if not declared or (stored and stored * MAX_DECLARED_OVER_STORED >= declared):
-        return
-    detail = ""
-    if dataset.chunks is not None:  # counted only here: the count reads the chunk index
-        expected = math.prod(
-            -(-size // chunk) for size, chunk in zip(dataset.shape, dataset.chunks, strict=True)
-        )
-        written = dataset.id.get_num_chunks()
-        if written >= expected:
-            return
-        detail = f" ({written} of its {expected} chunks)"
-    _fail(
-        path,
-        f"dataset {name!r} declares shape {dataset.shape} {dataset.dtype} "
-        f"({declared / 2**30:.3g} GiB) but stores {stored} bytes in the file{detail}: its "
-        "data were never written (expected every sample written); write the recording again",
-    )
 
 
 def _read_recording(path: Path, memory_budget_bytes=None, samples=None) -> Recording:
@@ -574,9 +372,6 @@ def nominal_a2(recording: Recording, a2_k: float | None, lookup) -> float:
     return float(lookup(channel))
 
 
-# --------------------------------------------------------------------------- writing
-
-
 def _json_safe(detector: dict) -> dict:
     safe = {}
     for key, value in detector.items():
@@ -653,6 +448,3 @@ def write_recording(path, recording: Recording) -> Path:
                 handle.create_dataset("flags", data=flags.astype(np.uint8), compression="gzip")
             handle["tod"].attrs["start_time_scale"] = recording.start_time.scale
     return path
-
-
-# --------------------------------------------------------------------------- simulating

@@ -37,25 +37,25 @@ import numpy as np
 from scipy import stats
 
 from ..io import atomic_path
-from .effects import CATALOG, family_of
-from .model import load_sky
-from .pipeline import diagnose
-from .recording import (
-    DIAGNOSIS_BASE_BYTES,
-    DIAGNOSIS_BYTES_PER_DETECTOR_SAMPLE,
-    RecordingError,
-    available_memory_bytes,
-    diagnosis_memory_bytes,
-    read_recording,
-    recording_size,
-)
-from .report import Diagnosis, markdown_report
-from .requirement_check import (
+from .bound.requirement_check import (
     NONLINEARITY_FAMILY,
     bound_nonlinearity,
     compare_nonlinearity,
     load_requirement,
 )
+from .effects import CATALOG, family_of
+from .model import load_sky
+from .pipeline import diagnose
+from .recording import read_recording
+from .recording_checks import (
+    DIAGNOSIS_BASE_BYTES,
+    DIAGNOSIS_BYTES_PER_DETECTOR_SAMPLE,
+    RecordingError,
+    available_memory_bytes,
+    diagnosis_memory_bytes,
+    recording_size,
+)
+from .report.diagnosis import Diagnosis, markdown_report
 
 log = logging.getLogger(__name__)
 VARIES_P = 1e-3  # a parameter whose segments disagree at p below this is marked as varying
@@ -113,7 +113,7 @@ def diagnose_segments(
     **options,
 ) -> Diagnosis:
     """Diagnose the recording file ``path`` segment by segment (module docstring) and
-    return the combined :class:`.report.Diagnosis`; with ``out_dir``, each segment's
+    return the combined :class:`.report.diagnosis.Diagnosis`; with ``out_dir``, each segment's
     report in ``out_dir/segments/<i>/`` and the combined diagnosis.json and diagnosis.md
     in ``out_dir``. ``options``: passed to :func:`.pipeline.diagnose`."""
     path = Path(path)

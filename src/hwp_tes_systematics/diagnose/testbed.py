@@ -64,7 +64,7 @@ def recorded(tmp_path, effects, noise_seed: int, hours: float = 2.0, name: str =
 
 
 def run(recording, **kwargs):
-    """The diagnosis (:class:`.report.Diagnosis`) of ``recording`` against the nominal sky and A_2."""
+    """The diagnosis (:class:`.report.diagnosis.Diagnosis`) of ``recording`` against the nominal sky and A_2."""
     return diagnose(recording, sky_map(), A2_K, **kwargs)
 
 

@@ -15,7 +15,7 @@ from .. import config as cfg
 from .. import sky
 from ..diagnose import diagnose
 from ..diagnose.recording import read_recording, write_recording
-from ..diagnose.report import ReportPaths
+from ..diagnose.report.diagnosis import ReportPaths
 from ..diagnose.simulate import simulate_recording
 from ..instrument.channels import check_channel_name
 from ..simulation.channel_inputs import (

@@ -35,7 +35,7 @@ How each parameter is fitted: jointly with the others, by (weighted) linear leas
 squares in the whitened Fourier domain for the linear effects; tau by
 ``scipy.optimize.least_squares`` from the linearised solution (variable projection over
 the linear parameters); glitches by detection and a per-event nonlinear fit; the noise
-by maximising the Whittle likelihood (see :mod:`.fit` and :mod:`.noise`).
+by maximising the Whittle likelihood (see :mod:`.select` and :mod:`.noise`).
 """
 
 from __future__ import annotations
@@ -187,3 +187,15 @@ __all__ = [
     "single_pole_derivative",
     "unregister",
 ]
+
+
+def noise_effect(signature: str) -> Effect:
+    """The catalog's effect with this signature in the noise (``Effect.noise_signature``:
+    "excess" or "rolloff"), fitted beside the selection."""
+    found = [e for e in CATALOG.values() if e.noise_signature == signature]
+    if len(found) != 1:
+        names = [e.name for e in found]
+        raise LookupError(
+            f"one catalog effect with noise_signature {signature!r} expected: {names}"
+        )
+    return found[0]

@@ -86,7 +86,7 @@ class Effect:
     # the fewest detectors a recording needs for the fit to offer it (crosstalk: a pair)
     min_detectors: ClassVar[int] = 1
     # its signature in the noise of the residual, fitted beside the selection's effects
-    # (:func:`..pipeline.select_effects`): "excess" (excess power in the sidebands of the
+    # (:func:`..select.step.select_effects`): "excess" (excess power in the sidebands of the
     # HWPSS, a random process) or "rolloff" (the noise rolling off, a pole); else None
     noise_signature: ClassVar[str | None] = None
 
@@ -161,7 +161,7 @@ class Effect:
     events: ClassVar[bool] = False
 
     def unphysical(self, fit) -> str | None:
-        """Why the fitted values (:class:`.fit.EffectFit`) are outside ``physical_bounds``,
+        """Why the fitted values (:class:`.select.EffectFit`) are outside ``physical_bounds``,
         or None: the selection does not take an effect whose parameters are unphysical."""
         for parameter, bound in self.physical_bounds.items():
             values = np.abs(np.asarray(fit.values.get(parameter, [])))
@@ -170,7 +170,7 @@ class Effect:
         return None
 
     def reported_parameters(self, fit, detector_names, sampling_rate_hz, units) -> dict:
-        """The report's parameters of a fit (:class:`.fit.EffectFit`): "<parameter>[<detector>]"
+        """The report's parameters of a fit (:class:`.select.EffectFit`): "<parameter>[<detector>]"
         -> {value, sigma, unit, detector, parameter}, and a shared effect's common ones as
         "<parameter>[common]"."""
         out = {}

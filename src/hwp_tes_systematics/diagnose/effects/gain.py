@@ -128,12 +128,12 @@ class GainDriftCommon(GainDrift):
 class GainFluctuations(Effect):
     """A gain fluctuating as a random process, g(t) with PSD P_g(f) = a^2 (f_ref / f)^beta:
     d_obs = (1 + g(t)) d, seen as broadband sidebands of the 2f HWPSS,
-    E_k(f) = (A_k^2 / 4) [P_g(|f - 2 f_HWP|) + P_g(f + 2 f_HWP)] (:mod:`..fluctuations`).
+    E_k(f) = (A_k^2 / 4) [P_g(|f - 2 f_HWP|) + P_g(f + 2 f_HWP)] (:mod:`.fluctuations`).
 
     One (a, beta) for all detectors, rho the coherence of their fluctuations (1: one
     focal-plane temperature; 0: each TES its own); fitted as an excess noise
     by the Whittle likelihood on the residual after the selection, with the detectors'
-    noise refitted alongside (``kind`` "noise": :mod:`..pipeline` tests it, the linear
+    noise refitted alongside (``kind`` "noise": :mod:`..select.step` tests it, the linear
     selection never offers it).
     """
 
@@ -161,22 +161,22 @@ class GainFluctuations(Effect):
 
     def fit_noise(self, ctx, residual_f, noise, used, ln_n_eff, **options):
         """The Whittle fit of (a, beta, rho) with the noise refitted alongside
-        (:func:`..fluctuations.fit_fluctuations`; ``options``: its ``also_from``)."""
-        from ..fluctuations import fit_fluctuations
+        (:func:`.fluctuations.fit_fluctuations`; ``options``: its ``also_from``)."""
+        from .fluctuations import fit_fluctuations
 
         return fit_fluctuations(ctx, residual_f, noise, used, ln_n_eff, **options)
 
     def noise_entry(self, ctx, fit, noise) -> dict:
         """:meth:`report_entry` with what the dipole and sky sidebands would add
-        (:func:`..fluctuations.dipole_signature`)."""
-        from ..fluctuations import dipole_signature
+        (:func:`.fluctuations.dipole_signature`)."""
+        from .fluctuations import dipole_signature
 
         return self.report_entry(ctx, fit, dipole_signature(ctx, fit, noise))
 
     def report_entry(self, ctx, fit, dipole_delta_chi2: float) -> dict:
-        """The report's entry for the fitted fluctuation (:class:`..fluctuations.FluctuationFit`);
+        """The report's entry for the fitted fluctuation (:class:`.fluctuations.FluctuationFit`);
         ``dipole_delta_chi2``: what its dipole and sky sidebands would add
-        (:func:`..fluctuations.dipole_signature`), which tells it from an HWP emission one."""
+        (:func:`.fluctuations.dipole_signature`), which tells it from an HWP emission one."""
         (look_alike,) = self.unresolved_look_alikes(None, fit)
         dipole = dipole_delta_chi2
         amplitudes = ", ".join(f"{a:.4g} K" for a in fit.carriers_k)

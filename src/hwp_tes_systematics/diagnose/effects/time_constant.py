@@ -49,7 +49,7 @@ class DetectorTimeConstant(Effect):
         "frequencies is seen (fitted jointly with the 2f phase)"
     )
 
-    # the fit of its one nonlinear parameter (:meth:`.fit.FitProblem.fit`): bounds, and the
+    # the fit of its one nonlinear parameter (:meth:`.select.FitProblem.fit`): bounds, and the
     # range the linearised start is clipped to
     bounds = (0.0, 1.0)  # s
     # a TES slower than 50 ms would pass 1/sqrt(1 + (2 pi 4 f_HWP tau)^2) < 0.62 of the HFT's
@@ -62,8 +62,8 @@ class DetectorTimeConstant(Effect):
     noise_signature = "rolloff"
 
     def fit_noise(self, ctx, residual_f, noise, used, ln_n_eff, **options):
-        """The roll-off of each detector's noise as a pole (:func:`..rolloff.fit_rolloff`)."""
-        from ..rolloff import fit_rolloff
+        """The roll-off of each detector's noise as a pole (:func:`.rolloff.fit_rolloff`)."""
+        from .rolloff import fit_rolloff
 
         return fit_rolloff(ctx, residual_f, noise, used, ln_n_eff, **options)
 
@@ -72,7 +72,7 @@ class DetectorTimeConstant(Effect):
         return self.rolloff_entry(ctx, fit)
 
     def rolloff_evidence(self, ctx, fit) -> str:
-        """The noise's roll-off (:class:`..rolloff.RolloffFit`) in words: tau per detector,
+        """The noise's roll-off (:class:`.rolloff.RolloffFit`) in words: tau per detector,
         the drop at Nyquist, why the lines cannot show it, what else would do it."""
         taus = ", ".join(
             f"{name}: tau = {1e3 * t:.3g} +- {1e3 * s:.2g} ms ({100 * d:.2g} % lower at Nyquist)"
@@ -134,7 +134,7 @@ class DetectorTimeConstant(Effect):
     def injection_stage(self, params):
         """With ``through_noise``, on the optical signal and the detector noise together
         (photon and phonon noise pass the TES's pole), before the nonlinearity: the noise
-        then rolls off (:mod:`..rolloff`); else on the optical signal alone."""
+        then rolls off (:mod:`.rolloff`); else on the optical signal alone."""
         return "through_noise" if params.get("through_noise", False) else "signal"
 
     def apply(self, ctx, params, tod=None):

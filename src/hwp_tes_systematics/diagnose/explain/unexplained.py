@@ -42,12 +42,12 @@ import math
 import numpy as np
 import scipy.fft
 
-from ..simulation import data_model
-from .effects import format_temperature
-from .effects.glitches import event_directions, find_transients, sky_fixed_groups
-from .locate import excess_bands, find_lines, line_at, sinusoid_fit, sky_residual
-from .model import Context
-from .noise import (
+from ...simulation import data_model
+from ..effects import format_temperature
+from ..effects.glitches import event_directions, find_transients, sky_fixed_groups
+from ..locate import excess_bands, find_lines, line_at, sinusoid_fit, sky_residual
+from ..model import Context
+from ..noise import (
     NoiseModel,
     fitted_modes,
     independent_fraction,
@@ -256,7 +256,7 @@ def _sky_fixed_transients(events, ctx: Context, tried) -> list[dict]:
 
 
 def _bands(residual_f, freqs, s, use, det, tried, valid_fraction) -> list[dict]:
-    """:func:`locate.excess_bands` above MIN_SIGMA, as entries of ``unexplained``."""
+    """:func:`..locate.frequency.excess_bands` above MIN_SIGMA, as entries of ``unexplained``."""
     return [
         {
             "kind": "band",

@@ -14,8 +14,8 @@ import math
 import numpy as np
 import scipy.fft
 
-from .locate import dc_offset, drifts, hwp_profile, line_at
-from .noise import independent_fraction, periodogram_scale
+from ..locate import dc_offset, drifts, hwp_profile, line_at
+from ..noise import independent_fraction, periodogram_scale
 
 
 class Evidence:

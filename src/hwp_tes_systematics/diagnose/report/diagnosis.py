@@ -13,8 +13,8 @@ import logging
 from collections.abc import Iterator, Mapping
 from pathlib import Path
 
-from ..io import atomic_path
-from .effects import format_temperature
+from ...io import atomic_path
+from ..effects import format_temperature
 
 log = logging.getLogger(__name__)
 

@@ -1,5 +1,5 @@
 """The selection (:func:`stepwise`): effects added by the BIC, removed when later ones make
-them redundant, swapped for look-alikes that fit better (:mod:`.`, "Selection")."""
+them redundant, swapped for look-alikes that fit better (:mod:`.`, "StepwiseResult")."""
 
 from __future__ import annotations
 
@@ -50,7 +50,7 @@ class Step:
 
 
 @dataclass
-class Selection:
+class StepwiseResult:
     """Outcome of the stepwise selection."""
 
     baseline: FitResult
@@ -307,7 +307,7 @@ def stepwise(
     max_effects: int = 6,
     candidates=None,
     initial=(),
-) -> Selection:
+) -> StepwiseResult:
     """Forward stepwise selection over the catalog with the BIC (module docstring).
 
     ``initial``: start from these effects (checked by a backward step first).
@@ -324,7 +324,7 @@ def stepwise(
         without = problem.fit(tuple(n for n in final.selected if n != name))
         delta_chi2[name] = without.chi2 - final.chi2
         delta_bic[name] = final.bic(ln_n) - without.bic(ln_n)
-    return Selection(
+    return StepwiseResult(
         baseline=baseline,
         final=final,
         steps=steps,

@@ -35,8 +35,8 @@ import numpy as np
 import scipy.fft
 import scipy.optimize
 
-from .model import Context
-from .noise import (
+from ..model import Context
+from ..noise import (
     NoiseModel,
     independent_fraction,
     knee_bound_hz,

@@ -37,7 +37,7 @@ the polarised sky's scale, whose template is modulated at 4 f_HWP (an 80 mK 4f l
 H3-402: a broad excess at 3-5 Hz, the noise fitted at twice its level); the noise is
 fitted without them too (a line off its Fourier bin leaks far beyond the excluded
 bins), and the adjustments' covariance is marginalised over them. The linear
-adjustments are then refitted jointly with every candidate effect (:mod:`.fit`), so an
+adjustments are then refitted jointly with every candidate effect (:mod:`.select`), so an
 effect never has to compete with a nominal error.
 
 Where the line is drawn, and why. An ADJUSTMENT is a constant (over the recording),
@@ -76,12 +76,13 @@ from typing import ClassVar
 import numpy as np
 import scipy.fft
 
-from .effects import Effect
-from .effects.hwpss import harmonic_templates
-from .linalg import cross, solve_normal
-from .locate import coarse_pixels
-from .model import Context
-from .noise import (
+from ..effects import Effect
+from ..effects.hwpss import harmonic_templates
+from ..linalg import cross, solve_normal
+from ..locate import coarse_pixels
+from ..model import Context
+from ..noise import (
+    NOISE_FMIN_SPINS,
     NoiseModel,
     fitted_modes,
     independent_fraction,
@@ -96,7 +97,6 @@ from .noise import (
 # sky residual is downstream (:mod:`.unexplained`: lines at sky frequencies below 10 % of
 # the nominal sky signal there are tolerated) and the sky-scale adjustments.
 SKY_RESIDUAL_NSIDE = 0
-NOISE_FMIN_SPINS = 2.0  # the noise is fitted above 2 f_spin (extrapolated below)
 REPORT_NSIDE = 8  # resolution of the reported sky-residual rms
 PASSES = 2
 # HWP lines fitted beside the adjustments and not kept (effects find them later): an
@@ -350,7 +350,7 @@ def adjustments_report(
     """{detector: {name: {value, sigma, unit, nominal}}}: the fitted nominal adjustments.
 
     ``corrections``/``correction_sigmas``: the adjustments refitted jointly with the
-    selected effects (about the adjusted model, :mod:`.fit`); their sigmas are the ones
+    selected effects (about the adjusted model, :mod:`.select`); their sigmas are the ones
     reported (marginalised over the effects).
     """
     ctx, base = fit.context, fit.base

@@ -78,7 +78,8 @@ from the Jacobian; glitches from the local fit's Jacobian (white noise).
 
 from .bank import DELTA_BIC_THRESHOLD, GAP_OFFSET, GLITCH_THRESHOLD_SIGMA, FitProblem
 from .results import EffectFit, FitResult
-from .selection import Selection, Step, select_templates, stepwise
+from .step import Selection, select_effects
+from .stepwise import Step, StepwiseResult, select_templates, stepwise
 
 __all__ = [
     "DELTA_BIC_THRESHOLD",
@@ -89,6 +90,8 @@ __all__ = [
     "FitResult",
     "Selection",
     "Step",
+    "StepwiseResult",
+    "select_effects",
     "select_templates",
     "stepwise",
 ]

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..figures import save_figure, subplots
-from ..simulation.spectral import amplitude_spectrum
-from .effects import CATALOG
+from ...figures import save_figure, subplots
+from ...simulation.spectral import amplitude_spectrum
+from ..effects import CATALOG
 
 MAX_POINTS = 20000
 
@@ -123,7 +123,7 @@ def diagnosis_figures(
     out_dir, ctx, residual, residual_after, mismatch, noise_models, result
 ) -> dict:
     """All figures; returns {title: file name}."""
-    from .locate import hwp_profile, sky_residual
+    from ..locate import hwp_profile, sky_residual
 
     files = {}
     plot_residual_spectrum(

@@ -41,8 +41,9 @@ import numpy as np
 import scipy.fft
 import scipy.optimize
 
-from .model import Context
-from .noise import (
+from ..model import Context
+from ..noise import (
+    NOISE_FMIN_SPINS,
     NoiseModel,
     _narrow_bins,
     independent_fraction,
@@ -52,7 +53,6 @@ from .noise import (
     periodogram_scale,
     rolloff,
 )
-from .nominal import NOISE_FMIN_SPINS
 
 V_MAX = 20.0  # bound of (2 pi f_Nyquist tau)^2: at 31 Hz, tau <= 46 ms
 

@@ -1,0 +1,144 @@
+"""Step 3 of the diagnosis: the catalog's effects the BIC keeps, fitted jointly (:class:`Selection`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+
+import numpy as np
+
+from ..effects import noise_effect
+from ..nominal.adjustments import NOMINAL, refit_noise
+from ..nominal.step import NominalFit
+from .bank import FitProblem
+from .stepwise import stepwise
+
+log = logging.getLogger(__name__)
+
+NOISE_REFIT_CHANGE = 0.02  # select again when the noise PSD at the effects moved by > 2 %
+
+
+@dataclasses.dataclass
+class Selection:
+    """Step 3 (:func:`select_effects`): the effects the BIC keeps, fitted jointly."""
+
+    problem: FitProblem  # the template bank and normal equations of the last pass
+    steps: object  # fit.stepwise's result of the last pass (ranked, delta_chi2, ...)
+    final: object  # the joint fit of the selected effects
+    history: list  # every step of every pass
+    fluctuation: object  # the fitted excess noise (noise_effect("excess").fit_noise) or None
+    rolloff: object  # the noise's roll-off beside the effects (noise_effect("rolloff").fit_noise)
+    noise_models: list  # the noise of the final fit
+    residual_after: np.ndarray  # (n_det, n_samples) the residual less the final fit [K]
+    partial: dict  # {effect: the residual with that effect alone put back}
+
+
+def select_effects(
+    fit: NominalFit, delta_bic_threshold: float, max_effects: int, workers: int, progress
+) -> Selection:
+    """Step 3: the catalog's effects selected stepwise by the BIC, jointly with the
+    adjustments (:func:`.select.stepwise`). The noise was fitted before any effect was
+    removed, and a strong effect leaks power beyond its line bins: it is refitted on the
+    residual of the best fit and, if it moved by more than NOISE_REFIT_CHANGE where the
+    effects are, or a gain fluctuation (:mod:`.fluctuations`, an excess noise in the 2f
+    sidebands) is taken into it, the selection runs again with the new weights, starting
+    from the effects found. Then the fluctuation and the noise's roll-off are fitted
+    again beside the final effects. Updates ``fit.adjusted.noise``."""
+    ctx, adjusted, nominal = fit.context, fit.adjusted, fit.nominal
+    noise_models = fit.noise_models
+    previous = ()
+    history = []
+    fluctuation = None
+    problem = FitProblem(
+        ctx,
+        fit.recording.tod,
+        noise_models,
+        workers=workers,
+        nominal=NOMINAL,
+        residual_f=fit.residual_f,
+    )
+    for attempt in range(2):
+        if attempt:  # same templates and residual, new noise weights
+            problem = problem.with_noise(noise_models)
+        progress(
+            "selecting effects (pass %d%s)", attempt + 1, ", noise refitted" if attempt else ""
+        )
+        steps = stepwise(
+            problem,
+            delta_bic_threshold=delta_bic_threshold,
+            max_effects=max_effects,
+            initial=previous,
+        )
+        final = problem.fit(steps.final.selected, keep_model=True)
+        history += steps.steps
+        log.debug("selected: %s", ", ".join(final.selected) or "nothing")
+        if attempt == 1:
+            break
+        remaining_f = problem.residual_f - np.array(final.model_f)
+        fluctuation = noise_effect("excess").fit_noise(
+            ctx, remaining_f, noise_models, problem.modes, problem.ln_n_eff, also_from=nominal
+        )
+        if fluctuation.delta_bic < delta_bic_threshold:
+            noise_models = fluctuation.noise
+            adjusted.noise = fluctuation.base_noise
+            previous = final.selected  # checked again with the new weights, then extended
+            continue
+        fluctuation = None
+        if not final.selected:
+            break
+        refit, covariances, change = refit_noise(ctx, remaining_f, noise_models)
+        if change < NOISE_REFIT_CHANGE:
+            break
+        noise_models = refit
+        adjusted.noise, adjusted.noise_covariance = refit, covariances
+        previous = final.selected  # checked first with the new weights, then extended
+    remaining_f = problem.residual_f - np.array(final.model_f)  # of the final fit
+
+    def fluctuation_beside(noise):
+        return noise_effect("excess").fit_noise(
+            ctx, remaining_f, noise, problem.modes, problem.ln_n_eff, also_from=nominal
+        )
+
+    if fluctuation is not None:  # its parameters on the final residual
+        fluctuation = fluctuation_beside(fluctuation.base_noise)
+        if fluctuation.delta_bic < delta_bic_threshold:
+            noise_models = fluctuation.noise
+            adjusted.noise = fluctuation.base_noise
+        else:  # what it took is explained by the effects selected since
+            fluctuation = None
+    residual_after = problem.residual_after(final)
+    partial = problem.partial_residuals(final)
+    # the time constant's one signature the lines lack: the noise's roll-off (:mod:`.rolloff`)
+    rolloff = noise_effect("rolloff").fit_noise(
+        ctx,
+        remaining_f,
+        noise_models,  # with a fitted fluctuation's sidebands, held
+        problem.modes,
+        problem.ln_n_eff,
+    )
+    if rolloff.delta_bic >= delta_bic_threshold and any(
+        getattr(m, "base", m).tau_s > 0 for m in noise_models
+    ):
+        # the early roll-off is not confirmed beside the effects and a fluctuation's sidebands
+        # (whose wings fall away from 2 f_HWP as a pole does): the noise loses its pole, and a
+        # fitted fluctuation is fitted again beside the noise without it
+        noise_models = rolloff.noise_without
+        adjusted.noise = [getattr(m, "base", m) for m in noise_models]
+        if fluctuation is not None:
+            fluctuation = fluctuation_beside(adjusted.noise)
+            if fluctuation.delta_bic < delta_bic_threshold:
+                noise_models = fluctuation.noise
+                adjusted.noise = fluctuation.base_noise
+            else:  # the pole's wings were what it took: neither is kept
+                fluctuation = None
+    return Selection(
+        problem,
+        steps,
+        final,
+        history,
+        fluctuation,
+        rolloff,
+        noise_models,
+        residual_after,
+        partial,
+    )
