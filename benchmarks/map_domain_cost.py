@@ -29,7 +29,7 @@ import healpy as hp
 import numpy as np
 from common import run_fixed_pass
 
-from hwp_tes_systematics.analysis.ilc_residuals import (
+from hwp_tes_systematics.analysis.channel_alms import (
     ChannelAlms,
     HarmonicSettings,
     fixed_term_alms,

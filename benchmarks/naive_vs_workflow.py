@@ -35,7 +35,8 @@ from hwp_tes_systematics.simulation.hwpss_removal import harmonic_templates
 from hwp_tes_systematics.simulation.mapmaking import solve_maps
 from hwp_tes_systematics.simulation.notch import chunk_span
 from hwp_tes_systematics.simulation.tod import NOISE_MODELS
-from hwp_tes_systematics.simulation.tod_maps import filter_tod, split_solved_maps
+from hwp_tes_systematics.simulation.tod_filter import filter_tod
+from hwp_tes_systematics.simulation.tod_maps import split_solved_maps
 from hwp_tes_systematics.timing import StageClock
 
 

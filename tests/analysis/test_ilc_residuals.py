@@ -222,35 +222,35 @@ def test_component_separation_writes_the_fixed_instruments(synthetic, tmp_path):
 def test_channel_alms_files_keep_each_detector_and_refuse_summed_terms(synthetic, tmp_path):
     """A stored channel's terms are per detector (any draws combine them); a file of the
     older layout (terms already summed over the seed's draws) is refused by name."""
-    from hwp_tes_systematics.analysis import ilc_residuals as ir
+    from hwp_tes_systematics.analysis import channel_alms as ca
 
     config, paths = synthetic
     seed_maps = SeedMaps.load(config, 0, paths)
-    harmonic = ir.HarmonicSettings.from_config(config)
+    harmonic = ca.HarmonicSettings.from_config(config)
     data = read_channel_maps(paths["M1-140"])
-    channel = ir.ChannelAlms.from_maps(config, 0, "M1-140", data, seed_maps.mask, harmonic)
+    channel = ca.ChannelAlms.from_maps(config, 0, "M1-140", data, seed_maps.mask, harmonic)
     assert channel.alms["x1"].shape[0] == 2
     path = tmp_path / "M1-140.h5"
-    ir.write_channel_alms(path, channel, ir.alms_attributes(0, harmonic, seed_maps.mask))
-    stored = ir.read_channel_alms(path, harmonic, float(seed_maps.mask.sum()))
+    ca.write_channel_alms(path, channel, ca.alms_attributes(0, harmonic, seed_maps.mask))
+    stored = ca.read_channel_alms(path, harmonic, float(seed_maps.mask.sum()))
     np.testing.assert_array_equal(stored.term("x1"), channel.term("x1"))
     with h5py.File(path, "r+") as out:
         summed = out["alm_x1"][()].sum(axis=0)
         del out["alm_x1"]
         out["alm_x1"] = summed
     with pytest.raises(ValueError, match="alm_x1.*older map_domain_alms"):
-        ir.read_channel_alms(path, harmonic, float(seed_maps.mask.sum()))
+        ca.read_channel_alms(path, harmonic, float(seed_maps.mask.sum()))
 
 
 def test_template_split_sums_to_the_systematic(synthetic):
     """Map-domain a_lm carry the seed's two pieces of the s h term: the split's parts
     (fixed, cmb_h, noise_h) sum to the whole systematic, and their auto and cross BB
     (each cross twice) to bb_unit_k4."""
-    from hwp_tes_systematics.analysis import ilc_residuals as ir
+    from hwp_tes_systematics.analysis import channel_alms as ca
 
     config, paths = synthetic
     mask = SeedMaps.load(config, 0, paths).mask
-    harmonic = ir.HarmonicSettings.from_config(config)
+    harmonic = ca.HarmonicSettings.from_config(config)
     rng = np.random.default_rng(9)
     channels = []
     for name, path in paths.items():
@@ -260,7 +260,7 @@ def test_template_split_sums_to_the_systematic(synthetic):
             "cmb_h": 0.3 * data["template_terms"][1] + rng.normal(size=shape) * 1e-5,
             "noise_h": rng.normal(size=shape) * 1e-4,
         }
-        channels.append(ir.ChannelAlms.from_maps(config, 0, name, data, mask, harmonic))
+        channels.append(ca.ChannelAlms.from_maps(config, 0, name, data, mask, harmonic))
     seed_maps = SeedMaps.combine(config, 0, channels, mask, harmonic)
     weights = seed_maps.residual(0.0)["weights"]
     parts = seed_maps.template_split_alms(weights)
@@ -269,8 +269,8 @@ def test_template_split_sums_to_the_systematic(synthetic):
     table = seed_maps.systematic_spectra(weights)
     summed = sum(
         (1 if a == b else 2) * table[f"bb_{a}_x_{b}_k4"]
-        for i, a in enumerate(ir.TEMPLATE_PARTS)
-        for b in ir.TEMPLATE_PARTS[i:]
+        for i, a in enumerate(ca.TEMPLATE_PARTS)
+        for b in ca.TEMPLATE_PARTS[i:]
     )
     np.testing.assert_allclose(summed, table["bb_unit_k4"], rtol=1e-9, atol=1e-30)
     assert np.all(table["bb_noise_h_x_noise_h_k4"][2:] > 0)
@@ -313,17 +313,17 @@ def test_seed_alms_from_the_fixed_terms_equal_those_of_the_full_terms(synthetic)
     transformed once (ilc_residuals.fixed_term_alms), gives the a_lm of the seed made with
     them, to round-off (the a_lm are linear in the maps); without the fixed term a_lm it
     is refused by name."""
-    from hwp_tes_systematics.analysis import ilc_residuals as ir
+    from hwp_tes_systematics.analysis import channel_alms as ca
 
     config, paths = synthetic
     seed_maps = SeedMaps.load(config, 0, paths)
-    harmonic = ir.HarmonicSettings.from_config(config)
+    harmonic = ca.HarmonicSettings.from_config(config)
     a2_k = CHANNELS["M1-140"]
     fixed = synthetic_fixed_pass(NSIDE, np.random.default_rng(11))
     mask = np.where(fixed.good, seed_maps.mask, 0.0)
     lmax = 3 * NSIDE - 1
     cmb_alm = sky_cmb.seed_cmb_alm(lmax, 0.01, 7, 0, 30.0)
-    known = ir.fixed_term_alms(config, "M1-140", fixed, a2_k, mask, harmonic)
+    known = ca.fixed_term_alms(config, "M1-140", fixed, a2_k, mask, harmonic)
     made = {}
     for full_terms in (True, False):
         maps = map_domain.realize_seed(
@@ -339,15 +339,15 @@ def test_seed_alms_from_the_fixed_terms_equal_those_of_the_full_terms(synthetic)
         assert ("template_terms" in maps) == full_terms
         maps["attrs"] = {"detectors": ["det_a", "det_b"], "a2_k_cmb": a2_k}
         given = {} if full_terms else dict(known)
-        made[full_terms] = ir.ChannelAlms.from_maps(
+        made[full_terms] = ca.ChannelAlms.from_maps(
             config, 0, "M1-140", maps, mask, harmonic, given
         )
     full, shared = made[True].alms, made[False].alms
     assert set(full) == set(shared)
-    assert ir.FIXED_SH_KIND not in shared
+    assert ca.FIXED_SH_KIND not in shared
     for kind, alm in full.items():
         scale = np.abs(alm).max()
         assert scale > 0, kind
         np.testing.assert_allclose(shared[kind], alm, rtol=0, atol=1e-12 * scale, err_msg=kind)
     with pytest.raises(ValueError, match="missing.*x1_fixed"):
-        ir.ChannelAlms.from_maps(config, 0, "M1-140", maps, mask, harmonic, {})
+        ca.ChannelAlms.from_maps(config, 0, "M1-140", maps, mask, harmonic, {})

@@ -245,7 +245,7 @@ def test_budget_crossing_over_seeds():
 
 
 def test_bootstrap_error_is_the_error_of_the_mean():
-    from hwp_tes_systematics.analysis.requirement import bootstrap_error
+    from hwp_tes_systematics.analysis.systematic_only import bootstrap_error
 
     values = np.random.default_rng(3).normal(10.0, 2.0, size=400)
     error = bootstrap_error(values, np.mean)
@@ -257,9 +257,9 @@ def test_bootstrap_error_is_the_error_of_the_mean():
 def test_template_split_shares_sum_to_one_and_drop_the_noise_part(tmp_path):
     """The requirement stage's template split: the pairs' k sum to the k of their summed
     BB; without the noise x h pairs the requirement loosens; no split columns: None."""
-    from hwp_tes_systematics.analysis.ilc_residuals import TEMPLATE_PARTS
+    from hwp_tes_systematics.analysis.channel_alms import TEMPLATE_PARTS
     from hwp_tes_systematics.analysis.likelihood import BBModel, fisher_bias
-    from hwp_tes_systematics.analysis.requirement import template_split
+    from hwp_tes_systematics.analysis.systematic_only import template_split
 
     ell = np.arange(41)
     model = BBModel(ell, 1e-18, 1e-16 / (1 + ell), 0.0, 1e-17, 0.5)

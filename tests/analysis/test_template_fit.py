@@ -87,7 +87,7 @@ def test_the_mitigation_summary_reads_the_seeds():
     """The requirement after the fit from the seeds' mitigated blocks: the Fisher one is
     sqrt(budget / k_mit), the fit's cost its mean and standard error, the recovered g1 the
     slope of response on draws and the rms of the fit's error."""
-    from hwp_tes_systematics.analysis.requirement import mitigation_summary
+    from hwp_tes_systematics.analysis.systematic_only import mitigation_summary
 
     sigma = np.logspace(-5, 0, 21)
     likelihoods = [

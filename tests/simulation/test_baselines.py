@@ -8,7 +8,8 @@ from helpers import m1_140_pair
 from hwp_tes_systematics.simulation.baselines import baseline_samples, remove_baselines
 from hwp_tes_systematics.simulation.mapmaking import NormalEquations, solve_maps
 from hwp_tes_systematics.simulation.notch import chunk_span
-from hwp_tes_systematics.simulation.tod_maps import PairMapSettings, detector_weights, filter_tod
+from hwp_tes_systematics.simulation.tod_filter import filter_tod
+from hwp_tes_systematics.simulation.tod_maps import PairMapSettings, detector_weights
 
 NSIDE = 16
 OFFSETS_K = np.array([1.0, -0.5])  # a different offset in each detector of the pair

@@ -150,7 +150,8 @@ def test_a_demodulated_extra_binning_is_the_demodulated_map_maker(pair, baseline
     the calibration TODs) bins the same demodulated streams as ``accumulate(...,
     demodulated=)``: equal maps to rounding; its white-noise equations hold the binned
     solve's M."""
-    from hwp_tes_systematics.simulation.tod_maps import Calibration, ExtraBinning
+    from hwp_tes_systematics.simulation.chunk_binning import ExtraBinning
+    from hwp_tes_systematics.simulation.tod_maps import Calibration
 
     npix = hp.nside2npix(NSIDE)
     rng = np.random.default_rng(3)

@@ -151,7 +151,7 @@ def test_without_a_notch_the_4f_harmonic_template_removes_the_line(simulator):
     """config/keep_sky.yaml: no notch (notch.width_divisor null), the 4 f_HWP line
     g1 A_2^2 / 2 cos(4 chi) removed as an HWP harmonic template: the line goes, the sky
     passes untouched (no filter at all without templates)."""
-    from hwp_tes_systematics.simulation.tod_maps import notch_with_margins
+    from hwp_tes_systematics.simulation.tod_filter import notch_with_margins
 
     settings = settings_for(simulator)
     settings.notch_width_divisor = None

@@ -17,6 +17,7 @@ import numpy as np
 
 from ..io import atomic_path
 from ..sky.harmonics import BandLimitedSky
+from .chunk_binning import ExtraBinning
 from .filter_response import (
     b_modes_alone,
     measure_cmb_response,
@@ -24,13 +25,7 @@ from .filter_response import (
     measure_transfer,
 )
 from .mapmaking import MATRIX_ENTRIES, PixelMoments, solve_maps, symmetric_matrices
-from .tod_maps import (
-    TEMPLATE_TERMS,
-    Calibration,
-    ExtraBinning,
-    accumulate,
-    split_solved_maps,
-)
+from .tod_maps import TEMPLATE_TERMS, Calibration, accumulate, split_solved_maps
 
 log = logging.getLogger(__name__)
 
@@ -132,12 +127,12 @@ def fixed_passes(
     realizations giving S_ell and S^h_ell, both on every ``calibration_every_chunks``-th
     chunk (:class:`tod_maps.Calibration`). The TODs are binned at (settings.nside, settings.baseline_length_s) and at every
     (nside, baseline length) of ``extra_variants`` in the same pass
-    (:class:`tod_maps.ExtraBinning`): the binning is cheap beside the TOD. T_ell and
+    (:class:`chunk_binning.ExtraBinning`): the binning is cheap beside the TOD. T_ell and
     S_ell are measured up to ``measure_lmax`` (default ``lmax``; at most 3 nside - 1 of
     each variant): the seeds apply them up to ``simulation.filter_lmax`` only, so
     measuring beyond it (full-band spherical transforms, most of a pass's fixed cost at
     nside 512) buys nothing. ``demodulated_variants``: (nside, baseline length) of
-    HWP-demodulating map-makers (:class:`tod_maps.ExtraBinning` with ``demodulated``;
+    HWP-demodulating map-makers (:class:`chunk_binning.ExtraBinning` with ``demodulated``;
     each needs a binned variant of its resolution), keyed (nside, baseline length,
     "demodulated"). ``band_limited_sky``: the foreground and the reference CMB scanned
     as a_lm (:class:`sky.harmonics.BandLimitedSky`) rather than at the nearest pixel."""
@@ -259,7 +254,7 @@ def _solve_demodulated(
     calibration,
     static_sky,
 ) -> FixedMaps:
-    """FixedMaps of a demodulated map-maker (:class:`tod_maps.ExtraBinning` with
+    """FixedMaps of a demodulated map-maker (:class:`chunk_binning.ExtraBinning` with
     ``demodulated``): its maps; good where it has samples and the binned solve's M (the
     white noise the seeds draw, :class:`BinnedNoise`) is well conditioned; T_ell of the
     reference CMB through the filter and the demodulation; S_ell and S^h_ell of its
@@ -284,7 +279,7 @@ def _solve_demodulated(
         (maps, condition, good),
         extra.matrix_equations.matrix,
         extra.matrix_equations.hits,  # every sample's, as the binned map-maker's (the
-        # demodulated streams are binned at every D-th: tod_maps._demodulated_streams)
+        # demodulated streams are binned at every D-th: chunk_binning.demodulated_streams)
         (transfer_outputs, np.asarray(filtered), unfiltered, calibrated),
         extra.moments,
         transfer_input,

@@ -106,7 +106,7 @@ def offset_residual(hwp_angle_rad: np.ndarray, harmonics=(2,), templates=None) -
         d - P_offset d = (d - P d) - c u,   c = <u, d> / <u, u>,
 
     so one pass of the fit without offset (and of any linear filter after it, applied
-    to u too) gives both (:func:`tod_maps.filter_both_offsets`). ``templates``: as in
+    to u too) gives both (:func:`tod_filter.filter_both_offsets`). ``templates``: as in
     :func:`remove_hwp_harmonics` (those without offset)."""
     ones = np.ones(np.size(hwp_angle_rad))
     return remove_hwp_harmonics(ones, hwp_angle_rad, harmonics, templates=templates)

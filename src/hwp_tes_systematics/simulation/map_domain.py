@@ -155,7 +155,7 @@ def realize_seed(
     ``operators``: the :class:`SeedOperators` of (fixed, noise_scale), shared by the seeds
     of a channel (built here, filtering up to ``lmax``, if None). ``full_terms`` False
     leaves out template_terms and templates (the fixed pass's terms plus the pieces: the
-    seeds' a_lm take the fixed part's once, :func:`ilc_residuals.fixed_term_alms`).
+    seeds' a_lm take the fixed part's once, :func:`..analysis.channel_alms.fixed_term_alms`).
     ``cmb_excess_alm``: (2, 3, nalm) the filters' excess BB of the seed by origin
     (:func:`filter_response.excess_bb_alms`, band ``operators.filter_lmax``), added to
     the filtered CMB; its second (T and E modes) also as ``cmb_leakage``; with it, also

@@ -27,12 +27,20 @@ from tqdm import tqdm
 
 from ..config import simulated_rate_hz
 from ..timing import StageClock
-from .baselines import baseline_samples, remove_baselines
-from .demodulation import DemodulatedEquations, decimation_factor, demodulate
-from .hwpss_removal import offset_residual, remove_hwp_harmonics
+from .baselines import remove_baselines
+from .chunk_binning import (
+    ExtraBinning,
+    bin_chunk,
+    bin_extra_binnings,
+    bin_streams,
+    demodulated_streams,
+    share_binned_matrices,
+)
+from .demodulation import DemodulatedEquations
 from .mapmaking import NormalEquations, PixelMoments
-from .notch import apply_notch, chunk_span
+from .notch import chunk_span
 from .tod import MissionPlan, PairSimulator
+from .tod_filter import baseline_samples_of, filter_offsets
 
 log = logging.getLogger(__name__)
 
@@ -42,12 +50,6 @@ log = logging.getLogger(__name__)
 NESTED_FROM_NSIDE = 256
 # the terms of d^2 = s^2 + 2 A_2 s h + A_2^2 h^2 binned separately (see the module docstring)
 TEMPLATE_TERMS = ("s*s", "s*h", "h*h")
-# Bin the demodulated streams at every D-th sample (demodulation.decimation_factor)? The
-# streams are the same band-limited signals, but the map's noise then follows the
-# decimated hits: at nside 32, one day, D = 7, the seeds' E/B noise at ell 2-24 went from
-# +17 % to +32 % of the full path's, and at nside 512 seven samples at 19 Hz are a pixel
-# crossing. Off until validated at the resolutions it would serve (issue 27).
-DECIMATE_DEMODULATED = False
 # the calibration TODs (a reference map, noise realizations) are filtered in single
 # precision: they measure ratios of spectra, which a relative rounding of ~1e-7 cannot
 # move, and their FFTs take half the time (measured: 31 against 66 ns per row-sample)
@@ -158,81 +160,6 @@ class Calibration:
         return chunk % self.every_chunks == 0
 
 
-@dataclass
-class ExtraBinning:
-    """Another map-maker fed by the same TODs in the same pass (the map-domain fixed pass's
-    variants, :func:`fixed_maps.fixed_passes`): its HEALPix resolution (pixels from the
-    pointing's directions; the sky is scanned at the primary resolution) and baseline
-    length (None: none, and the HWP-harmonic fit without a constant, as the primary path
-    would run it), with its own normal equations, HWPSS moments (one object may be shared
-    by the binnings of one resolution) and calibration equations, filled by
-    :func:`accumulate` as the primary ones."""
-
-    nside: int
-    baseline_length_s: float | None
-    moments: PixelMoments | None = None
-    equations: NormalEquations | None = None
-    calibration_equations: NormalEquations | None = None
-    # HWP demodulation + low-pass (:mod:`demodulation`) instead of the binned solve: then
-    # ``equations`` and ``calibration_equations`` (the filtered calibration TODs) are
-    # DemodulatedEquations, ``white_equations`` bins the unfiltered noise TODs (the white
-    # reference of the noise shaping) and ``matrix_equations`` the binned solve's M of
-    # every chunk (the white noise the seeds draw), both NormalEquations
-    demodulated: bool = False
-    white_equations: NormalEquations | None = None
-    matrix_equations: NormalEquations | None = None
-
-
-@dataclass
-class FilteredStack:
-    """A chunk's TOD stack (rows, n_det, n) filtered with each HWP-harmonic fit in use:
-    ``stack[offset]`` (with a constant in the fit if True). When both fits come from one
-    filtering (:func:`filter_both_offsets`), ``coefficients`` c (rows, n_det) and
-    ``filtered_u`` u_f (n_det, n) relate them: with = without - c u_f, so that any
-    linear operation on the stacks (the demodulation) needs the one without and u_f only."""
-
-    of: dict[bool, np.ndarray]
-    coefficients: np.ndarray | None = None
-    filtered_u: np.ndarray | None = None
-
-    def __getitem__(self, offset: bool) -> np.ndarray:
-        return self.of[offset]
-
-
-def filter_both_offsets(unfiltered, pointing, simulator, settings) -> FilteredStack:
-    """The HWP-harmonic removal (with and without a constant) then notch of a chunk's TOD
-    stack (rows, n_det, n), both from one filtering: the fit without a constant, then
-    the constant projected out through the same filter (:func:`hwpss_removal.offset_residual`;
-    equal to filtering twice, to round-off). ``unfiltered`` is overwritten."""
-    harmonics = settings.removed_hwp_harmonics
-    u = offset_residual(
-        pointing.hwp_angle_rad, harmonics, pointing.harmonic_templates(harmonics, offset=False)
-    )
-    coefficients = (unfiltered @ u) / (u @ u)  # (rows, n_det): c = <u, d> / <u, u>
-    u_rows = np.broadcast_to(u.astype(unfiltered.dtype), (1, *unfiltered.shape[1:]))
-    stack = np.concatenate([unfiltered, u_rows])
-    notched = notch_with_margins(stack, pointing, simulator, settings, overwrite=True, offset=False)
-    without, filtered_u = notched[:-1], notched[-1]
-    with_offset = without - coefficients[..., None] * filtered_u
-    return FilteredStack({False: without, True: with_offset}, coefficients, filtered_u)
-
-
-def filter_offsets(unfiltered, offsets, pointing, simulator, settings) -> FilteredStack:
-    """The chunk's TOD stack (rows, n_det, n) filtered for each HWP-harmonic fit in
-    ``offsets`` (with a constant if True): one filtering for both
-    (:func:`filter_both_offsets`). ``unfiltered`` is overwritten; its dtype is kept."""
-    if len(offsets) == 1:
-        (offset,) = offsets
-        return FilteredStack(
-            {
-                offset: notch_with_margins(
-                    unfiltered, pointing, simulator, settings, overwrite=True, offset=offset
-                )
-            }
-        )
-    return filter_both_offsets(unfiltered, pointing, simulator, settings)
-
-
 def calibration_stack(
     calibration, simulator, settings, pointing, chunk, hwpss, signal, inner, clock
 ):
@@ -295,49 +222,6 @@ def chunk_tods(
         with clock("HWPSS"):
             unit_hwpss = simulator.hwpss(pointing, 1.0)
         yield chunk, pointing, inner, tod, unit_hwpss
-
-
-def filter_tod(
-    tod: np.ndarray, pointing, inner: slice, simulator, settings, overwrite: bool = False
-) -> np.ndarray:
-    """HWP-harmonic template removal, then the paper's 4 f_HWP notch, on a chunk with
-    margins (any leading shape, time last); returns the ``inner`` samples, from which the
-    per-detector baselines are removed (:mod:`baselines`; none on the paper-literal path,
-    where the harmonic fit has no constant either).
-    Linear in the TOD. ``overwrite`` lets the HWP-harmonic removal reuse ``tod``'s memory."""
-    notched = notch_with_margins(tod, pointing, simulator, settings, overwrite)
-    return remove_baselines(notched[..., inner], baseline_samples_of(settings))
-
-
-def notch_with_margins(tod, pointing, simulator, settings, overwrite: bool = False, offset=None):
-    """HWP-harmonic template removal (with a constant when baselines are removed, or as
-    ``offset`` says), then the notch (none when ``settings.notch_width_divisor`` is
-    None), on the whole chunk with its margins."""
-    f_hwp_hz = simulator.channel.hwp_frequency_hz
-    offset = settings.baseline_length_s is not None if offset is None else offset
-    harmonics = settings.removed_hwp_harmonics
-    cleaned = remove_hwp_harmonics(
-        tod,
-        pointing.hwp_angle_rad,
-        harmonics,
-        overwrite=overwrite,
-        offset=offset,
-        templates=pointing.harmonic_templates(harmonics, offset),
-    )
-    if settings.notch_width_divisor is None:
-        return cleaned
-    return apply_notch(
-        cleaned,
-        settings.plan.sampling_rate_hz,
-        f_hwp_hz,
-        4 * f_hwp_hz / settings.notch_width_divisor,
-        workers=settings.threads,
-    )
-
-
-def baseline_samples_of(settings) -> int | None:
-    """Samples per baseline interval of the settings (None: no baselines)."""
-    return baseline_samples(settings.baseline_length_s, settings.plan.sampling_rate_hz)
 
 
 def detector_weights(simulator: PairSimulator) -> np.ndarray:
@@ -441,9 +325,9 @@ def accumulate(
         rates = (settings.plan.sampling_rate_hz, simulator.channel.hwp_frequency_hz)
         detector = (weights, simulator.pol_efficiency)
         if demodulated is not None:
-            _bin_streams(
+            bin_streams(
                 demodulated,
-                _demodulated_streams(notched, pointing, inner, rates, settings.threads, clock),
+                demodulated_streams(notched, pointing, inner, rates, settings.threads, clock),
                 binned,
                 pointing.pixels[:, inner],
                 pointing,
@@ -453,7 +337,7 @@ def accumulate(
                 clock,
             )
         angles = (pointing.cos_2alpha[:, inner], pointing.sin_2alpha[:, inner], *detector)
-        _bin_extra_binnings(
+        bin_extra_binnings(
             extra_binnings,
             (calibrating, pixels_of, angles, binned, unfiltered_noise),
             (notched_of, calibration_of),
@@ -468,7 +352,7 @@ def accumulate(
             )
         del notched, notched_of, calibration_of
         with clock("binning"):
-            _bin_chunk(
+            bin_chunk(
                 equations,
                 calibration.equations if calibrating else None,
                 pixels_of[settings.nside],
@@ -486,7 +370,7 @@ def accumulate(
             on_chunk(inner.stop - inner.start, rss_mb)
     if nested:
         _nest_to_ring(equations, moments, calibration, extra_binnings)
-    _share_binned_matrices(extra_binnings, binned_of, calibration)
+    share_binned_matrices(extra_binnings, binned_of, calibration)
     log.info(
         "%s seed %d: peak RSS during chunks %.0f MB; time per stage: %s",
         simulator.channel.name,
@@ -587,78 +471,6 @@ def _fill_signal_terms(unfiltered, signal, hwpss, a2_k_cmb: float, n_terms: int,
         tod += np.asarray(g1_per_k)[:, None] * tod**2
 
 
-def _baselines_removed(stacks, inner, baseline_length_s, sampling_rate_hz) -> list:
-    """The stacks' inner samples, with the baselines of ``baseline_length_s`` removed
-    (on copies: the removal works in place) when it is not None; None stays None."""
-    stacks = [None if stack is None else stack[..., inner] for stack in stacks]
-    if baseline_length_s is None:
-        return stacks
-    samples = baseline_samples(baseline_length_s, sampling_rate_hz)
-    return [None if stack is None else remove_baselines(stack.copy(), samples) for stack in stacks]
-
-
-def _bin_extra_binnings(extra_binnings, chunk, filtered, demodulation) -> None:
-    """Bin a chunk into each extra binning (:class:`ExtraBinning`), with or without its
-    baselines; a demodulated one through :func:`_bin_demodulated`, the streams demodulated
-    once per stack and baseline choice whatever the map-makers' nsides.
-    ``chunk``: (calibrating, {nside: pixels}, angles, (rows, owners), the unfiltered noise
-    TODs); ``filtered``: ({offset: filtered stack}, {offset: filtered calibration stack});
-    ``demodulation``: (pointing, inner, (sampling rate, HWP frequency), threads, clock)."""
-    calibrating, pixels_of, angles, binned, unfiltered_noise = chunk
-    notched_of, calibration_of = filtered
-    pointing, inner, (rate_hz, _), _, clock = demodulation
-    streams_of = {}
-    for extra in extra_binnings:
-        offset = extra.baseline_length_s is not None
-        if extra.demodulated:
-            _bin_demodulated(
-                extra,
-                calibrating,
-                pixels_of[extra.nside],
-                pointing,
-                inner,
-                angles[2:],
-                binned,
-                (
-                    _shared_streams(streams_of, "filtered", notched_of, offset, demodulation),
-                    _shared_streams(streams_of, "calibration", calibration_of, offset, demodulation)
-                    if calibrating
-                    else None,
-                    unfiltered_noise,
-                ),
-                rate_hz,
-                clock,
-            )
-            continue
-        stacks = _baselines_removed(
-            [notched_of[offset], calibration_of[offset]], inner, extra.baseline_length_s, rate_hz
-        )
-        with clock("binning"):
-            _bin_chunk(
-                extra.equations,
-                extra.calibration_equations if calibrating else None,
-                pixels_of[extra.nside],
-                angles,
-                binned,
-                *stacks,
-                unfiltered_noise,
-            )
-        del stacks
-
-
-def _share_binned_matrices(extra_binnings, binned_of: dict, calibration) -> None:
-    """A demodulated map-maker without its own matrix takes the binned one of its
-    resolution, and the unfiltered noise TODs (the binned calibration's last ones)."""
-    for extra in extra_binnings:
-        if extra.demodulated and extra.matrix_equations is None:
-            binned, binned_calibration = binned_of[extra.nside]
-            extra.matrix_equations = binned.subset([])
-            if binned_calibration is not None:  # its last TODs: the noise unfiltered
-                n_tods = binned_calibration.n_tods
-                unfiltered = range(n_tods - calibration.n_noise_tods, n_tods)
-                extra.white_equations = binned_calibration.subset(unfiltered)
-
-
 def chunk_memory_bytes(n_detectors: int, settings) -> float:
     """Peak memory of a pass whose chunks hold ``n_detectors`` detectors [bytes]:
     PASS_BASE_BYTES + CHUNK_BYTES_PER_DETECTOR_SAMPLE x detectors x samples of a chunk
@@ -682,112 +494,6 @@ def check_chunk_memory(simulator, settings) -> None:
             f"{needed / 1e9:.1f} GB, {available / 1e9:.1f} GB are available: use fewer pairs "
             "or shorter chunks"
         )
-
-
-def _bin_chunk(target, calibration_target, pixels, angles, binned, filtered, calibration, noise):
-    """Bin a chunk's filtered TOD stack at ``pixels`` into ``target`` and, when
-    ``calibration_target`` is given, the filtered ``calibration`` TODs then the unfiltered
-    ``noise`` TODs (each (rows, n_det, n)) into it. ``binned``: (rows, owners), TOD i of
-    ``target`` being row ``rows[i]`` of ``filtered`` (detector ``owners[i]`` only unless
-    None); ``angles``: (cos 2 alpha, sin 2 alpha, weights, pol_efficiency)."""
-    rows, owners = binned
-    target.add(pixels, *angles, filtered, owners, rows=rows)
-    if calibration_target is not None:
-        calibration_target.add(pixels, *angles, [*calibration, *noise])
-
-
-def _demodulated_streams(stack, pointing, inner, rates, threads, clock) -> tuple:
-    """(streams, picked): the demodulated streams (L d, L(2 d cos 4 chi), L(2 d sin 4
-    chi)) of a filtered TOD stack (rows, n_det, n, with margins: the low-pass wraps
-    around) at the ``inner`` samples, or at every D-th of them with DECIMATE_DEMODULATED
-    (:func:`demodulation.decimation_factor`), (3, rows, n_det, n_kept), and ``picked``,
-    the slice of the inner samples they are at; ``rates``: (sampling rate, f_HWP) [Hz]."""
-    sampling_rate_hz, f_hwp_hz = rates
-    stride = decimation_factor(sampling_rate_hz, f_hwp_hz) if DECIMATE_DEMODULATED else 1
-    with clock("demodulation"):
-        streams = demodulate(
-            stack, pointing.hwp_angle_rad, sampling_rate_hz, f_hwp_hz, threads, stride
-        )
-    first, stop = -(-inner.start // stride), -(-inner.stop // stride)  # ceilings
-    return streams[..., first:stop], slice(first * stride - inner.start, None, stride)
-
-
-def _shared_streams(cache: dict, kind: str, filtered: FilteredStack, offset: bool, demodulation):
-    """:func:`_demodulated_streams` of ``filtered[offset]`` (``demodulation``: its other
-    arguments), computed once per chunk and kind of stack (``cache``). The demodulation
-    is linear: when both fits come from one filtering, the streams with the constant are
-    those without it less c times those of u_f (:class:`FilteredStack`), so the stack is
-    demodulated once, not once per fit (equal to rounding)."""
-    key = (kind, offset)
-    if key in cache:
-        return cache[key]
-    if offset and filtered.coefficients is not None:
-        streams, picked = _shared_streams(cache, kind, filtered, False, demodulation)
-        u_streams, _ = _demodulated_streams(filtered.filtered_u, *demodulation)
-        coefficients = filtered.coefficients.astype(streams.dtype)[None, ..., None]
-        cache[key] = (streams - coefficients * u_streams[:, None], picked)
-    else:
-        cache[key] = _demodulated_streams(filtered[offset], *demodulation)
-    return cache[key]
-
-
-def _bin_streams(target, demodulated, binned, pixels, pointing, inner, detector, samples, clock):
-    """Bin demodulated streams (:func:`_demodulated_streams`: (streams, picked)) into
-    ``target`` (DemodulatedEquations) at their samples, baselines of ``samples`` (None:
-    none; in full-rate samples) removed from a copy of the intensity stream only (the
-    streams may serve other map-makers). ``pixels``: of the inner samples;
-    ``binned``: (rows, owners), TOD i of ``target`` being row ``rows[i]`` (detector
-    ``owners[i]`` only unless None); ``detector``: (weights, pol_efficiency)."""
-    streams, picked = demodulated
-    rows, owners = binned
-    weights, pol_efficiency = detector
-    if samples is not None:
-        per_baseline = max(1, round(samples / picked.step))
-        intensity = remove_baselines(streams[0][list(rows)], per_baseline)
-        tods = [
-            np.stack([intensity[i], streams[1, row], streams[2, row]]) for i, row in enumerate(rows)
-        ]
-    else:
-        tods = [streams[:, row] for row in rows]
-    with clock("binning"):
-        target.add(
-            pixels[:, picked],
-            pointing.cos_2alpha[:, inner][:, picked],
-            pointing.sin_2alpha[:, inner][:, picked],
-            pointing.hwp_angle_rad[inner][picked],
-            weights,
-            pol_efficiency,
-            tods,
-            owners,
-        )
-
-
-def _bin_demodulated(
-    extra, calibrating, pixels, pointing, inner, detector, binned, streams, rate_hz, clock
-) -> None:
-    """Bin a chunk into a demodulated extra binning (:func:`_bin_streams`): the filtered
-    TODs' demodulated streams, on calibration chunks the filtered calibration TODs' too
-    and, unless a binned map-maker of its nside holds them (``matrix_equations`` None
-    until the end), the unfiltered noise TODs binned as they are and M of every chunk.
-    ``detector``: (weights, pol_efficiency); ``binned``: (rows, owners); ``streams``: (the
-    filtered TODs' streams, the calibration TODs' streams, the unfiltered noise TODs)."""
-    filtered, calibration_filtered, unfiltered_noise = streams
-    samples = baseline_samples(extra.baseline_length_s, rate_hz)
-    todo = [(extra.equations, filtered, binned)]
-    if calibrating:
-        n_filtered = extra.calibration_equations.n_tods
-        todo.append((extra.calibration_equations, calibration_filtered, (range(n_filtered), None)))
-    for target, target_streams, target_rows in todo:
-        _bin_streams(
-            target, target_streams, target_rows, pixels, pointing, inner, detector, samples, clock
-        )
-    if extra.matrix_equations is None:  # shared with the binned map-maker of its nside
-        return
-    angles = (pointing.cos_2alpha[:, inner], pointing.sin_2alpha[:, inner], *detector)
-    with clock("binning"):
-        extra.matrix_equations.add(pixels, *angles, np.empty((0, *pixels.shape)), rows=[])
-        if calibrating:
-            extra.white_equations.add(pixels, *angles, unfiltered_noise)
 
 
 def _nest_to_ring(equations, moments, calibration, extra_binnings) -> None:

@@ -1,6 +1,6 @@
 """Stages of the map-domain path (``simulation.realizations: map_domain``): the fixed TOD
 pass of one channel, the analysis mask from all of them, then each seed's a_lm of the
-channel (:mod:`map_domain`, :class:`ilc_residuals.ChannelAlms`)."""
+channel (:mod:`map_domain`, :class:`channel_alms.ChannelAlms`)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import pandas as pd
 
 from .. import config as cfg
 from .. import sky
-from ..analysis import ilc_residuals
+from ..analysis import channel_alms
 from ..io import reuse_freed_memory, use_threads
 from ..simulation import fixed_maps, map_domain
 from ..simulation.maps_file import maps_attributes
@@ -119,8 +119,8 @@ def run_mask(config: dict, fixed_h5s: list[str], out_h5: str) -> None:
     """The analysis mask from every channel's fixed pass (the pixels a seed observes are
     the fixed pass's ``good`` ones): what the seeds' a_lm are computed on."""
     observed = [fixed_maps.read_fixed_field(path, "good") for path in fixed_h5s]
-    mask = ilc_residuals.analysis_mask(observed, config["component_separation"])
-    ilc_residuals.write_mask(out_h5, mask, config["component_separation"])
+    mask = channel_alms.analysis_mask(observed, config["component_separation"])
+    channel_alms.write_mask(out_h5, mask, config["component_separation"])
     log.info(
         "analysis mask of %d channels: f_sky %.3f, wrote %s", len(observed), mask.mean(), out_h5
     )
@@ -129,7 +129,7 @@ def run_mask(config: dict, fixed_h5s: list[str], out_h5: str) -> None:
 def run_seeds(
     config: dict, channel_name: str, seeds, fixed_h5: str, mask_h5: str, out_h5s, pooled_h5s=()
 ) -> None:
-    """Write each seed's a_lm of one channel (:class:`ilc_residuals.ChannelAlms`) from the
+    """Write each seed's a_lm of one channel (:class:`channel_alms.ChannelAlms`) from the
     channel's fixed pass: the seed's maps are made in memory
     (:class:`map_domain.ChannelSeeds`) and reduced to the a_lm the HILC combines, so no
     seed's maps reach the disk (at nside 512 they would take ~0.8 GB per channel and
@@ -141,27 +141,27 @@ def run_seeds(
     channel_seeds = map_domain.ChannelSeeds(config, fixed_h5, pooled_h5s)
     if len(pooled_h5s) > 1:
         log.info("%s: noise shaping pooled over %d fixed passes", channel_name, len(pooled_h5s))
-    mask = ilc_residuals.read_mask(mask_h5)
+    mask = channel_alms.read_mask(mask_h5)
     if mask.size != channel_seeds.fixed.good.size:
         raise ValueError(
             f"{mask_h5}: {mask.size} pixels, but the fixed pass {fixed_h5} has "
             f"{channel_seeds.fixed.good.size}"
         )
-    harmonic = ilc_residuals.HarmonicSettings.from_config(config)
+    harmonic = channel_alms.HarmonicSettings.from_config(config)
     # what every seed shares, transformed once: the fixed pass's template terms (a seed
     # adds its pieces to the s h term) and, after the first seed, the foreground reference
     a2_k_cmb = float(channel_seeds.attributes["a2_k_cmb"])
-    known = ilc_residuals.fixed_term_alms(
+    known = channel_alms.fixed_term_alms(
         config, channel_name, channel_seeds.fixed, a2_k_cmb, mask, harmonic
     )
     for seed, out_h5 in zip(seeds, out_h5s, strict=True):
         maps = channel_seeds.maps(seed, full_terms=False)
-        alms = ilc_residuals.ChannelAlms.from_maps(
+        alms = channel_alms.ChannelAlms.from_maps(
             config, seed, channel_name, maps, mask, harmonic, known
         )
         known["foreground_reference"] = alms.alms["foreground_reference"]
-        ilc_residuals.write_channel_alms(
-            out_h5, alms, ilc_residuals.alms_attributes(seed, harmonic, mask)
+        channel_alms.write_channel_alms(
+            out_h5, alms, channel_alms.alms_attributes(seed, harmonic, mask)
         )
         log.info("%s seed %d: wrote %s", channel_name, seed, out_h5)
     log.info("%s: %d seeds in %.1f s", channel_name, len(out_h5s), time.perf_counter() - started)

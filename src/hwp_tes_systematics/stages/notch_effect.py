@@ -21,7 +21,8 @@ from ..io import write_csv
 from ..simulation.mapmaking import NormalEquations, solve_maps
 from ..simulation.notch import chunk_span
 from ..simulation.tod import PairSimulator
-from ..simulation.tod_maps import PairMapSettings, detector_weights, filter_tod
+from ..simulation.tod_filter import filter_tod
+from ..simulation.tod_maps import PairMapSettings, detector_weights
 
 log = logging.getLogger(__name__)
 

@@ -14,7 +14,7 @@ quadratic; its requirement sqrt(budget / mean k), with the scatter over seeds, f
 configured A_2 and for A_2 scaled by each of ``requirement.a2_scale_factors``.
 
 The systematic alone is also given in the paper's convention, the shift of the 68 %
-point (:func:`requirement.fraction_point_estimator`): the ``headline`` of
+point (:func:`systematic_only.fraction_point_estimator`): the ``headline`` of
 requirement.json, with the Fisher peak shift beside it. Before any of it is a
 requirement, the stage checks that the likelihood model describes the data it is given
 (:mod:`consistency`: the model's sky transfer and r = 0 BB against the run's measured
@@ -51,11 +51,13 @@ from ..analysis.requirement import (
     delta_r_table,
     figure8_arguments,
     fit_power_law,
-    fraction_point_estimator,
-    mitigation_summary,
     paper_estimator,
     requirement_sigma,
     summarise,
+)
+from ..analysis.systematic_only import (
+    fraction_point_estimator,
+    mitigation_summary,
     systematic_only_estimator,
     template_split,
 )
@@ -232,7 +234,7 @@ def model_checks(
 
 
 def systematic_alone(likelihoods, table, budget, sigma_r, template_fit_jsons) -> dict:
-    """The systematic's own power: :func:`requirement.systematic_only_estimator` (Fisher),
+    """The systematic's own power: :func:`systematic_only.systematic_only_estimator` (Fisher),
     its free exponent, the paper's 68 %-point convention and, when the likelihoods carry
     it, the requirement after the template fit."""
     systematic_only = systematic_only_estimator(likelihoods, budget, sigma_r)
