@@ -111,3 +111,54 @@ def test_the_tests_mirror_the_package_and_each_file_has_a_kind():
     assert conftest.kind_of_test(Path("test_rules_maps.py"), True) == "rule"
     assert conftest.kind_of_test(Path("test_cli.py"), False) == "unit"
     assert conftest.kind_of_test(Path("test_cli.py"), True) == "workflow"
+
+
+DEVELOPMENT = PACKAGE.parents[1] / "docs" / "development.md"
+MODULE_LINES, FUNCTION_LINES = 500, 100
+
+
+def size_exceptions() -> dict[str, str]:
+    """The manual's table of modules and functions that stay large: {where: why}."""
+    text = DEVELOPMENT.read_text().split("### Sizes", 1)[1].split("\n## ", 1)[0]
+    rows = [line.split("|") for line in text.splitlines() if line.startswith("| `")]
+    return {row[1].strip().strip("`"): row[3].strip() for row in rows}
+
+
+def test_modules_and_functions_stay_small_unless_the_manual_says_why():
+    """A module over MODULE_LINES or a function over FUNCTION_LINES lines is listed, with
+    a reason, in docs/development.md ("Sizes"); a listed one still exists and is large."""
+    large = set()
+    for path in PACKAGE.rglob("*.py"):
+        where = path.relative_to(PACKAGE).as_posix()
+        text = path.read_text()
+        if text.count("\n") > MODULE_LINES:
+            large.add(where)
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                if node.end_lineno - node.lineno + 1 >= FUNCTION_LINES:
+                    large.add(f"{where}::{node.name}")
+    listed = size_exceptions()
+    assert all(listed.values()), "a listed size exception has no reason"
+    assert large - set(listed) == set(), "large and not listed in docs/development.md"
+    assert set(listed) - large == set(), "listed in docs/development.md but no longer large"
+
+
+DIAGNOSIS_STEPS = ("nominal", "locate", "select", "explain", "bound", "report")
+
+
+def test_a_diagnosis_step_imports_only_earlier_steps():
+    """diagnose/<step>/ imports the ground floor, the catalog and earlier steps: never a
+    later step, the pipeline, the segments or the test bed."""
+    diagnose = "hwp_tes_systematics.diagnose"
+    above = {"pipeline", "segments", "simulate", "testbed"}
+    offenders = []
+    for i, step in enumerate(DIAGNOSIS_STEPS):
+        for path in (PACKAGE / "diagnose" / step).glob("*.py"):
+            for name in imported_modules(path):
+                if not name.startswith(diagnose + "."):
+                    continue
+                first = name[len(diagnose) + 1 :].split(".")[0]
+                later = first in DIAGNOSIS_STEPS[i + 1 :]
+                if later or first in above:
+                    offenders.append(f"diagnose/{step}/{path.name} imports {name}")
+    assert offenders == []

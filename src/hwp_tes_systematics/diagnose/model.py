@@ -410,3 +410,19 @@ def _beam_arcmin(recording) -> float:
 def nominal_tod(recording, sky_iqu, a2_k) -> np.ndarray:
     """d_nom = sky + dipole + A_2 cos(2 (chi - theta)) at the recorded pointing, (n_det, n)."""
     return build_context(recording, sky_iqu, a2_k).d_nom
+
+
+def coarse_pixels(ctx: Context, nside_out: int):
+    """Galactic pixels at min(nside_out, the sky map's nside), RING, (n_det, n)."""
+    import healpy as hp
+
+    nside = ctx.nside
+    if nside is None or ctx.pixels is None:
+        return None, None
+    if nside <= nside_out:
+        return ctx.pixels, nside
+    factor = round(math.log2(nside / nside_out))
+    if 2**factor * nside_out != nside:
+        return ctx.pixels, nside
+    nest = hp.ring2nest(nside, ctx.pixels)
+    return hp.nest2ring(nside_out, nest >> (2 * factor)), nside_out

@@ -56,7 +56,7 @@ from .frequency import (
     sinusoid_fit,
 )
 from .hwp_angle import HWP_BINS, Harmonic, hwp_profile
-from .sky import SKY_NSIDE, bin_map, coarse_pixels, sky_residual
+from .sky import SKY_NSIDE, bin_map, sky_residual
 from .step import Mismatch, locate
 
 __all__ = [
@@ -69,7 +69,6 @@ __all__ = [
     "Line",
     "Mismatch",
     "bin_map",
-    "coarse_pixels",
     "dc_offset",
     "drifts",
     "excess_bands",

@@ -7,25 +7,9 @@ import math
 
 import numpy as np
 
-from ..model import Context
+from ..model import Context, coarse_pixels
 
 SKY_NSIDE = 32
-
-
-def coarse_pixels(ctx: Context, nside_out: int = SKY_NSIDE):
-    """Galactic pixels at min(nside_out, the sky map's nside), RING, (n_det, n)."""
-    import healpy as hp
-
-    nside = ctx.nside
-    if nside is None or ctx.pixels is None:
-        return None, None
-    if nside <= nside_out:
-        return ctx.pixels, nside
-    factor = round(math.log2(nside / nside_out))
-    if 2**factor * nside_out != nside:
-        return ctx.pixels, nside
-    nest = hp.ring2nest(nside, ctx.pixels)
-    return hp.nest2ring(nside_out, nest >> (2 * factor)), nside_out
 
 
 def bin_map(pixels, values, valid, npix):
@@ -37,7 +21,7 @@ def bin_map(pixels, values, valid, npix):
 
 def sky_residual(residual: np.ndarray, ctx: Context, sigma_sample: np.ndarray) -> dict:
     """Residual map and its correlation with the intensity and dipole maps (all detectors)."""
-    pixels, nside = coarse_pixels(ctx)
+    pixels, nside = coarse_pixels(ctx, SKY_NSIDE)
     if pixels is None:
         return {"available": False}
     npix = 12 * nside * nside

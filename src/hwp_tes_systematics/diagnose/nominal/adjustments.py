@@ -79,8 +79,7 @@ import scipy.fft
 from ..effects import Effect
 from ..effects.hwpss import harmonic_templates
 from ..linalg import cross, solve_normal
-from ..locate import coarse_pixels
-from ..model import Context
+from ..model import Context, coarse_pixels
 from ..noise import (
     NOISE_FMIN_SPINS,
     NoiseModel,
