@@ -15,16 +15,12 @@ the wall time of the pass. nside 64, 19 Hz, 60 s baselines, the default optics.
 from __future__ import annotations
 
 import argparse
-import time
 
 import numpy as np
+from common import config_fixed_pass
 
 from hwp_tes_systematics.config import default_config_path, load_config
-from hwp_tes_systematics.instrument.channels import load_channel
-from hwp_tes_systematics.simulation import fixed_maps, map_domain
-from hwp_tes_systematics.simulation.channel_inputs import channel_a2_k_cmb, channel_sky
-from hwp_tes_systematics.simulation.tod import MissionPlan, PairSimulator
-from hwp_tes_systematics.simulation.tod_maps import PairMapSettings
+from hwp_tes_systematics.simulation import map_domain
 from hwp_tes_systematics.sky import cmb as sky_cmb
 
 NSIDE = 64
@@ -36,29 +32,9 @@ SEEDS = range(4)
 
 def fixed_pass(config, channel_name, days, every):
     """(FixedMaps, A_2 [K_CMB], CMB transfer a_lm's channel, wall seconds)."""
-    channel = load_channel(channel_name)
-    plan = MissionPlan(config["simulation"]["mission_start_tdb"], days * 86400.0, 86400.0, RATE_HZ)
-    a2_k = channel_a2_k_cmb(config, channel_name)
-    settings = PairMapSettings(
-        master_seed=config["master_seed"],
-        seed=fixed_maps.NOISE_REFERENCE_SEED,
-        nside=NSIDE,
-        plan=plan,
-        a2_k_cmb=a2_k,
-        notch_width_divisor=config["notch"]["width_divisor"],
-        notch_margin_s=config["notch"]["margin_s"],
-        max_condition_number=config["maps"]["max_condition_number"],
-        baseline_length_s=config["maps"]["baseline_length_s"],
+    return config_fixed_pass(
+        config, channel_name, days, RATE_HZ, NSIDE, calibration_every_chunks=every
     )
-    simulator = PairSimulator(channel, plan, NSIDE, noise_model="keshner")
-    sky_config = {**config, "maps": {**config["maps"], "nside": NSIDE}}
-    foreground = channel_sky(sky_config, channel, 0)["foreground"]
-    transfer_alm = sky_cmb.transfer_cmb_alm(LMAX, 0.0, config["master_seed"], channel.fwhm_arcmin)
-    started = time.perf_counter()
-    fixed = fixed_maps.fixed_pass(
-        simulator, settings, foreground, transfer_alm, True, LMAX, calibration_every_chunks=every
-    )
-    return fixed, a2_k, channel, time.perf_counter() - started
 
 
 def seed_noise(fixed, a2_k, channel, master_seed):

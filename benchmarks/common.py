@@ -10,6 +10,8 @@ import numpy as np
 from hwp_tes_systematics import sky
 from hwp_tes_systematics.instrument.channels import load_channel
 from hwp_tes_systematics.io import use_threads
+from hwp_tes_systematics.simulation import fixed_maps
+from hwp_tes_systematics.simulation.channel_inputs import channel_a2_k_cmb, channel_sky
 from hwp_tes_systematics.simulation.tod import MissionPlan, PairSimulator
 from hwp_tes_systematics.simulation.tod_maps import PairMapSettings, accumulate
 from hwp_tes_systematics.sky import cmb as sky_cmb
@@ -60,8 +62,6 @@ def fixed_pass_setup(channel_name, days, nside, rate_hz, a2_k_cmb, baseline_leng
     """(simulator, settings) of a map-domain fixed pass of ``days`` of one pair at
     ``rate_hz``, the sky scanned at ``nside`` (:func:`paper_settings`, master seed
     ``seed``)."""
-    from hwp_tes_systematics.simulation.fixed_maps import NOISE_REFERENCE_SEED
-
     channel = load_channel(channel_name)
     plan = MissionPlan(START_TDB, days * 86400.0, 86400.0, rate_hz)
     settings = paper_settings(
@@ -69,10 +69,39 @@ def fixed_pass_setup(channel_name, days, nside, rate_hz, a2_k_cmb, baseline_leng
         nside,
         a2_k_cmb,
         master_seed=seed,
-        seed=NOISE_REFERENCE_SEED,
+        seed=fixed_maps.NOISE_REFERENCE_SEED,
         baseline_length_s=baseline_length_s,
     )
     return PairSimulator(channel, plan, nside, noise_model="keshner"), settings
+
+
+def config_fixed_pass(config, channel_name, days, rate_hz, nside, **options):
+    """A map-domain fixed pass of ``days`` of one pair of ``channel_name`` at ``rate_hz``
+    with ``config``'s filter, its sky scanned at ``nside`` with unit noise:
+    (FixedMaps, A_2 [K_CMB], channel, wall seconds); ``options`` go to
+    :func:`fixed_maps.fixed_pass`."""
+    lmax = 3 * nside - 1
+    channel = load_channel(channel_name)
+    plan = MissionPlan(config["simulation"]["mission_start_tdb"], days * 86400.0, 86400.0, rate_hz)
+    a2_k = channel_a2_k_cmb(config, channel_name)
+    settings = PairMapSettings.from_config(
+        config,
+        channel,
+        fixed_maps.NOISE_REFERENCE_SEED,
+        a2_k,
+        plan=plan,
+        nside=nside,
+        noise_scale=1.0,
+    )
+    simulator = PairSimulator(channel, plan, nside, noise_model="keshner")
+    sky_config = {**config, "maps": {**config["maps"], "nside": nside}}
+    foreground = channel_sky(sky_config, channel, 0)["foreground"]
+    transfer_alm = sky_cmb.transfer_cmb_alm(lmax, 0.0, config["master_seed"], channel.fwhm_arcmin)
+    started = time.perf_counter()
+    fixed = fixed_maps.fixed_pass(
+        simulator, settings, foreground, transfer_alm, True, lmax, **options
+    )
+    return fixed, a2_k, channel, time.perf_counter() - started
 
 
 def warm_up(channel_name, nside, threads, noise_model):
@@ -139,8 +168,6 @@ def run_fixed_pass(
     demodulated; ``band_limited``: the sky scanned from its a_lm; ``noise_realizations``:
     the reference noise realizations (simulation.noise_reference_realizations)."""
     import healpy as hp
-
-    from hwp_tes_systematics.simulation import fixed_maps
 
     channel = load_channel(name)
     a2_k_cmb = A2_K_CMB if carries_systematics else 0.0

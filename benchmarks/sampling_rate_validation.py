@@ -16,49 +16,25 @@ baselines and the default optics.
 from __future__ import annotations
 
 import argparse
-import time
 
 import healpy as hp
 import numpy as np
+from common import config_fixed_pass
 
 from hwp_tes_systematics.config import default_config_path, load_config
-from hwp_tes_systematics.instrument.channels import load_channel
-from hwp_tes_systematics.simulation import fixed_maps
-from hwp_tes_systematics.simulation.channel_inputs import channel_a2_k_cmb, channel_sky
-from hwp_tes_systematics.simulation.tod import MissionPlan, PairSimulator
 from hwp_tes_systematics.simulation.tod_maps import (
     TEMPLATE_TERMS,
-    PairMapSettings,
     templates_from_terms,
 )
-from hwp_tes_systematics.sky import cmb as sky_cmb
 
 NSIDE = 64
 LMAX = 3 * NSIDE - 1
 
 
 def fixed_pass(config, channel_name, rate_hz, days):
-    channel = load_channel(channel_name)
-    plan = MissionPlan(config["simulation"]["mission_start_tdb"], days * 86400.0, 86400.0, rate_hz)
-    a2_k = channel_a2_k_cmb(config, channel_name)
-    settings = PairMapSettings(
-        master_seed=config["master_seed"],
-        seed=fixed_maps.NOISE_REFERENCE_SEED,
-        nside=NSIDE,
-        plan=plan,
-        a2_k_cmb=a2_k,
-        notch_width_divisor=config["notch"]["width_divisor"],
-        notch_margin_s=config["notch"]["margin_s"],
-        max_condition_number=config["maps"]["max_condition_number"],
-        baseline_length_s=config["maps"]["baseline_length_s"],
-    )
-    simulator = PairSimulator(channel, plan, NSIDE, noise_model="keshner")
-    sky_config = {**config, "maps": {**config["maps"], "nside": NSIDE}}
-    foreground = channel_sky(sky_config, channel, 0)["foreground"]
-    transfer_alm = sky_cmb.transfer_cmb_alm(LMAX, 0.0, config["master_seed"], channel.fwhm_arcmin)
-    started = time.perf_counter()
-    fixed = fixed_maps.fixed_pass(simulator, settings, foreground, transfer_alm, True, LMAX)
-    return fixed, a2_k, time.perf_counter() - started
+    """(FixedMaps, A_2 [K_CMB], wall seconds) of one pair at ``rate_hz``."""
+    fixed, a2_k, _, seconds = config_fixed_pass(config, channel_name, days, rate_hz, NSIDE)
+    return fixed, a2_k, seconds
 
 
 def relative(a, b, good):

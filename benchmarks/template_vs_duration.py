@@ -85,17 +85,8 @@ def one_point(config, channel_name, days, nside, baseline_length_s, hwp_rate_fac
         rate or channel.sampling_rate_hz,
     )
     a2_k = channel_a2_k_cmb(config, channel_name)
-    settings = PairMapSettings(
-        master_seed=config["master_seed"],
-        seed=0,
-        nside=nside,
-        plan=plan,
-        a2_k_cmb=a2_k,
-        notch_width_divisor=config["notch"]["width_divisor"],
-        notch_margin_s=config["notch"]["margin_s"],
-        max_condition_number=config["maps"]["max_condition_number"],
-        noise_scale=config["simulation"]["noise_scale"],
-        baseline_length_s=baseline_length_s,
+    settings = PairMapSettings.from_config(
+        config, channel, 0, a2_k, plan=plan, nside=nside, baseline_length_s=baseline_length_s
     )
     simulator = PairSimulator(channel, plan, nside)
     simulator.hwp_rad_per_s = channel.hwp_frequency_hz * 2 * np.pi  # the scaled rate

@@ -16,6 +16,7 @@ duration. Used by the pair_maps and notch_effect stages, the benchmarks and the 
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -80,9 +81,13 @@ class PairMapSettings:
     threads: int = 1
 
     @classmethod
-    def from_config(cls, config: dict, channel, seed: int, a2_k_cmb: float, threads: int = 1):
+    def from_config(
+        cls, config: dict, channel, seed: int, a2_k_cmb: float, threads: int = 1, **changes
+    ):
+        """The settings of a (channel, seed) job of ``config``; ``changes`` replace fields
+        (a benchmark's own plan, nside or noise scale)."""
         simulation = config["simulation"]
-        return cls(
+        settings = cls(
             master_seed=config["master_seed"],
             seed=seed,
             nside=config["maps"]["nside"],
@@ -102,6 +107,7 @@ class PairMapSettings:
             baseline_length_s=config["maps"]["baseline_length_s"],
             threads=threads,
         )
+        return dataclasses.replace(settings, **changes)
 
 
 @dataclass
