@@ -34,6 +34,7 @@ import numpy as np
 
 from ..simulation import data_model
 from ..simulation.data_model import cache_litebird_sim_kernels, orbit_table
+from .recording import empty_observation
 
 
 def _spin_rate_hz() -> float:
@@ -225,13 +226,7 @@ def dipole_tod(recording, pointings_ecl: np.ndarray | None = None) -> np.ndarray
     # litebird_sim's Observation wants a band centre; the total dipole (TOTAL_FROM_LIN_T)
     # does not depend on it, so a lab detector without one gets a placeholder
     detectors = [{"bandcenter_ghz": 100.0, **dict(det)} for det in recording.detectors]
-    observation = lbs.Observation(
-        detectors=detectors,
-        n_samples_global=recording.n_samples,
-        start_time_global=recording.start_time,
-        sampling_rate_hz=recording.sampling_rate_hz,
-        tods=[lbs.TodDescription("tod", lbs.Units.K_CMB, np.float64, "dipole")],
-    )
+    observation = empty_observation(recording, detectors, "dipole")
     observation.tod[:] = 0.0
     lbs.add_dipole_to_observations(
         observation,

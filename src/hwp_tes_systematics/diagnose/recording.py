@@ -404,15 +404,23 @@ def _observation_for(recording: Recording):
         detector = dict(detector)
         detector.setdefault("quat", lbs.RotQuaternion())
         detectors.append(detector)
-    observation = lbs.Observation(
+    observation = empty_observation(recording, detectors, "recorded TOD")
+    observation.tod[:] = recording.tod
+    return observation, False
+
+
+def empty_observation(recording: Recording, detectors: list[dict], description: str):
+    """A litebird_sim Observation of the recording's samples, start time and rate for
+    ``detectors``, with one float64 K_CMB TOD ``tod`` (``description``), not filled."""
+    import litebird_sim as lbs
+
+    return lbs.Observation(
         detectors=detectors,
         n_samples_global=recording.n_samples,
         start_time_global=recording.start_time,
         sampling_rate_hz=recording.sampling_rate_hz,
-        tods=[lbs.TodDescription("tod", lbs.Units.K_CMB, np.float64, "recorded TOD")],
+        tods=[lbs.TodDescription("tod", lbs.Units.K_CMB, np.float64, description)],
     )
-    observation.tod[:] = recording.tod
-    return observation, False
 
 
 def write_recording(path, recording: Recording) -> Path:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..simulation.notch import notch_edges_hz, notch_transfer
+from ..simulation.notch import notch_edges_hz, notch_transfer, notch_width_hz
 from ..simulation.spectral import amplitude_spectrum
 from . import save_figure, subplots
 
@@ -78,7 +78,7 @@ def plot_notch_transfer(f_hwp_by_telescope: dict, width_divisor: float, path) ->
             freqs = 4 * f_hwp_hz + np.linspace(-0.1, 0.1, 3)
             ax.plot(freqs, np.ones(3), label=f"{telescope}: no notch (notch.width_divisor null)")
             continue
-        delta_f = 4 * f_hwp_hz / width_divisor
+        delta_f = notch_width_hz(f_hwp_hz, width_divisor)
         f1, _, _, f4 = notch_edges_hz(f_hwp_hz, delta_f)
         freqs = np.linspace(f1 - 2 * delta_f, f4 + 2 * delta_f, 2000)
         ax.plot(
@@ -131,7 +131,9 @@ def plot_notch_effect(table, channel_name, f_hwp_hz, width_divisor, path) -> Non
     spectra.set_ylim(1e-6, None)
     fsky = float(table["observed_fraction"].iloc[0])
     notch = (
-        "no notch" if width_divisor is None else f"delta f = {4 * f_hwp_hz / width_divisor:.3f} Hz"
+        "no notch"
+        if width_divisor is None
+        else f"delta f = {notch_width_hz(f_hwp_hz, width_divisor):.3f} Hz"
     )
     spectra.set_title(
         f"{channel_name}: CMB through the 4 f_HWP notch ({notch}; measured on "

@@ -23,11 +23,16 @@ import numpy as np
 DEFAULT_WIDTH_DIVISOR = 100.0  # delta f = 4 f_HWP / 100 (paper)
 
 
+def notch_width_hz(f_hwp_hz: float, width_divisor: float = DEFAULT_WIDTH_DIVISOR) -> float:
+    """delta f = 4 f_HWP / width_divisor [Hz] (``notch.width_divisor`` of the config)."""
+    return 4.0 * f_hwp_hz / width_divisor
+
+
 def notch_edges_hz(f_hwp_hz: float, delta_f_hz: float | None = None) -> tuple[float, ...]:
     """(f1, f2, f3, f4) around 4 f_HWP; delta f defaults to 4 f_HWP / 100."""
     center_hz = 4.0 * f_hwp_hz
     if delta_f_hz is None:
-        delta_f_hz = center_hz / DEFAULT_WIDTH_DIVISOR
+        delta_f_hz = notch_width_hz(f_hwp_hz)
     if not delta_f_hz > 0:
         raise ValueError(f"notch delta_f_hz = {delta_f_hz}: expected a width > 0 Hz")
     return (

@@ -13,7 +13,7 @@ import numpy as np
 
 from .baselines import baseline_samples, remove_baselines
 from .hwpss_removal import offset_residual, remove_hwp_harmonics
-from .notch import apply_notch
+from .notch import apply_notch, notch_width_hz
 
 log = logging.getLogger(__name__)
 
@@ -101,7 +101,7 @@ def notch_with_margins(tod, pointing, simulator, settings, overwrite: bool = Fal
         cleaned,
         settings.plan.sampling_rate_hz,
         f_hwp_hz,
-        4 * f_hwp_hz / settings.notch_width_divisor,
+        notch_width_hz(f_hwp_hz, settings.notch_width_divisor),
         workers=settings.threads,
     )
 
