@@ -2,12 +2,12 @@
 projection), events (glitches, detected and fitted one by one) or the nonlinearity acting
 on the other effects, fitted piece by piece until chi^2 settles (:mod:`.`, "Fitting a
 set of effects"); and the screen that skips a nonlinear fit its linearised template
-shows cannot pass."""
+shows cannot pass. Each function takes the :class:`.bank.FitProblem` being fitted
+(``problem``), whose ``fit`` calls them."""
 
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.fft
@@ -16,9 +16,6 @@ import scipy.optimize
 from ..effects import SELECTION_THRESHOLD, GlitchEvent
 from ..linalg import cross, realify, solve_normal
 from .results import EffectFit, FitResult
-
-if TYPE_CHECKING:
-    from .bank import FitProblem
 
 BACKFIT_PASSES = 4
 # with the nonlinearity composed: its templates converge by ~2 g1 A_2 per rebuild
@@ -29,7 +26,7 @@ COMPOSED_PASSES = 8
 CONVERGED_CHI2 = 0.05  # backfitting stops when chi^2 changes by less than this
 
 
-def nonlinear_screen(problem: FitProblem, selected) -> FitResult | None:
+def nonlinear_screen(problem, selected) -> FitResult | None:
     """Skip the fit of a nonlinear effect when even its linearised template cannot pass.
 
     With linear effects only besides it, the linearised effect (for tau the template
@@ -82,7 +79,7 @@ def nonlinear_screen(problem: FitProblem, selected) -> FitResult | None:
     )
 
 
-def fit_nonlinear(problem: FitProblem, effect, k, y, bank, gram, w, start):
+def fit_nonlinear(problem, effect, k, y, bank, gram, w, start):
     """Variable projection: the nonlinear ``effect``'s parameter theta by least_squares
     with the linear parameters profiled out, from its linearised solution.
 
@@ -117,7 +114,7 @@ def fit_nonlinear(problem: FitProblem, effect, k, y, bank, gram, w, start):
     return theta, math.sqrt(max(cov[0, 0], 0.0)), a, cov[1:, 1:]
 
 
-def detect_events(problem: FitProblem, effect, k: int, r_f: np.ndarray, s: np.ndarray) -> list:
+def detect_events(problem, effect, k: int, r_f: np.ndarray, s: np.ndarray) -> list:
     """The events of ``effect`` (glitches) in the residual r_f (rfft) of detector k, kept
     when their own significance pays their BIC penalty (``parameters_per_event`` ln N_eff)."""
     return effect.detect(
@@ -133,7 +130,7 @@ def detect_events(problem: FitProblem, effect, k: int, r_f: np.ndarray, s: np.nd
     )
 
 
-def fit_iterative(problem: FitProblem, selected) -> FitResult:
+def fit_iterative(problem, selected) -> FitResult:
     """Backfitting of the linear, nonlinear (time constant) and events (glitches) parts
     (module docstring)."""
     ctx = problem.ctx
