@@ -1,6 +1,7 @@
 """The benchmark tools measure what they claim: the naive litebird_sim path and the
 workflow's linear path give the same maps; the timeline reads Snakemake's log."""
 
+import json
 import sys
 from argparse import Namespace
 
@@ -568,3 +569,33 @@ def test_same_results_tells_equal_runs_from_changed_ones(tmp_path, repo):
     code, out = status()
     assert code == 1
     assert "/headline/requirement_sigma_g1_per_k" in out and "/headline/note: only in before" in out
+
+
+def test_requirement_vs_notch_orders_the_runs_by_width(repo, tmp_path):
+    """benchmarks/requirement_vs_notch.py: a row per run from no notch to the widest, each
+    with the run's own numbers, and the figure written."""
+    import subprocess
+
+    runs = []
+    for divisor, sigma_r in ((50.0, 0.2), (None, 0.01), (100.0, 0.05)):
+        data = json.loads(
+            (repo / "docs/focal_plane/requirement_vs_pairs/n1_probe/requirement.json").read_text()
+        )
+        data["settings"]["notch_width_divisor"] = divisor
+        data["sigma_r_fisher"] = sigma_r
+        path = tmp_path / f"{divisor}.json"
+        path.write_text(json.dumps(data))
+        runs.append(str(path))
+    done = subprocess.run(
+        [sys.executable, str(repo / "benchmarks" / "requirement_vs_notch.py"), *runs]
+        + ["--figure", str(tmp_path / "notch.png")],
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=300,
+    )
+    rows = [line.split("|")[1:-1] for line in done.stdout.splitlines() if line.startswith("| ")]
+    widths = [row[0].strip() for row in rows[1:]]
+    assert widths == ["no notch", "100", "50"]
+    assert [row[5].strip() for row in rows[1:]] == ["0.01", "0.05", "0.2"]
+    assert (tmp_path / "notch.png").stat().st_size > 10_000
