@@ -1,0 +1,198 @@
+"""How long must a detector observe for its own data to calibrate g1 below the requirement?
+
+    python benchmarks/calibration_vs_length.py --channels M1-140 H1-195 H3-402 \\
+        --hours 1 2 4 --predict 8 --seeds 4 --json out.json --figure out.png
+
+Per channel and recording length: recordings of one detector pair with g1 drawn per
+detector from N(0, --g1-spread) and the nominal errors of a real recording
+(:func:`hwp_tes_systematics.diagnose.testbed.nominal_errors`, drawn per recording), each
+diagnosed (never told the effect). The diagnosis's g1 per detector (fitted when it selects
+the nonlinearity, fitted beside the effects it found when not) is the calibration a TOD
+correction would use (``instrument.nonlinearity.linearize``); its error g1_hat - g1 is
+what the correction leaves. Printed per (channel, hours): the rms error over detectors and
+recordings, the median formal sigma, and how often the nonlinearity was selected.
+
+The rms error is fitted as ``A (T / 1 h)^a`` on the ``--hours`` lengths per channel and
+predicts the ``--predict`` lengths, which are then run and compared (a scaling law tested
+on a length it was not fitted to). Against a workflow's requirement (``--requirement``,
+default the shipped one-year result): sigma_cal / sigma_req in the paper's convention
+(the 68 % point) and the Fisher one, the residual bias delta r = budget
+(sigma_cal / sigma_req,Fisher)^2 (the systematic's own power is quadratic in sigma_g1)
+if every detector of the focal plane were calibrated as this channel's are, and the
+length at which sigma_cal reaches sigma_req.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import math
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from hwp_tes_systematics.diagnose import diagnose, testbed
+from hwp_tes_systematics.diagnose.bound.requirement_check import load_requirement
+
+MASTER_SEED = 20261130
+
+
+def diagnosed_g1(
+    channel: str, hours: float, seed: int, g1_spread: float, a2_scale: float, folder: Path
+) -> list:
+    """[(g1 injected, g1 diagnosed, formal sigma, selected)] per detector of one recording,
+    its HWPSS amplitude A_2 the channel's nominal one times ``a2_scale``."""
+    key = [sum(map(ord, channel)), round(hours * 600), round(a2_scale * 1000), seed]
+    rng = np.random.default_rng([MASTER_SEED, *key])
+    a2_k = testbed.nominal(channel)["a2_k"] * a2_scale
+    g1 = rng.normal(0.0, g1_spread, 2)
+    errors = testbed.nominal_errors(rng)
+    recording, _ = testbed.recorded_with_errors(
+        folder,
+        [("tes_nonlinearity", {"g1": g1})],
+        int(rng.integers(1, 2**31)),
+        errors,
+        hours=hours,
+        name=f"{channel}_{hours:g}h_{seed}.h5",
+        channel=channel,
+        a2_k=a2_k,
+    )
+    result = diagnose(recording, testbed.supplied_sky(errors), a2_k, figures=False)
+    check = result["requirement_check"]
+    selected = check["detected"]
+    return [
+        (float(g1[k]), d["g1_per_k"], d["sigma_per_k"], selected)
+        for k, d in enumerate(check["detectors"])
+    ]
+
+
+def summarise(rows: list) -> dict:
+    errors = np.array([hat - true for true, hat, _, _ in rows])
+    return {
+        "rms_error_per_k": float(np.sqrt(np.mean(errors**2))),
+        "mean_error_per_k": float(np.mean(errors)),
+        "median_sigma_per_k": float(np.median([sigma for _, _, sigma, _ in rows])),
+        "selected_fraction": float(np.mean([selected for *_, selected in rows])),
+        "n_detectors": len(rows),
+    }
+
+
+def power_law(hours, values) -> tuple[float, float]:
+    """(A, a) of values = A (T / 1 h)^a, least squares in log-log."""
+    slope, intercept = np.polyfit(np.log(hours), np.log(values), 1)
+    return math.exp(intercept), slope
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0],
+        epilog="Example: python benchmarks/calibration_vs_length.py --channels M1-140 "
+        "--hours 1 2 --predict 4 --seeds 2",
+    )
+    parser.add_argument("--channels", nargs="+", default=["M1-140", "H1-195", "H3-402"])
+    parser.add_argument("--hours", nargs="+", type=float, default=[1.0, 2.0, 4.0])
+    parser.add_argument("--predict", nargs="*", type=float, default=[8.0])
+    parser.add_argument("--seeds", type=int, default=4, help="recordings per length")
+    parser.add_argument("--g1-spread", type=float, default=5e-3, help="sigma of g1 drawn [1/K]")
+    parser.add_argument(
+        "--a2-scales", nargs="+", type=float, default=[1.0], help="A_2 / the channel's nominal"
+    )
+    parser.add_argument("--requirement", type=Path, help="a run's requirement.json")
+    parser.add_argument("--json", type=Path)
+    parser.add_argument("--figure", type=Path)
+    arguments = parser.parse_args()
+    requirement = load_requirement(arguments.requirement)
+    data = json.loads(Path(requirement["source"]).read_text()) if arguments.requirement else None
+    if data is None:
+        from importlib import resources
+
+        shipped = resources.files("hwp_tes_systematics") / "data" / "one_year_requirement.json"
+        data = json.loads(shipped.read_text())
+    sigma_68 = data["headline"]["requirement_sigma_g1_per_k"]
+    sigma_fisher = data["headline"]["fisher_peak_shift_requirement_sigma_g1_per_k"]
+    budget = data["delta_r_budget"]
+    print(
+        f"requirement: sigma_g1 < {sigma_68:.3g} (68 % point), {sigma_fisher:.3g} (Fisher) "
+        f"K^-1, delta r budget {budget:g} ({requirement['source']})"
+    )
+    print(
+        "| channel | hours | rms(g1_hat - g1) [1/K] | median sigma [1/K] | selected "
+        "| sigma_cal / sigma_req (68 %, Fisher) | residual delta r (Fisher) | wall [s] |"
+    )
+    print("|---|---|---|---|---|---|---|---|")
+    out = {"requirement": requirement["source"], "sigma_req_68_per_k": sigma_68}
+    out |= {"sigma_req_fisher_per_k": sigma_fisher, "budget": budget, "channels": {}}
+    with tempfile.TemporaryDirectory() as folder:
+        for channel, a2_scale in itertools.product(arguments.channels, arguments.a2_scales):
+            label = channel if a2_scale == 1.0 else f"{channel}, A_2 x {a2_scale:g}"
+            per_length = {}
+            for hours in sorted({*arguments.hours, *arguments.predict}):
+                started = time.perf_counter()
+                rows = []
+                for seed in range(arguments.seeds):
+                    rows += diagnosed_g1(
+                        channel, hours, seed, arguments.g1_spread, a2_scale, Path(folder)
+                    )
+                    for path in Path(folder).glob("*.h5"):
+                        path.unlink()
+                row = summarise(rows) | {"wall_s": time.perf_counter() - started}
+                sigma_cal = row["rms_error_per_k"]
+                row["residual_delta_r_fisher"] = budget * (sigma_cal / sigma_fisher) ** 2
+                per_length[hours] = row
+                print(
+                    f"| {label} | {hours:g} | {sigma_cal:.3g} | {row['median_sigma_per_k']:.3g} "
+                    f"| {row['selected_fraction']:.2f} | {sigma_cal / sigma_68:.3g}, "
+                    f"{sigma_cal / sigma_fisher:.3g} | {row['residual_delta_r_fisher']:.3g} "
+                    f"| {row['wall_s']:.0f} |",
+                    flush=True,
+                )
+            fitted = [per_length[h]["rms_error_per_k"] for h in arguments.hours]
+            amplitude, slope = power_law(arguments.hours, fitted)
+            law = {"amplitude_1h_per_k": amplitude, "exponent": slope, "predictions": {}}
+            for hours in arguments.predict:
+                predicted = amplitude * hours**slope
+                measured = per_length[hours]["rms_error_per_k"]
+                law["predictions"][hours] = {"predicted": predicted, "measured": measured}
+                print(
+                    f"{label}: rms error = {amplitude:.3g} (T / 1 h)^{slope:.2f} K^-1 on "
+                    f"{', '.join(f'{h:g}' for h in arguments.hours)} h; at {hours:g} h it "
+                    f"predicts {predicted:.3g}, measured {measured:.3g} "
+                    f"(ratio {measured / predicted:.2f})"
+                )
+            for convention, sigma_req in (("68 %", sigma_68), ("Fisher", sigma_fisher)):
+                if slope < 0:
+                    hours_needed = (sigma_req / amplitude) ** (1.0 / slope)
+                    law[f"hours_to_requirement_{convention}"] = hours_needed
+                    print(
+                        f"{label}: sigma_cal reaches the {convention} requirement at "
+                        f"{hours_needed:.3g} h (extrapolated from the law)"
+                    )
+            out["channels"][label] = {"per_length": per_length, "law": law, "a2_scale": a2_scale}
+    if arguments.json:
+        arguments.json.write_text(json.dumps(out, indent=2) + "\n")
+    if arguments.figure:
+        draw(out, arguments.figure)
+
+
+def draw(out: dict, path: Path) -> None:
+    from hwp_tes_systematics.figures import save_figure, subplots
+
+    fig, ax = subplots(figsize=(6.0, 4.2))
+    for channel, entry in out["channels"].items():
+        hours = sorted(entry["per_length"], key=float)
+        values = [entry["per_length"][h]["residual_delta_r_fisher"] for h in hours]
+        ax.plot([float(h) for h in hours], values, "o-", label=channel)
+    ax.axhline(out["budget"], color="k", ls="--", lw=1, label="budget")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("recording length [h]")
+    ax.set_ylabel(r"residual $\delta r$ after the correction (Fisher)")
+    ax.legend(fontsize=8)
+    save_figure(fig, path)
+
+
+if __name__ == "__main__":
+    main()
