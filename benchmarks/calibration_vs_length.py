@@ -194,17 +194,20 @@ def main() -> None:
 def draw(out: dict, path: Path) -> None:
     from hwp_tes_systematics.figures import save_figure, subplots
 
-    fig, ax = subplots(figsize=(6.0, 4.2))
+    fig, ax = subplots(figsize=(7.5, 4.2))
     for channel, entry in out["channels"].items():
         hours = sorted(entry["per_length"], key=float)
         values = [entry["per_length"][h]["residual_delta_r_fisher"] for h in hours]
         ax.plot([float(h) for h in hours], values, "o-", label=channel)
     ax.axhline(out["budget"], color="k", ls="--", lw=1, label="budget")
+    lengths = sorted({float(h) for entry in out["channels"].values() for h in entry["per_length"]})
     ax.set_xscale("log")
+    ax.set_xticks(lengths, [f"{h:g}" for h in lengths])
+    ax.minorticks_off()
     ax.set_yscale("log")
     ax.set_xlabel("recording length [h]")
     ax.set_ylabel(r"residual $\delta r$ after the correction (Fisher)")
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="center left", bbox_to_anchor=(1.02, 0.5))
     save_figure(fig, path)
 
 

@@ -521,3 +521,21 @@ def test_the_tensor_response_is_measured_on_the_tensor_probe_not_the_lensing_b_m
     low = slice(2, 11)
     information = lk.fisher_information_per_ell(model)
     assert information[low].sum() < 0.01 * lk.fisher_information_per_ell(lensing_b)[low].sum()
+
+
+def test_a_tensor_term_measured_below_zero_is_none(base):
+    """Where the filters leave little of the sky, the HILC's chance-correlation ratio
+    f = 1 + 2 C(CMB, residual) / C(CMB) is measured on little CMB and can fall below
+    zero (ell = 5 on half the seeds of a notch 4 f_HWP / 30 wide at nside 64): the
+    recovered_power model takes no tensor power there (power is never negative) and keeps
+    R_ell f_ell elsewhere."""
+    rng = np.random.default_rng(43)
+    noise = nm.measure(ilc_bias_tables(base, rng, 0.0, 0.0))
+    ratio = np.where(noise["ell"] % 3 == 0, -0.2, 0.9)
+    noise["hilc_cmb_power_ratio_bb"] = ratio
+    model = nm.model_from_noise_table(noise, 2, LMAX, "recovered_power")
+    response = nm.tensor_response(noise, LMAX)
+    expected = np.clip(response * ratio[: LMAX + 1], 0.0, None) * base.c_gw_r1
+    np.testing.assert_allclose(model.c_gw_r1, expected, rtol=1e-12, atol=0.0)
+    assert np.all(model.c_gw_r1 >= 0) and np.any(model.c_gw_r1[2:] == 0)
+    assert np.all(model.c_gw_r1[2:][ratio[2 : LMAX + 1] > 0] > 0)

@@ -293,7 +293,10 @@ def model_from_noise_table(
     (so that N + C_FGres is the residual's mean BB), C_lens times
     :func:`analysis_transfer` when it is not None, and C_GW times the same, or for
     ``recovered_power`` times the tensor response R_ell f_ell
-    (:func:`tensor_response`, :func:`hilc_cmb_power_ratio`)."""
+    (:func:`tensor_response`, :func:`hilc_cmb_power_ratio`). Power cannot be negative: where
+    the filters leave little of the sky, f_ell is measured on little CMB and can fall below
+    zero (ell = 5 on half the seeds of a notch 4 f_HWP / 30 wide at nside 64); the tensor
+    term is then none."""
     if lmax > noise["ell"].iloc[-1]:
         raise ValueError(
             f"likelihood.lmax = {lmax} exceeds the spectra's lmax "
@@ -315,6 +318,7 @@ def model_from_noise_table(
     tensor = None
     if analysis == "recovered_power":
         tensor = tensor_response(noise, lmax, source) * hilc_cmb_power_ratio(noise, lmax)
+        tensor = np.clip(tensor, 0.0, None)
     return model.with_transfer(transfer, tensor)
 
 
