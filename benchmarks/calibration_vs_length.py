@@ -10,15 +10,20 @@ diagnosed (never told the effect). The diagnosis's g1 per detector (fitted when 
 the nonlinearity, fitted beside the effects it found when not) is the calibration a TOD
 correction would use (``instrument.nonlinearity.linearize``); its error g1_hat - g1 is
 what the correction leaves. Printed per (channel, hours): the rms error over detectors and
-recordings, the median formal sigma, and how often the nonlinearity was selected.
+recordings, its mean (a shared sign does not average down over a focal plane), the
+slope of g1_hat on g1, the median formal sigma, and how often the nonlinearity was
+selected. ``--a4-k`` adds a 4 f_HWP HWPSS harmonic of that amplitude and a random phase
+per detector, which the model of the nonlinearity must not take for its 4 f_HWP line.
 
 The rms error is fitted as ``A (T / 1 h)^a`` on the ``--hours`` lengths per channel and
 predicts the ``--predict`` lengths, which are then run and compared (a scaling law tested
 on a length it was not fitted to). Against a workflow's requirement (``--requirement``,
-default the shipped one-year result): sigma_cal / sigma_req in the paper's convention
-(the 68 % point) and the Fisher one, the residual bias delta r = budget
-(sigma_cal / sigma_req,Fisher)^2 (the systematic's own power is quadratic in sigma_g1)
-if every detector of the focal plane were calibrated as this channel's are, and the
+default the shipped one-year result) at the same HWPSS amplitude (``systematic_only`` ->
+``by_a2_scale``: the leak scales with A_2, so a smaller HWPSS has a looser requirement):
+sigma_cal / sigma_req (Fisher; at the nominal A_2 also the 68 % point), the residual
+bias delta r = budget (sigma_cal / sigma_req)^2 (the systematic's own power is exactly
+quadratic in sigma_g1) if every detector of the focal plane were calibrated as this
+channel's are, beside the bias of no correction (the drawn g1's own spread), and the
 shortest length run from which sigma_cal stays below sigma_req (no extrapolation).
 """
 
@@ -30,29 +35,34 @@ import json
 import math
 import tempfile
 import time
+from importlib import resources
 from pathlib import Path
 
 import numpy as np
 
 from hwp_tes_systematics.diagnose import diagnose, testbed
-from hwp_tes_systematics.diagnose.bound.requirement_check import load_requirement
 
 MASTER_SEED = 20261130
 
 
 def diagnosed_g1(
-    channel: str, hours: float, seed: int, g1_spread: float, a2_scale: float, folder: Path
+    channel: str, hours: float, seed: int, options: argparse.Namespace, a2_scale: float, folder
 ) -> list:
     """[(g1 injected, g1 diagnosed, formal sigma, selected)] per detector of one recording,
     its HWPSS amplitude A_2 the channel's nominal one times ``a2_scale``."""
     key = [sum(map(ord, channel)), round(hours * 600), round(a2_scale * 1000), seed]
-    rng = np.random.default_rng([MASTER_SEED, *key])
+    rng = np.random.default_rng([MASTER_SEED, *key, round(options.a4_k * 1e9)])
     a2_k = testbed.nominal(channel)["a2_k"] * a2_scale
-    g1 = rng.normal(0.0, g1_spread, 2)
+    g1 = rng.normal(options.g1_mean, options.g1_spread, 2)
     errors = testbed.nominal_errors(rng)
+    effects = [("tes_nonlinearity", {"g1": g1})]
+    if options.a4_k > 0:
+        phase = rng.uniform(0.0, 2 * np.pi, 2)
+        a4 = {"c4": options.a4_k * np.cos(phase), "s4": options.a4_k * np.sin(phase)}
+        effects.append(("hwpss_harmonics", a4))
     recording, _ = testbed.recorded_with_errors(
         folder,
-        [("tes_nonlinearity", {"g1": g1})],
+        effects,
         int(rng.integers(1, 2**31)),
         errors,
         hours=hours,
@@ -70,13 +80,17 @@ def diagnosed_g1(
 
 
 def summarise(rows: list) -> dict:
-    errors = np.array([hat - true for true, hat, _, _ in rows])
+    true = np.array([row[0] for row in rows])
+    errors = np.array([hat - g1 for g1, hat, _, _ in rows])
     return {
         "rms_error_per_k": float(np.sqrt(np.mean(errors**2))),
         "mean_error_per_k": float(np.mean(errors)),
+        "rms_g1_per_k": float(np.sqrt(np.mean(true**2))),  # what no correction leaves
+        "slope": float(np.polyfit(true, true + errors, 1)[0]),  # g1_hat on g1
         "median_sigma_per_k": float(np.median([sigma for _, _, sigma, _ in rows])),
         "selected_fraction": float(np.mean([selected for *_, selected in rows])),
         "n_detectors": len(rows),
+        "detectors": [list(row) for row in rows],
     }
 
 
@@ -97,6 +111,41 @@ def power_law(hours, values) -> tuple[float, float]:
     return math.exp(intercept), slope
 
 
+def requirement_at(data: dict, a2_scale: float) -> dict:
+    """{fisher, 68} sigma_req [1/K] at this HWPSS scale: the headline's at the nominal A_2,
+    else the Fisher one of ``systematic_only.by_a2_scale`` (the 68 % point is not made per
+    scale); an error naming the scales the file has when it lacks this one."""
+    headline = data["headline"]
+    if a2_scale == 1.0:
+        return {
+            "Fisher": headline["fisher_peak_shift_requirement_sigma_g1_per_k"],
+            "68 %": headline["requirement_sigma_g1_per_k"],
+        }
+    scales = data["systematic_only"].get("by_a2_scale", [])
+    for entry in scales:
+        if math.isclose(entry["a2_scale"], a2_scale):
+            return {"Fisher": entry["requirement_sigma_g1_per_k"]}
+    have = [entry["a2_scale"] for entry in scales]
+    raise SystemExit(f"--a2-scales {a2_scale:g}: the requirement file has A_2 scales {have}")
+
+
+def length_law(label: str, per_length: dict, fit_hours, predict_hours) -> dict:
+    """The rms error as A (T / 1 h)^a on ``fit_hours``, and its predictions (printed)."""
+    if len(fit_hours) < 2:
+        return {}
+    amplitude, slope = power_law(fit_hours, [per_length[h]["rms_error_per_k"] for h in fit_hours])
+    law = {"amplitude_1h_per_k": amplitude, "exponent": slope, "predictions": {}}
+    for hours in predict_hours:
+        predicted, measured = amplitude * hours**slope, per_length[hours]["rms_error_per_k"]
+        law["predictions"][hours] = {"predicted": predicted, "measured": measured}
+        print(
+            f"{label}: rms error = {amplitude:.3g} (T / 1 h)^{slope:.2f} K^-1 on "
+            f"{', '.join(f'{h:g}' for h in fit_hours)} h; at {hours:g} h it predicts "
+            f"{predicted:.3g}, measured {measured:.3g} (ratio {measured / predicted:.2f})"
+        )
+    return law
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__.split("\n\n")[0],
@@ -108,74 +157,71 @@ def main() -> None:
     parser.add_argument("--predict", nargs="*", type=float, default=[8.0])
     parser.add_argument("--seeds", type=int, default=4, help="recordings per length")
     parser.add_argument("--g1-spread", type=float, default=5e-3, help="sigma of g1 drawn [1/K]")
+    parser.add_argument("--g1-mean", type=float, default=0.0, help="mean of g1 drawn [1/K]")
     parser.add_argument(
         "--a2-scales", nargs="+", type=float, default=[1.0], help="A_2 / the channel's nominal"
+    )
+    parser.add_argument(
+        "--a4-k", type=float, default=0.0, help="a 4 f_HWP HWPSS harmonic injected too [K]"
     )
     parser.add_argument("--requirement", type=Path, help="a run's requirement.json")
     parser.add_argument("--json", type=Path)
     parser.add_argument("--figure", type=Path)
     arguments = parser.parse_args()
-    requirement = load_requirement(arguments.requirement)
-    data = json.loads(Path(requirement["source"]).read_text()) if arguments.requirement else None
-    if data is None:
-        from importlib import resources
-
+    if arguments.requirement:
+        source = str(arguments.requirement)
+        data = json.loads(arguments.requirement.read_text())
+    else:
+        source = "the shipped one-year result (docs/one_year/requirement.json)"
         shipped = resources.files("hwp_tes_systematics") / "data" / "one_year_requirement.json"
         data = json.loads(shipped.read_text())
-    sigma_68 = data["headline"]["requirement_sigma_g1_per_k"]
-    sigma_fisher = data["headline"]["fisher_peak_shift_requirement_sigma_g1_per_k"]
     budget = data["delta_r_budget"]
     print(
-        f"requirement: sigma_g1 < {sigma_68:.3g} (68 % point), {sigma_fisher:.3g} (Fisher) "
-        f"K^-1, delta r budget {budget:g} ({requirement['source']})"
+        f"requirement: {source}; delta r budget {budget:g}; g1 ~ N({arguments.g1_mean:g}, "
+        f"{arguments.g1_spread:g}) K^-1; 4 f_HWP harmonic injected: {arguments.a4_k:g} K"
     )
     print(
-        "| channel | hours | rms(g1_hat - g1) [1/K] | median sigma [1/K] | selected "
-        "| sigma_cal / sigma_req (68 %, Fisher) | residual delta r (Fisher) | wall [s] |"
+        "| channel | hours | rms(g1_hat - g1) [1/K] | mean | slope | median sigma [1/K] "
+        "| selected | sigma_cal / sigma_req (Fisher; 68 %) | delta r (Fisher): corrected "
+        "/ uncorrected | wall [s] |"
     )
-    print("|---|---|---|---|---|---|---|---|")
-    out = {"requirement": requirement["source"], "sigma_req_68_per_k": sigma_68}
-    out |= {"sigma_req_fisher_per_k": sigma_fisher, "budget": budget, "channels": {}}
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    out = {"requirement": source, "budget": budget, "options": vars(arguments) | {}}
+    out["options"] = {k: (str(v) if isinstance(v, Path) else v) for k, v in out["options"].items()}
+    out["channels"] = {}
     with tempfile.TemporaryDirectory() as folder:
         for channel, a2_scale in itertools.product(arguments.channels, arguments.a2_scales):
             label = channel if a2_scale == 1.0 else f"{channel}, A_2 x {a2_scale:g}"
+            sigma_req = requirement_at(data, a2_scale)
             per_length = {}
             for hours in sorted({*arguments.hours, *arguments.predict}):
                 started = time.perf_counter()
                 rows = []
                 for seed in range(arguments.seeds):
-                    rows += diagnosed_g1(
-                        channel, hours, seed, arguments.g1_spread, a2_scale, Path(folder)
-                    )
+                    rows += diagnosed_g1(channel, hours, seed, arguments, a2_scale, Path(folder))
                     for path in Path(folder).glob("*.h5"):
                         path.unlink()
                 row = summarise(rows) | {"wall_s": time.perf_counter() - started}
                 sigma_cal = row["rms_error_per_k"]
-                row["residual_delta_r_fisher"] = budget * (sigma_cal / sigma_fisher) ** 2
+                row["sigma_req_per_k"] = sigma_req
+                row["residual_delta_r_fisher"] = budget * (sigma_cal / sigma_req["Fisher"]) ** 2
+                row["uncorrected_delta_r_fisher"] = (
+                    budget * (row["rms_g1_per_k"] / sigma_req["Fisher"]) ** 2
+                )
                 per_length[hours] = row
+                ratios = "; ".join(f"{sigma_cal / s:.3g}" for s in sigma_req.values())
                 print(
-                    f"| {label} | {hours:g} | {sigma_cal:.3g} | {row['median_sigma_per_k']:.3g} "
-                    f"| {row['selected_fraction']:.2f} | {sigma_cal / sigma_68:.3g}, "
-                    f"{sigma_cal / sigma_fisher:.3g} | {row['residual_delta_r_fisher']:.3g} "
-                    f"| {row['wall_s']:.0f} |",
+                    f"| {label} | {hours:g} | {sigma_cal:.3g} | {row['mean_error_per_k']:.2g} "
+                    f"| {row['slope']:.3f} | {row['median_sigma_per_k']:.3g} "
+                    f"| {row['selected_fraction']:.2f} | {ratios} "
+                    f"| {row['residual_delta_r_fisher']:.3g} / "
+                    f"{row['uncorrected_delta_r_fisher']:.3g} | {row['wall_s']:.0f} |",
                     flush=True,
                 )
-            fitted = [per_length[h]["rms_error_per_k"] for h in arguments.hours]
-            amplitude, slope = power_law(arguments.hours, fitted)
-            law = {"amplitude_1h_per_k": amplitude, "exponent": slope, "predictions": {}}
-            for hours in arguments.predict:
-                predicted = amplitude * hours**slope
-                measured = per_length[hours]["rms_error_per_k"]
-                law["predictions"][hours] = {"predicted": predicted, "measured": measured}
-                print(
-                    f"{label}: rms error = {amplitude:.3g} (T / 1 h)^{slope:.2f} K^-1 on "
-                    f"{', '.join(f'{h:g}' for h in arguments.hours)} h; at {hours:g} h it "
-                    f"predicts {predicted:.3g}, measured {measured:.3g} "
-                    f"(ratio {measured / predicted:.2f})"
-                )
-            for convention, sigma_req in (("68 %", sigma_68), ("Fisher", sigma_fisher)):
+            law = length_law(label, per_length, arguments.hours, arguments.predict)
+            for convention, limit in sigma_req.items():
                 law[f"first_length_below_{convention}_h"] = first = shortest_below(
-                    per_length, sigma_req
+                    per_length, limit
                 )
                 if first is None:
                     text = "at none of the lengths run"
