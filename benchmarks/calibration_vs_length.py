@@ -186,8 +186,8 @@ def main() -> None:
         "/ uncorrected | wall [s] |"
     )
     print("|---|---|---|---|---|---|---|---|---|---|")
-    out = {"requirement": source, "budget": budget, "options": vars(arguments) | {}}
-    out["options"] = {k: (str(v) if isinstance(v, Path) else v) for k, v in out["options"].items()}
+    options = {k: str(v) if isinstance(v, Path) else v for k, v in vars(arguments).items()}
+    out = {"requirement": source, "budget": budget, "options": options}
     out["channels"] = {}
     with tempfile.TemporaryDirectory() as folder:
         for channel, a2_scale in itertools.product(arguments.channels, arguments.a2_scales):
