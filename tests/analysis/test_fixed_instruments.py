@@ -199,3 +199,25 @@ def test_common_offset_requirement_and_the_region_it_shares_with_the_random_popu
             assert abs(2 * mu * b + mu**2 * k) <= budget * (1 + 1e-9)
         assert common["requirement_mu_per_k"] == pytest.approx(fi.budget_sigma(abs(b), k, budget))
         assert common["requirement_mu_per_k"] < fi.budget_sigma(-abs(b), k, budget)
+
+
+def test_a_common_offset_the_template_fit_removes_whole_has_no_requirement():
+    """After the template fit (columns COMMON_MITIGATED): a leftover at rounding (k <= 0,
+    b = 0) sets no bound; a linear term alone (k = 0) gives B / 2|b|."""
+    model = _model()
+    shape = model.c_gw_r1
+    auto, cross, cross_unfiltered = fi.common_columns(fi.COMMON_MITIGATED)
+    tables = [
+        pd.DataFrame(
+            {"ell": model.ell, auto: -1e-30 * shape, cross: 0 * shape, cross_unfiltered: 0 * shape}
+        )
+        for _ in range(3)
+    ]
+    budget = 6.5e-6
+    after = fi.common_offset_estimator(tables, model, budget, 0.0, name=fi.COMMON_MITIGATED)
+    assert after["requirement_mu_per_k"] == np.inf
+    assert after["random_requirement_sigma_per_k"] == np.inf
+    assert fi.common_offset_estimator(tables, model, budget, 1.0) is None  # no COMMON columns
+    assert fi.budget_sigma(-2e-3, 0.0, budget) == pytest.approx(budget / 4e-3)
+    with pytest.raises(ValueError, match="k >= 0"):
+        fi.budget_sigma(1e-3, -1.0, budget)

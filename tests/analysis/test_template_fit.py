@@ -132,3 +132,50 @@ def test_the_mitigation_summary_reads_the_seeds():
     channel = summary["per_channel"]["M1-140"]
     assert channel["fitted_over_injected"] == pytest.approx(1.1)
     assert channel["g1_error_rms_per_k"] == pytest.approx(np.sqrt((0.09 + 0.16) / 2))
+
+
+def _channel(rng, draws, pieces: bool):
+    """A systematics channel's a_lm (analysis.channel_alms.ChannelAlms): a sky, three
+    template terms per detector, and with ``pieces`` a seed's own part of the s h term
+    that the fit does not know."""
+    from hwp_tes_systematics.analysis import channel_alms as ca
+
+    n_det = len(draws)
+    alms = {"nosys": gaussian_alm(rng, 1.0)}
+    for kind in ca.TERM_KINDS:
+        alms[kind] = np.array([gaussian_alm(rng, 0.01, -2.0) for _ in range(n_det)])
+    if pieces:
+        for kind in ca.PIECE_KINDS:
+            alms[kind] = np.array([gaussian_alm(rng, 1e-3, -2.0) for _ in range(n_det)])
+    detectors = [f"d{i}" for i in range(n_det)]
+    return ca.ChannelAlms("M1-140", alms, detectors, 0.01, np.asarray(draws, dtype=float))
+
+
+def test_the_fit_leaves_of_a_common_g1_what_the_templates_do_not_describe():
+    """g1 = 1 on every detector: with templates known whole the fit removes it to
+    rounding; with a seed's own s h pieces unknown it leaves X_c - P X_c, orthogonal (in
+    the fit's inner product) to every known template, and for unit draws all 1 the same
+    as the random population's leftover."""
+    rng = np.random.default_rng(11)
+    known_whole = _channel(rng, [0.3, -1.2, 0.7], pieces=False)
+    whole, _ = known_whole.template_fit("detector", LMAX)
+    common = known_whole.detector_templates().sum(axis=0)
+    assert np.abs(whole["fit_common_residual"]).max() < 1e-9 * np.abs(common).max()
+    channel = _channel(rng, [1.0, 1.0, 1.0], pieces=True)
+    left, _ = channel.template_fit("detector", LMAX)
+    leftover = left["fit_common_residual"]
+    np.testing.assert_allclose(leftover, left["fit_residual"], rtol=1e-12, atol=0)
+    known = tf.channel_basis(channel.known_terms(), "detector")
+    weights = tf.inverse_spectrum_weights(channel.alms["nosys"], LMAX)
+    projections = tf._inner(known, leftover[None], weights)[:, 0]
+    scale = np.sqrt(
+        tf._inner(known, known, weights).diagonal()
+        * tf._inner(leftover[None], leftover[None], weights)[0, 0]
+    )
+    assert np.all(np.abs(projections) < 1e-9 * scale)
+    unknown = sum(channel.alms[kind].sum(axis=0) for kind in ("x1_cmb_h", "x1_noise_h"))
+    # X_c = known + unknown: the fit leaves the unknown part less its projection
+    expected = unknown - tf.TemplateFit.build(known, weights).fitted(unknown)
+    np.testing.assert_allclose(leftover, expected, rtol=0, atol=1e-9 * np.abs(unknown).max())
+    norm = tf._inner(np.array([leftover, unknown]), np.array([leftover, unknown]), weights)
+    assert 0.5 * norm[1, 1] < norm[0, 0] < norm[1, 1]

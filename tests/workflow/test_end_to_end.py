@@ -26,6 +26,8 @@ def test_whole_workflow_on_tiny_config(tiny_local_run):
     assert mitigated["per_channel"]["M1-140"]["fitted_over_injected"] == pytest.approx(1, rel=1e-9)
     common = requirement["common_offset"]  # a g1 common to every detector
     assert common["k_per_k2"] > 0 and 0 < common["requirement_mu_per_k"] < np.inf
+    after_fit = mitigated["common_offset"]  # the fit knows it whole too
+    assert after_fit["requirement_mu_per_k"] > 1e3 * common["requirement_mu_per_k"]
     figures = sorted(p.name for p in (workdir / "results/figures").glob("*.png"))
     for number in range(1, 9):
         assert any(name.startswith(f"fig{number}_") for name in figures), figures

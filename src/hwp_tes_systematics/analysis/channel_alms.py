@@ -46,8 +46,9 @@ TEMPLATE_PARTS = ("fixed", *map_domain.SH_TERM_PIECES)  # the template's split
 # given to ChannelAlms.from_maps with the other known a_lm, never stored
 FIXED_SH_KIND = "x1_fixed"
 # map-based template fitting (:mod:`template_fit`) of a channel at sigma_g1 = 1: what is left
-# of its contamination, and what the fit takes from its map without the systematic
-FIT_KINDS = ("fit_residual", "fit_removed")
+# of its contamination, what the fit takes from its map without the systematic, and what
+# it leaves of a g1 common to the channel's detectors (the common population)
+FIT_KINDS = ("fit_residual", "fit_removed", "fit_common_residual")
 
 
 def analysis_mask(observed: list[np.ndarray], settings: dict) -> np.ndarray:
@@ -198,14 +199,15 @@ class ChannelAlms:
             known[1] = known[1] - sum(pieces)
         return known
 
-    def template_fit(self, basis: str, lmax: int) -> tuple[np.ndarray, np.ndarray, dict]:
-        """(residual, removed, report) of :class:`template_fit.TemplateFit` of the known
-        templates (:meth:`known_terms`, ``basis``) on this channel with the seed's draws:
-        residual = X - P X, X the contamination at sigma_g1 = 1 1/K; removed = P m, m the
-        map without the systematic (both (3, nalm)); report: per basis row the injected
-        unit draw, the fitted coefficient of X (its response, 1 x the draw for a known
-        template), the coefficient of m (the fit's error at any sigma_g1 [1/K]) and the
-        formal error."""
+    def template_fit(self, basis: str, lmax: int) -> tuple[dict[str, np.ndarray], dict]:
+        """({kind: (3, nalm)} for FIT_KINDS, report) of :class:`template_fit.TemplateFit`
+        of the known templates (:meth:`known_terms`, ``basis``) on this channel:
+        fit_residual = X - P X, X the contamination at sigma_g1 = 1 1/K with the seed's
+        draws; fit_removed = P m, m the map without the systematic; fit_common_residual =
+        X_c - P X_c, X_c = sum_k K_k the contamination of g1 = 1 1/K on every detector;
+        report: per basis row the injected unit draw, the fitted coefficient of X (its
+        response, 1 x the draw for a known template), the coefficient of m (the fit's
+        error at any sigma_g1 [1/K]) and the formal error."""
         terms = self.known_terms()
         fit = template_fit.TemplateFit.build(
             template_fit.channel_basis(terms, basis),
@@ -232,7 +234,13 @@ class ChannelAlms:
             "fit_error_per_k": fit.coefficients(nosys),
             "formal_error_per_k": fit.coefficient_errors(),
         }
-        return contamination - fit.fitted(contamination), fit.fitted(nosys), report
+        common = self.detector_templates().sum(axis=0)
+        left = {
+            "fit_residual": contamination - fit.fitted(contamination),
+            "fit_removed": fit.fitted(nosys),
+            "fit_common_residual": common - fit.fitted(common),
+        }
+        return left, report
 
 
 def _term_coefficients(a2_k: float) -> tuple[float, float, float]:

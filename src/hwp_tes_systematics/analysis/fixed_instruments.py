@@ -42,9 +42,17 @@ log = logging.getLogger(__name__)
 CROSS = "bb_cross_instrument{index}_k3"
 CROSS_UNFILTERED = "bb_cross_unfiltered_instrument{index}_k3"
 AUTO = "bb_auto_instrument{index}_k4"
-COMMON_CROSS = "bb_cross_common_offset_k3"
-COMMON_CROSS_UNFILTERED = "bb_cross_unfiltered_common_offset_k3"
-COMMON_AUTO = "bb_auto_common_offset_k4"
+COMMON = "common_offset"
+COMMON_MITIGATED = "common_offset_mitigated"  # what the template fit leaves of it
+
+
+def common_columns(name: str = COMMON) -> tuple[str, str, str]:
+    """The columns (auto, cross, cross_unfiltered) of a common offset ``name`` in the
+    seeds' tables (:meth:`SeedMaps.instrument_spectra`)."""
+    return f"bb_auto_{name}_k4", f"bb_cross_{name}_k3", f"bb_cross_unfiltered_{name}_k3"
+
+
+COMMON_AUTO, COMMON_CROSS, COMMON_CROSS_UNFILTERED = common_columns()
 
 
 def n_instruments(table: pd.DataFrame) -> int:
@@ -53,12 +61,15 @@ def n_instruments(table: pd.DataFrame) -> int:
 
 
 def budget_sigma(b: float, k: float, budget: float) -> float:
-    """The smallest sigma > 0 [1/K] with |2 sigma b + sigma^2 k| = budget (k > 0):
+    """The smallest sigma > 0 [1/K] with |2 sigma b + sigma^2 k| = budget (k >= 0):
     (-b + sqrt(b^2 + k B)) / k when delta r rises through +B first; when b < 0 and the
-    dip, -b^2 / k, reaches -B: (-b - sqrt(b^2 - k B)) / k."""
+    dip, -b^2 / k, reaches -B: (-b - sqrt(b^2 - k B)) / k; with k = 0, B / 2|b| (inf
+    if b = 0 too: nothing left of the systematic)."""
     b, k, budget = float(b), float(k), float(budget)
-    if not (k > 0 and budget > 0):
-        raise ValueError(f"k = {k}, budget = {budget}: expected both > 0")
+    if not (k >= 0 and budget > 0):
+        raise ValueError(f"k = {k}, budget = {budget}: expected k >= 0 and budget > 0")
+    if k == 0:
+        return budget / (2 * abs(b)) if b != 0 else float("inf")
     if b < 0 and b * b >= k * budget:
         return (-b - np.sqrt(b * b - k * budget)) / k
     return (-b + np.sqrt(b * b + k * budget)) / k
@@ -107,7 +118,12 @@ def _bias(tables: list[pd.DataFrame], model, cross: str, auto: str) -> dict:
 
 
 def common_offset_estimator(
-    tables: list[pd.DataFrame], model, budget: float, k_random: float, unfiltered: bool = False
+    tables: list[pd.DataFrame],
+    model,
+    budget: float,
+    k_random: float,
+    unfiltered: bool = False,
+    name: str = COMMON,
 ) -> dict | None:
     """The requirement on a g1 common to every detector of the systematics channels, mu
     (a residual the calibration shares; :meth:`SeedMaps.common_offset_draws`): delta r =
@@ -118,15 +134,18 @@ def common_offset_estimator(
     bias ``k_random`` sigma^2; the cross term of a zero-mean draw with mu averages out):
     k_random sigma^2 + 2 mu |b| + mu^2 k <= budget, given as the largest |mu| at a few
     sigma, with |b| debiased by its standard error over seeds (sqrt(max(b^2 - se^2, 0)): a
-    b the seeds do not resolve does not set the region). None when the tables hold no
-    common offset."""
-    if not tables or COMMON_AUTO not in tables[0]:
+    b the seeds do not resolve does not set the region). ``name``: the tables' columns
+    ``bb_auto_<name>_k4`` and ``bb_cross[_unfiltered]_<name>_k3`` (COMMON, or
+    COMMON_MITIGATED: the same after the template fit, with ``k_random`` the random
+    population's after it). None when the tables hold no such columns."""
+    auto, cross, cross_unfiltered = common_columns(name)
+    if not tables or auto not in tables[0]:
         return None
-    cross = COMMON_CROSS_UNFILTERED if unfiltered else COMMON_CROSS
-    row = _bias(tables, model, cross, COMMON_AUTO)
-    b, error, k = row["b_per_k"], row["b_error_per_k"], row["k_per_k2"]
+    row = _bias(tables, model, cross_unfiltered if unfiltered else cross, auto)
+    b, error = row["b_per_k"], row["b_error_per_k"]
+    k = max(row["k_per_k2"], 0.0)  # below 0 only at rounding (a template fitted away whole)
     debiased = np.sqrt(max(b * b - error * error, 0.0)) if error > 0 else abs(b)
-    sigma_required = float(np.sqrt(budget / k_random))
+    sigma_required = float(np.sqrt(budget / k_random)) if k_random > 0 else float("inf")
     region = []
     for fraction in (0.0, 0.5, 0.8, 0.95):
         left = budget * (1.0 - fraction**2)  # what the random population leaves of the budget
@@ -142,8 +161,10 @@ def common_offset_estimator(
         "t_linear": b / error if error > 0 else float("nan"),
         "requirement_mu_per_k": budget_sigma(abs(b), k, budget),
         "requirement_mu_debiased_per_k": budget_sigma(debiased, k, budget),
-        "requirement_mu_quadratic_only_per_k": float(np.sqrt(budget / k)),
-        "k_over_k_random": k / k_random,
+        "requirement_mu_quadratic_only_per_k": float(np.sqrt(budget / k))
+        if k > 0
+        else float("inf"),
+        "k_over_k_random": k / k_random if k_random > 0 else float("nan"),
         "random_requirement_sigma_per_k": sigma_required,
         "allowed_region": region,
     }

@@ -143,14 +143,14 @@ class SeedMaps:
                 c.template_fit(basis, harmonic.lmax) if TERM_KINDS[0] in c.alms else None
                 for c in channels
             ]
-            for i, kind in enumerate(FIT_KINDS):
+            for kind in FIT_KINDS:
                 channel_alms[kind] = np.array(
                     [
-                        np.zeros_like(c.alms["nosys"]) if f is None else f[i]
+                        np.zeros_like(c.alms["nosys"]) if f is None else f[0][kind]
                         for c, f in zip(channels, fits, strict=True)
                     ]
                 )
-            template_fits = [f[2] for f in fits if f is not None]
+            template_fits = [f[1] for f in fits if f is not None]
         return cls(
             config=config,
             seed=seed,
@@ -278,17 +278,37 @@ class SeedMaps:
         no-systematics residual ``nosys`` (:meth:`residual` at sigma 0) against the
         filtered CMB reference and against the unfiltered input
         (``bb_cross_instrument<i>_k3``, ``bb_cross_unfiltered_instrument<i>_k3``
-        [K_CMB^2 K]): at sigma, C_obs = C_nosys + 2 sigma C_cross + sigma^2 C_auto; and
-        the same of the common offset (:meth:`common_offset_draws`), ``..._common_offset_...``."""
+        [K_CMB^2 K]): at sigma, C_obs = C_nosys + 2 sigma C_cross + sigma^2 C_auto; the
+        same of the common offset (:meth:`common_offset_draws`), ``..._common_offset_...``;
+        with the template fit, the same of what the fit leaves of the common offset
+        (FIT_KINDS' fit_common_residual) against the residual that lost the fit's P m,
+        ``..._common_offset_mitigated_...``."""
+        weights = nosys["weights"]
         residuals = {
             "cross": nosys["residual_alm"],
             "cross_unfiltered": nosys["residual_alm"] + nosys["cmb_filter_loss_alm"],
         }
+        entries = [
+            (f"instrument{index}", self.instrument_template_alms(draws, weights), residuals)
+            for index, draws in enumerate(instruments)
+        ]
+        entries.append(
+            (
+                "common_offset",
+                self.instrument_template_alms(self.common_offset_draws(), weights),
+                residuals,
+            )
+        )
+        if FIT_KINDS[2] in self.channel_alms:
+            left, removed = (
+                hilc.apply_ilc(self.channel_alms[kind], weights, self.bins, self.lmax)
+                for kind in (FIT_KINDS[2], FIT_KINDS[1])
+            )
+            mitigated = {label: alm - removed for label, alm in residuals.items()}
+            entries.append(("common_offset_mitigated", left, mitigated))
         table = {"ell": np.arange(self.lmax + 1)}
-        named = [(f"instrument{index}", draws) for index, draws in enumerate(instruments)]
-        for name, draws in [*named, ("common_offset", self.common_offset_draws())]:
-            template = self.instrument_template_alms(draws, nosys["weights"])
-            for label, alm2 in (("auto", None), *residuals.items()):
+        for name, template, against in entries:
+            for label, alm2 in (("auto", None), *against.items()):
                 cl = unit_beam_spectra(
                     template, alm2, self.lmax, self.fractions["w2"], self.common_fwhm_arcmin
                 )
@@ -337,7 +357,7 @@ class SeedMaps:
         if nosys_residual_alm is not None and FIT_KINDS[0] in self.channel_alms:
             residual, removed = (
                 hilc.apply_ilc(self.channel_alms[kind], nosys_weights, self.bins, self.lmax)
-                for kind in FIT_KINDS
+                for kind in FIT_KINDS[:2]
             )
             for label, alm, alm2 in (
                 ("mitigated_k4", residual, None),
