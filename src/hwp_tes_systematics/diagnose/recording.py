@@ -51,11 +51,11 @@ from ..io import atomic_path
 from .recording_checks import (
     MIN_SAMPLES,
     RecordingError,
-    _check_file,
-    _declared,
-    _fail,
-    _rle_flag_names,
+    check_file,
     check_memory,
+    declared_layout,
+    fail,
+    rle_flag_names,
 )
 
 DEFAULT_START_TDB = "2032-04-01T00:00:00"
@@ -127,12 +127,12 @@ class Recording:
 def _read_start_time(path, dataset) -> astropy.time.Time:
     attrs = dataset.attrs
     if "start_time" not in attrs:
-        _fail(path, "dataset 'tod' has no 'start_time' attribute")
+        fail(path, "dataset 'tod' has no 'start_time' attribute")
     value = attrs["start_time"]
     if isinstance(value, bytes):
         value = value.decode()
     if not bool(attrs.get("mjd_time", True)):
-        _fail(
+        fail(
             path,
             f"start_time = {value!r} s is not an absolute time (mjd_time = False): the "
             "orbital dipole needs the date of the observation",
@@ -146,7 +146,7 @@ def _read_start_time(path, dataset) -> astropy.time.Time:
             warnings.simplefilter("ignore", erfa.ErfaWarning)
             start.utc.isot  # noqa: B018 (ERFA refuses a date it cannot represent)
     except (ValueError, TypeError, astropy.time.ScaleValueError) as error:
-        _fail(
+        fail(
             path,
             f"attribute 'start_time' of dataset 'tod' = {value!r} (scale {scale!r}) is not "
             f"an MJD date ({type(error).__name__}: {error}); expected e.g. '63323.0' with "
@@ -158,33 +158,33 @@ def _read_start_time(path, dataset) -> astropy.time.Time:
 def _read_detectors(path, dataset, n_det: int) -> list[dict]:
     text = dataset.attrs.get("detectors")
     if text is None:
-        _fail(path, "dataset 'tod' has no 'detectors' attribute (JSON list of detectors)")
+        fail(path, "dataset 'tod' has no 'detectors' attribute (JSON list of detectors)")
     if isinstance(text, bytes):
         text = text.decode(errors="replace")
     try:
         detectors = json.loads(text)
     except (TypeError, json.JSONDecodeError) as error:
-        _fail(path, f"attribute 'detectors' is not valid JSON ({error})")
+        fail(path, f"attribute 'detectors' is not valid JSON ({error})")
     if not isinstance(detectors, list):
-        _fail(
+        fail(
             path,
             f"attribute 'detectors' of dataset 'tod' is a JSON {type(detectors).__name__}: "
             f"expected a list of {n_det} detector objects",
         )
     if len(detectors) != n_det:
-        _fail(path, f"attribute 'detectors' lists {len(detectors)} detectors, 'tod' has {n_det}")
+        fail(path, f"attribute 'detectors' lists {len(detectors)} detectors, 'tod' has {n_det}")
     for index, detector in enumerate(detectors):
         if not isinstance(detector, dict):
-            _fail(
+            fail(
                 path,
                 f"detector {index} of attribute 'detectors' is {detector!r}: expected an "
                 f"object with at least {list(REQUIRED_DETECTOR_KEYS)}",
             )
         missing = [key for key in REQUIRED_DETECTOR_KEYS if key not in detector]
         if missing:
-            _fail(path, f"detector {index} of attribute 'detectors' lacks {missing}")
+            fail(path, f"detector {index} of attribute 'detectors' lacks {missing}")
         if not isinstance(detector["name"], str) or not detector["name"]:
-            _fail(
+            fail(
                 path,
                 f"detector {index} of attribute 'detectors' has name {detector['name']!r}: "
                 "expected a non-empty string",
@@ -200,7 +200,7 @@ def _read_detectors(path, dataset, n_det: int) -> list[dict]:
             else:
                 finite = math.isfinite(value)
             if not finite:
-                _fail(
+                fail(
                     path,
                     f"detector {detector['name']!r} (attribute 'detectors') has {key} = "
                     f"{value!r}: expected a finite number",
@@ -228,7 +228,7 @@ def _read_flags(path, handle, n_det: int, start: int, stop: int) -> np.ndarray:
     flags = np.zeros((n_det, stop - start), dtype=bool)
     if "flags" in handle:
         flags |= np.asarray(handle["flags"][:, start:stop]) != 0
-    for name in _rle_flag_names(handle):
+    for name in rle_flag_names(handle):
         flags[int(name[6:])] |= _rle_segment(handle[name], start, stop)
     return flags
 
@@ -250,7 +250,7 @@ def read_recording(path, memory_budget_bytes=None, samples=None) -> Recording:
         return _read_recording(path, memory_budget_bytes, samples)
     except OSError as error:  # h5py: "Unable to synchronously open file (truncated file...)"
         size = path.stat().st_size if path.exists() else 0
-        _fail(
+        fail(
             path,
             f"cannot be read as HDF5 ({error}; {size} bytes on disk): the file is truncated "
             "or corrupt, e.g. by an interrupted copy or write; copy or write it again "
@@ -261,13 +261,13 @@ def read_recording(path, memory_budget_bytes=None, samples=None) -> Recording:
 def _read_recording(path: Path, memory_budget_bytes=None, samples=None) -> Recording:
     import h5py
 
-    _check_file(path)
+    check_file(path)
     with h5py.File(path, "r") as handle:
-        dataset, n_det, n_file, sampling_rate_hz = _declared(path, handle)
+        dataset, n_det, n_file, sampling_rate_hz = declared_layout(path, handle)
         pointings, hwp = handle["pointings"], handle["hwp_angle"]
         start, stop = (0, n_file) if samples is None else (int(samples[0]), int(samples[1]))
         if not 0 <= start < stop <= n_file or stop - start < MIN_SAMPLES:
-            _fail(
+            fail(
                 path,
                 f"samples {start}:{stop}: expected a range of at least {MIN_SAMPLES} samples "
                 f"within the file's {n_file}",
@@ -299,7 +299,7 @@ def _read_recording(path: Path, memory_budget_bytes=None, samples=None) -> Recor
         unflagged = infinite_samples & ~flags
         if unflagged.any():
             k, i = np.argwhere(unflagged)[0]
-            _fail(
+            fail(
                 path,
                 f"{int(unflagged.sum())} Inf value(s) in unflagged samples of {name!r} "
                 f"(first: detector {k}, sample {i}); flag them or replace them by NaN",
@@ -309,10 +309,10 @@ def _read_recording(path: Path, memory_budget_bytes=None, samples=None) -> Recor
     nan_hwp = ~np.isfinite(hwp_angle)
     flags |= nan_tod | nan_pointing | nan_hwp[None, :]
     if flags.all():
-        _fail(path, "no valid sample: every sample is NaN or flagged")
+        fail(path, "no valid sample: every sample is NaN or flagged")
     for k in range(n_det):
         if flags[k].all():
-            _fail(path, f"detector {detectors[k]['name']!r} has no valid sample (all NaN/flagged)")
+            fail(path, f"detector {detectors[k]['name']!r} has no valid sample (all NaN/flagged)")
     tod[flags] = 0.0
     pointings_ecl[~np.isfinite(pointings_ecl)] = 0.0
     hwp_angle[nan_hwp] = 0.0
@@ -362,7 +362,7 @@ def nominal_a2(recording: Recording, a2_k: float | None, lookup) -> float:
     if not channel or channel not in known:
         same = [name for name in known if name.lower() == channel.lower()]
         hint = f" (did you mean {same[0]!r}? names are case-sensitive)" if same else ""
-        _fail(
+        fail(
             recording.source,
             f"channel {channel!r} of detectors {recording.detector_names} is not in the "
             f"instrument model{hint}, so its nominal HWPSS amplitude is unknown: give it with "

@@ -29,11 +29,13 @@ class RecordingError(ValueError):
     """A recording file that cannot be used; the message names the file and the problem."""
 
 
-def _fail(path, problem: str):
+def fail(path, problem: str):
+    """Raise a :class:`RecordingError` naming ``path`` and ``problem``."""
     raise RecordingError(f"{path}: {problem}")
 
 
-def _rle_flag_names(handle) -> list[str]:
+def rle_flag_names(handle) -> list[str]:
+    """The names of an open file's per-detector RLE flag datasets (``flags_<k>``), sorted."""
     return sorted(name for name in handle if name.startswith("flags_") and name[6:].isdigit())
 
 
@@ -45,24 +47,24 @@ def _check_flags(path, handle, n_det: int, n: int) -> None:
     if "flags" in handle:
         flags = handle["flags"]
         if not isinstance(flags, h5py.Dataset):
-            _fail(path, "'flags' is not a dataset: expected (n_det, n_samples) booleans")
+            fail(path, "'flags' is not a dataset: expected (n_det, n_samples) booleans")
         if flags.shape != (n_det, n):
-            _fail(path, f"dataset 'flags' has shape {flags.shape}, expected {(n_det, n)}")
+            fail(path, f"dataset 'flags' has shape {flags.shape}, expected {(n_det, n)}")
         _check_dtype(path, "flags", flags, FLAG_KINDS, "booleans or integers (non-zero = bad)")
-    for name in _rle_flag_names(handle):
+    for name in rle_flag_names(handle):
         index = int(name[6:])
         if index >= n_det:
-            _fail(path, f"dataset {name!r} refers to detector {index} of {n_det}")
+            fail(path, f"dataset {name!r} refers to detector {index} of {n_det}")
         dataset = handle[name]
         if not isinstance(dataset, h5py.Dataset) or dataset.ndim != 2 or dataset.shape[0] != 2:
             shape = getattr(dataset, "shape", "a group")
-            _fail(
+            fail(
                 path,
                 f"dataset {name!r} has shape {shape}: expected (2, n_runs), run lengths "
                 "then values (litebird_sim's run-length-encoded flags)",
             )
         if dataset.shape[1] > n:
-            _fail(
+            fail(
                 path,
                 f"dataset {name!r} declares {dataset.shape[1]} runs, more than the {n} "
                 "samples of 'tod' (expected at most one run per sample)",
@@ -71,9 +73,9 @@ def _check_flags(path, handle, n_det: int, n: int) -> None:
         _check_stored(path, name, dataset)
         runs = np.asarray(dataset[0], dtype=np.int64) if dataset.shape[1] else np.zeros(0)
         if (runs < 0).any():
-            _fail(path, f"dataset {name!r} has negative run lengths: expected lengths >= 0")
+            fail(path, f"dataset {name!r} has negative run lengths: expected lengths >= 0")
         if int(runs.sum()) != n:
-            _fail(
+            fail(
                 path,
                 f"dataset {name!r} decodes to {int(runs.sum())} samples, 'tod' has {n} "
                 "(expected the run lengths to add up to the samples of 'tod')",
@@ -87,11 +89,11 @@ def recording_size(path) -> tuple[int, int, float]:
 
     path = Path(path)
     try:
-        _check_file(path)
+        check_file(path)
         with h5py.File(path, "r") as handle:
-            _, n_det, n, sampling_rate_hz = _declared(path, handle)
+            _, n_det, n, sampling_rate_hz = declared_layout(path, handle)
     except OSError as error:
-        _fail(path, f"cannot be read as HDF5 ({error}): the file is truncated or corrupt")
+        fail(path, f"cannot be read as HDF5 ({error}): the file is truncated or corrupt")
     return n_det, n, sampling_rate_hz
 
 
@@ -119,7 +121,7 @@ def check_memory(path, n_det: int, n: int, sampling_rate_hz: float, budget_bytes
         DIAGNOSIS_BYTES_PER_DETECTOR_SAMPLE * n_det
     )
     hours = n / sampling_rate_hz / 3600.0
-    _fail(
+    fail(
         path,
         f"declares {n_det} detector(s) x {n:.4g} samples ({hours:.4g} h at "
         f"{sampling_rate_hz:g} Hz): diagnosing it needs ~{needed / 2**30:.3g} GiB "
@@ -131,16 +133,17 @@ def check_memory(path, n_det: int, n: int, sampling_rate_hz: float, budget_bytes
     )
 
 
-def _check_file(path: Path) -> None:
+def check_file(path: Path) -> None:
+    """An existing HDF5 file at ``path``, else a :class:`RecordingError`."""
     import h5py
 
     if not path.exists():
-        _fail(path, "no such file")
+        fail(path, "no such file")
     if not path.is_file() or not h5py.is_hdf5(path):
-        _fail(path, "not an HDF5 file (expected a litebird_sim observation file)")
+        fail(path, "not an HDF5 file (expected a litebird_sim observation file)")
 
 
-def _declared(path: Path, handle) -> tuple:
+def declared_layout(path: Path, handle) -> tuple:
     """(tod dataset, detectors, samples, sampling rate) of an open file, shapes checked."""
     import h5py
 
@@ -149,45 +152,45 @@ def _declared(path: Path, handle) -> tuple:
             hint = (
                 " (write the observation with write_full_pointings=True)" if name != "tod" else ""
             )
-            _fail(path, f"missing dataset {name!r}{hint}")
+            fail(path, f"missing dataset {name!r}{hint}")
     dataset = handle["tod"]
     if dataset.ndim != 2:
-        _fail(path, f"dataset 'tod' has shape {dataset.shape}, expected (n_det, n_samples)")
+        fail(path, f"dataset 'tod' has shape {dataset.shape}, expected (n_det, n_samples)")
     for name in ("tod", "pointings", "hwp_angle"):
         _check_dtype(path, name, handle[name], REAL_KINDS, "real numbers (float64)")
         _check_stored(path, name, handle[name])
     n_det, n = dataset.shape
     if n < MIN_SAMPLES or n_det < 1:
-        _fail(path, f"dataset 'tod' has shape {dataset.shape}: too few samples/detectors")
+        fail(path, f"dataset 'tod' has shape {dataset.shape}: too few samples/detectors")
     pointings = handle["pointings"]
     if pointings.shape != (n_det, n, 3):
-        _fail(
+        fail(
             path,
             f"length mismatch: 'pointings' has shape {pointings.shape}, 'tod' {(n_det, n)} "
             f"(expected {(n_det, n, 3)})",
         )
     hwp = handle["hwp_angle"]
     if hwp.shape != (n,):
-        _fail(path, f"length mismatch: 'hwp_angle' has shape {hwp.shape}, 'tod' has {n} samples")
+        fail(path, f"length mismatch: 'hwp_angle' has shape {hwp.shape}, 'tod' has {n} samples")
     try:
         sampling_rate_hz = float(dataset.attrs["sampling_rate_hz"])
     except KeyError:
-        _fail(path, "dataset 'tod' has no 'sampling_rate_hz' attribute")
+        fail(path, "dataset 'tod' has no 'sampling_rate_hz' attribute")
     except (TypeError, ValueError):
-        _fail(
+        fail(
             path,
             f"attribute 'sampling_rate_hz' of dataset 'tod' = "
             f"{dataset.attrs['sampling_rate_hz']!r}: expected a number of Hz",
         )
     if not (math.isfinite(sampling_rate_hz) and sampling_rate_hz > 0):
-        _fail(path, f"sampling_rate_hz = {sampling_rate_hz!r}: expected a rate > 0 Hz")
+        fail(path, f"sampling_rate_hz = {sampling_rate_hz!r}: expected a rate > 0 Hz")
     _check_flags(path, handle, n_det, n)
     return dataset, n_det, n, sampling_rate_hz
 
 
 def _check_dtype(path, name: str, dataset, kinds: str, expected: str) -> None:
     if dataset.dtype.kind not in kinds or dataset.dtype.names is not None:
-        _fail(path, f"dataset {name!r} has dtype {dataset.dtype}: expected {expected}")
+        fail(path, f"dataset {name!r} has dtype {dataset.dtype}: expected {expected}")
 
 
 def _check_stored(path, name: str, dataset) -> None:
@@ -210,7 +213,7 @@ def _check_stored(path, name: str, dataset) -> None:
         if written >= expected:
             return
         detail = f" ({written} of its {expected} chunks)"
-    _fail(
+    fail(
         path,
         f"dataset {name!r} declares shape {dataset.shape} {dataset.dtype} "
         f"({declared / 2**30:.3g} GiB) but stores {stored} bytes in the file{detail}: its "
