@@ -527,8 +527,8 @@ def test_a_tensor_term_measured_below_zero_is_none(base):
     """Where the filters leave little of the sky, the HILC's chance-correlation ratio
     f = 1 + 2 C(CMB, residual) / C(CMB) is measured on little CMB and can fall below
     zero (ell = 5 on half the seeds of a notch 4 f_HWP / 30 wide at nside 64): the
-    recovered_power model takes no tensor power there (power is never negative) and keeps
-    R_ell f_ell elsewhere."""
+    recovered_power model takes no tensor nor lensing power there (power is never
+    negative) and keeps R_ell f_ell elsewhere."""
     rng = np.random.default_rng(43)
     noise = nm.measure(ilc_bias_tables(base, rng, 0.0, 0.0))
     ratio = np.where(noise["ell"] % 3 == 0, -0.2, 0.9)
@@ -539,3 +539,5 @@ def test_a_tensor_term_measured_below_zero_is_none(base):
     np.testing.assert_allclose(model.c_gw_r1, expected, rtol=1e-12, atol=0.0)
     assert np.all(model.c_gw_r1 >= 0) and np.any(model.c_gw_r1[2:] == 0)
     assert np.all(model.c_gw_r1[2:][ratio[2 : LMAX + 1] > 0] > 0)
+    below = ratio[: LMAX + 1] < 0
+    assert np.all(model.c_lens[below] == 0) and np.all(model.c_lens[2:][~below[2:]] > 0)

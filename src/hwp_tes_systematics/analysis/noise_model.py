@@ -139,10 +139,12 @@ def hilc_cmb_power_ratio(noise: pd.DataFrame, lmax: int) -> np.ndarray:
     model's ``hilc_cmb_power_ratio_bb``; ones where the run did not measure it). The
     weights, fitted on the data, anticorrelate the CMB with the residual (the ILC bias,
     Delabrouille et al. 2009): f < 1 where the CMB is a large part of the map. Taken to
-    scale with the CMB's power (assumption), it multiplies the lensing and tensor terms."""
+    scale with the CMB's power (assumption), it multiplies the lensing and tensor terms.
+    A power ratio cannot be negative: measured below zero (the chance correlation's noise,
+    where the filters leave little of the sky) it is taken as 0."""
     if "hilc_cmb_power_ratio_bb" not in noise:
         return np.ones(lmax + 1)
-    return noise["hilc_cmb_power_ratio_bb"].to_numpy()[: lmax + 1]
+    return np.clip(noise["hilc_cmb_power_ratio_bb"].to_numpy()[: lmax + 1], 0.0, None)
 
 
 # the seeds' recovered CMB from the input's B modes alone, and that input (map-domain path)
@@ -318,7 +320,6 @@ def model_from_noise_table(
     tensor = None
     if analysis == "recovered_power":
         tensor = tensor_response(noise, lmax, source) * hilc_cmb_power_ratio(noise, lmax)
-        tensor = np.clip(tensor, 0.0, None)
     return model.with_transfer(transfer, tensor)
 
 
