@@ -10,7 +10,12 @@ shift, with its bootstrap error; the Fisher peak shift of the systematic's own p
 the paper's estimator where it crosses the budget, sigma_r (the Fisher width of r: what
 the filter leaves of the sky's information on r), and whether the likelihood model
 describes the data (the model check, the held-out check and r read back on held-out
-seeds). With ``--figure``, both requirements and sigma_r against delta f / f_HWP.
+seeds). With ``--figure``, both requirements and sigma_r against delta f / f_HWP. Where the
+runs made the template fit (``mitigation.template_fit``), a second table gives what it buys
+at each width: the random population's requirement without and after it (both
+conventions), and the requirement on a g1 common to the systematics channels' detectors
+(the Fisher one, ``common_offset``) without and after it, with the common offset's
+auto term over the random population's after the fit and its linear term's t value.
 """
 
 from __future__ import annotations
@@ -41,6 +46,25 @@ def reading(path: Path) -> dict:
         "consistent_held_out": headline.get("consistent_held_out"),
         "r_recovered_consistent": headline.get("r_recovered_consistent"),
         "n_seeds": data["n_seeds"],
+        **mitigation_reading(data),
+    }
+
+
+def mitigation_reading(data: dict) -> dict:
+    """The template fit's numbers of one run ({} without it)."""
+    mitigated = data["systematic_only"].get("mitigated")
+    if mitigated is None:
+        return {}
+    common = data.get("common_offset") or {}
+    after = mitigated.get("common_offset") or {}
+    return {
+        "mitigated_68": mitigated["requirement_sigma_g1_per_k"],
+        "mitigated_68_error": mitigated.get("error_per_k"),
+        "mitigated_fisher": mitigated["fisher_peak_shift_requirement_sigma_g1_per_k"],
+        "common_mu": common.get("requirement_mu_per_k"),
+        "common_mu_after_fit": after.get("requirement_mu_per_k"),
+        "common_k_over_random_after_fit": after.get("k_over_k_random"),
+        "common_t_linear_after_fit": after.get("t_linear"),
     }
 
 
@@ -73,6 +97,33 @@ def table(rows: list[dict]) -> str:
             f"| {_number(row['requirement_fisher'], row['requirement_fisher_error'])} "
             f"| {_number(row['paper_estimator'])} | {_number(row['sigma_r'])} "
             f"| {checks} | {row['n_seeds']} |"
+        )
+    return "\n".join(lines)
+
+
+def mitigation_table(rows: list[dict]) -> str:
+    """What the template fit buys at each width (rows with its numbers only; '' if none)."""
+    fitted = [row for row in rows if "mitigated_68" in row]
+    if not fitted:
+        return ""
+    lines = [
+        "After the template fit (mitigation.template_fit):",
+        (
+            "| D | random, 68 %: without / after [1/K] | random, Fisher: without / after "
+            "[1/K] | common mu, Fisher: without / after [1/K] | after: k_mu / k_sigma, t of b |"
+        ),
+        "|---|---|---|---|---|",
+    ]
+    for row in fitted:
+        width = "no notch" if row["divisor"] is None else f"{row['divisor']:g}"
+        lines.append(
+            f"| {width} "
+            f"| {_number(row['requirement_68'])} / "
+            f"{_number(row['mitigated_68'], row['mitigated_68_error'])} "
+            f"| {_number(row['requirement_fisher'])} / {_number(row['mitigated_fisher'])} "
+            f"| {_number(row['common_mu'])} / {_number(row['common_mu_after_fit'])} "
+            f"| {_number(row['common_k_over_random_after_fit'])}, "
+            f"{_number(row['common_t_linear_after_fit'])} |"
         )
     return "\n".join(lines)
 
@@ -119,6 +170,9 @@ def main() -> None:
     arguments = parser.parse_args()
     rows = sorted(map(reading, arguments.requirements), key=lambda r: r["width_over_f_hwp"])
     print(table(rows))
+    mitigation = mitigation_table(rows)
+    if mitigation:
+        print("\n" + mitigation)
     if arguments.json:
         arguments.json.write_text(json.dumps(rows, indent=2) + "\n")
     if arguments.figure:

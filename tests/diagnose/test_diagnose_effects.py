@@ -277,3 +277,39 @@ def test_strong_nonlinearity_fitted_on_the_pre_nonlinearity_signal(tmp_path):
     for k in range(2):
         fitted = result.parameter("tes_nonlinearity", "g1", k)
         assert abs(fitted["value"] - g1[k]) < 3 * fitted["sigma"], (fitted, g1[k])
+
+
+def test_a_nonlinearity_beside_a_4f_harmonic_is_bounded_by_every_solution(tmp_path):
+    """H3-402 for a quarter of an hour, g1 beside a 1 mK HWPSS harmonic at 4 f_HWP: the
+    harmonic takes the 4f line g1 A_2^2 / 2 (39 mK here) at first order, and only the
+    cross terms of the composition (g1 x 2 A_2 x the harmonic) and the weak 2 f_HWP +- sky
+    sidebands tell the two apart. The composed fit walked away from the minimum (chi^2
+    up by 7) to g1 ~ 0 +- 1e-4 and bounded |g1| by 5e-4 against an injected 5.5e-3. Now
+    the lowest pass is kept, the fit is started three ways, and the bound covers the
+    injected g1 on both detectors, naming the second solution."""
+    from hwp_tes_systematics.diagnose import diagnose
+    from hwp_tes_systematics.diagnose.testbed import (
+        nominal,
+        nominal_errors,
+        recorded_with_errors,
+        supplied_sky,
+    )
+
+    channel = "H3-402"
+    rng = np.random.default_rng(4402)
+    errors = nominal_errors(rng)
+    g1 = np.array([-0.0055, -0.0006])  # 1/K
+    phase = rng.uniform(0.0, 2 * np.pi, 2)
+    a4 = {"c4": 1e-3 * np.cos(phase), "s4": 1e-3 * np.sin(phase)}
+    effects = [("tes_nonlinearity", {"g1": g1}), ("hwpss_harmonics", a4)]
+    recording, _ = recorded_with_errors(
+        tmp_path, effects, 4402, errors, hours=0.25, name="nl_a4.h5", channel=channel
+    )
+    result = diagnose(recording, supplied_sky(errors), nominal(channel)["a2_k"], figures=False)
+    check = result["requirement_check"]
+    for k, detector in enumerate(check["detectors"]):
+        bound = detector.get("bound_per_k")
+        if bound is None:  # selected: the fit's g1 and its uncertainty
+            assert abs(detector["g1_per_k"] - g1[k]) < 3 * detector["uncertainty_per_k"]
+        else:
+            assert abs(g1[k]) < bound, (detector, g1[k])

@@ -169,3 +169,40 @@ def test_physical_bounds_say_what_is_out():
     assert coupling.unphysical(outside) == "|a2c| = 0.35 > 0.1"
     assert CATALOG["gain_drift"].unphysical(EffectFit("gain_drift", values={"g1": [1.0]}))
     assert CATALOG["hwpss_harmonic_4"].unphysical(EffectFit("x", values={"c4": [1.0]})) is None
+
+
+def test_a_second_solution_within_four_in_chi2_widens_what_is_said_of_g1():
+    """A fit with a second self-consistent solution (select.backfit.fit_composed): within
+    Delta chi^2 < 4 the bound covers it and a found g1's uncertainty spans it; beyond, it
+    is ignored."""
+    from hwp_tes_systematics.diagnose.bound.requirement_check import (
+        bound_nonlinearity,
+        compare_nonlinearity,
+        load_requirement,
+    )
+
+    requirement = load_requirement()
+    parameters = {
+        f"g1[d{k}]": {
+            "value": v,
+            "sigma": 1e-4,
+            "unit": "1/K",
+            "detector": f"d{k}",
+            "parameter": "g1",
+        }
+        for k, v in enumerate((2e-4, -3e-4))
+    }
+    seconds = [
+        {"g1_per_k": -5e-3, "sigma_per_k": 2e-3, "delta_chi2": 2.5},
+        {"g1_per_k": 4e-3, "sigma_per_k": 1e-3, "delta_chi2": 9.0},
+    ]
+    bound = bound_nonlinearity(parameters, requirement, -3.0, seconds)
+    assert [d["bound_per_k"] for d in bound["detectors"]] == pytest.approx([9e-3, 5e-4])
+    assert "second_solution" in bound["detectors"][0]
+    assert "second_solution" not in bound["detectors"][1]
+    assert "A second solution fits as well" in bound["sentence"] and "(d0," in bound["sentence"]
+    found = compare_nonlinearity({"parameters": parameters}, requirement, seconds)
+    assert [d["uncertainty_per_k"] for d in found["detectors"]] == pytest.approx([7.2e-3, 1e-4])
+    assert "A second solution fits as well" in found["sentence"]
+    plain = compare_nonlinearity({"parameters": parameters}, requirement)
+    assert "second solution" not in plain["sentence"]

@@ -594,10 +594,15 @@ def test_requirement_vs_notch_orders_the_runs_by_width(repo, tmp_path):
         check=True,
         timeout=300,
     )
-    rows = [line.split("|")[1:-1] for line in done.stdout.splitlines() if line.startswith("| ")]
+    first, *after_fit = done.stdout.split("\n\n")
+    rows = [line.split("|")[1:-1] for line in first.splitlines() if line.startswith("| ")]
     widths = [row[0].strip() for row in rows[1:]]
     assert widths == ["no notch", "100", "50"]
     assert [row[5].strip() for row in rows[1:]] == ["0.01", "0.05", "0.2"]
+    # the run made the template fit: what it buys at each width, in a table of its own
+    assert after_fit and after_fit[0].startswith("After the template fit")
+    fitted = [line for line in after_fit[0].splitlines() if line.startswith("| ")][1:]
+    assert [row.split("|")[1].strip() for row in fitted] == ["no notch", "100", "50"]
     assert (tmp_path / "notch.png").stat().st_size > 10_000
 
 

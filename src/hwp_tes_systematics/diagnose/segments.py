@@ -279,6 +279,17 @@ def combine_segments(
             "effect": None,
             **bound_nonlinearity(parameters, requirement, delta_chi2),
         }
+    ambiguous = [  # segments whose fit had a second solution (bound.step._second_solutions)
+        index
+        for index, check in enumerate(beside)
+        if any("second_solution" in d for d in check.get("detectors", []))
+    ]
+    if requirement_check is not None and ambiguous:
+        requirement_check["segments_with_a_second_solution"] = ambiguous
+        requirement_check["sentence"] += (
+            f" Segments {', '.join(map(str, ambiguous))} have a second solution each (their "
+            "own checks): the combined g1 holds only one of them."
+        )
     total = {key: float(sum(r[key] for r in results)) for key in ("chi2_before", "chi2_after")}
     total.update({key: float(sum(r[key] for r in results)) for key in ("bic_before", "bic_after")})
     first = results[0]

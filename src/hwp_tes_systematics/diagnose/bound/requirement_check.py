@@ -23,6 +23,9 @@ from scipy import stats
 
 SHIPPED = "one_year_requirement.json"  # under the package's data/
 NONLINEARITY_FAMILY = "tes_nonlinearity"
+# a second solution of the fit beside (select.backfit.fit_composed) within this Delta chi^2
+# of the first (2 sigma for one parameter) is one the recording cannot rule out
+SECOND_SOLUTION_DELTA_CHI2 = 4.0
 
 
 class RequirementFileError(ValueError):
@@ -71,51 +74,82 @@ def _per_detector_g1(parameters: dict):
     )
 
 
-def compare_nonlinearity(effect: dict, requirement: dict) -> dict:
+def compare_nonlinearity(effect: dict, requirement: dict, second_solutions=None) -> dict:
     """The fitted g1 of each detector (a report entry of the tes_nonlinearity family)
     against the requirement: sigma / requirement (how well this recording knows g1),
-    |g1| / requirement (what an uncorrected g1 would bring), and the sentence."""
+    |g1| / requirement (what an uncorrected g1 would bring), and the sentence. With
+    ``second_solutions`` (per detector {g1_per_k, sigma_per_k, delta_chi2} or None), one
+    within SECOND_SOLUTION_DELTA_CHI2 widens what the recording knows of g1 to
+    ``uncertainty_per_k`` = max(sigma, |g1 - g1_2| + sigma_2)."""
     limit = requirement["sigma_g1_per_k"]
     detectors = []
-    for entry in _per_detector_g1(effect["parameters"]):
-        detectors.append(
-            {
-                "detector": entry["detector"],
-                "g1_per_k": entry["value"],
-                "sigma_per_k": entry["sigma"],
-                "sigma_over_requirement": entry["sigma"] / limit,
-                "g1_over_requirement": abs(entry["value"]) / limit,
-            }
+    for k, entry in enumerate(_per_detector_g1(effect["parameters"])):
+        uncertainty = entry["sigma"]
+        row = {
+            "detector": entry["detector"],
+            "g1_per_k": entry["value"],
+            "sigma_per_k": uncertainty,
+        }
+        second = second_solutions[k] if second_solutions else None
+        if second is not None and second["delta_chi2"] < SECOND_SOLUTION_DELTA_CHI2:
+            row["second_solution"] = second
+            spread = abs(entry["value"] - second["g1_per_k"]) + second["sigma_per_k"]
+            uncertainty = max(uncertainty, spread)
+        row.update(
+            uncertainty_per_k=uncertainty,
+            sigma_over_requirement=uncertainty / limit,
+            g1_over_requirement=abs(entry["value"]) / limit,
         )
+        detectors.append(row)
     return {
         "detected": True,
         "requirement": requirement,
         "detectors": detectors,
-        "sentence": _sentence(detectors, requirement),
+        "sentence": _sentence(detectors, requirement) + _second_solutions_text(detectors),
     }
 
 
-def bound_nonlinearity(parameters: dict, requirement: dict, delta_chi2: float) -> dict:
+def _second_solutions_text(detectors) -> str:
+    """The sentence on second solutions the recording cannot rule out ('' if none)."""
+    seconds = [d for d in detectors if "second_solution" in d]
+    if not seconds:
+        return ""
+    listed = ", ".join(
+        f"{d['second_solution']['g1_per_k']:.2g} +- {d['second_solution']['sigma_per_k']:.2g} "
+        f"({d['detector']}, Delta chi^2 = {d['second_solution']['delta_chi2']:.2g})"
+        for d in seconds
+    )
+    return (
+        f" A second solution fits as well (within Delta chi^2 = {SECOND_SOLUTION_DELTA_CHI2:g}): "
+        f"g1 = {listed} K^-1: the nonlinearity shares a line with an effect found and only "
+        "their cross terms tell the two apart, so what is said of g1 covers both."
+    )
+
+
+def bound_nonlinearity(
+    parameters: dict, requirement: dict, delta_chi2: float, second_solutions=None
+) -> dict:
     """No nonlinearity found: the g1 fitted beside the effects found (``parameters``, the
     report's entries of that fit) bounds it, |g1| < |g1_fit| + 2 sigma per detector (97.7 %
     on the side of the fit, more on the other), against the requirement;
     ``delta_chi2`` = chi^2 with g1 - chi^2 without (what adding it gained, <= 0), and p the
     chance of gaining as much from noise alone (chi^2 with n_detectors degrees of freedom):
-    a small p is a nonlinearity below the selection's BIC threshold, not its absence."""
+    a small p is a nonlinearity below the selection's BIC threshold, not its absence.
+    ``second_solutions``: per detector, the fit's other self-consistent solution {g1_per_k,
+    sigma_per_k, delta_chi2} (None: none); within SECOND_SOLUTION_DELTA_CHI2 the bound
+    covers it too (each solution's sigma is its own minimum's curvature)."""
     limit = requirement["sigma_g1_per_k"]
     detectors = []
-    for entry in _per_detector_g1(parameters):
+    for k, entry in enumerate(_per_detector_g1(parameters)):
         sigma = entry["sigma"]  # None: not measured (combined over segments without one)
         bound = abs(entry["value"]) + 2 * sigma if sigma is not None else float("inf")
-        detectors.append(
-            {
-                "detector": entry["detector"],
-                "g1_per_k": entry["value"],
-                "sigma_per_k": entry["sigma"],
-                "bound_per_k": bound,
-                "bound_over_requirement": bound / limit,
-            }
-        )
+        row = {"detector": entry["detector"], "g1_per_k": entry["value"], "sigma_per_k": sigma}
+        second = second_solutions[k] if second_solutions else None
+        if second is not None and second["delta_chi2"] < SECOND_SOLUTION_DELTA_CHI2:
+            row["second_solution"] = second
+            bound = max(bound, abs(second["g1_per_k"]) + 2 * second["sigma_per_k"])
+        row.update(bound_per_k=bound, bound_over_requirement=bound / limit)
+        detectors.append(row)
     fitted = ", ".join(
         f"{d['g1_per_k']:.2g} +- {_or_unknown(d['sigma_per_k'])} ({d['detector']})"
         for d in detectors
@@ -136,7 +170,7 @@ def bound_nonlinearity(parameters: dict, requirement: dict, delta_chi2: float) -
         "from noise alone), so |g1| < "
         f"{bounds} K^-1 (|g1| + 2 sigma) "
         f"against the requirement sigma_g1 < {_bound_text(requirement)} K^-1 "
-        f"({_context(requirement)}): {verdict}."
+        f"({_context(requirement)}): {verdict}." + _second_solutions_text(detectors)
     )
     return {
         "detected": False,

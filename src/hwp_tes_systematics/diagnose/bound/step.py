@@ -5,7 +5,12 @@ from __future__ import annotations
 from ..effects import CATALOG, family_of
 from ..select.bank import FitProblem
 from ..select.step import Selection
-from .requirement_check import NONLINEARITY_FAMILY, bound_nonlinearity, compare_nonlinearity
+from .requirement_check import (
+    NONLINEARITY_FAMILY,
+    SECOND_SOLUTION_DELTA_CHI2,
+    bound_nonlinearity,
+    compare_nonlinearity,
+)
 
 
 def bound_g1(effects: list[dict], selection: Selection, requirement: dict) -> dict:
@@ -14,7 +19,11 @@ def bound_g1(effects: list[dict], selection: Selection, requirement: dict) -> di
     (its fit beside the effects found; :mod:`.requirement_check`)."""
     nonlinearity = next((e for e in effects if family_of(e["name"]) == NONLINEARITY_FAMILY), None)
     if nonlinearity is not None:
-        return {"effect": nonlinearity["name"], **compare_nonlinearity(nonlinearity, requirement)}
+        seconds = _second_solutions(selection.final, nonlinearity["name"])
+        return {
+            "effect": nonlinearity["name"],
+            **compare_nonlinearity(nonlinearity, requirement, seconds),
+        }
     bound = _nonlinearity_bound(selection.problem, selection.final, requirement)
     return {"effect": None, **bound}
 
@@ -31,4 +40,34 @@ def _nonlinearity_bound(problem: FitProblem, final, requirement: dict) -> dict:
         problem.ctx.sampling_rate_hz,
         problem.units[name],
     )
-    return bound_nonlinearity(parameters, requirement, beside.chi2 - final.chi2)
+    return bound_nonlinearity(
+        parameters, requirement, beside.chi2 - final.chi2, _second_solutions(beside, name)
+    )
+
+
+def _second_solutions(fit, name: str) -> list[dict] | None:
+    """Per detector, the g1 of the fit's other self-consistent solutions
+    (``fit.alternatives``, :func:`..select.backfit.fit_composed`) that the recording cannot
+    rule out (chi^2 within SECOND_SOLUTION_DELTA_CHI2 of the fit's) and lies farthest from
+    zero, else the one closest in chi^2: {g1_per_k, sigma_per_k, delta_chi2}; None without
+    alternatives."""
+    if not fit.alternatives or name not in fit.effects:
+        return None
+    parameter = "g1"  # of every effect of the family
+    seconds = []
+    for k, chi2 in enumerate(fit.chi2_per_detector):
+        solutions = [
+            {
+                "g1_per_k": float(other.effects[name].values[parameter][k]),
+                "sigma_per_k": float(other.effects[name].sigmas[parameter][k]),
+                "delta_chi2": float(other.chi2_per_detector[k] - chi2),
+            }
+            for other in fit.alternatives
+        ]
+        allowed = [s for s in solutions if s["delta_chi2"] < SECOND_SOLUTION_DELTA_CHI2]
+        seconds.append(
+            max(allowed, key=lambda s: abs(s["g1_per_k"]) + 2 * s["sigma_per_k"])
+            if allowed
+            else min(solutions, key=lambda s: s["delta_chi2"])
+        )
+    return seconds

@@ -48,7 +48,11 @@ to a recording that holds the nonlinearity's own DC and 2f terms, which the refi
 adjustments take out), unless that cross term is below Delta chi^2 = 0.01; in
 later passes they are rebuilt only when the fitted model moved enough since the last
 build for the same term, 2 g1 d_nom (change of the model), to reach Delta chi^2 = 0.01
-(a one-day pair: 125 -> 99 s, the same selection and chi^2). With nonlinear pieces, the
+(a one-day pair: 125 -> 99 s, the same selection and chi^2); a rebuild that raises chi^2
+by more than 1 above the lowest pass returns to it, and where the first fit shares a line
+between the nonlinearity and another signal effect the fit is started three ways and
+keeps the lowest chi^2, the others as its ``alternatives`` (:func:`.backfit.fit_composed`).
+With nonlinear pieces, the
 pieces are fitted in turn (backfitting, up to four passes, until chi^2 changes by less
 than 0.05). Speed-up: the nonlinear fit is skipped when even
 its linearised template, fitted beside the linear effects, gains less than half of its

@@ -24,6 +24,16 @@ BACKFIT_PASSES = 4
 # g1 A_2 = 0.04 converge within the eight)
 COMPOSED_PASSES = 8
 CONVERGED_CHI2 = 0.05  # backfitting stops when chi^2 changes by less than this
+# the nonlinearity's first linear fit beside the other signal effects: a variance inflation
+# of g1 above this (correlation above 0.995) means they share a line at first order (an
+# HWPSS harmonic at 4 f_HWP takes the 4f line of g1 A_2^2 / 2), and only the composition
+# (the cross terms g1 x 2 A_2 x the harmonic) tells the two apart: two self-consistent
+# solutions, reached from two starts (fit_composed)
+DEGENERATE_INFLATION = 100.0
+# with the nonlinearity composed, a rebuild that raises chi^2 by more than this above the
+# lowest pass walks away from the minimum (along a direction the first-order templates
+# share): the lowest pass is kept
+CHI2_RISE = 1.0
 
 
 def nonlinear_screen(problem, selected) -> FitResult | None:
@@ -130,9 +140,11 @@ def detect_events(problem, effect, k: int, r_f: np.ndarray, s: np.ndarray) -> li
     )
 
 
-def fit_iterative(problem, selected) -> FitResult:
+def fit_iterative(problem, selected, initial_extra=None) -> FitResult:
     """Backfitting of the linear, nonlinear (time constant) and events (glitches) parts
-    (module docstring)."""
+    (module docstring). ``initial_extra``: with the nonlinearity composed, the signal (per
+    detector, time domain) its templates are first built on beside d_nom (None: d_nom
+    alone; :func:`fit_composed` starts from both)."""
     ctx = problem.ctx
     n_det = problem.n_det
     linear = [n for n in selected if n in problem.slices]
@@ -164,8 +176,24 @@ def fit_iterative(problem, selected) -> FitResult:
     built_on = [None] * n_det  # the extra signal they were recomputed with (None: none)
     used_banks = list(banks)
     nonlinear_parts = [0.0] * n_det
+    first_pass_inflation = np.ones(n_det)  # the nonlinearity's variance inflation, pass 1
+
+    def rebuild(k, extra):
+        """The nonlinearity's template rows of detector k built on d_nom + ``extra``."""
+        recomposed[k] = True
+        built_on[k] = extra
+        banks[k] = banks[k].copy()
+        templates = np.concatenate([e.response_templates(ctx.d_nom[k] + extra) for e in responses])
+        banks[k][nl_rows] = scipy.fft.rfft(
+            templates * problem.valid[k], axis=-1, workers=problem.workers
+        )
+
+    if composed and initial_extra is not None:
+        for k in range(n_det):
+            rebuild(k, initial_extra[k])
     passes = COMPOSED_PASSES if composed else BACKFIT_PASSES if events_effect is not None else 1
     previous_chi2 = math.inf
+    lowest, kept = math.inf, None  # the composed passes' lowest chi^2 and its state
     for _ in range(passes):
         updated = False  # did the nonlinearity templates change in this pass?
         for k in range(n_det):
@@ -185,6 +213,9 @@ def fit_iterative(problem, selected) -> FitResult:
                 a, cov = solve_normal(gram, cross(bank, y, w))
                 m_nonlinear = 0.0
             values[k], covariances[k] = a, cov
+            if composed and previous_chi2 == math.inf and nl_rows.size:
+                g = nl_rows[0]  # marginal over conditional variance of g1 (1: no degeneracy)
+                first_pass_inflation[k] = float(cov[g, g] * gram[g, g])
             used_banks[k], nonlinear_parts[k] = bank, m_nonlinear
             models[k] = (a @ bank if rows.size else 0.0) + m_nonlinear + events_f[k]
             if composed:  # the nonlinearity acts on d_nom + the other fitted effects
@@ -216,17 +247,8 @@ def fit_iterative(problem, selected) -> FitResult:
                 )
                 if cross_chi2 < 0.01:
                     continue
-                signal = ctx.d_nom[k] + extra
                 updated = True
-                recomposed[k] = True
-                built_on[k] = extra
-                banks[k] = bank.copy()
-                templates = np.concatenate([e.response_templates(signal) for e in responses])
-                banks[k][nl_rows] = scipy.fft.rfft(
-                    templates * problem.valid[k],
-                    axis=-1,
-                    workers=problem.workers,
-                )
+                rebuild(k, extra)
         values, covariances, shared = problem.share(linear, values, covariances)
         if shared:
             for k in range(n_det):
@@ -249,6 +271,17 @@ def fit_iterative(problem, selected) -> FitResult:
         if not (updated or events_effect is not None):
             break
         total = sum(problem.chi2_of(k, models[k]) for k in range(n_det))
+        if composed and total < lowest:  # the lowest pass's state, kept
+            lowest = total
+            kept = [
+                list(x) if isinstance(x, list) else x
+                for x in (values, covariances, shared, models, used_banks)
+                + (nonlinear_parts, theta, theta_sigma, events, events_f)
+            ]
+        elif composed and total > lowest + CHI2_RISE:  # walking away from it: back
+            (values, covariances, shared, models, used_banks) = kept[:5]
+            (nonlinear_parts, theta, theta_sigma, events, events_f) = kept[5:]
+            break
         # while the nonlinearity's templates still move, chi^2 does not tell: it is
         # blind to the scale of d against g1 (g1 (1 + e)^2 d^2 with the gain taking
         # the linear part), which the rebuilds settle at the rate ~2 g1 A_2 per pass
@@ -278,4 +311,53 @@ def fit_iterative(problem, selected) -> FitResult:
         effects=fits,
         model_f=models,
         parts=parts,
+        first_pass_inflation=first_pass_inflation,
     )
+
+
+def fit_composed(problem, selected) -> FitResult:
+    """:func:`fit_iterative` of a set with the nonlinearity composed; where its first fit
+    shares a line with the other signal effects (DEGENERATE_INFLATION), fitted again from
+    the two starts that give the shared lines to one side (:func:`start_after`: the
+    nonlinearity first, the signal effects first): the lowest chi^2 is the fit, the others
+    its ``alternatives`` (each a minimum of its own, whose formal sigma does not cover the
+    others)."""
+    first = fit_iterative(problem, selected)
+    if not problem.composed(selected):
+        return first
+    signal = [n for n in selected if n in problem.slices and problem.effects[n].stage == "signal"]
+    inflation = first.first_pass_inflation
+    if not signal or inflation is None or inflation.max() < DEGENERATE_INFLATION:
+        return first
+    without_signal = tuple(n for n in selected if n not in signal)
+    fits = [first] + [
+        fit_iterative(problem, selected, initial_extra=start_after(problem, before, signal))
+        for before in (without_signal, ())
+    ]
+    best, *others = sorted(fits, key=lambda fit: fit.chi2)
+    for other in others:
+        other.model_f = other.parts = None  # their parameters and chi^2 are what is kept
+    best.alternatives = others
+    return best
+
+
+def start_after(problem, before, signal) -> list[np.ndarray]:
+    """Per detector, the time-domain signal of the effects ``signal`` fitted on what the
+    set ``before`` leaves (() : the nominal residual), as a composed fit's first signal:
+    with ``before`` holding the nonlinearity, it has taken the lines it shares with them.
+    Their mean over the valid samples is removed, as the composition's offset is."""
+    base = problem.fit(before, keep_model=True) if before else None
+    rows = np.concatenate(
+        [np.arange(problem.slices[n].start, problem.slices[n].stop) for n in signal]
+    )
+    extras = []
+    for k in range(problem.n_det):
+        w = problem.w_nom[k]
+        bank = problem.bank[k][rows]
+        residual = problem.residual_f[k] - (base.model_f[k] if base is not None else 0.0)
+        a, _ = solve_normal(problem.gram_nom[k][np.ix_(rows, rows)], cross(bank, residual, w))
+        extra = scipy.fft.irfft(a @ bank, n=problem.n, workers=problem.workers)
+        extras.append(extra - float(np.mean(extra[problem.valid[k]])))
+    if base is not None:
+        base.model_f = base.parts = None  # as the cache keeps a fit (FitProblem.fit)
+    return extras

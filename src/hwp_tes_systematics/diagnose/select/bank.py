@@ -278,7 +278,7 @@ class FitProblem:
             elif kinds <= {"linear"} and not self.composed(selected):
                 cached = self._fit_linear(selected)
             else:
-                cached = backfit.fit_iterative(self, selected)
+                cached = backfit.fit_composed(self, selected)
             if not keep_model:
                 cached.model_f = None
                 cached.parts = None

@@ -39,6 +39,11 @@ class FitResult:
     parts: dict | None = field(default=None, repr=False)  # effect -> per-detector rfft model
 
     prior_penalty: float = 0.0  # sum of the selected effects' Effect.prior_penalty
+    # with the nonlinearity composed with other signal effects: its first fit's variance
+    # inflation per detector (how much of g1 the others could take at first order), and
+    # the fits from the other starts (backfit.fit_composed) when they ran
+    first_pass_inflation: np.ndarray | None = field(default=None, repr=False)
+    alternatives: list[FitResult] = field(default_factory=list, repr=False)
 
     def bic(self, ln_n_eff: float) -> float:
         return self.chi2 + self.n_params * ln_n_eff + self.prior_penalty
