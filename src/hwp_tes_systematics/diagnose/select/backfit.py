@@ -27,8 +27,8 @@ CONVERGED_CHI2 = 0.05  # backfitting stops when chi^2 changes by less than this
 # the nonlinearity's first linear fit beside the other signal effects: a variance inflation
 # of g1 above this (correlation above 0.995) means they share a line at first order (an
 # HWPSS harmonic at 4 f_HWP takes the 4f line of g1 A_2^2 / 2), and only the composition
-# (the cross terms g1 x 2 A_2 x the harmonic) tells the two apart: two self-consistent
-# solutions, reached from two starts (fit_composed)
+# (the cross terms g1 x 2 A_2 x the harmonic) tells the two apart: self-consistent
+# solutions of each side, reached from fit_composed's three starts
 DEGENERATE_INFLATION = 100.0
 # with the nonlinearity composed, a rebuild that raises chi^2 by more than this above the
 # lowest pass walks away from the minimum (along a direction the first-order templates
@@ -144,7 +144,7 @@ def fit_iterative(problem, selected, initial_extra=None) -> FitResult:
     """Backfitting of the linear, nonlinear (time constant) and events (glitches) parts
     (module docstring). ``initial_extra``: with the nonlinearity composed, the signal (per
     detector, time domain) its templates are first built on beside d_nom (None: d_nom
-    alone; :func:`fit_composed` starts from both)."""
+    alone; :func:`fit_composed` starts from three)."""
     ctx = problem.ctx
     n_det = problem.n_det
     linear = [n for n in selected if n in problem.slices]
