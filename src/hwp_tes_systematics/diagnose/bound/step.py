@@ -45,15 +45,16 @@ def _nonlinearity_bound(problem: FitProblem, final, requirement: dict) -> dict:
     )
 
 
-def _second_solutions(fit, name: str) -> list[dict] | None:
+def _second_solutions(fit, name: str) -> list[dict | None] | None:
     """Per detector, the g1 of the fit's other self-consistent solutions
     (``fit.alternatives``, :func:`..select.backfit.fit_composed`) that the recording cannot
-    rule out (chi^2 within SECOND_SOLUTION_DELTA_CHI2 of the fit's) and lies farthest from
-    zero, else the one closest in chi^2: {g1_per_k, sigma_per_k, delta_chi2}; None without
-    alternatives."""
+    rule out (chi^2 within SECOND_SOLUTION_DELTA_CHI2 of the fit's) and that are another
+    solution (g1 more than the fit's sigma away from the fit's): the one farthest from
+    zero, {g1_per_k, sigma_per_k, delta_chi2}, or None; None without alternatives."""
     if not fit.alternatives or name not in fit.effects:
         return None
     parameter = "g1"  # of every effect of the family
+    values, sigmas = fit.effects[name].values[parameter], fit.effects[name].sigmas[parameter]
     seconds = []
     for k, chi2 in enumerate(fit.chi2_per_detector):
         solutions = [
@@ -64,10 +65,13 @@ def _second_solutions(fit, name: str) -> list[dict] | None:
             }
             for other in fit.alternatives
         ]
-        allowed = [s for s in solutions if s["delta_chi2"] < SECOND_SOLUTION_DELTA_CHI2]
+        others = [
+            s
+            for s in solutions
+            if s["delta_chi2"] < SECOND_SOLUTION_DELTA_CHI2
+            and abs(s["g1_per_k"] - values[k]) > sigmas[k]
+        ]
         seconds.append(
-            max(allowed, key=lambda s: abs(s["g1_per_k"]) + 2 * s["sigma_per_k"])
-            if allowed
-            else min(solutions, key=lambda s: s["delta_chi2"])
+            max(others, key=lambda s: abs(s["g1_per_k"]) + 2 * s["sigma_per_k"]) if others else None
         )
     return seconds
