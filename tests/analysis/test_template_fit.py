@@ -10,9 +10,15 @@ LMAX = 48
 
 
 def gaussian_alm(rng, amplitude, slope=-1.0):
-    """(3, nalm) T, E, B a_lm with C_ell = amplitude (ell + 1)^slope, independent."""
-    cl = amplitude * (np.arange(LMAX + 1) + 1.0) ** slope
-    return np.array([hp.synalm(cl, lmax=LMAX, new=True) for _ in range(3)])
+    """(3, nalm) T, E, B a_lm with C_ell = amplitude (ell + 1)^slope, independent, drawn
+    from ``rng`` (hp.synalm draws from numpy's global state, which made the tests depend
+    on their order)."""
+    ell, m = hp.Alm.getlm(LMAX)
+    sd = np.sqrt(amplitude * (ell + 1.0) ** slope)
+    shape = (3, ell.size)
+    alm = (rng.normal(size=shape) + 1j * rng.normal(size=shape)) * sd / np.sqrt(2.0)
+    alm[:, m == 0] = rng.normal(size=(3, int((m == 0).sum()))) * sd[m == 0]
+    return alm
 
 
 def sky_and_templates(rng, n_templates=3):
