@@ -85,8 +85,7 @@ def covers(detector: dict, g1: float) -> bool:
     """Does a detector's entry of the requirement check hold the injected ``g1``?"""
     if "bound_per_k" in detector:
         return abs(g1) < detector["bound_per_k"]
-    uncertainty = detector.get("uncertainty_per_k", detector["sigma_per_k"])
-    return abs(detector["g1_per_k"] - g1) < 3 * uncertainty
+    return abs(detector["g1_per_k"] - g1) < 3 * detector["uncertainty_per_k"]
 
 
 def summarise(rows: list) -> dict:

@@ -49,6 +49,7 @@ FIXED_SH_KIND = "x1_fixed"
 # of its contamination, what the fit takes from its map without the systematic, and what
 # it leaves of a g1 common to the channel's detectors (the common population)
 FIT_KINDS = ("fit_residual", "fit_removed", "fit_common_residual")
+FIT_RESIDUAL, FIT_REMOVED, FIT_COMMON_RESIDUAL = FIT_KINDS
 
 
 def analysis_mask(observed: list[np.ndarray], settings: dict) -> np.ndarray:
@@ -236,9 +237,9 @@ class ChannelAlms:
         }
         common = self.detector_templates().sum(axis=0)
         left = {
-            "fit_residual": contamination - fit.fitted(contamination),
-            "fit_removed": fit.fitted(nosys),
-            "fit_common_residual": common - fit.fitted(common),
+            FIT_RESIDUAL: contamination - fit.fitted(contamination),
+            FIT_REMOVED: fit.fitted(nosys),
+            FIT_COMMON_RESIDUAL: common - fit.fitted(common),
         }
         return left, report
 

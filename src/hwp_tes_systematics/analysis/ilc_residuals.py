@@ -38,7 +38,10 @@ from . import hilc, spectra
 from .channel_alms import (
     ALM_KINDS,
     B_ONLY_KINDS,
+    FIT_COMMON_RESIDUAL,
     FIT_KINDS,
+    FIT_REMOVED,
+    FIT_RESIDUAL,
     LEAKAGE_KIND,
     N_TEMPLATE_TERMS,
     PIECE_KINDS,
@@ -299,10 +302,10 @@ class SeedMaps:
                 residuals,
             )
         )
-        if FIT_KINDS[2] in self.channel_alms:
+        if FIT_COMMON_RESIDUAL in self.channel_alms:
             left, removed = (
                 hilc.apply_ilc(self.channel_alms[kind], weights, self.bins, self.lmax)
-                for kind in (FIT_KINDS[2], FIT_KINDS[1])
+                for kind in (FIT_COMMON_RESIDUAL, FIT_REMOVED)
             )
             mitigated = {label: alm - removed for label, alm in residuals.items()}
             entries.append(("common_offset_mitigated", left, mitigated))
@@ -354,10 +357,10 @@ class SeedMaps:
             self.fractions,
             self.common_fwhm_arcmin,
         )
-        if nosys_residual_alm is not None and FIT_KINDS[0] in self.channel_alms:
+        if nosys_residual_alm is not None and FIT_RESIDUAL in self.channel_alms:
             residual, removed = (
                 hilc.apply_ilc(self.channel_alms[kind], nosys_weights, self.bins, self.lmax)
-                for kind in FIT_KINDS[:2]
+                for kind in (FIT_RESIDUAL, FIT_REMOVED)
             )
             for label, alm, alm2 in (
                 ("mitigated_k4", residual, None),

@@ -90,8 +90,8 @@ def compare_nonlinearity(effect: dict, requirement: dict, second_solutions=None)
             "g1_per_k": entry["value"],
             "sigma_per_k": uncertainty,
         }
-        second = second_solutions[k] if second_solutions else None
-        if second is not None and second["delta_chi2"] < SECOND_SOLUTION_DELTA_CHI2:
+        second = _second_solution(second_solutions, k)
+        if second is not None:
             row["second_solution"] = second
             spread = abs(entry["value"] - second["g1_per_k"]) + second["sigma_per_k"]
             uncertainty = max(uncertainty, spread)
@@ -107,6 +107,15 @@ def compare_nonlinearity(effect: dict, requirement: dict, second_solutions=None)
         "detectors": detectors,
         "sentence": _sentence(detectors, requirement) + _second_solutions_text(detectors),
     }
+
+
+def _second_solution(second_solutions, k: int) -> dict | None:
+    """Detector k's second solution if the recording cannot rule it out (within
+    SECOND_SOLUTION_DELTA_CHI2 of the fit), else None."""
+    second = second_solutions[k] if second_solutions else None
+    if second is None or second["delta_chi2"] >= SECOND_SOLUTION_DELTA_CHI2:
+        return None
+    return second
 
 
 def _second_solutions_text(detectors) -> str:
@@ -144,8 +153,8 @@ def bound_nonlinearity(
         sigma = entry["sigma"]  # None: not measured (combined over segments without one)
         bound = abs(entry["value"]) + 2 * sigma if sigma is not None else float("inf")
         row = {"detector": entry["detector"], "g1_per_k": entry["value"], "sigma_per_k": sigma}
-        second = second_solutions[k] if second_solutions else None
-        if second is not None and second["delta_chi2"] < SECOND_SOLUTION_DELTA_CHI2:
+        second = _second_solution(second_solutions, k)
+        if second is not None:
             row["second_solution"] = second
             bound = max(bound, abs(second["g1_per_k"]) + 2 * second["sigma_per_k"])
         row.update(bound_per_k=bound, bound_over_requirement=bound / limit)
