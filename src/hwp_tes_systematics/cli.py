@@ -301,7 +301,9 @@ def build_parser(prog: str) -> tuple[argparse.ArgumentParser, dict]:
         formatter_class=formatter,
     )
     diagnose.add_argument(
-        "recording", type=_existing_file, help="litebird_sim HDF5 observation file"
+        "recording",
+        type=_existing_file,
+        help="litebird_sim or TOAST 3 HDF5 observation file",
     )
     diagnose.add_argument(
         "--sky",

@@ -218,7 +218,8 @@ def hwp_frequency_hz(hwp_angle_rad: np.ndarray, sampling_rate_hz: float) -> floa
 
 def dipole_tod(recording, pointings_ecl: np.ndarray | None = None) -> np.ndarray:
     """Orbital + solar dipole [K_CMB] at the recorded pointing (or at ``pointings_ecl``,
-    (n_det, n, 3) ecliptic theta, phi, psi), (n_det, n) (litebird_sim)."""
+    (n_det, n, 3) ecliptic theta, phi, psi), (n_det, n) (litebird_sim), for the spacecraft
+    velocity the recording carries (``recording.orbit``) or else litebird_sim's orbit."""
     import litebird_sim as lbs
 
     cache_litebird_sim_kernels()
@@ -230,7 +231,8 @@ def dipole_tod(recording, pointings_ecl: np.ndarray | None = None) -> np.ndarray
     observation.tod[:] = 0.0
     lbs.add_dipole_to_observations(
         observation,
-        pos_and_vel=orbit_table(recording.start_time, recording.duration_s),
+        pos_and_vel=getattr(recording, "orbit", None)
+        or orbit_table(recording.start_time, recording.duration_s),
         pointings=np.ascontiguousarray(
             recording.pointings_ecl if pointings_ecl is None else pointings_ecl
         ),

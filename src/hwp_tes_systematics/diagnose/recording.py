@@ -55,6 +55,7 @@ from .recording_checks import (
     check_memory,
     declared_layout,
     fail,
+    is_toast_file,
     rle_flag_names,
 )
 
@@ -86,6 +87,9 @@ class Recording:
     source: str = "<memory>"
     observation: object = field(default=None, repr=False, compare=False)
     injected: list = field(default_factory=list, repr=False, compare=False)
+    # the spacecraft's position and velocity the recording carries (a TOAST observation's),
+    # for its dipole; None: litebird_sim's orbit from the start time (:func:`.model.dipole_tod`)
+    orbit: object = field(default=None, repr=False, compare=False)
 
     @property
     def n_detectors(self) -> int:
@@ -234,7 +238,8 @@ def _read_flags(path, handle, n_det: int, start: int, stop: int) -> np.ndarray:
 
 
 def read_recording(path, memory_budget_bytes=None, samples=None) -> Recording:
-    """Read a recording written by :func:`write_recording` (litebird_sim's HDF5 format).
+    """Read a recording written by :func:`write_recording` (litebird_sim's HDF5 format), or a
+    TOAST 3 observation file (:mod:`.toast_recording`).
 
     ``samples``: (start, stop), read only those samples (a segment: its ``start_time`` is
     the file's plus start / sampling rate, its ``times_s`` start at 0), so that a
@@ -247,6 +252,11 @@ def read_recording(path, memory_budget_bytes=None, samples=None) -> Recording:
     """
     path = Path(path)
     try:
+        check_file(path)
+        if is_toast_file(path):
+            from .toast_recording import read_toast_recording
+
+            return read_toast_recording(path, memory_budget_bytes, samples)
         return _read_recording(path, memory_budget_bytes, samples)
     except OSError as error:  # h5py: "Unable to synchronously open file (truncated file...)"
         size = path.stat().st_size if path.exists() else 0
@@ -283,6 +293,28 @@ def _read_recording(path: Path, memory_budget_bytes=None, samples=None) -> Recor
         hwp_angle = np.asarray(hwp[start:stop], dtype=float)
         flags = _read_flags(path, handle, n_det, start, stop)
 
+    mask_bad_samples(path, tod, pointings_ecl, hwp_angle, flags, detectors)
+    channel = str(detectors[0].get("channel", ""))
+    return Recording(
+        tod=tod,
+        times_s=np.arange(n) / sampling_rate_hz,
+        sampling_rate_hz=sampling_rate_hz,
+        hwp_angle_rad=hwp_angle,
+        pointings_ecl=pointings_ecl,
+        detectors=detectors,
+        start_time=start_time,
+        flags=flags,
+        channel=channel,
+        source=str(path),
+    )
+
+
+def mask_bad_samples(path, tod, pointings_ecl, hwp_angle, flags, detectors) -> None:
+    """Mask, in place, the NaN samples of ``tod`` (n_det, n), ``pointings_ecl`` (n_det, n, 3)
+    and ``hwp_angle`` (n,): their flags set and their values 0 (the HWP angle's bridged
+    linearly); an Inf in an unflagged sample, or a detector without a valid sample, is a
+    :class:`RecordingError` naming ``path``."""
+    n_det, n = tod.shape
     # NaN = gap (masked); Inf = corruption (error unless already flagged).
     for name, values, per_sample in (
         ("tod", tod, tod),
@@ -323,19 +355,6 @@ def _read_recording(path: Path, memory_budget_bytes=None, samples=None) -> Recor
         # back on the file's branch: (-pi, pi] or [0, 2 pi)
         offset = np.pi if hwp_angle[good].min() < 0 else 0.0
         hwp_angle[nan_hwp] = np.mod(filled[nan_hwp] + offset, 2 * np.pi) - offset
-    channel = str(detectors[0].get("channel", ""))
-    return Recording(
-        tod=tod,
-        times_s=np.arange(n) / sampling_rate_hz,
-        sampling_rate_hz=sampling_rate_hz,
-        hwp_angle_rad=hwp_angle,
-        pointings_ecl=pointings_ecl,
-        detectors=detectors,
-        start_time=start_time,
-        flags=flags,
-        channel=channel,
-        source=str(path),
-    )
 
 
 def known_channels() -> set[str]:

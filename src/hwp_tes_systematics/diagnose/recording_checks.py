@@ -90,6 +90,10 @@ def recording_size(path) -> tuple[int, int, float]:
     path = Path(path)
     try:
         check_file(path)
+        if is_toast_file(path):
+            from .toast_recording import toast_layout
+
+            return toast_layout(path)[:3]
         with h5py.File(path, "r") as handle:
             _, n_det, n, sampling_rate_hz = declared_layout(path, handle)
     except OSError as error:
@@ -133,6 +137,15 @@ def check_memory(path, n_det: int, n: int, sampling_rate_hz: float, budget_bytes
     )
 
 
+def is_toast_file(path) -> bool:
+    """True if ``path`` is a TOAST 3 observation file (its root attribute
+    ``toast_format_version``; read by :mod:`.toast_recording`)."""
+    import h5py
+
+    with h5py.File(path, "r") as handle:
+        return "toast_format_version" in handle.attrs
+
+
 def check_file(path: Path) -> None:
     """An existing HDF5 file at ``path``, else a :class:`RecordingError`."""
     import h5py
@@ -140,7 +153,7 @@ def check_file(path: Path) -> None:
     if not path.exists():
         fail(path, "no such file")
     if not path.is_file() or not h5py.is_hdf5(path):
-        fail(path, "not an HDF5 file (expected a litebird_sim observation file)")
+        fail(path, "not an HDF5 file (expected a litebird_sim or TOAST 3 observation file)")
 
 
 def declared_layout(path: Path, handle) -> tuple:

@@ -162,7 +162,8 @@ def markdown_report(
         "# Diagnosis of a recording against its simulation",
         "",
         (
-            f"Recording: `{rec['source']}` ({rec['channel']}, detectors {', '.join(rec['detectors'])}, "
+            f"Recording: `{rec['source']}` ({rec['channel'] or 'no channel named'}, "
+            f"detectors {', '.join(rec['detectors'])}, "
             f"{rec['duration_s'] / 3600:.3g} h at {rec['sampling_rate_hz']:g} Hz, "
             f"{100 * rec['flagged_fraction']:.2g} % flagged); A_2 = {rec['a2_k']} K; sky: {rec['sky']}."
         ),

@@ -1,0 +1,175 @@
+"""TOAST 3 observation files as recordings (:mod:`hwp_tes_systematics.diagnose.toast_recording`).
+
+The files are written by TOAST's own operators (``toast_recordings.py``): the reader's
+pointing, polarisation angles and HWP angle must reproduce TOAST's scan of a map to
+rounding, its frame must be found in each of TOAST's three, its dipole must be TOAST's
+to the solar-velocity difference, and the diagnosis must name what TOAST injected.
+"""
+
+from __future__ import annotations
+
+import json
+
+import h5py
+import healpy as hp
+import numpy as np
+import pytest
+
+from hwp_tes_systematics.cli import main
+from hwp_tes_systematics.diagnose.model import dipole_tod, scan_sky
+from hwp_tes_systematics.diagnose.recording import read_recording
+from hwp_tes_systematics.diagnose.recording_checks import RecordingError, recording_size
+from hwp_tes_systematics.diagnose.testbed import sky_map
+
+pytest.importorskip("toast", reason="the toast extra is not installed")
+from toast_recordings import write_toast_recording
+
+A2_K = 0.22  # a HWPSS amplitude [K_CMB] added to the TOAST signal (assumption, MFT-like)
+
+
+@pytest.fixture(scope="module")
+def sky_fits(tmp_path_factory):
+    path = tmp_path_factory.mktemp("sky") / "sky.fits"
+    hp.write_map(path, sky_map(), dtype=np.float64)
+    return path
+
+
+def test_the_reader_reproduces_toasts_scan_of_a_map_to_rounding(tmp_path, sky_fits):
+    """TOAST's StokesWeights with a HWP and ScanHealpixMap, 14 detectors of 7 pixels
+    (off-axis, orientations 0, 45, 90, 135 deg): d = I + eta [Q cos 2b + U sin 2b] equals
+    the nominal model's sky at the read pointing, theta_k = 2 gamma - pi/2, chi = omega,
+    to the rounding of TOAST's map (single precision)."""
+    path = write_toast_recording(
+        tmp_path, sky_fits, hours=0.2, seed=1, n_pixels=7, dipole=False, noise=False
+    )
+    recording = read_recording(path)
+    assert recording.n_detectors == 14 and "frame G" in recording.source
+    intensity, polarization, *_ = scan_sky(recording, sky_map())
+    signal_rms = np.std(recording.tod)
+    assert np.std(polarization) > 1e-3 * signal_rms  # the polarised sky is tested too
+    # to TOAST's single-precision map (relative 6e-8): 1e-4 of the polarised signal, which
+    # a polarisation angle off by 0.01 deg would exceed
+    atol = 2e-7 * np.abs(sky_map()).max()
+    assert atol < 2e-4 * np.std(polarization)
+    np.testing.assert_allclose(recording.tod, intensity + polarization, rtol=0, atol=atol)
+
+
+@pytest.mark.parametrize("coord", ["C", "E", "G"])
+def test_each_frame_is_found_and_the_pointing_is_toasts(tmp_path, sky_fits, coord):
+    """The frame comes from the spacecraft's position and velocity; the ecliptic pointing
+    read, turned back to the file's frame, falls in TOAST's own pixels (PixelsHealpix)."""
+    from toast import ops
+    from toast.observation import default_values as defaults
+
+    pixels = {}
+
+    def keep_pixels(data):
+        pointing = ops.PointingDetectorSimple(boresight=defaults.boresight_radec)
+        op = ops.PixelsHealpix(nside=256, nest=False, detector_pointing=pointing)
+        op.apply(data)
+        observation = data.obs[0]
+        pixels["toast"] = np.array(observation.detdata[op.pixels].data)
+        ops.Delete(detdata=[op.pixels, pointing.quats]).apply(data)
+
+    path = write_toast_recording(
+        tmp_path, sky_fits, 0.1, 2, coord=coord, n_pixels=7, noise=False, edit=keep_pixels
+    )
+    recording = read_recording(path)
+    assert f"frame {coord}" in recording.source
+    from hwp_tes_systematics.diagnose.toast_recording import _frame_rotations
+
+    to_file = _frame_rotations()[coord].inv()
+    theta, phi = recording.pointings_ecl[..., 0], recording.pointings_ecl[..., 1]
+    vectors = to_file.apply(hp.ang2vec(theta.ravel(), phi.ravel())).reshape(theta.shape + (3,))
+    ours = hp.vec2pix(256, vectors[..., 0], vectors[..., 1], vectors[..., 2])
+    assert np.mean(ours == pixels["toast"]) > 0.9999
+
+
+def test_the_dipole_is_toasts_to_the_solar_velocity_difference(tmp_path, sky_fits):
+    """TOAST's SimDipole (total) against litebird_sim's dipole with the file's velocity:
+    the solar velocities differ by 0.26 km/s (370.08 against 369.82), ~2.5 uK at most."""
+    path = write_toast_recording(tmp_path, sky_fits, 0.5, 3, noise=False)
+    recording = read_recording(path)
+    intensity, polarization, *_ = scan_sky(recording, sky_map())
+    toast_dipole = recording.tod - intensity - polarization
+    assert np.std(toast_dipole) > 5e-4
+    assert np.max(np.abs(toast_dipole - dipole_tod(recording))) < 3e-6
+
+
+def test_flags_units_segments_and_left_out_detectors(tmp_path, sky_fits):
+    """Detector and shared flags (non-science bits), mK units, a detector flagged invalid
+    in the observation (left out) and a segment read alone."""
+
+    def edit(data):
+        observation = data.obs[0]
+        names = observation.local_detectors
+        observation.detdata["flags"][names[0]][100:200] = 1  # invalid
+        observation.detdata["flags"][names[1]][300:310] = 8  # not a non-science bit
+        observation.shared["flags"].data  # noqa: B018
+        shared = np.array(observation.shared["flags"].data)
+        shared[500:520] = 2
+        observation.shared["flags"].set(shared, offset=(0,), fromrank=0)
+        observation.update_local_detector_flags({names[3]: 1})
+
+    path = write_toast_recording(tmp_path, sky_fits, 0.1, 4, n_pixels=7, noise=False, edit=edit)
+    whole = read_recording(path)
+    assert whole.n_detectors == 13 and recording_size(path)[0] == 13
+    assert whole.flags[0, 100:200].all() and not whole.flags[1, 300:310].any()
+    assert whole.flags[:, 500:520].all() and whole.flags.sum() == 100 + 13 * 20
+    segment = read_recording(path, samples=(400, 1400))
+    np.testing.assert_array_equal(segment.tod, whole.tod[:, 400:1400])
+    np.testing.assert_allclose(segment.pointings_ecl, whole.pointings_ecl[:, 400:1400])
+    with h5py.File(path, "a") as handle:
+        signal = handle["detdata/signal"]
+        signal[...] = signal[...] * 1e3
+        signal.attrs["units"] = "mK"
+    np.testing.assert_allclose(read_recording(path).tod, whole.tod, rtol=1e-12, atol=1e-18)
+
+
+@pytest.mark.parametrize(
+    "edit_file, message",
+    [
+        (lambda h: h["detdata/signal"].attrs.__setitem__("units", "W"), "expected a temperature"),
+        (lambda h: h.__delitem__("shared/hwp_angle"), "rotating HWP"),
+        (lambda h: h["shared/velocity"].__setitem__(..., 1.0), "cannot be told"),
+        (lambda h: h.__delitem__("shared/times"), "shared/times"),
+    ],
+)
+def test_bad_toast_files_are_refused_naming_the_problem(tmp_path, sky_fits, edit_file, message):
+    path = write_toast_recording(tmp_path, sky_fits, 0.05, 5, noise=False)
+    with h5py.File(path, "a") as handle:
+        edit_file(handle)
+    with pytest.raises(RecordingError, match=message) as error:
+        read_recording(path)
+    assert str(path) in str(error.value)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    "case, options, a2_k",
+    [
+        ("clean", {}, 0.0),
+        ("nonlinearity", {"a2_k": A2_K, "g1_per_k": 0.02}, A2_K),
+        ("gain drift", {"a2_k": A2_K, "gain_drift_sigma": 0.01}, A2_K),
+    ],
+)
+def test_diagnose_names_what_toast_injected(tmp_path, sky_fits, capsys, case, options, a2_k):
+    """Two hours of a TOAST pair with TOAST's dipole and noise through the command line:
+    a clean recording raises no alarm; a nonlinearity is named with g1 within 3 sigma;
+    TOAST's GainDrifter is named a gain drift."""
+    path = write_toast_recording(tmp_path / "rec", sky_fits, 2.0, 11, **options)
+    out = tmp_path / "out"
+    code = main(
+        ["diagnose", str(path), "--sky", str(sky_fits), "--a2", str(a2_k), "--out", str(out), "-q"]
+    )
+    assert code == 0
+    result = json.loads((out / "diagnosis.json").read_text())
+    names = [effect["name"] for effect in result["effects"]]
+    if case == "clean":
+        assert names == [] and not result.get("unexplained")
+    elif case == "nonlinearity":
+        assert names == ["tes_nonlinearity"]
+        for parameter in result["effects"][0]["parameters"].values():
+            assert abs(parameter["value"] - 0.02) < 3 * parameter["sigma"], parameter
+    else:
+        assert names[0] == "gain_drift"
