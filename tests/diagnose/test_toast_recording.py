@@ -1,6 +1,6 @@
 """TOAST 3 observation files as recordings (:mod:`hwp_tes_systematics.diagnose.toast_recording`).
 
-The files are written by TOAST's own operators (``toast_recordings.py``): the reader's
+The files are written by TOAST's own operators (:mod:`.toast_testbed`): the reader's
 pointing, polarisation angles and HWP angle must reproduce TOAST's scan of a map to
 rounding, its frame must be found in each of TOAST's three, its dipole must be TOAST's
 to the solar-velocity difference, and the diagnosis must name what TOAST injected.
@@ -20,9 +20,9 @@ from hwp_tes_systematics.diagnose.model import dipole_tod, scan_sky
 from hwp_tes_systematics.diagnose.recording import read_recording
 from hwp_tes_systematics.diagnose.recording_checks import RecordingError, recording_size
 from hwp_tes_systematics.diagnose.testbed import sky_map
+from hwp_tes_systematics.diagnose.toast_testbed import write_toast_recording
 
 pytest.importorskip("toast", reason="the toast extra is not installed")
-from toast_recordings import write_toast_recording
 
 A2_K = 0.22  # a HWPSS amplitude [K_CMB] added to the TOAST signal (assumption, MFT-like)
 

@@ -1,0 +1,157 @@
+"""Recordings written by TOAST 3's own operators, none of this package's simulator, for the
+tests of :mod:`.toast_recording` and ``benchmarks/diagnose_toast.py`` (needs the ``toast``
+extra).
+
+A LiteBIRD scan (``SimSatellite``: spin 20 min at 50 deg, precession 192.348 min at 45 deg,
+a HWP), the sky map scanned by ``ScanHealpixMap`` through ``StokesWeights`` with the HWP,
+TOAST's dipole (``SimDipole``, total), gain drift (``GainDrifter``) and noise
+(``DefaultNoiseModel`` + ``SimNoise``), saved by ``SaveHDF5``. The pointing's frame is
+Galactic by default: ``ScanHealpixMap`` scans the map in the pointing's frame.
+
+The HWPSS, the nonlinearity and a constant gain have no TOAST operator; they are added to
+the observation's signal here, as a TOAST user would:
+
+    d -> (1 + g) [(1 + g1 d') d'],   d' = d + A_2 cos(2 (omega - gamma) - phi),
+
+with omega the HWP angle and gamma the focal plane's ``gamma``. ``net_written_factor``
+scales the NET written in the file's focal plane after the noise is drawn (the nominal
+noise off by that factor); ``flagged_fraction`` flags random stretches of every detector.
+"""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+from pathlib import Path
+
+import numpy as np
+
+
+def write_toast_recording(
+    folder,
+    sky_fits,
+    hours: float,
+    seed: int,
+    coord: str = "G",
+    n_pixels: int = 1,
+    sample_rate_hz: float = 19.0,
+    hwp_rpm: float = 39.0,
+    a2_k: float = 0.0,
+    hwpss_phase_rad: float = 0.0,
+    g1_per_k: float = 0.0,
+    gain: float = 0.0,
+    gain_drift_sigma: float = 0.0,
+    dipole: bool = True,
+    noise: bool = True,
+    net_uk_rts: float = 50.0,
+    fknee_mhz: float = 20.0,
+    net_written_factor: float = 1.0,
+    flagged_fraction: float = 0.0,
+    edit=None,
+    truth: dict | None = None,
+) -> Path:
+    """Write one TOAST observation of ``2 n_pixels`` detectors (``n_pixels`` 1, 7, 19: a
+    hexagon) into ``folder``; return the file's path. ``edit(data)`` is called on the
+    ``toast.Data`` just before it is saved; ``truth`` (a dict) receives each detector's
+    gain drift, the ramp 1 + s t / T GainDrifter applied, as ``gain_drift_slope``."""
+    import astropy.units as u
+    import toast
+    from toast import ops
+    from toast.instrument import SpaceSite, Telescope
+    from toast.instrument_sim import fake_hexagon_focalplane
+    from toast.observation import default_values as defaults
+    from toast.schedule_sim_satellite import create_satellite_schedule
+
+    focalplane = fake_hexagon_focalplane(
+        n_pix=n_pixels,
+        sample_rate=sample_rate_hz * u.Hz,
+        psd_fmin=1e-5 * u.Hz,
+        psd_net=net_uk_rts * 1e-6 * u.K * np.sqrt(1 * u.s),
+        psd_fknee=fknee_mhz * 1e-3 * u.Hz,
+        width=5 * u.deg,
+        bandcenter=140 * u.GHz,
+        fwhm=30 * u.arcmin,
+    )
+    schedule = create_satellite_schedule(
+        prefix="obs_",
+        mission_start=datetime(2032, 4, 1, tzinfo=UTC),
+        observation_time=hours * u.hour,
+        gap_time=0 * u.minute,
+        num_observations=1,
+        prec_period=192.348 * u.minute,
+        spin_period=20 * u.minute,
+    )
+    data = toast.Data(toast.Comm())
+    ops.SimSatellite(
+        name="satellite",
+        telescope=Telescope("litebird", focalplane=focalplane, site=SpaceSite("L2")),
+        schedule=schedule,
+        hwp_angle=defaults.hwp_angle,
+        hwp_rpm=hwp_rpm,
+        spin_angle=50 * u.deg,
+        prec_angle=45 * u.deg,
+        coord=coord,
+    ).apply(data)
+    pointing = ops.PointingDetectorSimple(boresight=defaults.boresight_radec)
+    pixels = ops.PixelsHealpix(nside=_nside(sky_fits), detector_pointing=pointing)
+    weights = ops.StokesWeights(
+        mode="IQU", hwp_angle=defaults.hwp_angle, detector_pointing=pointing
+    )
+    ops.ScanHealpixMap(file=str(sky_fits), pixel_pointing=pixels, stokes_weights=weights).apply(
+        data
+    )
+    if dipole:
+        ops.SimDipole(mode="total", coord=coord).apply(data)
+    observation = data.obs[0]
+    signal = observation.detdata[defaults.det_data]
+    hwp = np.asarray(observation.shared[defaults.hwp_angle].data)
+    for name in observation.local_detectors:
+        gamma = focalplane[name]["gamma"].to_value(u.rad)
+        total = signal[name] + a2_k * np.cos(2 * (hwp - gamma) - hwpss_phase_rad)
+        signal[name][:] = (1 + gain) * (1 + g1_per_k * total) * total
+    if gain_drift_sigma:
+        for name in ("unit_gain", defaults.det_data):  # the same draw: keyed by detector uid
+            observation.detdata.ensure(name, dtype=np.float64)
+            if name == "unit_gain":
+                observation.detdata[name][:] = 1.0
+            ops.GainDrifter(
+                det_data=name,
+                drift_mode="linear_drift",
+                sigma_drift=gain_drift_sigma,
+                realization=seed,
+            ).apply(data)
+        ramps = observation.detdata["unit_gain"]
+        if truth is not None:
+            truth["gain_drift_slope"] = {
+                name: float(ramps[name][-1] - 1) for name in observation.local_detectors
+            }
+        ops.Delete(detdata=["unit_gain"]).apply(data)
+    if noise:
+        ops.DefaultNoiseModel().apply(data)
+        ops.SimNoise(realization=seed).apply(data)
+    ops.Delete(detdata=[pixels.pixels, weights.weights, pointing.quats]).apply(data)
+    if net_written_factor != 1.0:
+        table = observation.telescope.focalplane.detector_data
+        table["psd_net"] = table["psd_net"] * net_written_factor
+    if flagged_fraction:
+        _flag_stretches(observation, flagged_fraction, np.random.default_rng(seed))
+    if edit is not None:
+        edit(data)
+    folder = Path(folder)
+    ops.SaveHDF5(volume=str(folder)).apply(data)
+    return next(folder.glob("obs_*.h5"))
+
+
+def _flag_stretches(observation, fraction: float, rng, n_stretches: int = 4) -> None:
+    """Flag (invalid) ``n_stretches`` random stretches of each detector, ``fraction`` in all."""
+    n = observation.n_local_samples
+    length = max(1, int(fraction * n / n_stretches))
+    for name in observation.local_detectors:
+        flags = observation.detdata["flags"][name]
+        for start in rng.integers(0, n - length, n_stretches):
+            flags[start : start + length] |= 1
+
+
+def _nside(sky_fits) -> int:
+    import healpy as hp
+
+    return hp.get_nside(hp.read_map(str(sky_fits), field=0, dtype=np.float64))
