@@ -133,6 +133,13 @@ def test_flags_units_segments_and_left_out_detectors(tmp_path, sky_fits):
         (lambda h: h.__delitem__("shared/hwp_angle"), "rotating HWP"),
         (lambda h: h["shared/velocity"].__setitem__(..., 1.0), "cannot be told"),
         (lambda h: h.__delitem__("shared/times"), "shared/times"),
+        (
+            lambda h: h["instrument"].attrs.__setitem__(
+                "site_class", "toast.instrument.GroundSite"
+            ),
+            "a ground observation",
+        ),
+        (lambda h: h["shared/times"].__setitem__(..., h["shared/times"][...] * 1.001), "disagrees"),
     ],
 )
 def test_bad_toast_files_are_refused_naming_the_problem(tmp_path, sky_fits, edit_file, message):

@@ -103,7 +103,10 @@ def _boresight_name(path, handle) -> str:
 
 def toast_layout(path) -> tuple[int, int, float, list[str]]:
     """(detectors kept, samples, sampling rate [Hz], names of the detectors kept) of a TOAST
-    observation file, from its shapes, times and detector flags (no TOD read)."""
+    observation file, from its shapes, times, focal plane and detector flags (no TOD read).
+
+    The rate is the focal plane's ``sample_rate``, checked against the times (to 1e-6);
+    a ground observation (a site other than TOAST's ``SpaceSite``) is refused."""
     import h5py
 
     path = Path(path)
@@ -111,6 +114,19 @@ def toast_layout(path) -> tuple[int, int, float, list[str]]:
         version = int(handle.attrs["toast_format_version"])
         if version not in (1, 2):
             fail(path, f"toast_format_version {version}: this reader knows versions 1 and 2")
+        if "observation_detectors" not in handle.attrs:
+            fail(path, "TOAST file without the 'observation_detectors' attribute")
+        site = (
+            _decode(handle["instrument"].attrs.get("site_class", ""))
+            if "instrument" in handle
+            else ""
+        )
+        if site and not site.endswith("SpaceSite"):
+            fail(
+                path,
+                f"a ground observation (site {site}): the nominal model is a satellite's "
+                "(ecliptic scan, no atmosphere); expected a SpaceSite observation",
+            )
         times = _dataset(path, handle, "shared/times")
         n = times.shape[0]
         if n < MIN_SAMPLES:
@@ -118,22 +134,46 @@ def toast_layout(path) -> tuple[int, int, float, list[str]]:
         ends = times[[0, n - 1]]
         names = json.loads(_decode(handle.attrs["observation_detectors"]))
         flags = json.loads(_decode(handle.attrs.get("observation_detector_flags", "{}")))
+        signal = _dataset(path, handle, "detdata/signal")
+        if isinstance(signal, h5py.Dataset) and signal.shape != (len(names), n):
+            fail(
+                path,
+                f"detdata/signal has shape {signal.shape}: expected {(len(names), n)} "
+                "(observation_detectors x shared/times)",
+            )
     span_s = float(ends[1] - ends[0])
     if not (math.isfinite(span_s) and span_s > 0):
         fail(path, f"shared/times runs from {ends[0]!r} to {ends[1]!r}: expected increasing")
+    rate_hz = (n - 1) / span_s
+    declared = _focalplane_table(path).meta.get("sample_rate")
+    if declared is not None:
+        declared_hz = (
+            float(declared.to_value("Hz")) if hasattr(declared, "to_value") else float(declared)
+        )
+        if abs(declared_hz / rate_hz - 1) > 1e-6:
+            fail(
+                path,
+                f"the focal plane's sample_rate {declared_hz:g} Hz disagrees with shared/times "
+                f"({rate_hz:.9g} Hz over {n} samples): expected evenly spaced samples at that rate",
+            )
+        rate_hz = declared_hz
     kept = [name for name in names if not int(flags.get(name, 0)) & DET_MASK_INVALID]
     if not kept:
         fail(path, f"every detector of {names} is flagged invalid (observation_detector_flags)")
-    return len(kept), n, (n - 1) / span_s, kept
+    return len(kept), n, rate_hz, kept
 
 
-def _focalplane(path, names: list[str]) -> list:
+def _focalplane_table(path):
     from astropy.table import QTable
 
     try:
-        table = QTable.read(path, path="instrument/focalplane")
+        return QTable.read(path, path="instrument/focalplane")
     except (OSError, KeyError, ValueError) as error:
         fail(path, f"cannot read instrument/focalplane as a table ({error})")
+
+
+def _focalplane(path, names: list[str]) -> list:
+    table = _focalplane_table(path)
     rows = {_decode(row["name"]): row for row in table}
     missing = [name for name in names if name not in rows]
     if missing:
