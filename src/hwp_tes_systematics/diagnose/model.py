@@ -30,6 +30,7 @@ import math
 from dataclasses import dataclass, field
 from functools import cached_property
 
+import numba
 import numpy as np
 
 from ..simulation import data_model
@@ -270,15 +271,38 @@ def focal_plane_axes(pointings_ecl: np.ndarray):
 
 def displaced_pointings(pointings_ecl: np.ndarray, axis: int, angle_rad) -> np.ndarray:
     """(n, 3) ecliptic pointings moved by ``angle_rad`` (scalar or (n,)) along u (axis 0)
-    or v (axis 1) of :func:`focal_plane_axes`: n' = n cos delta + t sin delta, psi kept."""
-    n, u, v = focal_plane_axes(pointings_ecl)
-    tangent = (u, v)[axis]
-    angle = np.broadcast_to(np.asarray(angle_rad, dtype=float), n.shape[:1])[:, None]
-    moved = n * np.cos(angle) + tangent * np.sin(angle)
-    out = np.array(pointings_ecl, dtype=float, copy=True)
-    out[:, 0] = np.arccos(np.clip(moved[:, 2], -1.0, 1.0))
-    out[:, 1] = np.mod(np.arctan2(moved[:, 1], moved[:, 0]), 2 * np.pi)
+    or v (axis 1) of :func:`focal_plane_axes`: n' = n cos delta + t sin delta, psi kept
+    (one compiled pass per sample, no (n, 3) temporaries)."""
+    pointings = np.ascontiguousarray(pointings_ecl, dtype=float)
+    angles = np.ascontiguousarray(
+        np.broadcast_to(np.asarray(angle_rad, dtype=float), pointings.shape[:1])
+    )
+    out = np.empty_like(pointings)
+    _displace_kernel(pointings, int(axis), angles, out)
     return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _displace_kernel(pointings, axis, angles, out):
+    """out[t] = (theta', phi', psi) of n cos a + (u or v) sin a, as :func:`focal_plane_axes`."""
+    for t in range(pointings.shape[0]):
+        theta, phi, psi = pointings[t, 0], pointings[t, 1], pointings[t, 2]
+        sin_t, cos_t, sin_p, cos_p = np.sin(theta), np.cos(theta), np.sin(phi), np.cos(phi)
+        cos_psi, sin_psi = np.cos(psi), np.sin(psi)
+        if axis == 0:  # u = cos psi e_theta + sin psi e_phi
+            a_theta, a_phi = cos_psi, sin_psi
+        else:  # v = -sin psi e_theta + cos psi e_phi
+            a_theta, a_phi = -sin_psi, cos_psi
+        tx = a_theta * cos_t * cos_p - a_phi * sin_p
+        ty = a_theta * cos_t * sin_p + a_phi * cos_p
+        tz = -a_theta * sin_t
+        cos_a, sin_a = np.cos(angles[t]), np.sin(angles[t])
+        x = sin_t * cos_p * cos_a + tx * sin_a
+        y = sin_t * sin_p * cos_a + ty * sin_a
+        z = cos_t * cos_a + tz * sin_a
+        out[t, 0] = np.arccos(min(max(z, -1.0), 1.0))
+        out[t, 1] = np.mod(np.arctan2(y, x), 2 * np.pi)
+        out[t, 2] = psi
 
 
 def pointing_gradients(recording, sky: np.ndarray, threads: int = 1) -> np.ndarray:
