@@ -157,24 +157,28 @@ def test_bad_toast_files_are_refused_naming_the_problem(tmp_path, sky_fits, edit
     [
         ("clean", {}, 0.0),
         ("nonlinearity", {"a2_k": A2_K, "g1_per_k": 0.02}, A2_K),
+        ("nonlinearity in segments", {"a2_k": A2_K, "g1_per_k": 0.02}, A2_K),
         ("gain drift", {"a2_k": A2_K, "gain_drift_sigma": 0.01}, A2_K),
     ],
 )
 def test_diagnose_names_what_toast_injected(tmp_path, sky_fits, capsys, case, options, a2_k):
     """Two hours of a TOAST pair with TOAST's dipole and noise through the command line:
-    a clean recording raises no alarm; a nonlinearity is named with g1 within 3 sigma;
-    TOAST's GainDrifter is named a gain drift."""
+    a clean recording raises no alarm; a nonlinearity is named with g1 within 3 sigma,
+    also diagnosed in one-hour segments (each read from the file alone); TOAST's
+    GainDrifter is named a gain drift."""
     path = write_toast_recording(tmp_path / "rec", sky_fits, 2.0, 11, **options)
     out = tmp_path / "out"
+    segments = ["--segment-hours", "1"] if "segments" in case else []
     code = main(
         ["diagnose", str(path), "--sky", str(sky_fits), "--a2", str(a2_k), "--out", str(out), "-q"]
+        + segments
     )
     assert code == 0
     result = json.loads((out / "diagnosis.json").read_text())
     names = [effect["name"] for effect in result["effects"]]
     if case == "clean":
         assert names == [] and not result.get("unexplained")
-    elif case == "nonlinearity":
+    elif case.startswith("nonlinearity"):
         assert names == ["tes_nonlinearity"]
         for parameter in result["effects"][0]["parameters"].values():
             assert abs(parameter["value"] - 0.02) < 3 * parameter["sigma"], parameter
