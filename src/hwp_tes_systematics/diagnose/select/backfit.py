@@ -162,8 +162,6 @@ def fit_iterative(problem, selected, initial_extra=None) -> FitResult:
                 nl_rows = np.concatenate([nl_rows, np.arange(position, position + width)])
                 responses.append(problem.effects[name])
             position += width
-    others = np.ones(rows.size)  # 1 on the rows the nonlinearity acts on (not its own)
-    others[nl_rows] = 0.0
     events_f = [np.zeros(problem.freqs.size, complex) for _ in range(n_det)]
     events: list[GlitchEvent] = []
     theta = [None] * n_det  # the nonlinear effect's parameter per detector
@@ -219,16 +217,15 @@ def fit_iterative(problem, selected, initial_extra=None) -> FitResult:
             used_banks[k], nonlinear_parts[k] = bank, m_nonlinear
             models[k] = (a @ bank if rows.size else 0.0) + m_nonlinear + events_f[k]
             if composed:  # the nonlinearity acts on d_nom + the other fitted effects
-                signal_f = (a * others) @ bank + m_nonlinear  # no copy of the bank's rows
+                model_f = models[k] - events_f[k]  # a bank + m_nonlinear
+                # the model without the nonlinearity's own rows (no copy of the bank's rows)
+                signal_f = model_f - a[nl_rows] @ bank[nl_rows]
                 extra = scipy.fft.irfft(signal_f, n=problem.n, workers=problem.workers)
                 # and the offset before the nonlinearity: the adjusted offset matched the
                 # recorded mean, which holds the model's mean (g1 <d^2> ~ g1 A_2^2 / 2);
                 # left in, it makes 2 g1 O d, which the gain takes and rescales d^2 by
                 # ~4 g1 O (0.3 % of g1 at g1 A_2 = 0.04). The DC mode is not fitted.
-                model = scipy.fft.irfft(
-                    a @ bank + m_nonlinear, n=problem.n, workers=problem.workers
-                )
-                extra -= float(np.mean(model[problem.valid[k]]))
+                extra -= problem.valid_mean(k, model_f)
                 # chi^2 of the cross term 2 g1 d_nom x (extra - the extra the templates
                 # were last built with): skip the rebuild when negligible
                 change = extra if built_on[k] is None else extra - built_on[k]

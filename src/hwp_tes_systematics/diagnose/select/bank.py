@@ -155,6 +155,24 @@ class FitProblem:
         mask = self.valid.reshape((self.n_det,) + (1,) * (tod.ndim - 2) + (self.n,))
         return scipy.fft.rfft(tod * mask, axis=-1, workers=self.workers)
 
+    def valid_mean(self, k: int, spectrum: np.ndarray) -> float:
+        """Mean over detector k's valid samples of irfft(spectrum), without the inverse FFT:
+        sum_t v_t x_t = (1/n) sum_f c_f Re(X_f V_f*), V = rfft(v), c_f = 2 but at 0 and
+        n/2 (Parseval for real sequences)."""
+        if not hasattr(self, "_valid_f"):
+            self._valid_f = scipy.fft.rfft(self.valid.astype(float), axis=-1, workers=self.workers)
+            self._parseval_weights = np.full(self._valid_f.shape[-1], 2.0)
+            self._parseval_weights[0] = 1.0
+            if self.n % 2 == 0:
+                self._parseval_weights[-1] = 1.0
+        valid_f = self._valid_f[k]
+        total = float(
+            np.dot(
+                self._parseval_weights, spectrum.real * valid_f.real + spectrum.imag * valid_f.imag
+            )
+        )
+        return total / self.n / float(np.count_nonzero(self.valid[k]))
+
     def _masked_one(self, k: int, spectrum: np.ndarray) -> np.ndarray:
         """rfft(valid_k x irfft(spectrum)): the masked version of an unmasked spectrum."""
         if self.valid[k].all():
