@@ -102,29 +102,9 @@ def write_toast_recording(
     if dipole:
         ops.SimDipole(mode="total", coord=coord).apply(data)
     observation = data.obs[0]
-    signal = observation.detdata[defaults.det_data]
-    hwp = np.asarray(observation.shared[defaults.hwp_angle].data)
-    for name in observation.local_detectors:
-        gamma = focalplane[name]["gamma"].to_value(u.rad)
-        total = signal[name] + a2_k * np.cos(2 * (hwp - gamma) - hwpss_phase_rad)
-        signal[name][:] = (1 + gain) * (1 + g1_per_k * total) * total
+    _add_response(observation, a2_k, hwpss_phase_rad, g1_per_k, gain)
     if gain_drift_sigma:
-        for name in ("unit_gain", defaults.det_data):  # the same draw: keyed by detector uid
-            observation.detdata.ensure(name, dtype=np.float64)
-            if name == "unit_gain":
-                observation.detdata[name][:] = 1.0
-            ops.GainDrifter(
-                det_data=name,
-                drift_mode="linear_drift",
-                sigma_drift=gain_drift_sigma,
-                realization=seed,
-            ).apply(data)
-        ramps = observation.detdata["unit_gain"]
-        if truth is not None:
-            truth["gain_drift_slope"] = {
-                name: float(ramps[name][-1] - 1) for name in observation.local_detectors
-            }
-        ops.Delete(detdata=["unit_gain"]).apply(data)
+        _drift_gains(data, gain_drift_sigma, seed, truth)
     if noise:
         ops.DefaultNoiseModel().apply(data)
         ops.SimNoise(realization=seed).apply(data)
@@ -139,6 +119,43 @@ def write_toast_recording(
     folder = Path(folder)
     ops.SaveHDF5(volume=str(folder)).apply(data)
     return next(folder.glob("obs_*.h5"))
+
+
+def _add_response(observation, a2_k, hwpss_phase_rad, g1_per_k, gain) -> None:
+    """signal -> (1 + gain) (1 + g1 d') d', d' = signal + A_2 cos(2 (omega - gamma) - phi)."""
+    import astropy.units as u
+    from toast.observation import default_values as defaults
+
+    signal = observation.detdata[defaults.det_data]
+    hwp = np.asarray(observation.shared[defaults.hwp_angle].data)
+    focalplane = observation.telescope.focalplane
+    for name in observation.local_detectors:
+        gamma = focalplane[name]["gamma"].to_value(u.rad)
+        total = signal[name] + a2_k * np.cos(2 * (hwp - gamma) - hwpss_phase_rad)
+        signal[name][:] = (1 + gain) * (1 + g1_per_k * total) * total
+
+
+def _drift_gains(data, sigma: float, seed: int, truth: dict | None) -> None:
+    """TOAST's GainDrifter (linear_drift) on the signal; each detector's ramp end, s of
+    1 + s t / T, into ``truth["gain_drift_slope"]`` (the same draw on a unit stream: the
+    draw is keyed by the detector's uid, not by the data's name)."""
+    from toast import ops
+    from toast.observation import default_values as defaults
+
+    observation = data.obs[0]
+    for name in ("unit_gain", defaults.det_data):
+        observation.detdata.ensure(name, dtype=np.float64)
+        if name == "unit_gain":
+            observation.detdata[name][:] = 1.0
+        ops.GainDrifter(
+            det_data=name, drift_mode="linear_drift", sigma_drift=sigma, realization=seed
+        ).apply(data)
+    ramps = observation.detdata["unit_gain"]
+    if truth is not None:
+        truth["gain_drift_slope"] = {
+            name: float(ramps[name][-1] - 1) for name in observation.local_detectors
+        }
+    ops.Delete(detdata=["unit_gain"]).apply(data)
 
 
 def _flag_stretches(observation, fraction: float, rng, n_stretches: int = 4) -> None:
