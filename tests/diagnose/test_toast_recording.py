@@ -9,6 +9,7 @@ to the solar-velocity difference, and the diagnosis must name what TOAST injecte
 from __future__ import annotations
 
 import json
+import re
 
 import h5py
 import healpy as hp
@@ -184,3 +185,31 @@ def test_diagnose_names_what_toast_injected(tmp_path, sky_fits, capsys, case, op
             assert abs(parameter["value"] - 0.02) < 3 * parameter["sigma"], parameter
     else:
         assert names[0] == "gain_drift"
+
+
+@pytest.mark.slow
+def test_a_readout_gain_drift_beside_the_nonlinearity_is_fitted_after_it(tmp_path, sky_fits):
+    """TOAST's GainDrifter acts after the nonlinearity, as a readout gain: (1 + delta)(d +
+    g1 d^2). Composed before it (D + g1 D^2, D = (1 + delta) d) the fit leaves g1 delta
+    d^2, a 4f line following the drift (with ramps of a few per cent: other effects named,
+    g1 many sigma off). The composed fit tries both orders and keeps the better: the two
+    effects alone, g1 within 3 sigma of g1 / (1 + s / 2) (the ramp's mean in the gain)."""
+    from hwp_tes_systematics.diagnose import diagnose
+
+    truth: dict = {}
+    path = write_toast_recording(
+        tmp_path, sky_fits, 2.0, 3, a2_k=A2_K, g1_per_k=0.02, gain_drift_sigma=0.03, truth=truth
+    )
+    slopes = truth["gain_drift_slope"]
+    assert max(abs(s) for s in slopes.values()) > 0.02  # a ramp the order shows on
+    result = diagnose(read_recording(path), sky_map(), A2_K, figures=False).to_dict()
+    assert sorted(e["name"] for e in result["effects"]) == ["gain_drift", "tes_nonlinearity"]
+    nonlinearity = next(e for e in result["effects"] if e["name"] == "tes_nonlinearity")
+    order = re.search(
+        r"the gain drift acts after it, as a readout gain.*chi\^2 lower by (\S+)",
+        nonlinearity["evidence"],
+    )
+    assert order and float(order.group(1)) > 25  # the other order is ruled out
+    for parameter in nonlinearity["parameters"].values():
+        expected = 0.02 / (1 + slopes[parameter["detector"]] / 2)
+        assert abs(parameter["value"] - expected) < 3 * parameter["sigma"], parameter

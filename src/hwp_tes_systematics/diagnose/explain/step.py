@@ -28,7 +28,7 @@ def explain_effects(
     for name in steps.ranked:
         fitted = final.effects[name]
         evidence = Evidence(ctx, selection.partial[name], noise_models, ctx.a2_k, workers)
-        text = CATALOG[name].evidence(evidence, fitted)
+        text = CATALOG[name].evidence(evidence, fitted) + _gain_order(final, name)
         if ties.get(name):
             text += (
                 f"; NOT told apart in this recording from {', '.join(ties[name])} (within "
@@ -163,3 +163,22 @@ def left_at_its_signature(entry: dict, unexplained: list[dict]) -> None:
             "describes them only in part, so something outside the catalog may share them "
             "(see What the fit cannot explain)"
         )
+
+
+def _gain_order(final, name: str) -> str:
+    """Which side of the nonlinearity a relative gain drift acts on, where the composed fit
+    tried both (:func:`..select.backfit.fit_composed`); '' otherwise."""
+    if CATALOG[name].stage != "response":
+        return ""
+    other = next((alt for alt in final.alternatives if alt.gain_after != final.gain_after), None)
+    if other is None:
+        return ""
+    where = (
+        "after it, as a readout gain: (1 + delta)(d + g1 d^2)"
+        if final.gain_after
+        else "before it, as an optical or TES gain: D + g1 D^2 with D = (1 + delta) d"
+    )
+    return (
+        f"; the gain drift acts {where} (chi^2 lower by {other.chi2 - final.chi2:.3g} than "
+        "with the other order)"
+    )

@@ -140,11 +140,20 @@ def detect_events(problem, effect, k: int, r_f: np.ndarray, s: np.ndarray) -> li
     )
 
 
-def fit_iterative(problem, selected, initial_extra=None) -> FitResult:
+# relative gain drifts, d_obs = [1 + delta(t)] d, that may act before the nonlinearity
+# (optical efficiency, the TES's responsivity) or after it (the readout's gain): a composed
+# fit tries both (fit_composed); they differ by g1 delta d^2, a 4f line following the drift
+READOUT_GAINS = ("gain_drift", "gain_drift_common")
+
+
+def fit_iterative(problem, selected, initial_extra=None, gain_after=False) -> FitResult:
     """Backfitting of the linear, nonlinear (time constant) and events (glitches) parts
     (module docstring). ``initial_extra``: with the nonlinearity composed, the signal (per
     detector, time domain) its templates are first built on beside d_nom (None: d_nom
-    alone; :func:`fit_composed` starts from three)."""
+    alone; :func:`fit_composed` starts from three). ``gain_after``: a relative gain drift
+    (READOUT_GAINS) acts after the nonlinearity, (1 + delta)(d + g1 d^2), as a readout
+    gain does, rather than before it, D + g1 D^2 with D = (1 + delta) d: to first order in
+    delta the nonlinearity is then composed on d + delta d / 2."""
     ctx = problem.ctx
     n_det = problem.n_det
     linear = [n for n in selected if n in problem.slices]
@@ -153,6 +162,7 @@ def fit_iterative(problem, selected, initial_extra=None) -> FitResult:
     events_effect = problem.events_of(selected)
     composed = problem.composed(selected)
     nl_rows = np.zeros(0, dtype=int)
+    gain_rows = np.zeros(0, dtype=int)  # a relative gain drift's rows (gain_after)
     responses = []  # the response effects selected, in bank-row order
     if composed:
         position = problem.n_nominal
@@ -161,6 +171,8 @@ def fit_iterative(problem, selected, initial_extra=None) -> FitResult:
             if problem.effects[name].stage == "response":
                 nl_rows = np.concatenate([nl_rows, np.arange(position, position + width)])
                 responses.append(problem.effects[name])
+            elif gain_after and name in READOUT_GAINS:
+                gain_rows = np.concatenate([gain_rows, np.arange(position, position + width)])
             position += width
     events_f = [np.zeros(problem.freqs.size, complex) for _ in range(n_det)]
     events: list[GlitchEvent] = []
@@ -220,6 +232,8 @@ def fit_iterative(problem, selected, initial_extra=None) -> FitResult:
                 model_f = models[k] - events_f[k]  # a bank + m_nonlinear
                 # the model without the nonlinearity's own rows (no copy of the bank's rows)
                 signal_f = model_f - a[nl_rows] @ bank[nl_rows]
+                if gain_rows.size:  # a readout gain: half its drift before the nonlinearity
+                    signal_f = signal_f - 0.5 * (a[gain_rows] @ bank[gain_rows])
                 extra = scipy.fft.irfft(signal_f, n=problem.n, workers=problem.workers)
                 # and the offset before the nonlinearity: the adjusted offset matched the
                 # recorded mean, which holds the model's mean (g1 <d^2> ~ g1 A_2^2 / 2);
@@ -309,28 +323,34 @@ def fit_iterative(problem, selected, initial_extra=None) -> FitResult:
         model_f=models,
         parts=parts,
         first_pass_inflation=first_pass_inflation,
+        gain_after=bool(gain_rows.size),
     )
 
 
 def fit_composed(problem, selected) -> FitResult:
-    """:func:`fit_iterative` of a set with the nonlinearity composed; where its first fit
-    shares a line with the other signal effects (DEGENERATE_INFLATION), fitted again from
-    the two starts that give the shared lines to one side (:func:`start_after`: the
-    nonlinearity first, the signal effects first): the lowest chi^2 is the fit, the others
-    its ``alternatives`` (each a minimum of its own, whose formal sigma does not cover the
-    others)."""
+    """:func:`fit_iterative` of a set with the nonlinearity composed; with a relative gain
+    drift in the set, fitted again with the drift after the nonlinearity (``gain_after``:
+    a readout gain); where its first fit shares a line with the other signal effects
+    (DEGENERATE_INFLATION), fitted again from the two starts that give the shared lines to
+    one side (:func:`start_after`: the nonlinearity first, the signal effects first): the
+    lowest chi^2 is the fit, the others its ``alternatives`` (each a minimum of its own,
+    whose formal sigma does not cover the others)."""
     first = fit_iterative(problem, selected)
     if not problem.composed(selected):
         return first
+    fits = [first]
+    if any(name in READOUT_GAINS for name in selected):  # the drift before or after it
+        fits.append(fit_iterative(problem, selected, gain_after=True))
     signal = [n for n in selected if n in problem.slices and problem.effects[n].stage == "signal"]
     inflation = first.first_pass_inflation
-    if not signal or inflation is None or inflation.max() < DEGENERATE_INFLATION:
+    if signal and inflation is not None and inflation.max() >= DEGENERATE_INFLATION:
+        without_signal = tuple(n for n in selected if n not in signal)
+        fits += [
+            fit_iterative(problem, selected, initial_extra=start_after(problem, before, signal))
+            for before in (without_signal, ())
+        ]
+    if len(fits) == 1:
         return first
-    without_signal = tuple(n for n in selected if n not in signal)
-    fits = [first] + [
-        fit_iterative(problem, selected, initial_extra=start_after(problem, before, signal))
-        for before in (without_signal, ())
-    ]
     best, *others = sorted(fits, key=lambda fit: fit.chi2)
     for other in others:
         other.model_f = other.parts = None  # their parameters and chi^2 are what is kept

@@ -44,6 +44,8 @@ class FitResult:
     # the fits from the other starts (backfit.fit_composed) when they ran
     first_pass_inflation: np.ndarray | None = field(default=None, repr=False)
     alternatives: list[FitResult] = field(default_factory=list, repr=False)
+    # with the nonlinearity composed: a relative gain drift fitted after it (a readout gain)
+    gain_after: bool = False
 
     def bic(self, ln_n_eff: float) -> float:
         return self.chi2 + self.n_params * ln_n_eff + self.prior_penalty
