@@ -1,22 +1,27 @@
 """Rates of the diagnosis on recordings TOAST 3 made (needs the ``toast`` extra).
 
     python benchmarks/diagnose_toast_rates.py --per-case 20 --out toast_rates.json
+    python benchmarks/diagnose_toast_rates.py --only nonlinearity gain_drift --g1-range 1e-5 2e-3 \
+        --drift-range 1e-4 3e-3 --first-seed 1001 --out toast_ladder.json   # to non-detection
 
 Each recording is written by TOAST's operators (:mod:`hwp_tes_systematics.diagnose.toast_testbed`:
 SimSatellite's LiteBIRD scan with a HWP, ScanHealpixMap, SimDipole, SimNoise, SaveHDF5)
 and read back by the diagnosis as a user's file would be. Drawn per recording (never
-tuned): duration 1-3 h, sampling rate 19 or 31 Hz, HWP 39, 46 or 61 rpm, A_2 0.1-0.4 K,
+tuned): a start in 2032-2034, a CMB sky realisation (nside 32), duration 1-3 h,
+sampling rate 19 or 31 Hz, HWP 39, 46 or 61 rpm, A_2 0.1-0.4 K,
 NET 30-80 uK sqrt(s), knee 10-50 mHz, one pixel (a pair) or, one recording in five,
 seven (14 detectors), 2 % of the samples flagged in one recording in three, and the
 nominal errors the diagnosis is not told: A_2 given 3 % off, a 2f phase of ~1 deg, a
-gain ~1 %, the file's NET ~10 % off the noise drawn. Then one case:
+gain ~1 %, the file's NET ~10 % off the noise drawn, the sky TOAST scans ~5 % brighter or
+fainter than the map the diagnosis is given. Then one case:
 
 * ``clean``: nothing more (a false alarm is any effect reported or structure left);
-* ``nonlinearity``: d -> (1 + g1 d) d, |g1| log-uniform in 2e-3 - 3e-2 K^-1 with a random
-  sign, before the gain error; expected ``tes_nonlinearity`` (or its cubic form) first,
+* ``nonlinearity``: d -> (1 + g1 d) d, |g1| log-uniform in 2e-3 - 3e-2 K^-1
+  (``--g1-range``) with a random sign, before the gain error; expected ``tes_nonlinearity`` (or its cubic form) first,
   every detector's g1 within 3 sigma of g1 / (1 + gain) (g1 in the recorded units: the
   gain rescales the temperature axis, d_rec = d' + g1 d'^2 / (1 + gain), d' = (1 + gain) d);
-* ``gain_drift``: TOAST's ``GainDrifter`` (linear_drift, sigma 3e-3 - 3e-2): each detector
+* ``gain_drift``: TOAST's ``GainDrifter`` (linear_drift, sigma 3e-3 - 3e-2,
+  ``--drift-range``): each detector
   a ramp 1 + s t / T; expected ``gain_drift`` first, its g1 (the P1 coefficient) within
   3 sigma of s / (2 + s);
 * ``both``: the nonlinearity and the gain drift; expected both named, one of them first,
@@ -26,34 +31,46 @@ gain ~1 %, the file's NET ~10 % off the noise drawn. Then one case:
   so the ramp's change of g1 over the recording, +-s/2, is left to the residual).
 
 Prints one line per recording and, per case, the rates: per recording (every detector's
-parameters within 3 sigma) and per parameter; ``--out`` keeps every record, ``--combine``
-prints the rates of several such files.
+parameters within 3 sigma; a parameter without a sigma fails) and per parameter, the
+pulls' standard deviation, and the rates by the effect's strength |truth| / sigma (the
+weakest detector's: below 5, 5-20, above 20); ``--out`` keeps every record (fitted values
+and truth), ``--combine`` prints the rates of several such files.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
+import shutil
 import sys
 import tempfile
 import time
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
 import healpy as hp
 import numpy as np
 
 from hwp_tes_systematics.diagnose import diagnose, read_recording
-from hwp_tes_systematics.diagnose.testbed import sky_map
+from hwp_tes_systematics.diagnose.testbed import MASTER_SEED, NSIDE
 from hwp_tes_systematics.diagnose.toast_testbed import write_toast_recording
+from hwp_tes_systematics.sky import cmb_map
 
 CASES = ("clean", "nonlinearity", "gain_drift", "both")
 NONLINEARITY_NAMES = ("tes_nonlinearity", "tes_nonlinearity_cubic")
+START = datetime(2032, 1, 1, tzinfo=UTC)
 
 
-def draw(case: str, rng: np.random.Generator) -> dict:
+def log_uniform(rng, bounds) -> float:
+    return float(np.exp(rng.uniform(np.log(bounds[0]), np.log(bounds[1]))))
+
+
+def draw(case: str, rng: np.random.Generator, g1_range, drift_range) -> dict:
     """The recording's set-up, nominal errors and injected effect."""
     a2_true = float(rng.uniform(0.1, 0.4))
     setup = {
+        "start_day": int(rng.integers(0, 3 * 365)),  # days after 2032-01-01
         "hours": float(rng.uniform(1.0, 3.0)),
         "sample_rate_hz": float(rng.choice([19.0, 31.0])),
         "hwp_rpm": float(rng.choice([39.0, 46.0, 61.0])),
@@ -67,22 +84,24 @@ def draw(case: str, rng: np.random.Generator) -> dict:
         "flagged_fraction": 0.02 if rng.random() < 1 / 3 else 0.0,
     }
     if case in ("nonlinearity", "both"):
-        setup["g1_per_k"] = float(
-            rng.choice([-1, 1]) * np.exp(rng.uniform(np.log(2e-3), np.log(3e-2)))
-        )
+        setup["g1_per_k"] = float(rng.choice([-1, 1])) * log_uniform(rng, g1_range)
     if case in ("gain_drift", "both"):
-        setup["gain_drift_sigma"] = float(np.exp(rng.uniform(np.log(3e-3), np.log(3e-2))))
+        setup["gain_drift_sigma"] = log_uniform(rng, drift_range)
     a2_told = a2_true * (1.0 + rng.normal(0.0, 0.03))
-    return {"setup": setup, "a2_told_k": float(a2_told)}
+    sky = {"sky_seed": int(rng.integers(1, 2**31)), "sky_scale": float(1 + rng.normal(0, 0.05))}
+    return {"setup": setup, "a2_told_k": float(a2_told), **sky}
 
 
-def within(parameters: dict, name: str, truth: dict) -> list[float]:
-    """Pulls (value - truth) / sigma of ``name`` per detector."""
-    return [
-        (p["value"] - truth[p["detector"]]) / p["sigma"]
-        for p in parameters.values()
-        if p["parameter"] == name and p.get("sigma")
+def within(parameters: dict, name: str, truth: dict) -> tuple[list[float], float]:
+    """Pulls (value - truth) / sigma of ``name`` per detector (inf without a sigma: a
+    failure), and the weakest detector's strength |truth| / sigma."""
+    rows = [p for p in parameters.values() if p["parameter"] == name]
+    pulls = [
+        (p["value"] - truth[p["detector"]]) / p["sigma"] if p.get("sigma") else math.inf
+        for p in rows
     ]
+    strengths = [abs(truth[p["detector"]]) / p["sigma"] for p in rows if p.get("sigma")]
+    return pulls, min(strengths, default=math.nan)
 
 
 def fitted(parameters: dict, name: str) -> dict:
@@ -120,13 +139,14 @@ def score(case: str, result: dict, setup: dict, truth: dict) -> dict:
                 k: setup["g1_per_k"] / ((1 + setup["gain"]) * (1 + s / 2))
                 for k, s in slopes.items()
             }
-            pulls = within(match[0]["parameters"], "g1", g1)
+            pulls, strength = within(match[0]["parameters"], "g1", g1)
         else:
             slopes = truth["gain_drift_slope"]
-            pulls = within(
+            pulls, strength = within(
                 match[0]["parameters"], "g1", {k: s / (2 + s) for k, s in slopes.items()}
             )
         found[label] = pulls
+        record[f"{label}_strength"] = round(strength, 2)
     record["named"] = all(found[label] is not None for label in expected)
     allowed = {"nonlinearity": NONLINEARITY_NAMES, "gain_drift": ("gain_drift",)}
     record["first"] = bool(names) and any(names[0] in allowed[label] for label in expected)
@@ -136,19 +156,28 @@ def score(case: str, result: dict, setup: dict, truth: dict) -> dict:
     return record
 
 
-def one(case: str, seed: int, sky_fits: Path, folder: Path) -> dict:
+def one(case: str, seed: int, folder: Path, g1_range, drift_range) -> dict:
+    """Draw, write with TOAST, read and diagnose one recording; its record."""
     rng = np.random.default_rng([seed, CASES.index(case)])
-    drawn = draw(case, rng)
+    drawn = draw(case, rng, g1_range, drift_range)
+    sky = cmb_map(NSIDE, 3 * NSIDE - 1, 0.0, MASTER_SEED, drawn["sky_seed"], 30.8)
+    folder.mkdir(parents=True)
+    sky_fits = folder / "sky.fits"  # what TOAST scans: the sky the diagnosis is given, rescaled
+    hp.write_map(sky_fits, drawn["sky_scale"] * sky, dtype=np.float64)
+    start_time = START + timedelta(days=drawn["setup"]["start_day"])
+    setup = {key: value for key, value in drawn["setup"].items() if key != "start_day"}
     truth: dict = {}
-    path = write_toast_recording(folder, sky_fits, seed=seed, truth=truth, **drawn["setup"])
+    path = write_toast_recording(
+        folder, sky_fits, seed=seed, truth=truth, start=start_time, **setup
+    )
     recording = read_recording(path)
     truth["detectors"] = recording.detector_names
     start = time.monotonic()
-    result = diagnose(recording, sky_map(), drawn["a2_told_k"], figures=False).to_dict()
+    result = diagnose(recording, sky, drawn["a2_told_k"], figures=False).to_dict()
     record = {"case": case, "seed": seed, **drawn, "seconds": round(time.monotonic() - start, 1)}
     record["truth"] = truth
     record.update(score(case, result, drawn["setup"], truth))
-    path.unlink()
+    shutil.rmtree(folder)
     return record
 
 
@@ -169,17 +198,38 @@ def summary(records: list[dict]) -> list[str]:
             pulls = [p for r in rows for p in r["pulls"]]
             inside_p = sum(abs(p) < 3 for p in pulls)
             extra = sum(len(r["reported"]) > (2 if case == "both" else 1) for r in rows)
+            finite = [p for p in pulls if math.isfinite(p)]
             lines.append(
                 f"{case:13s} {n:3d} recordings: ranked first {first}/{n}, every effect named "
                 f"{named}/{n}, another effect named too {extra}/{n}; parameters within 3 "
                 f"sigma: every one of the recording {inside}/{n}, "
-                f"per parameter {inside_p}/{len(pulls)}"
+                f"per parameter {inside_p}/{len(pulls)}; pulls' sd {np.std(finite):.2f}"
             )
+            lines += by_amplitude(case, rows)
     seconds = [r["seconds"] for r in records]
     lines.append(
         f"diagnosis time per recording: median {np.median(seconds):.1f} s, max {max(seconds):.1f} s"
     )
     return lines
+
+
+def by_amplitude(case: str, rows: list[dict]) -> list[str]:
+    """Per decade of the drawn amplitude (g1 [1/K], or the drift's sigma): named / drawn,
+    and within 3 sigma / named."""
+    key = "g1_per_k" if case in ("nonlinearity", "both") else "gain_drift_sigma"
+    decades = sorted({math.floor(math.log10(abs(r["setup"][key]))) for r in rows})
+    if len(decades) < 2:
+        return []
+    out = []
+    for decade in decades:
+        inside = [r for r in rows if math.floor(math.log10(abs(r["setup"][key]))) == decade]
+        named = [r for r in inside if r["named"]]
+        good = sum(r["within_3_sigma"] for r in named)
+        out.append(
+            f"    {key} in [1e{decade}, 1e{decade + 1}): named {len(named)}/{len(inside)}, "
+            f"within 3 sigma {good}/{len(named)}"
+        )
+    return out
 
 
 def main() -> None:
@@ -191,6 +241,8 @@ def main() -> None:
     parser.add_argument("--only", nargs="+", choices=CASES, default=list(CASES))
     parser.add_argument("--out", type=Path)
     parser.add_argument("--combine", nargs="+", type=Path, metavar="JSON")
+    parser.add_argument("--g1-range", nargs=2, type=float, default=(2e-3, 3e-2), help="1/K")
+    parser.add_argument("--drift-range", nargs=2, type=float, default=(3e-3, 3e-2))
     arguments = parser.parse_args()
     if arguments.combine:
         records = [r for path in arguments.combine for r in json.loads(path.read_text())]
@@ -199,11 +251,15 @@ def main() -> None:
     records = []
     with tempfile.TemporaryDirectory() as folder:
         folder = Path(folder)
-        sky_fits = folder / "sky.fits"
-        hp.write_map(sky_fits, sky_map(), dtype=np.float64)
         for case in arguments.only:
             for seed in range(arguments.first_seed, arguments.first_seed + arguments.per_case):
-                record = one(case, seed, sky_fits, folder / f"{case}_{seed}")
+                record = one(
+                    case,
+                    seed,
+                    folder / f"{case}_{seed}",
+                    arguments.g1_range,
+                    arguments.drift_range,
+                )
                 records.append(record)
                 print(json.dumps(record), file=sys.stderr, flush=True)
                 if arguments.out:

@@ -48,11 +48,13 @@ def write_toast_recording(
     flagged_fraction: float = 0.0,
     edit=None,
     truth: dict | None = None,
+    start: datetime = datetime(2032, 4, 1, tzinfo=UTC),
 ) -> Path:
     """Write one TOAST observation of ``2 n_pixels`` detectors (``n_pixels`` 1, 7, 19: a
     hexagon) into ``folder``; return the file's path. ``edit(data)`` is called on the
     ``toast.Data`` just before it is saved; ``truth`` (a dict) receives each detector's
-    gain drift, the ramp 1 + s t / T GainDrifter applied, as ``gain_drift_slope``."""
+    gain drift, the ramp 1 + s t / T GainDrifter applied, as ``gain_drift_slope``;
+    ``start``: the observation's start (UTC)."""
     import astropy.units as u
     import toast
     from toast import ops
@@ -73,7 +75,7 @@ def write_toast_recording(
     )
     schedule = create_satellite_schedule(
         prefix="obs_",
-        mission_start=datetime(2032, 4, 1, tzinfo=UTC),
+        mission_start=start,
         observation_time=hours * u.hour,
         gap_time=0 * u.minute,
         num_observations=1,
