@@ -94,8 +94,10 @@ def draw(case: str, rng: np.random.Generator, g1_range, drift_range) -> dict:
 
 def within(parameters: dict, name: str, truth: dict) -> tuple[list[float], float]:
     """Pulls (value - truth) / sigma of ``name`` per detector (inf without a sigma: a
-    failure), and the weakest detector's strength |truth| / sigma."""
+    failure; a parameter shared by the detectors, ``common``, against their mean truth),
+    and the weakest detector's strength |truth| / sigma."""
     rows = [p for p in parameters.values() if p["parameter"] == name]
+    truth = {**truth, "common": float(np.mean(list(truth.values())))}  # a shared fit's
     pulls = [
         (p["value"] - truth[p["detector"]]) / p["sigma"] if p.get("sigma") else math.inf
         for p in rows
