@@ -40,9 +40,9 @@ has no HWPSS unless its maker added one (give ``--a2`` accordingly).
 
 The dipole: litebird_sim's (``TOTAL_FROM_LIN_T``, its solar velocity) with the
 spacecraft velocity the file carries, rotated to ecliptic. TOAST's ``SimDipole`` uses
-another solar velocity (370.08 against 369.82 km/s) and the linear Doppler formula: a
-~2-4 uK difference fixed on the sky, 1e-3 of the dipole, that the nominal adjustments
-absorb.
+another solar velocity (370.08 against 369.82 km/s) and its own Doppler formula: at most
+1.5 uK apart on a 3 mK dipole (measured, tests/diagnose/test_toast_recording.py), a
+difference fixed on the sky that the nominal adjustments absorb.
 
 Why h5py rather than ``toast.io.load_hdf5``: TOAST 3.0.6 cannot load a file whose
 observation has no plain metadata (``metadata/other`` without ``python_data_type``),
