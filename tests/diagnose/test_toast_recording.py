@@ -106,7 +106,6 @@ def test_flags_units_segments_and_left_out_detectors(tmp_path, sky_fits):
         names = observation.local_detectors
         observation.detdata["flags"][names[0]][100:200] = 1  # invalid
         observation.detdata["flags"][names[1]][300:310] = 8  # not a non-science bit
-        observation.shared["flags"].data  # noqa: B018
         shared = np.array(observation.shared["flags"].data)
         shared[500:520] = 2
         observation.shared["flags"].set(shared, offset=(0,), fromrank=0)

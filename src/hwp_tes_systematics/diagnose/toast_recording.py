@@ -56,6 +56,7 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
+from typing import NamedTuple
 
 import astropy.time
 import numpy as np
@@ -69,7 +70,6 @@ DET_MASK_INVALID = 1  # ... det_mask_invalid (observation_detector_flags)
 FRAME_TOLERANCE_DEG = 1.0
 FRAME_SEPARATION_DEG = 3.0
 ORBIT_STEP_S = 60.0  # spacing of the velocity table handed to litebird_sim's dipole
-KELVIN_UNITS = {"K": 1.0, "mK": 1e-3, "uK": 1e-6}
 
 
 def _decode(value) -> str:
@@ -101,9 +101,20 @@ def _boresight_name(path, handle) -> str:
     return f"shared/{names[0]}"
 
 
-def toast_layout(path) -> tuple[int, int, float, list[str]]:
-    """(detectors kept, samples, sampling rate [Hz], names of the detectors kept) of a TOAST
-    observation file, from its shapes, times, focal plane and detector flags (no TOD read).
+class ToastLayout(NamedTuple):
+    """What a TOAST observation file declares (:func:`toast_layout`)."""
+
+    n_detectors: int  # kept: not flagged invalid
+    n_samples: int
+    sampling_rate_hz: float
+    detectors: list[str]  # the kept detectors' names
+    rows: list[int]  # their rows in detdata
+    focalplane: object  # instrument/focalplane (astropy QTable)
+
+
+def toast_layout(path) -> ToastLayout:
+    """The detectors kept, samples, sampling rate and focal plane of a TOAST observation
+    file, from its shapes, times, focal plane and detector flags (no TOD read).
 
     The rate is the focal plane's ``sample_rate``, checked against the times (to 1e-6);
     a ground observation (a site other than TOAST's ``SpaceSite``) is refused."""
@@ -145,7 +156,8 @@ def toast_layout(path) -> tuple[int, int, float, list[str]]:
     if not (math.isfinite(span_s) and span_s > 0):
         fail(path, f"shared/times runs from {ends[0]!r} to {ends[1]!r}: expected increasing")
     rate_hz = (n - 1) / span_s
-    declared = _focalplane_table(path).meta.get("sample_rate")
+    focalplane = _focalplane_table(path)
+    declared = focalplane.meta.get("sample_rate")
     if declared is not None:
         declared_hz = (
             float(declared.to_value("Hz")) if hasattr(declared, "to_value") else float(declared)
@@ -157,10 +169,11 @@ def toast_layout(path) -> tuple[int, int, float, list[str]]:
                 f"({rate_hz:.9g} Hz over {n} samples): expected evenly spaced samples at that rate",
             )
         rate_hz = declared_hz
-    kept = [name for name in names if not int(flags.get(name, 0)) & DET_MASK_INVALID]
-    if not kept:
+    rows = [k for k, name in enumerate(names) if not int(flags.get(name, 0)) & DET_MASK_INVALID]
+    if not rows:
         fail(path, f"every detector of {names} is flagged invalid (observation_detector_flags)")
-    return len(kept), n, rate_hz, kept
+    kept = [names[k] for k in rows]
+    return ToastLayout(len(kept), n, rate_hz, kept, rows, focalplane)
 
 
 def _focalplane_table(path):
@@ -172,8 +185,8 @@ def _focalplane_table(path):
         fail(path, f"cannot read instrument/focalplane as a table ({error})")
 
 
-def _focalplane(path, names: list[str]) -> list:
-    table = _focalplane_table(path)
+def _focalplane(path, table, names: list[str]) -> list:
+    """The focal plane's rows of the detectors ``names``, its needed columns checked."""
     rows = {_decode(row["name"]): row for row in table}
     missing = [name for name in names if name not in rows]
     if missing:
@@ -334,15 +347,19 @@ def read_toast_recording(path, memory_budget_bytes=None, samples=None) -> Record
     from ..simulation.data_model import quaternion_pointing
 
     path = Path(path)
-    n_det, n_file, rate_hz, names = toast_layout(path)
+    layout = toast_layout(path)
+    n_det, n_file, rate_hz, rows = (
+        layout.n_detectors,
+        layout.n_samples,
+        layout.sampling_rate_hz,
+        layout.rows,
+    )
     start, stop = (0, n_file) if samples is None else (int(samples[0]), int(samples[1]))
     if not 0 <= start < stop <= n_file or stop - start < MIN_SAMPLES:
         fail(path, f"samples {start}:{stop}: expected at least {MIN_SAMPLES} of {n_file}")
     check_memory(path, n_det, stop - start, rate_hz, memory_budget_bytes)
-    rows_fp = _focalplane(path, names)
+    rows_fp = _focalplane(path, layout.focalplane, layout.detectors)
     with h5py.File(path, "r") as handle:
-        all_names = json.loads(_decode(handle.attrs["observation_detectors"]))
-        rows = [all_names.index(name) for name in names]
         times = np.asarray(_dataset(path, handle, "shared/times")[start:stop], dtype=float)
         boresight = np.asarray(
             _dataset(path, handle, _boresight_name(path, handle), (4,))[start:stop], dtype=float
