@@ -15,6 +15,7 @@ from __future__ import annotations
 import inspect
 
 from .effects import CATALOG, REGISTRIES, Effect
+from .recording import GROUP_KEYS
 
 STAGES = {
     "signal": "on the optical signal, before the detector's response",
@@ -68,7 +69,13 @@ def _parameters(effect: Effect) -> str:
         text += " per detector; one common set " + ", ".join(
             f"`{name}` [{unit}]" for name, unit in common.items()
         )
-        text += " shared by the detectors"
+        if effect.group_by is None:
+            text += " shared by the detectors"
+        else:
+            text += (
+                f" per {GROUP_KEYS[effect.group_by]} (the detectors' `{effect.group_by}`; "
+                "offered where it splits them into groups)"
+            )
     else:
         text += ", one set per detector"
     return text

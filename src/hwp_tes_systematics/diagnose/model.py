@@ -118,6 +118,8 @@ class Context:
     beam_arcmin: float = 30.0  # the detectors' beam FWHM (from their metadata, else MFT-like)
     f_spin_hz: float = field(default_factory=_spin_rate_hz)  # the IMo's scanning strategy
     f_precession_hz: float = field(default_factory=_precession_rate_hz)
+    # {focal-plane key: each detector's group label} (:attr:`.recording.Recording.groups`)
+    groups: dict = field(default_factory=dict)
     extra: dict = field(default_factory=dict)
 
     @property
@@ -419,6 +421,7 @@ def build_context(recording, sky_iqu, a2_k, threads: int = 1) -> Context:
         pointing_gradient=pointing_gradients(recording, sky, threads),
         pointings_ecl=recording.pointings_ecl,
         beam_arcmin=_beam_arcmin(recording),
+        groups=recording.groups,
     )
 
 

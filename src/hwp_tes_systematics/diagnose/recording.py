@@ -60,6 +60,11 @@ from .recording_checks import (
 )
 
 DEFAULT_START_TDB = "2032-04-01T00:00:00"
+# the detector metadata that group detectors on the focal plane (litebird_sim's DetectorInfo
+# fields; a TOAST focal plane's columns of these names) -> what a group is called: what an
+# effect shared per group (:attr:`.effects.base.Effect.group_by`) shares, in the order a
+# key that splits the detectors as an earlier one does is dropped
+GROUP_KEYS = {"wafer": "wafer", "squid": "readout line (SQUID)", "pixel": "pixel"}
 REQUIRED_DETECTOR_KEYS = ("name", "pol_angle_rad")
 FINITE_DETECTOR_KEYS = (
     "pol_angle_rad",
@@ -115,6 +120,14 @@ class Recording:
     def pol_efficiency(self) -> np.ndarray:
         return np.array([float(d.get("pol_efficiency", 1.0)) for d in self.detectors])
 
+    @property
+    def groups(self) -> dict[str, tuple[str, ...]]:
+        """{key of GROUP_KEYS: each detector's group label}, for the keys every detector
+        carries that split the detectors into 2 or more groups, one of them of 2 or more
+        detectors (else a group is all detectors, or each its own); a key that splits
+        them as an earlier one does is left out."""
+        return detector_groups(self.detectors)
+
     def nominal_noise(self) -> list[dict]:
         """Configured noise per detector: net_ukrts, fknee_mhz, alpha, fmin_hz."""
         return [
@@ -126,6 +139,26 @@ class Recording:
             }
             for d in self.detectors
         ]
+
+
+def detector_groups(detectors: list[dict]) -> dict[str, tuple[str, ...]]:
+    """:attr:`Recording.groups` of the detectors' metadata ``detectors``."""
+    out: dict[str, tuple[str, ...]] = {}
+    partitions = set()
+    for key in GROUP_KEYS:
+        values = [detector.get(key) for detector in detectors]
+        if any(value is None or value == "" for value in values):
+            continue
+        labels = tuple(str(value) for value in values)
+        n_groups = len(set(labels))
+        if not 2 <= n_groups < len(labels):
+            continue
+        first_seen = {label: i for i, label in reversed(list(enumerate(labels)))}
+        partition = tuple(first_seen[label] for label in labels)
+        if partition not in partitions:
+            partitions.add(partition)
+            out[key] = labels
+    return out
 
 
 def _read_start_time(path, dataset) -> astropy.time.Time:

@@ -15,6 +15,8 @@ What is read (TOAST 3 HDF5 format, ``toast_format_version`` 1 or 2), with h5py a
   observation flag (``observation_detector_flags``) has bit 1 set is left out;
 * ``shared/position`` and ``shared/velocity`` (km, km/s): the pointing's frame and the
   spacecraft's velocity for the orbital dipole.
+* the focal plane's ``wafer``, ``squid`` and ``pixel`` columns, where it has them: the
+  detectors' groups (:attr:`.recording.Recording.groups`).
 
 The pointing's frame is not written in the file. It is found from the spacecraft: the
 recorded position and velocity are compared with the Earth's (astropy's built-in
@@ -61,7 +63,7 @@ from typing import NamedTuple
 import astropy.time
 import numpy as np
 
-from .recording import Recording, mask_bad_samples
+from .recording import GROUP_KEYS, Recording, mask_bad_samples
 from .recording_checks import MIN_SAMPLES, check_memory, fail
 
 DET_MASK_NONSCIENCE = 7  # toast.observation.default_values.det_mask_nonscience
@@ -222,6 +224,12 @@ def _detector(row, channel: str) -> dict:
         "fwhm_arcmin": _value(row, "fwhm", "arcmin"),
     }
     detector = {key: value for key, value in detector.items() if value is not None}
+    for key in GROUP_KEYS:  # the focal-plane groups (wafer, readout line, pixel)
+        if key in row.colnames:
+            value = row[key]
+            detector[key] = (
+                _decode(value) if isinstance(value, (bytes, str)) else np.asarray(value).item()
+            )
     if channel:
         detector["channel"] = channel
     return detector

@@ -40,6 +40,9 @@ def write_toast_recording(
     g1_per_k: float = 0.0,
     gain: float = 0.0,
     gain_drift_sigma: float = 0.0,
+    gain_drift_mode: str = "linear_drift",
+    gain_drift_mismatch: float = 1.0,
+    wafers: int = 1,
     dipole: bool = True,
     noise: bool = True,
     net_uk_rts: float = 50.0,
@@ -51,28 +54,23 @@ def write_toast_recording(
     start: datetime = datetime(2032, 4, 1, tzinfo=UTC),
 ) -> Path:
     """Write one TOAST observation of ``2 n_pixels`` detectors (``n_pixels`` 1, 7, 19: a
-    hexagon) into ``folder``; return the file's path. ``edit(data)`` is called on the
-    ``toast.Data`` just before it is saved; ``truth`` (a dict) receives each detector's
-    gain drift, the ramp 1 + s t / T GainDrifter applied, as ``gain_drift_slope``;
-    ``start``: the observation's start (UTC)."""
+    hexagon) into ``folder``; return the file's path. ``wafers``: the pixels split in that
+    many groups of consecutive pixels, a ``wafer`` column of the focal plane. The gain
+    drift is GainDrifter's ``gain_drift_mode`` ("linear_drift", or "slow_drift": a 1/f
+    stream below 0.2 mHz, ``gain_drift_mismatch`` its part per detector and the rest
+    common to a wafer). ``edit(data)`` is called on the ``toast.Data`` just before it is
+    saved; ``truth`` (a dict) receives each detector's gain g(t) GainDrifter applied: the
+    end of the ramp g - 1 as ``gain_drift_slope`` and its Legendre coefficients over the
+    recording (P1..P3, unweighted) as ``gain_drift_legendre``; ``start``: the
+    observation's start (UTC)."""
     import astropy.units as u
     import toast
     from toast import ops
     from toast.instrument import SpaceSite, Telescope
-    from toast.instrument_sim import fake_hexagon_focalplane
     from toast.observation import default_values as defaults
     from toast.schedule_sim_satellite import create_satellite_schedule
 
-    focalplane = fake_hexagon_focalplane(
-        n_pix=n_pixels,
-        sample_rate=sample_rate_hz * u.Hz,
-        psd_fmin=1e-5 * u.Hz,
-        psd_net=net_uk_rts * 1e-6 * u.K * np.sqrt(1 * u.s),
-        psd_fknee=fknee_mhz * 1e-3 * u.Hz,
-        width=5 * u.deg,
-        bandcenter=140 * u.GHz,
-        fwhm=30 * u.arcmin,
-    )
+    focalplane = _focalplane(n_pixels, sample_rate_hz, net_uk_rts, fknee_mhz, wafers)
     schedule = create_satellite_schedule(
         prefix="obs_",
         mission_start=start,
@@ -106,7 +104,9 @@ def write_toast_recording(
     observation = data.obs[0]
     _add_response(observation, a2_k, hwpss_phase_rad, g1_per_k, gain)
     if gain_drift_sigma:
-        _drift_gains(data, gain_drift_sigma, seed, truth)
+        group = "wafer" if wafers > 1 else "pixel"  # what slow_drift's common part follows
+        drifter = (gain_drift_mode, gain_drift_sigma, gain_drift_mismatch, group, seed)
+        _drift_gains(data, drifter, truth)
     if noise:
         ops.DefaultNoiseModel().apply(data)
         ops.SimNoise(realization=seed).apply(data)
@@ -123,6 +123,30 @@ def write_toast_recording(
     return next(folder.glob("obs_*.h5"))
 
 
+def _focalplane(n_pixels, sample_rate_hz, net_uk_rts, fknee_mhz, wafers: int):
+    """TOAST's hexagon of ``n_pixels`` pixels, 5 deg wide, 140 GHz, 30 arcmin; with
+    ``wafers`` > 1 a ``wafer`` column: the pixels split in that many consecutive groups."""
+    import astropy.units as u
+    from toast.instrument_sim import fake_hexagon_focalplane
+
+    focalplane = fake_hexagon_focalplane(
+        n_pix=n_pixels,
+        sample_rate=sample_rate_hz * u.Hz,
+        psd_fmin=1e-5 * u.Hz,
+        psd_net=net_uk_rts * 1e-6 * u.K * np.sqrt(1 * u.s),
+        psd_fknee=fknee_mhz * 1e-3 * u.Hz,
+        width=5 * u.deg,
+        bandcenter=140 * u.GHz,
+        fwhm=30 * u.arcmin,
+    )
+    if wafers > 1:
+        table = focalplane.detector_data
+        pixel_names = list(dict.fromkeys(str(p) for p in table["pixel"]))
+        wafer_of = {p: f"W{i * wafers // len(pixel_names)}" for i, p in enumerate(pixel_names)}
+        table["wafer"] = [wafer_of[str(p)] for p in table["pixel"]]
+    return focalplane
+
+
 def _add_response(observation, a2_k, hwpss_phase_rad, g1_per_k, gain) -> None:
     """signal -> (1 + gain) (1 + g1 d') d', d' = signal + A_2 cos(2 (omega - gamma) - phi)."""
     import astropy.units as u
@@ -137,26 +161,34 @@ def _add_response(observation, a2_k, hwpss_phase_rad, g1_per_k, gain) -> None:
         signal[name][:] = (1 + gain) * (1 + g1_per_k * total) * total
 
 
-def _drift_gains(data, sigma: float, seed: int, truth: dict | None) -> None:
-    """TOAST's GainDrifter (linear_drift) on the signal; each detector's ramp end, s of
-    1 + s t / T, into ``truth["gain_drift_slope"]`` (the same draw on a unit stream: the
-    draw is keyed by the detector's uid, not by the data's name)."""
+def _drift_gains(data, drifter: tuple, truth: dict | None) -> None:
+    """TOAST's GainDrifter on the signal, ``drifter`` its (drift_mode, sigma_drift,
+    detector_mismatch, focalplane_group, realization); each detector's gain g(t) into
+    ``truth`` (the same draw on a unit stream: the draw is keyed by the detector's uid and
+    group, not by the data's name)."""
     from toast import ops
     from toast.observation import default_values as defaults
+
+    traits = ("drift_mode", "sigma_drift", "detector_mismatch", "focalplane_group", "realization")
+    drifter = dict(zip(traits, drifter, strict=True))
 
     observation = data.obs[0]
     for name in ("unit_gain", defaults.det_data):
         observation.detdata.ensure(name, dtype=np.float64)
         if name == "unit_gain":
             observation.detdata[name][:] = 1.0
-        ops.GainDrifter(
-            det_data=name, drift_mode="linear_drift", sigma_drift=sigma, realization=seed
-        ).apply(data)
-    ramps = observation.detdata["unit_gain"]
+        ops.GainDrifter(det_data=name, **drifter).apply(data)
+    gains = observation.detdata["unit_gain"]
     if truth is not None:
-        truth["gain_drift_slope"] = {
-            name: float(ramps[name][-1] - 1) for name in observation.local_detectors
-        }
+        x = np.linspace(-1.0, 1.0, observation.n_local_samples)
+        basis = np.stack([np.polynomial.legendre.Legendre.basis(j)(x) for j in range(4)])
+        truth["gain_drift_slope"] = {}
+        truth["gain_drift_legendre"] = {}
+        for name in observation.local_detectors:
+            drift = np.asarray(gains[name]) - 1.0
+            coefficients = np.linalg.lstsq(basis.T, drift, rcond=None)[0]
+            truth["gain_drift_slope"][name] = float(drift[-1])
+            truth["gain_drift_legendre"][name] = coefficients[1:].tolist()
     ops.Delete(detdata=["unit_gain"]).apply(data)
 
 

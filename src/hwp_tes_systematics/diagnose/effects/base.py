@@ -10,6 +10,7 @@ from typing import ClassVar
 import numpy as np
 
 from ..model import Context, per_detector
+from ..recording import GROUP_KEYS
 
 HWPSS_HARMONICS = (1, 3, 4, 5, 6)  # n = 2 is the nominal 2f adjustment
 NONLINEARITY_HARMONICS = (4, 6)  # the HWPSS lines d^2 and d^3 make of a 2f HWPSS
@@ -81,6 +82,10 @@ class Effect:
     # True: one set of parameters for all detectors, p_k = s_k r (``shared_scale``), e.g.
     # one HWP, so one relative drift of its emission; the BIC counts len(parameters) once
     shared: bool = False
+    # a shared effect's scope: one set of parameters per group of this focal-plane key
+    # (:data:`.recording.GROUP_KEYS`: a wafer's bath, a readout line, a pixel's horn), or
+    # None: one set for all detectors; offered where the recording has the key's groups
+    group_by: str | None = None
     # -2 ln(prior odds) against the effect, added to its BIC (0: none; see GainDriftCommon)
     prior_penalty: float = 0.0
     # the fewest detectors a recording needs for the fit to offer it (crosstalk: a pair)
@@ -121,6 +126,28 @@ class Effect:
     def shared_scale(self, ctx: Context) -> np.ndarray:
         """s_k of a shared effect, (n_det,): detector k's parameters are s_k times the common ones."""
         return np.ones(ctx.n_detectors)
+
+    def shared_groups(self, ctx: Context) -> dict[str, np.ndarray]:
+        """{group label: its detectors' indices} of a shared effect: one group "all" of
+        every detector, or the groups of ``group_by`` (``ctx.groups``)."""
+        if self.group_by is None:
+            return {"all": np.arange(ctx.n_detectors)}
+        labels = np.asarray(ctx.groups[self.group_by])
+        return {label: np.flatnonzero(labels == label) for label in dict.fromkeys(labels)}
+
+    def scope(self, ctx: Context) -> dict:
+        """The report's scope: {"by": "detector", "all" or the group key, "groups":
+        {label: detector names}} (no groups for "detector")."""
+        if not self.shared:
+            return {"by": "detector", "groups": {}}
+        names = np.asarray(ctx.detector_names)
+        return {
+            "by": self.group_by or "all",
+            "groups": {
+                str(label): names[members].tolist()
+                for label, members in self.shared_groups(ctx).items()
+            },
+        }
 
     def shared_units(self, ctx: Context | None = None) -> dict[str, str]:
         """Common parameter -> unit of a shared effect (default: its own parameters)."""
@@ -192,6 +219,16 @@ class Effect:
                 "detector": "common",
                 "parameter": param,
             }
+        for label, values in fit.group_values.items():  # or each group's
+            for param, value in values.items():
+                group = f"{self.group_by} {label}"
+                out[f"{param}[{group}]"] = {
+                    "value": value,
+                    "sigma": fit.group_sigmas[label][param],
+                    "unit": fit.shared_units[param],
+                    "detector": group,
+                    "parameter": param,
+                }
         return out
 
     def evidence(self, ev, fit) -> str:
@@ -212,6 +249,22 @@ CATALOG: dict[str, Effect] = {}  # the effects the diagnosis fits
 INJECTION_ONLY: dict[str, Effect] = {}  # simulated only: a nominal adjustment covers them
 OUTSIDE_CATALOG: dict[str, Effect] = {}  # simulated only: the diagnosis has no model of them
 REGISTRIES = {"catalog": CATALOG, "injection": INJECTION_ONLY, "outside": OUTSIDE_CATALOG}
+
+
+def group_sentence(effect: Effect, fit, parameters, unit: str) -> str:
+    """The sentence stating a per-group effect's values, ``parameters`` of each group in
+    ``unit``, and what sharing them within the groups cost (:attr:`Effect.group_by`)."""
+    groups = "; ".join(
+        f"{effect.group_by} {label}: "
+        + ", ".join(
+            f"{p} = {values[p]:.3g} +- {fit.group_sigmas[label][p]:.2g}{unit}" for p in parameters
+        )
+        for label, values in fit.group_values.items()
+    )
+    return (
+        f"one set per {GROUP_KEYS[effect.group_by]} ({groups}); sharing it within the "
+        f"groups costs chi^2 {fit.sharing_chi2:.1f} for {fit.sharing_dof} fewer parameters"
+    )
 
 
 def register(cls: type[Effect]) -> type[Effect]:

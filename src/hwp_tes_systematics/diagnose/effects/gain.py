@@ -7,7 +7,16 @@ from typing import ClassVar
 
 import numpy as np
 
-from .base import GAIN_DEGREES, Effect, _value, register
+from .base import (
+    GAIN_DEGREES,
+    GROUP_KEYS,
+    MODULATION_MIN,
+    Effect,
+    _value,
+    group_sentence,
+    modulation_degree,
+    register,
+)
 
 
 def _one_relative_drift(fit, param: str, of: str, why: str = "") -> str:
@@ -16,6 +25,25 @@ def _one_relative_drift(fit, param: str, of: str, why: str = "") -> str:
         f"one relative drift for all detectors{why}: {param} = "
         f"{fit.shared_values[param]:.3g} +- {fit.shared_sigmas[param]:.2g}{of} (sharing it "
         f"costs chi^2 {fit.sharing_chi2:.1f} for {fit.sharing_dof} fewer parameters)"
+    )
+
+
+def _common_part(g1, sigma, key: str, labels) -> str:
+    """A per-detector drift's part common to each group of ``key``: the weighted mean of
+    g1 per group and the chi^2 of the detectors about it (per detector beyond it)."""
+    labels = np.asarray(labels)
+    means, chi2, dof = [], 0.0, 0
+    for label in dict.fromkeys(labels):
+        members = labels == label
+        weights = 1 / sigma[members] ** 2
+        mean = float(np.sum(weights * g1[members]) / np.sum(weights))
+        means.append(f"{label} {mean:.3g} +- {1 / math.sqrt(float(np.sum(weights))):.2g}")
+        chi2 += float(np.sum(weights * (g1[members] - mean) ** 2))
+        dof += int(members.sum()) - 1
+    return (
+        f"g1's part common to each {GROUP_KEYS[key]}: {', '.join(means)}; the detectors "
+        f"scatter about it by chi^2 {chi2:.1f} for {dof} degrees of freedom"
+        + (" (a part per detector)" if chi2 > dof + 3 * math.sqrt(2 * dof) else " (no more)")
     )
 
 
@@ -44,10 +72,17 @@ class GainDrift(Effect):
         "(g(t) x dipole, at f_spin in the 1/f noise: a few %/h in 2 hours, ~1 %/h in 6)"
     )
 
+    def degrees(self, ctx) -> tuple[int, ...]:
+        """The Legendre degrees j of the drift, P_j(x) over the recording."""
+        return GAIN_DEGREES
+
+    def param_units(self, ctx=None) -> dict[str, str]:
+        return {f"g{j}": "1" for j in self.degrees(ctx)}
+
     def templates(self, ctx):
         d = ctx.d_nom
         d = d - np.array([d[k][ctx.valid[k]].mean() for k in range(ctx.n_detectors)])[:, None]
-        return np.stack([ctx.legendre(j)[None, :] * d for j in GAIN_DEGREES], axis=1)
+        return np.stack([ctx.legendre(j)[None, :] * d for j in self.degrees(ctx)], axis=1)
 
     def apply(self, ctx, params, tod=None):
         """Injection: g0 (a constant gain error) is accepted as well as g1..g3."""
@@ -89,6 +124,7 @@ class GainDrift(Effect):
                 else f"the detectors drift alike (g1 = {values}, {spread:.1f} sigma apart): "
                 "the dipole's drift, not the difference between detectors, makes it a gain"
             )
+            parts += [_common_part(g1, sigma, key, labels) for key, labels in ev.ctx.groups.items()]
         return "; ".join(parts)
 
 
@@ -122,6 +158,82 @@ class GainDriftCommon(GainDrift):
     def evidence(self, ev, fit) -> str:
         """The signature measured on the residual ``ev`` (:class:`.evidence.Evidence`), in words."""
         return _one_relative_drift(fit, "g1", "") + "; " + super().evidence(ev, fit)
+
+
+@register
+class GainDriftPerGroup(GainDriftCommon):
+    """A gain drift the same within each focal-plane group and different between groups: a
+    wafer's bath temperature, a readout line's bias (``group_by``: one instance per key).
+
+    d_obs = [1 + sum_j g_j P_j(x)] d with one set of g_j per group, j = 1..D and D the
+    slow 2f modulation's (:func:`.base.modulation_degree`, one degree per 8 minutes): a
+    bath drifts in any smooth way, and the 2f HWPSS measures its shape (a 1/f drift below
+    0.2 mHz, TOAST's ``slow_drift``, leaves ~1e-3 of itself beyond P3, which an A_2 of
+    0.2 K shows at thousands of sigma; with P1..P3 only, the per-detector
+    ``hwpss_slow_modulation`` takes it). With few groups that is still far fewer
+    parameters than a modulation per detector; the dipole's drift, with the same shape,
+    tells it from an HWP emission modulation. With the prior penalty of
+    :class:`GainDriftCommon`: groups that drift alike are also what one HWP's emission
+    makes. Offered where the recording's detectors carry the key
+    (:attr:`.recording.Recording.groups`). Reported as ``gain_drift``, with its scope.
+    """
+
+    signature = (
+        "residual proportional to the whole signal (HWPSS and dipole), changing in time in "
+        "any smooth way, by the same relative amount in the detectors of one group"
+    )
+    discrimination = (
+        "separate drifts per detector fit no better, one drift for all detectors fits "
+        "worse: the detectors of a group drift together"
+    )
+
+    def __init__(self, key: str = "wafer"):
+        self.group_by = key
+        self.name = f"gain_drift_per_{key}"
+        self.title = f"gain drift common to each {GROUP_KEYS[key]}"
+
+    @classmethod
+    def instances(cls) -> tuple[Effect, ...]:
+        return tuple(cls(key) for key in ("wafer", "squid"))
+
+    def degrees(self, ctx) -> tuple[int, ...]:
+        top = MODULATION_MIN if ctx is None else modulation_degree(ctx.duration_s)
+        return tuple(range(1, top + 1))
+
+    def evidence(self, ev, fit) -> str:
+        """The signature measured on the residual ``ev`` (:class:`.evidence.Evidence`), in words."""
+        return group_sentence(self, fit, ("g1",), "") + "; " + GainDrift.evidence(self, ev, fit)
+
+
+@register
+class GainDriftSmooth(GainDrift):
+    """A gain drift of any smooth shape, each detector its own: d_obs = [1 + sum_j g_j
+    P_j(x)] d, j = 1..D, D the slow 2f modulation's (:func:`.base.modulation_degree`).
+
+    The per-detector form of :class:`GainDriftPerGroup`: a TES whose bath or bias wanders
+    (TOAST's ``slow_drift``) drifts beyond P3, and the 2f HWPSS shows it; without this
+    form ``hwpss_slow_modulation`` (the same 2f modulation, the dipole untouched) takes it.
+    The two have as many parameters and differ by the dipole's and sky's drift alone, so
+    this one carries the prior penalty of :class:`GainDriftCommon`: it is taken when the
+    dipole's drift shows. Reported as ``gain_drift``.
+    """
+
+    name = "gain_drift_smooth"
+    title = "gain drift of any smooth shape"
+    reported_as = "gain_drift"
+    prior_penalty = GainDriftCommon.prior_penalty
+    signature = (
+        "residual proportional to the whole signal (HWPSS and dipole), changing in time in "
+        "any smooth way, each detector its own"
+    )
+    discrimination = (
+        "as hwpss_slow_modulation, with the dipole and the sky changing by the same relative "
+        "amount as the 2f HWPSS"
+    )
+
+    def degrees(self, ctx) -> tuple[int, ...]:
+        top = MODULATION_MIN if ctx is None else modulation_degree(ctx.duration_s)
+        return tuple(range(1, top + 1))
 
 
 @register

@@ -7,7 +7,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from .base import Effect, register
+from .base import GROUP_KEYS, Effect, group_sentence, register
 
 SECONDS_PER_HOUR = 3600.0
 
@@ -119,6 +119,36 @@ class PointingOffsetCommon(PointingOffset):
             f"the residual follows the dipole's and the sky's gradient, with one offset for "
             f"all detectors: {common} (sharing it costs chi^2 {fit.sharing_chi2:.1f} for "
             f"{fit.sharing_dof} fewer parameters): the boresight moved"
+        )
+
+
+@register
+class PointingOffsetPerGroup(PointingOffsetCommon):
+    """A pointing offset the same within each focal-plane group: a pixel's horn, a wafer's
+    mount moved (``group_by``: one instance per key). The templates of
+    :class:`PointingOffset` with one (x, y) per group; offered where the recording's
+    detectors carry the key. Reported as ``pointing_offset``, with its scope."""
+
+    signature = (
+        "the pointing offset's signature, with the same offset in the detectors of one group"
+    )
+    discrimination = (
+        "separate offsets per detector fit no better, one offset for all fits worse: the "
+        "detectors of a group moved together"
+    )
+
+    def __init__(self, key: str = "pixel"):
+        self.group_by = key
+        self.name = f"pointing_offset_per_{key}"
+        self.title = f"pointing offset common to each {GROUP_KEYS[key]}"
+
+    @classmethod
+    def instances(cls) -> tuple[Effect, ...]:
+        return tuple(cls(key) for key in ("pixel", "wafer"))
+
+    def evidence(self, ev, fit) -> str:
+        return "the residual follows the dipole's and the sky's gradient, with " + group_sentence(
+            self, fit, ("offset_x", "offset_y"), " arcmin"
         )
 
 

@@ -60,6 +60,7 @@ def explain_effects(
                 "evidence": text,
                 "signature": effect.signature,
                 "look_alikes": ties.get(name, []),
+                "scope": effect.scope(ctx),
             }
         )
     if selection.fluctuation is not None:

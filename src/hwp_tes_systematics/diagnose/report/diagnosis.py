@@ -215,12 +215,10 @@ def markdown_report(
             "",
             f"*Evidence*: {effect['evidence']}.",
             "",
-            "| parameter | value | sigma | unit |",
-            "|---|---|---|---|",
         ]
-        for pname, p in list(effect["parameters"].items())[:60]:
-            out.append(f"| {pname} | {p['value']:.6g} | {p['sigma']:.3g} | {p['unit']} |")
-        out.append("")
+        if "scope" in effect:
+            out += [f"*Scope*: {scope_sentence(effect['scope'], len(rec['detectors']))}.", ""]
+        out += parameter_table(effect["parameters"]) + [""]
         if check and check["effect"] == effect["name"]:
             out += [f"*Against the requirement*: {check['sentence']}", ""]
     if check and check["effect"] is None:  # no nonlinearity found: what bounds it
@@ -307,3 +305,46 @@ def markdown_report(
         if figures_error:
             out.append(f"The figures could not be drawn ({figures_error}); the log has the trace.")
     return "\n".join(out) + "\n"
+
+
+def scope_sentence(scope: dict, n_detectors: int) -> str:
+    """Which detectors share an effect's parameters (:meth:`.effects.base.Effect.scope`)."""
+    if scope["by"] == "detector":
+        return f"each of the {n_detectors} detectors its own parameters"
+    if scope["by"] == "all":
+        return f"one set of parameters for all {n_detectors} detectors"
+    groups = ", ".join(
+        f"{label} ({', '.join(names) if len(names) <= 8 else f'{len(names)} detectors'})"
+        for label, names in scope["groups"].items()
+    )
+    return f"one set of parameters per {scope['by']}: {groups}"
+
+
+def parameter_table(parameters: dict, max_rows: int = 100) -> list[str]:
+    """An effect's parameters as a table, a row per detector (or group, "common", or a
+    detector's event) and a column per parameter, "value +- sigma" (sigma "-" where the fit
+    gives none)."""
+
+    def cell(entry):
+        sigma = entry.get("sigma")
+        sigma_text = f"{sigma:.2g}" if sigma is not None else "-"
+        return f"{entry['value']:.6g} +- {sigma_text}"
+
+    if not all("detector" in e and "parameter" in e for e in parameters.values()):
+        lines = ["| parameter | value | unit |", "|---|---|---|"]
+        return lines + [f"| {name} | {cell(e)} | {e['unit']} |" for name, e in parameters.items()]
+    columns = {e["parameter"]: e["unit"] for e in parameters.values()}
+    rows: dict[str, dict] = {}
+    for name, entry in parameters.items():
+        # a row per detector, or per detector and event ("glitch3.amplitude[<detector>]")
+        head = name.split("[", 1)[0]
+        event = head[: -len(entry["parameter"])].rstrip(".") if head != entry["parameter"] else ""
+        rows.setdefault(f"{entry['detector']} {event}".strip(), {})[entry["parameter"]] = entry
+    header = " | ".join(f"{p} [{unit}]" for p, unit in columns.items())
+    lines = [f"| detector | {header} |", "|---" * (len(columns) + 1) + "|"]
+    for detector, entries in list(rows.items())[:max_rows]:
+        cells = " | ".join(cell(entries[p]) if p in entries else "" for p in columns)
+        lines.append(f"| {detector} | {cells} |")
+    if len(rows) > max_rows:
+        lines.append(f"| ... {len(rows) - max_rows} more rows in diagnosis.json | |")
+    return lines

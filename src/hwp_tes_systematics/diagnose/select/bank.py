@@ -46,7 +46,12 @@ class FitProblem:
         if effects is None:
             # noise-kind effects are tested on the selection's residual (:mod:`.pipeline`)
             effects = {n: e for n, e in CATALOG.items() if e.selectable and e.kind != "noise"}
-        effects = {n: e for n, e in effects.items() if e.min_detectors <= ctx.n_detectors}
+        effects = {
+            n: e
+            for n, e in effects.items()
+            if e.min_detectors <= ctx.n_detectors
+            and (e.group_by is None or e.group_by in ctx.groups)
+        }
         self.effects = effects
         self.nominal = nominal
         self.units = {name: e.param_units(ctx) for name, e in effects.items()}
@@ -224,7 +229,7 @@ class FitProblem:
             if effect.kind == "events":
                 total += effect.parameters_per_event * n_events
             elif effect.shared:
-                total += len(self.units[name])
+                total += len(self.units[name]) * len(effect.shared_groups(self.ctx))
             else:
                 total += len(self.units[name]) * self.n_det
         return total
@@ -235,21 +240,34 @@ class FitProblem:
     def share(self, selected, values, covariances):
         """Impose the shared effects' constraints p_k = s_k r on the per-detector solutions.
 
-        (:func:`.linalg.share_across_detectors`; exact for the linear fit.) Returns the new
-        values and covariances and {effect: (r, sigma_r, chi^2 cost)}.
+        (:func:`.linalg.share_across_detectors`, group by group for an effect shared per
+        group; exact for the linear fit.) Returns the new values and covariances and
+        {effect: ({group label: (r, sigma_r)}, chi^2 cost)}.
         """
         shared = {}
         if self.n_det < 2:
             return values, covariances, shared
+        values, covariances = list(values), list(covariances)
         for name, rows in self._positions(selected).items():
-            if self.effects[name].shared:
-                positions = np.arange(rows.start, rows.stop)
-                scale = self.effects[name].shared_scale(self.ctx)
-                scales = np.repeat(scale[:, None], positions.size, axis=1)
-                values, covariances, r, cov_r, cost = share_across_detectors(
-                    values, covariances, positions, scales
+            effect = self.effects[name]
+            if not effect.shared:
+                continue
+            positions = np.arange(rows.start, rows.stop)
+            scale = effect.shared_scale(self.ctx)
+            scales = np.repeat(scale[:, None], positions.size, axis=1)
+            per_group, total_cost = {}, 0.0
+            for label, members in effect.shared_groups(self.ctx).items():
+                new_values, new_covariances, r, cov_r, cost = share_across_detectors(
+                    [values[k] for k in members],
+                    [covariances[k] for k in members],
+                    positions,
+                    scales[members],
                 )
-                shared[name] = (r, np.sqrt(np.clip(np.diag(cov_r), 0, None)), cost)
+                for k, value, covariance in zip(members, new_values, new_covariances, strict=True):
+                    values[k], covariances[k] = value, covariance
+                per_group[label] = (r, np.sqrt(np.clip(np.diag(cov_r), 0, None)))
+                total_cost += cost
+            shared[name] = (per_group, total_cost)
         return values, covariances, shared
 
     def _positions(self, selected) -> dict[str, slice]:
@@ -266,13 +284,22 @@ class FitProblem:
 
     def with_shared(self, fits: dict, shared: dict) -> dict:
         """The EffectFits with the shared effects' common values filled in."""
-        for name, (r, sigma, cost) in shared.items():
-            units = self.effects[name].shared_units(self.ctx)
-            fits[name].shared_values = {p: float(v) for p, v in zip(units, r, strict=True)}
-            fits[name].shared_sigmas = {p: float(v) for p, v in zip(units, sigma, strict=True)}
-            fits[name].shared_units = units
-            fits[name].sharing_chi2 = float(cost)
-            fits[name].sharing_dof = len(units) * (self.n_det - 1)
+        for name, (per_group, cost) in shared.items():
+            effect, fit = self.effects[name], fits[name]
+            units = effect.shared_units(self.ctx)
+
+            def named(array, units=units):
+                return {p: float(v) for p, v in zip(units, array, strict=True)}
+
+            if effect.group_by is None:
+                ((r, sigma),) = per_group.values()
+                fit.shared_values, fit.shared_sigmas = named(r), named(sigma)
+            else:
+                fit.group_values = {label: named(r) for label, (r, _) in per_group.items()}
+                fit.group_sigmas = {label: named(s) for label, (_, s) in per_group.items()}
+            fit.shared_units = units
+            fit.sharing_chi2 = float(cost)
+            fit.sharing_dof = len(units) * (self.n_det - len(per_group))
         return fits
 
     def _ordered(self, selected) -> tuple[str, ...]:

@@ -17,10 +17,13 @@ class EffectFit:
     values: dict[str, np.ndarray] = field(default_factory=dict)  # parameter -> (n_det,)
     sigmas: dict[str, np.ndarray] = field(default_factory=dict)
     events: list[GlitchEvent] = field(default_factory=list)
-    # a shared effect (``Effect.shared``): its common parameters, and the chi^2 that sharing
-    # them costs against a separate fit per detector, for sharing_dof fewer parameters
+    # a shared effect (``Effect.shared``): its common parameters (per group, {label:
+    # {parameter: value}}, for one shared by group, ``Effect.group_by``), and the chi^2 that
+    # sharing them costs against a separate fit per detector, for sharing_dof fewer parameters
     shared_values: dict[str, float] = field(default_factory=dict)
     shared_sigmas: dict[str, float] = field(default_factory=dict)
+    group_values: dict[str, dict[str, float]] = field(default_factory=dict)
+    group_sigmas: dict[str, dict[str, float]] = field(default_factory=dict)
     shared_units: dict[str, str] = field(default_factory=dict)
     sharing_chi2: float = 0.0
     sharing_dof: int = 0

@@ -1,0 +1,127 @@
+"""Effects shared by focal-plane groups (wafer, readout line, pixel) beside per-detector ones.
+
+The groups come from the detectors' metadata (:attr:`.recording.Recording.groups`); the
+slow tests diagnose TOAST recordings whose gain drift TOAST's own ``GainDrifter`` made,
+common to a wafer or each detector its own, and check the scope the report gives.
+"""
+
+from __future__ import annotations
+
+import healpy as hp
+import numpy as np
+import pytest
+
+from hwp_tes_systematics.diagnose import diagnose
+from hwp_tes_systematics.diagnose.recording import detector_groups, read_recording
+from hwp_tes_systematics.diagnose.report.diagnosis import parameter_table, scope_sentence
+from hwp_tes_systematics.diagnose.testbed import sky_map
+
+A2_K = 0.2  # the HWPSS amplitude added to TOAST's signal [K_CMB] (assumption, MFT-like)
+
+
+def _detectors(**columns):
+    n = len(next(iter(columns.values())))
+    return [{"name": f"d{i}", **{k: v[i] for k, v in columns.items()}} for i in range(n)]
+
+
+def test_groups_are_the_keys_that_split_the_detectors():
+    detectors = _detectors(
+        wafer=["W0", "W0", "W1", "W1"],
+        squid=[3, 3, 7, 7],  # the same split as the wafers: left out
+        pixel=[0, 0, 1, 2],
+    )
+    assert detector_groups(detectors) == {
+        "wafer": ("W0", "W0", "W1", "W1"),
+        "pixel": ("0", "0", "1", "2"),
+    }
+
+
+@pytest.mark.parametrize(
+    "wafer",
+    [
+        ["W0", "W0", "W0"],  # one group: that is "all detectors"
+        ["W0", "W1", "W2"],  # each detector its own: that is "per detector"
+        ["W0", None, "W0"],  # a detector without one
+    ],
+)
+def test_no_groups_where_the_key_does_not_split_the_detectors(wafer):
+    assert detector_groups(_detectors(wafer=wafer)) == {}
+
+
+def test_the_report_tables_parameters_per_detector_and_per_group():
+    parameters = {
+        "g1[a]": {"value": 0.01, "sigma": 0.001, "unit": "1", "detector": "a", "parameter": "g1"},
+        "g2[a]": {"value": 0.02, "sigma": None, "unit": "1", "detector": "a", "parameter": "g2"},
+        "g1[wafer W0]": {
+            "value": 0.03,
+            "sigma": 0.002,
+            "unit": "1",
+            "detector": "wafer W0",
+            "parameter": "g1",
+        },
+    }
+    lines = parameter_table(parameters)
+    assert lines[0] == "| detector | g1 [1] | g2 [1] |"
+    assert lines[2] == "| a | 0.01 +- 0.001 | 0.02 +- - |"
+    assert lines[3] == "| wafer W0 | 0.03 +- 0.002 |  |"
+    scope = {"by": "wafer", "groups": {"W0": ["a", "b"], "W1": ["c"]}}
+    assert scope_sentence(scope, 3) == "one set of parameters per wafer: W0 (a, b), W1 (c)"
+
+
+@pytest.fixture(scope="module")
+def sky_fits(tmp_path_factory):
+    path = tmp_path_factory.mktemp("sky") / "sky.fits"
+    hp.write_map(path, sky_map(), dtype=np.float64)
+    return path
+
+
+def _diagnosed(tmp_path, sky_fits, mismatch: float, seed: int):
+    pytest.importorskip("toast", reason="the toast extra is not installed")
+    from hwp_tes_systematics.diagnose.toast_testbed import write_toast_recording
+
+    truth: dict = {}
+    path = write_toast_recording(
+        tmp_path,
+        sky_fits,
+        hours=2.0,
+        seed=seed,
+        n_pixels=7,
+        wafers=2,
+        a2_k=A2_K,
+        gain_drift_sigma=0.03,
+        gain_drift_mode="slow_drift",
+        gain_drift_mismatch=mismatch,
+        truth=truth,
+    )
+    recording = read_recording(path)
+    assert set(recording.groups) == {"wafer", "pixel"}
+    return diagnose(recording, sky_map(), A2_K, figures=False).to_dict(), truth
+
+
+@pytest.mark.slow
+def test_a_drift_common_to_each_wafer_is_named_with_its_scope(tmp_path, sky_fits):
+    """TOAST's slow_drift with no part per detector: one drift per wafer (a 1/f stream, not
+    a polynomial). Named a gain drift shared per wafer, the wafers' g1 within 3 sigma."""
+    result, truth = _diagnosed(tmp_path, sky_fits, mismatch=0.0, seed=5)
+    first = result["effects"][0]
+    assert first["name"] == "gain_drift"
+    assert first["scope"]["by"] == "wafer"
+    assert first["scope"]["groups"] == {
+        "W0": [f"D{p}{ab}-140" for p in range(4) for ab in "AB"],
+        "W1": [f"D{p}{ab}-140" for p in range(4, 7) for ab in "AB"],
+    }
+    for wafer, detector in (("W0", "D0A-140"), ("W1", "D6A-140")):
+        fitted = first["parameters"][f"g1[wafer {wafer}]"]
+        expected = truth["gain_drift_legendre"][detector][0]
+        assert abs(fitted["value"] - expected) < 3 * fitted["sigma"], (wafer, fitted, expected)
+
+
+@pytest.mark.slow
+def test_a_drift_of_each_detector_is_named_per_detector(tmp_path, sky_fits):
+    """TOAST's slow_drift, each detector its own stream: a gain drift per detector (not the
+    2f-only slow modulation, which has as many parameters but leaves the dipole's drift)."""
+    result, _ = _diagnosed(tmp_path, sky_fits, mismatch=1.0, seed=7)
+    first = result["effects"][0]
+    assert first["name"] == "gain_drift"
+    assert first["scope"]["by"] == "detector"
+    assert "hwpss_slow_modulation" not in {e["name"] for e in result["effects"]}
