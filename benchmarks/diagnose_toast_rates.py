@@ -30,6 +30,20 @@ fainter than the map the diagnosis is given. Then one case:
   diagnosis's gain takes; the diagnosis composes the nonlinearity on the drifted signal,
   so the ramp's change of g1 over the recording, +-s/2, is left to the residual).
 
+The wafer cases (``--only clean_wafers wafer_drift detector_drift mixed_drift``): 14
+detectors (seven pixels) on 2 or 3 wafers (a focal-plane ``wafer`` column), the rest
+drawn as above, and TOAST's ``GainDrifter`` in ``slow_drift`` mode (a 1/f gain stream
+below 0.2 mHz, sigma 1e-2 - 5e-2, ``--slow-range``; ``detector_mismatch`` m its part
+per detector, 1 - m common to a wafer):
+
+* ``clean_wafers``: no drift (false alarms);
+* ``wafer_drift``: m = 0, expected ``gain_drift`` with scope ``wafer``;
+* ``detector_drift``: m = 1, expected ``gain_drift`` with scope ``detector``;
+* ``mixed_drift``: m in 0.2 - 0.5, expected ``gain_drift`` (its scope counted);
+
+each g1 (a group's, or each detector's) against the P1 coefficient of the gain stream
+over (1 + its P0) (the group's mean for a group).
+
 Prints one line per recording and, per case, the rates: per recording (every detector's
 parameters within 3 sigma; a parameter without a sigma fails) and per parameter, the
 pulls' standard deviation, and the rates by the effect's strength |truth| / sigma (the
@@ -58,6 +72,11 @@ from hwp_tes_systematics.diagnose.toast_testbed import write_toast_recording
 from hwp_tes_systematics.sky import cmb_map
 
 CASES = ("clean", "nonlinearity", "gain_drift", "both")
+# 14 detectors on 2 or 3 wafers, TOAST's slow_drift: a 1/f gain stream below 0.2 mHz,
+# detector_mismatch m its part per detector, 1 - m common to a wafer
+WAFER_CASES = ("clean_wafers", "wafer_drift", "detector_drift", "mixed_drift")
+MISMATCH = {"wafer_drift": (0.0, 0.0), "detector_drift": (1.0, 1.0), "mixed_drift": (0.2, 0.5)}
+EXPECTED_SCOPE = {"wafer_drift": "wafer", "detector_drift": "detector"}
 NONLINEARITY_NAMES = ("tes_nonlinearity", "tes_nonlinearity_cubic")
 START = datetime(2032, 1, 1, tzinfo=UTC)
 
@@ -66,7 +85,7 @@ def log_uniform(rng, bounds) -> float:
     return float(np.exp(rng.uniform(np.log(bounds[0]), np.log(bounds[1]))))
 
 
-def draw(case: str, rng: np.random.Generator, g1_range, drift_range) -> dict:
+def draw(case: str, rng: np.random.Generator, g1_range, drift_range, slow_range) -> dict:
     """The recording's set-up, nominal errors and injected effect."""
     a2_true = float(rng.uniform(0.1, 0.4))
     setup = {
@@ -83,6 +102,12 @@ def draw(case: str, rng: np.random.Generator, g1_range, drift_range) -> dict:
         "n_pixels": 7 if rng.random() < 0.2 else 1,
         "flagged_fraction": 0.02 if rng.random() < 1 / 3 else 0.0,
     }
+    if case in WAFER_CASES:
+        setup.update(n_pixels=7, wafers=int(rng.choice([2, 3])))
+    if case in MISMATCH:
+        setup["gain_drift_mode"] = "slow_drift"
+        setup["gain_drift_mismatch"] = float(rng.uniform(*MISMATCH[case]))
+        setup["gain_drift_sigma"] = log_uniform(rng, slow_range)
     if case in ("nonlinearity", "both"):
         setup["g1_per_k"] = float(rng.choice([-1, 1])) * log_uniform(rng, g1_range)
     if case in ("gain_drift", "both"):
@@ -115,13 +140,47 @@ def fitted(parameters: dict, name: str) -> dict:
     }
 
 
+def score_wafer(case: str, result: dict, truth: dict) -> dict:
+    """A slow drift on wafers: gain_drift named, its scope, each detector's (or group's)
+    g1 against the stream's P1 coefficient over (1 + P0) (the nominal gain takes P0)."""
+    effects = result["effects"]
+    record = {"reported": [e["name"] for e in effects], "unexplained": len(result["unexplained"])}
+    match = [effect for effect in effects if effect["name"] == "gain_drift"]
+    record["named"] = bool(match)
+    record["first"] = bool(effects) and effects[0]["name"] == "gain_drift"
+    record["pulls"] = []
+    record["within_3_sigma"] = False
+    if not match:
+        return record
+    scope = match[0]["scope"]
+    record["scope"] = scope["by"]
+    g1 = {
+        name: truth["gain_drift_legendre"][name][0] / (1 + truth["gain_drift_mean"][name])
+        for name in truth["detectors"]
+    }
+    groups = {f"{scope['by']} {label}": members for label, members in scope["groups"].items()}
+    for group, members in groups.items():  # a group's truth: its detectors' mean
+        g1[group] = float(np.mean([g1[name] for name in members]))
+    parameters = match[0]["parameters"]
+    if groups:  # the groups' values only (each detector's is its group's)
+        parameters = {k: p for k, p in parameters.items() if p["detector"] in groups}
+    pulls, strength = within(parameters, "g1", g1)
+    record["gain_drift_fitted"] = fitted(parameters, "g1")
+    record["gain_drift_strength"] = round(strength, 2)
+    record["pulls"] = [round(p, 2) for p in pulls]
+    record["within_3_sigma"] = all(abs(p) < 3 for p in pulls)
+    return record
+
+
 def score(case: str, result: dict, setup: dict, truth: dict) -> dict:
     effects = result["effects"]
     names = [effect["name"] for effect in effects]
     record = {"reported": names, "unexplained": len(result.get("unexplained", []))}
-    if case == "clean":
+    if case in ("clean", "clean_wafers"):
         record["false_alarm"] = bool(names or record["unexplained"])
         return record
+    if case in MISMATCH:
+        return score_wafer(case, result, truth)
     expected = []
     if case in ("nonlinearity", "both"):
         expected.append("nonlinearity")
@@ -158,10 +217,10 @@ def score(case: str, result: dict, setup: dict, truth: dict) -> dict:
     return record
 
 
-def one(case: str, seed: int, folder: Path, g1_range, drift_range) -> dict:
+def one(case: str, seed: int, folder: Path, g1_range, drift_range, slow_range) -> dict:
     """Draw, write with TOAST, read and diagnose one recording; its record."""
-    rng = np.random.default_rng([seed, CASES.index(case)])
-    drawn = draw(case, rng, g1_range, drift_range)
+    rng = np.random.default_rng([seed, (CASES + WAFER_CASES).index(case)])
+    drawn = draw(case, rng, g1_range, drift_range, slow_range)
     sky = cmb_map(NSIDE, 3 * NSIDE - 1, 0.0, MASTER_SEED, drawn["sky_seed"], 30.8)
     folder.mkdir(parents=True)
     sky_fits = folder / "sky.fits"  # what TOAST scans: the sky the diagnosis is given, rescaled
@@ -185,12 +244,12 @@ def one(case: str, seed: int, folder: Path, g1_range, drift_range) -> dict:
 
 def summary(records: list[dict]) -> list[str]:
     lines = []
-    for case in CASES:
+    for case in CASES + WAFER_CASES:
         rows = [r for r in records if r["case"] == case]
         if not rows:
             continue
         n = len(rows)
-        if case == "clean":
+        if case in ("clean", "clean_wafers"):
             alarms = sum(r["false_alarm"] for r in rows)
             lines.append(f"{case:13s} {n:3d} recordings: false alarms {alarms}/{n}")
         else:
@@ -208,6 +267,18 @@ def summary(records: list[dict]) -> list[str]:
                 f"per parameter {inside_p}/{len(pulls)}; pulls' sd {np.std(finite):.2f}"
             )
             lines += by_amplitude(case, rows)
+            if case in MISMATCH:
+                scopes = [r.get("scope", "none") for r in rows]
+                counts = ", ".join(f"{k} {scopes.count(k)}" for k in sorted(set(scopes)))
+                right = sum(s == EXPECTED_SCOPE.get(case) for s in scopes)
+                lines.append(
+                    f"    scope: {counts}"
+                    + (
+                        f" (expected {EXPECTED_SCOPE[case]}: {right}/{n})"
+                        if case in EXPECTED_SCOPE
+                        else ""
+                    )
+                )
     seconds = [r["seconds"] for r in records]
     lines.append(
         f"diagnosis time per recording: median {np.median(seconds):.1f} s, max {max(seconds):.1f} s"
@@ -240,11 +311,16 @@ def main() -> None:
     )
     parser.add_argument("--per-case", type=int, default=20, help="recordings per case")
     parser.add_argument("--first-seed", type=int, default=1)
-    parser.add_argument("--only", nargs="+", choices=CASES, default=list(CASES))
+    parser.add_argument(
+        "--only", nargs="+", choices=CASES + WAFER_CASES, default=list(CASES), help="cases"
+    )
     parser.add_argument("--out", type=Path)
     parser.add_argument("--combine", nargs="+", type=Path, metavar="JSON")
     parser.add_argument("--g1-range", nargs=2, type=float, default=(2e-3, 3e-2), help="1/K")
     parser.add_argument("--drift-range", nargs=2, type=float, default=(3e-3, 3e-2))
+    parser.add_argument(
+        "--slow-range", nargs=2, type=float, default=(1e-2, 5e-2), help="slow_drift's sigma"
+    )
     arguments = parser.parse_args()
     if arguments.combine:
         records = [r for path in arguments.combine for r in json.loads(path.read_text())]
@@ -261,6 +337,7 @@ def main() -> None:
                     folder / f"{case}_{seed}",
                     arguments.g1_range,
                     arguments.drift_range,
+                    arguments.slow_range,
                 )
                 records.append(record)
                 print(json.dumps(record), file=sys.stderr, flush=True)

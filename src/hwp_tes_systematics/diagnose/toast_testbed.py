@@ -61,7 +61,8 @@ def write_toast_recording(
     common to a wafer). ``edit(data)`` is called on the ``toast.Data`` just before it is
     saved; ``truth`` (a dict) receives each detector's gain g(t) GainDrifter applied: the
     end of the ramp g - 1 as ``gain_drift_slope`` and its Legendre coefficients over the
-    recording (P1..P3, unweighted) as ``gain_drift_legendre``; ``start``: the
+    recording (unweighted) as ``gain_drift_mean`` (P0) and ``gain_drift_legendre``
+    (P1..P3); ``start``: the
     observation's start (UTC)."""
     import astropy.units as u
     import toast
@@ -183,11 +184,13 @@ def _drift_gains(data, drifter: tuple, truth: dict | None) -> None:
         x = np.linspace(-1.0, 1.0, observation.n_local_samples)
         basis = np.stack([np.polynomial.legendre.Legendre.basis(j)(x) for j in range(4)])
         truth["gain_drift_slope"] = {}
+        truth["gain_drift_mean"] = {}
         truth["gain_drift_legendre"] = {}
         for name in observation.local_detectors:
             drift = np.asarray(gains[name]) - 1.0
             coefficients = np.linalg.lstsq(basis.T, drift, rcond=None)[0]
             truth["gain_drift_slope"][name] = float(drift[-1])
+            truth["gain_drift_mean"][name] = float(coefficients[0])
             truth["gain_drift_legendre"][name] = coefficients[1:].tolist()
     ops.Delete(detdata=["unit_gain"]).apply(data)
 
