@@ -30,6 +30,11 @@ fainter than the map the diagnosis is given. Then one case:
   diagnosis's gain takes; the diagnosis composes the nonlinearity on the drifted signal,
   so the ramp's change of g1 over the recording, +-s/2, is left to the residual).
 
+``crosstalk``: TOAST's ``CrossTalk`` (after the noise: the readout's) with 1 coupling
+(a pair) or 1-3 (14 detectors) between random detectors, |c_ij| 1e-2 - 5e-2
+(``--crosstalk-range``), half of them with a coupling back of 0 - 1 times it; expected
+``detector_crosstalk`` taking exactly the coupled pairs, x within 3 sigma of c_ij + c_ji.
+
 The wafer cases (``--only clean_wafers wafer_drift detector_drift mixed_drift``): 14
 detectors (seven pixels) on 2 or 3 wafers (a focal-plane ``wafer`` column), the rest
 drawn as above, and TOAST's ``GainDrifter`` in ``slow_drift`` mode (a 1/f gain stream
@@ -74,7 +79,7 @@ from hwp_tes_systematics.sky import cmb_map
 CASES = ("clean", "nonlinearity", "gain_drift", "both")
 # 14 detectors on 2 or 3 wafers, TOAST's slow_drift: a 1/f gain stream below 0.2 mHz,
 # detector_mismatch m its part per detector, 1 - m common to a wafer
-WAFER_CASES = ("clean_wafers", "wafer_drift", "detector_drift", "mixed_drift")
+WAFER_CASES = ("clean_wafers", "wafer_drift", "detector_drift", "mixed_drift", "crosstalk")
 MISMATCH = {"wafer_drift": (0.0, 0.0), "detector_drift": (1.0, 1.0), "mixed_drift": (0.2, 0.5)}
 EXPECTED_SCOPE = {"wafer_drift": "wafer", "detector_drift": "detector"}
 NONLINEARITY_NAMES = ("tes_nonlinearity", "tes_nonlinearity_cubic")
@@ -85,7 +90,9 @@ def log_uniform(rng, bounds) -> float:
     return float(np.exp(rng.uniform(np.log(bounds[0]), np.log(bounds[1]))))
 
 
-def draw(case: str, rng: np.random.Generator, g1_range, drift_range, slow_range) -> dict:
+def draw(
+    case: str, rng: np.random.Generator, g1_range, drift_range, slow_range, crosstalk_range=None
+) -> dict:
     """The recording's set-up, nominal errors and injected effect."""
     a2_true = float(rng.uniform(0.1, 0.4))
     setup = {
@@ -102,8 +109,18 @@ def draw(case: str, rng: np.random.Generator, g1_range, drift_range, slow_range)
         "n_pixels": 7 if rng.random() < 0.2 else 1,
         "flagged_fraction": 0.02 if rng.random() < 1 / 3 else 0.0,
     }
-    if case in WAFER_CASES:
+    if case in WAFER_CASES and case != "crosstalk":
         setup.update(n_pixels=7, wafers=int(rng.choice([2, 3])))
+    if case == "crosstalk":  # 1-3 couplings c_ij, one direction or both
+        n_det = 2 * setup["n_pixels"]
+        couplings = {}
+        for _ in range(1 if n_det == 2 else int(rng.integers(1, 4))):
+            i, j = (int(k) for k in rng.choice(n_det, 2, replace=False))
+            value = float(rng.choice([-1, 1])) * log_uniform(rng, crosstalk_range)
+            couplings[f"{i},{j}"] = value
+            if rng.random() < 0.5:
+                couplings[f"{j},{i}"] = value * float(rng.uniform(0.0, 1.0))
+        setup["crosstalk"] = couplings
     if case in MISMATCH:
         setup["gain_drift_mode"] = "slow_drift"
         setup["gain_drift_mismatch"] = float(rng.uniform(*MISMATCH[case]))
@@ -172,6 +189,38 @@ def score_wafer(case: str, result: dict, truth: dict) -> dict:
     return record
 
 
+def score_crosstalk(result: dict, setup: dict, truth: dict) -> dict:
+    """TOAST's CrossTalk: detector_crosstalk named, the pairs it takes against the pairs
+    coupled, x_ij against c_ij + c_ji for each pair coupled (TOAST's detectors have one NET)."""
+    effects = result["effects"]
+    record = {"reported": [e["name"] for e in effects], "unexplained": len(result["unexplained"])}
+    names = truth["detectors"]
+    coupled: dict[str, float] = {}
+    for key, value in setup["crosstalk"].items():
+        i, j = sorted(int(k) for k in key.split(","))
+        pair = f"{names[i]}-{names[j]}"
+        coupled[pair] = coupled.get(pair, 0.0) + value
+    match = [e for e in effects if e["name"] == "detector_crosstalk"]
+    record["named"] = bool(match)
+    record["first"] = bool(effects) and effects[0]["name"] == "detector_crosstalk"
+    record["pulls"], record["within_3_sigma"] = [], False
+    if not match:
+        return record
+    parameters = match[0]["parameters"]
+    taken = {p["detector"] for p in parameters.values() if p.get("taken")}
+    record["pairs_missed"] = sorted(set(coupled) - taken)
+    record["pairs_false"] = sorted(taken - set(coupled))
+    pulls = [
+        (parameters[f"x[{pair}]"]["value"] - value) / parameters[f"x[{pair}]"]["sigma"]
+        for pair, value in coupled.items()
+    ]
+    strengths = [abs(v) / parameters[f"x[{p}]"]["sigma"] for p, v in coupled.items()]
+    record["crosstalk_strength"] = round(min(strengths), 2)
+    record["pulls"] = [round(p, 2) for p in pulls]
+    record["within_3_sigma"] = all(abs(p) < 3 for p in pulls)
+    return record
+
+
 def score(case: str, result: dict, setup: dict, truth: dict) -> dict:
     effects = result["effects"]
     names = [effect["name"] for effect in effects]
@@ -181,6 +230,8 @@ def score(case: str, result: dict, setup: dict, truth: dict) -> dict:
         return record
     if case in MISMATCH:
         return score_wafer(case, result, truth)
+    if case == "crosstalk":
+        return score_crosstalk(result, setup, truth)
     expected = []
     if case in ("nonlinearity", "both"):
         expected.append("nonlinearity")
@@ -217,16 +268,21 @@ def score(case: str, result: dict, setup: dict, truth: dict) -> dict:
     return record
 
 
-def one(case: str, seed: int, folder: Path, g1_range, drift_range, slow_range) -> dict:
-    """Draw, write with TOAST, read and diagnose one recording; its record."""
+def one(case: str, seed: int, folder: Path, ranges: tuple) -> dict:
+    """Draw, write with TOAST, read and diagnose one recording; its record. ``ranges``:
+    those of g1, the linear drift, the slow drift and the crosstalk."""
     rng = np.random.default_rng([seed, (CASES + WAFER_CASES).index(case)])
-    drawn = draw(case, rng, g1_range, drift_range, slow_range)
+    drawn = draw(case, rng, *ranges)
     sky = cmb_map(NSIDE, 3 * NSIDE - 1, 0.0, MASTER_SEED, drawn["sky_seed"], 30.8)
     folder.mkdir(parents=True)
     sky_fits = folder / "sky.fits"  # what TOAST scans: the sky the diagnosis is given, rescaled
     hp.write_map(sky_fits, drawn["sky_scale"] * sky, dtype=np.float64)
     start_time = START + timedelta(days=drawn["setup"]["start_day"])
     setup = {key: value for key, value in drawn["setup"].items() if key != "start_day"}
+    if "crosstalk" in setup:  # drawn as "i,j" keys (JSON), given as (i, j)
+        setup["crosstalk"] = {
+            tuple(int(k) for k in key.split(",")): v for key, v in setup["crosstalk"].items()
+        }
     truth: dict = {}
     path = write_toast_recording(
         folder, sky_fits, seed=seed, truth=truth, start=start_time, **setup
@@ -289,6 +345,13 @@ def summary(records: list[dict]) -> list[str]:
 def by_amplitude(case: str, rows: list[dict]) -> list[str]:
     """Per decade of the drawn amplitude (g1 [1/K], or the drift's sigma): named / drawn,
     and within 3 sigma / named."""
+    if case == "crosstalk":  # its pairs: the ones missed and the ones taken uncoupled
+        missed = sum(len(r.get("pairs_missed", [])) for r in rows)
+        false = sum(len(r.get("pairs_false", [])) for r in rows)
+        coupled = sum(
+            len({tuple(sorted(k.split(","))) for k in r["setup"]["crosstalk"]}) for r in rows
+        )
+        return [f"    pairs coupled {coupled}: missed {missed}, taken uncoupled {false}"]
     key = "g1_per_k" if case in ("nonlinearity", "both") else "gain_drift_sigma"
     decades = sorted({math.floor(math.log10(abs(r["setup"][key]))) for r in rows})
     if len(decades) < 2:
@@ -321,6 +384,9 @@ def main() -> None:
     parser.add_argument(
         "--slow-range", nargs=2, type=float, default=(1e-2, 5e-2), help="slow_drift's sigma"
     )
+    parser.add_argument(
+        "--crosstalk-range", nargs=2, type=float, default=(1e-2, 5e-2), help="|c_ij|"
+    )
     arguments = parser.parse_args()
     if arguments.combine:
         records = [r for path in arguments.combine for r in json.loads(path.read_text())]
@@ -335,9 +401,12 @@ def main() -> None:
                     case,
                     seed,
                     folder / f"{case}_{seed}",
-                    arguments.g1_range,
-                    arguments.drift_range,
-                    arguments.slow_range,
+                    (
+                        arguments.g1_range,
+                        arguments.drift_range,
+                        arguments.slow_range,
+                        arguments.crosstalk_range,
+                    ),
                 )
                 records.append(record)
                 print(json.dumps(record), file=sys.stderr, flush=True)

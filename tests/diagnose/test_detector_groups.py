@@ -125,3 +125,50 @@ def test_a_drift_of_each_detector_is_named_per_detector(tmp_path, sky_fits):
     assert first["name"] == "gain_drift"
     assert first["scope"]["by"] == "detector"
     assert "hwpss_slow_modulation" not in {e["name"] for e in result["effects"]}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("coupling", [0.05, 0.0])
+def test_toasts_crosstalk_is_found_in_the_pair_it_couples(tmp_path, sky_fits, coupling):
+    """TOAST's CrossTalk, 5 % of D0A's TOD into D0B, one hour: the residuals' correlation
+    names the pair, x within 3 sigma of c; without it, nothing is named."""
+    pytest.importorskip("toast", reason="the toast extra is not installed")
+    from hwp_tes_systematics.diagnose.toast_testbed import write_toast_recording
+
+    path = write_toast_recording(
+        tmp_path,
+        sky_fits,
+        hours=1.0,
+        seed=4,
+        a2_k=A2_K,
+        crosstalk={(1, 0): coupling} if coupling else None,
+    )
+    result = diagnose(read_recording(path), sky_map(), A2_K, figures=False).to_dict()
+    found = {e["name"]: e for e in result["effects"]}
+    if not coupling:
+        assert "detector_crosstalk" not in found
+        return
+    x = found["detector_crosstalk"]["parameters"]["x[D0A-140-D0B-140]"]
+    assert abs(x["value"] - coupling) < 3 * x["sigma"], x
+    assert x["sigma"] < coupling / 5
+
+
+@pytest.mark.slow
+def test_crosstalk_among_fourteen_detectors_takes_exactly_the_coupled_pairs(tmp_path, sky_fits):
+    """TOAST's CrossTalk, c = 0.03 between three pairs of 14 detectors (one of them
+    negative), one hour: exactly those 3 of the 91 pairs are taken."""
+    pytest.importorskip("toast", reason="the toast extra is not installed")
+    from hwp_tes_systematics.diagnose.toast_testbed import write_toast_recording
+
+    couplings = {(0, 1): 0.03, (3, 8): 0.03, (12, 2): -0.03}
+    path = write_toast_recording(
+        tmp_path, sky_fits, hours=1.0, seed=5, n_pixels=7, a2_k=A2_K, crosstalk=couplings
+    )
+    recording = read_recording(path)
+    result = diagnose(recording, sky_map(), A2_K, figures=False).to_dict()
+    (entry,) = [e for e in result["effects"] if e["name"] == "detector_crosstalk"]
+    names = recording.detector_names
+    coupled = {f"{names[min(i, j)]}-{names[max(i, j)]}" for i, j in couplings}
+    taken = {p["detector"] for p in entry["parameters"].values() if p["taken"]}
+    assert len(entry["parameters"]) == 91
+    assert taken == coupled

@@ -43,6 +43,7 @@ def write_toast_recording(
     gain_drift_mode: str = "linear_drift",
     gain_drift_mismatch: float = 1.0,
     wafers: int = 1,
+    crosstalk: dict | None = None,
     dipole: bool = True,
     noise: bool = True,
     net_uk_rts: float = 50.0,
@@ -63,7 +64,9 @@ def write_toast_recording(
     end of the ramp g - 1 as ``gain_drift_slope`` and its Legendre coefficients over the
     recording (unweighted) as ``gain_drift_mean`` (P0) and ``gain_drift_legendre``
     (P1..P3); ``start``: the
-    observation's start (UTC)."""
+    observation's start (UTC). ``crosstalk``: {(i, j): c_ij}, TOAST's ``CrossTalk`` adding
+    c_ij of detector j's TOD (signal and noise) to detector i's, i and j indices in the
+    focal plane's order."""
     import astropy.units as u
     import toast
     from toast import ops
@@ -112,6 +115,8 @@ def write_toast_recording(
         ops.DefaultNoiseModel().apply(data)
         ops.SimNoise(realization=seed).apply(data)
     ops.Delete(detdata=[pixels.pixels, weights.weights, pointing.quats]).apply(data)
+    if crosstalk:
+        _crosstalk(data, crosstalk, Path(folder))
     if net_written_factor != 1.0:
         table = observation.telescope.focalplane.detector_data
         table["psd_net"] = table["psd_net"] * net_written_factor
@@ -193,6 +198,20 @@ def _drift_gains(data, drifter: tuple, truth: dict | None) -> None:
             truth["gain_drift_mean"][name] = float(coefficients[0])
             truth["gain_drift_legendre"][name] = coefficients[1:].tolist()
     ops.Delete(detdata=["unit_gain"]).apply(data)
+
+
+def _crosstalk(data, couplings: dict, folder: Path) -> None:
+    """TOAST's CrossTalk with the matrix of ``couplings`` (written as its .npz file)."""
+    from toast import ops
+
+    detectors = data.obs[0].telescope.focalplane.detectors
+    matrix = np.zeros((len(detectors), len(detectors)))
+    for (i, j), value in couplings.items():
+        matrix[i, j] = value
+    path = folder / "crosstalk_matrix.npz"
+    np.savez(path, matrix=matrix)
+    ops.CrossTalk(xtalk_mat_file=str(path)).apply(data)
+    path.unlink()
 
 
 def _flag_stretches(observation, fraction: float, rng, n_stretches: int = 4) -> None:

@@ -64,9 +64,12 @@ from .base import (
     register,
     unregister,
 )
+from .crosstalk import DetectorCrosstalk
 from .gain import (
     GainDrift,
     GainDriftCommon,
+    GainDriftPerGroup,
+    GainDriftSmooth,
     GainFluctuations,
 )
 from .glitches import (
@@ -92,7 +95,7 @@ from .nonlinearity import (
     TesNonlinearity,
     TesNonlinearityCubic,
 )
-from .pointing import PointingDrift, PointingOffset, PointingOffsetCommon
+from .pointing import PointingDrift, PointingOffset, PointingOffsetCommon, PointingOffsetPerGroup
 from .time_constant import (
     DetectorTimeConstant,
     single_pole,
@@ -152,10 +155,13 @@ __all__ = [
     "OUTSIDE_CATALOG",
     "REGISTRIES",
     "SELECTION_THRESHOLD",
+    "DetectorCrosstalk",
     "DetectorTimeConstant",
     "Effect",
     "GainDrift",
     "GainDriftCommon",
+    "GainDriftPerGroup",
+    "GainDriftSmooth",
     "GainFluctuations",
     "GlitchEvent",
     "Glitches",
@@ -169,6 +175,7 @@ __all__ = [
     "PointingDrift",
     "PointingOffset",
     "PointingOffsetCommon",
+    "PointingOffsetPerGroup",
     "TesNonlinearity",
     "TesNonlinearityCubic",
     "catalog_table",
@@ -191,7 +198,7 @@ __all__ = [
 
 def noise_effect(signature: str) -> Effect:
     """The catalog's effect with this signature in the noise (``Effect.noise_signature``:
-    "excess" or "rolloff"), fitted beside the selection."""
+    "excess", "rolloff" or "correlation"), fitted beside the selection."""
     found = [e for e in CATALOG.values() if e.noise_signature == signature]
     if len(found) != 1:
         names = [e.name for e in found]

@@ -311,6 +311,8 @@ def scope_sentence(scope: dict, n_detectors: int) -> str:
     """Which detectors share an effect's parameters (:meth:`.effects.base.Effect.scope`)."""
     if scope["by"] == "detector":
         return f"each of the {n_detectors} detectors its own parameters"
+    if scope["by"] == "pair":
+        return "a coupling per pair of detectors"
     if scope["by"] == "all":
         return f"one set of parameters for all {n_detectors} detectors"
     groups = ", ".join(

@@ -28,6 +28,9 @@ class Selection:
     history: list  # every step of every pass
     fluctuation: object  # the fitted excess noise (noise_effect("excess").fit_noise) or None
     rolloff: object  # the noise's roll-off beside the effects (noise_effect("rolloff").fit_noise)
+    # the pairs' coupling in the final residual (noise_effect("correlation").fit_noise), or
+    # None for one detector
+    crosstalk: object
     noise_models: list  # the noise of the final fit
     residual_after: np.ndarray  # (n_det, n_samples) the residual less the final fit [K]
     partial: dict  # {effect: the residual with that effect alone put back}
@@ -43,7 +46,8 @@ def select_effects(
     effects are, or a gain fluctuation (:mod:`.fluctuations`, an excess noise in the 2f
     sidebands) is taken into it, the selection runs again with the new weights, starting
     from the effects found. Then the fluctuation and the noise's roll-off are fitted
-    again beside the final effects. Updates ``fit.adjusted.noise``."""
+    again beside the final effects, and the pairs' crosstalk on the final residual
+    (:mod:`..effects.crosstalk`). Updates ``fit.adjusted.noise``."""
     ctx, adjusted, nominal = fit.context, fit.adjusted, fit.nominal
     noise_models = fit.noise_models
     previous = ()
@@ -131,6 +135,16 @@ def select_effects(
                 adjusted.noise = fluctuation.base_noise
             else:  # the pole's wings were what it took: neither is kept
                 fluctuation = None
+    crosstalk = None
+    if ctx.n_detectors > 1:  # the residuals' correlation, with the final noise
+        crosstalk = noise_effect("correlation").fit_noise(
+            ctx,
+            remaining_f,
+            noise_models,
+            problem.modes,
+            problem.ln_n_eff,
+            threshold=delta_bic_threshold,
+        )
     return Selection(
         problem,
         steps,
@@ -138,6 +152,7 @@ def select_effects(
         history,
         fluctuation,
         rolloff,
+        crosstalk,
         noise_models,
         residual_after,
         partial,
