@@ -63,38 +63,14 @@ def write_toast_recording(
     saved; ``truth`` (a dict) receives each detector's gain g(t) GainDrifter applied: the
     end of the ramp g - 1 as ``gain_drift_slope`` and its Legendre coefficients over the
     recording (unweighted) as ``gain_drift_mean`` (P0) and ``gain_drift_legendre``
-    (P1..P3); ``start``: the
-    observation's start (UTC). ``crosstalk``: {(i, j): c_ij}, TOAST's ``CrossTalk`` adding
+    (P1..P3); ``start``: the observation's start (UTC). ``crosstalk``: {(i, j): c_ij}, TOAST's ``CrossTalk`` adding
     c_ij of detector j's TOD (signal and noise) to detector i's, i and j indices in the
     focal plane's order."""
-    import astropy.units as u
-    import toast
     from toast import ops
-    from toast.instrument import SpaceSite, Telescope
     from toast.observation import default_values as defaults
-    from toast.schedule_sim_satellite import create_satellite_schedule
 
     focalplane = _focalplane(n_pixels, sample_rate_hz, net_uk_rts, fknee_mhz, wafers)
-    schedule = create_satellite_schedule(
-        prefix="obs_",
-        mission_start=start,
-        observation_time=hours * u.hour,
-        gap_time=0 * u.minute,
-        num_observations=1,
-        prec_period=192.348 * u.minute,
-        spin_period=20 * u.minute,
-    )
-    data = toast.Data(toast.Comm())
-    ops.SimSatellite(
-        name="satellite",
-        telescope=Telescope("litebird", focalplane=focalplane, site=SpaceSite("L2")),
-        schedule=schedule,
-        hwp_angle=defaults.hwp_angle,
-        hwp_rpm=hwp_rpm,
-        spin_angle=50 * u.deg,
-        prec_angle=45 * u.deg,
-        coord=coord,
-    ).apply(data)
+    data = _satellite_scan(focalplane, start, hours, hwp_rpm, coord)
     pointing = ops.PointingDetectorSimple(boresight=defaults.boresight_radec)
     pixels = ops.PixelsHealpix(nside=_nside(sky_fits), detector_pointing=pointing)
     weights = ops.StokesWeights(
@@ -127,6 +103,38 @@ def write_toast_recording(
     folder = Path(folder)
     ops.SaveHDF5(volume=str(folder)).apply(data)
     return next(folder.glob("obs_*.h5"))
+
+
+def _satellite_scan(focalplane, start, hours: float, hwp_rpm: float, coord: str):
+    """A ``toast.Data`` with one observation of SimSatellite's LiteBIRD scan and a HWP."""
+    import astropy.units as u
+    import toast
+    from toast import ops
+    from toast.instrument import SpaceSite, Telescope
+    from toast.observation import default_values as defaults
+    from toast.schedule_sim_satellite import create_satellite_schedule
+
+    schedule = create_satellite_schedule(
+        prefix="obs_",
+        mission_start=start,
+        observation_time=hours * u.hour,
+        gap_time=0 * u.minute,
+        num_observations=1,
+        prec_period=192.348 * u.minute,
+        spin_period=20 * u.minute,
+    )
+    data = toast.Data(toast.Comm())
+    ops.SimSatellite(
+        name="satellite",
+        telescope=Telescope("litebird", focalplane=focalplane, site=SpaceSite("L2")),
+        schedule=schedule,
+        hwp_angle=defaults.hwp_angle,
+        hwp_rpm=hwp_rpm,
+        spin_angle=50 * u.deg,
+        prec_angle=45 * u.deg,
+        coord=coord,
+    ).apply(data)
+    return data
 
 
 def _focalplane(n_pixels, sample_rate_hz, net_uk_rts, fknee_mhz, wafers: int):
