@@ -61,7 +61,7 @@ file and what was expected)."""
 
 
 def run_diagnose(
-    recording_path: str,
+    recording_path: str | list[str],
     sky_path: str,
     config_paths: list[str],
     out_dir: str,
@@ -73,8 +73,9 @@ def run_diagnose(
     segment_hours: float | None = None,
     config: dict | None = None,
 ):
-    """Diagnose one recording with the nominal HWPSS and noise of the configured instrument
-    (``config``: the configuration already loaded from ``config_paths``, if it was).
+    """Diagnose one recording (a file, or the files of one observation's detectors) with
+    the nominal HWPSS and noise of the configured instrument (``config``: the
+    configuration already loaded from ``config_paths``, if it was).
 
     ``a2_k`` (``--a2``) overrides the instrument model's A_2; a channel the model does not
     know (a lab detector) needs it (see :func:`.diagnose.recording.nominal_a2`).
@@ -101,7 +102,7 @@ def run_diagnose(
     a2_k = nominal_a2(head, a2_k, lambda channel: channel_a2_k_cmb(config, channel))
     log.info(
         "%s: channel %s, %d detectors, %.2f h%s; nominal A_2 = %.4g K_CMB",
-        recording_path,
+        head.source,
         head.channel,
         head.n_detectors,
         n_samples / rate_hz / 3600,
@@ -303,7 +304,11 @@ def build_parser(prog: str) -> tuple[argparse.ArgumentParser, dict]:
     diagnose.add_argument(
         "recording",
         type=_existing_file,
-        help="litebird_sim or TOAST 3 HDF5 observation file",
+        nargs="+",
+        help=(
+            "litebird_sim or TOAST 3 HDF5 observation file; several: the detectors of one "
+            "observation written apart (the same samples, start and HWP angle)"
+        ),
     )
     diagnose.add_argument(
         "--sky",

@@ -56,6 +56,7 @@ from .recording_checks import (
     declared_layout,
     fail,
     is_toast_file,
+    recording_size,
     rle_flag_names,
 )
 
@@ -272,7 +273,8 @@ def _read_flags(path, handle, n_det: int, start: int, stop: int) -> np.ndarray:
 
 def read_recording(path, memory_budget_bytes=None, samples=None) -> Recording:
     """Read a recording written by :func:`write_recording` (litebird_sim's HDF5 format), or a
-    TOAST 3 observation file (:mod:`.toast_recording`).
+    TOAST 3 observation file (:mod:`.toast_recording`); a list of files: the detectors of
+    one observation, written apart (:func:`merge_recordings`).
 
     ``samples``: (start, stop), read only those samples (a segment: its ``start_time`` is
     the file's plus start / sampling rate, its ``times_s`` start at 0), so that a
@@ -283,6 +285,13 @@ def read_recording(path, memory_budget_bytes=None, samples=None) -> Recording:
     ``memory_budget_bytes`` (default: the available memory; :func:`check_memory`),
     refused before any of its data is read.
     """
+    if isinstance(path, (list, tuple)):
+        paths = [Path(p) for p in path]
+        if len(paths) > 1:
+            n_det, n, rate = recording_size(paths)  # every file's layout, and the sum
+            check_memory(", ".join(map(str, paths)), n_det, n, rate, memory_budget_bytes)
+            return merge_recordings([read_recording(p, math.inf, samples) for p in paths])
+        (path,) = paths
     path = Path(path)
     try:
         check_file(path)
@@ -299,6 +308,47 @@ def read_recording(path, memory_budget_bytes=None, samples=None) -> Recording:
             "or corrupt, e.g. by an interrupted copy or write; copy or write it again "
             "(compare its size or checksum with the original)",
         )
+
+
+def merge_recordings(parts: list[Recording]) -> Recording:
+    """One recording of the detectors of ``parts``, files of one observation: the same
+    samples, start (to half a sample), sampling rate and HWP angle (to 1e-6 rad), distinct
+    detector names; else a :class:`RecordingError` naming the files."""
+    first = parts[0]
+    names = ", ".join(part.source for part in parts)
+    for part in parts[1:]:
+        where = f"{first.source} and {part.source}"
+        if part.n_samples != first.n_samples or part.sampling_rate_hz != first.sampling_rate_hz:
+            fail(
+                where,
+                f"{first.n_samples} and {part.n_samples} samples at {first.sampling_rate_hz:g} "
+                f"and {part.sampling_rate_hz:g} Hz: not the detectors of one observation",
+            )
+        offset_s = float((part.start_time - first.start_time).to_value("s"))
+        if abs(offset_s) > 0.5 / first.sampling_rate_hz:
+            fail(where, f"start {offset_s:.6g} s apart: not the same observation")
+        hwp = np.angle(np.exp(1j * (part.hwp_angle_rad - first.hwp_angle_rad)))
+        if np.max(np.abs(hwp)) > 1e-6:
+            fail(where, f"HWP angles differ by up to {np.max(np.abs(hwp)):.3g} rad")
+    detectors = [d for part in parts for d in part.detectors]
+    seen = [d["name"] for d in detectors]
+    twice = sorted({name for name in seen if seen.count(name) > 1})
+    if twice:
+        fail(names, f"detector(s) {twice} in more than one file")
+    channels = {part.channel for part in parts}
+    return Recording(
+        tod=np.concatenate([part.tod for part in parts]),
+        times_s=first.times_s,
+        sampling_rate_hz=first.sampling_rate_hz,
+        hwp_angle_rad=first.hwp_angle_rad,
+        pointings_ecl=np.concatenate([part.pointings_ecl for part in parts]),
+        detectors=detectors,
+        start_time=first.start_time,
+        flags=np.concatenate([part.flags for part in parts]),
+        channel=channels.pop() if len(channels) == 1 else "",
+        source=" + ".join(part.source for part in parts),
+        orbit=first.orbit,
+    )
 
 
 def _read_recording(path: Path, memory_budget_bytes=None, samples=None) -> Recording:

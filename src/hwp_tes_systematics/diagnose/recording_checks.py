@@ -84,9 +84,16 @@ def _check_flags(path, handle, n_det: int, n: int) -> None:
 
 def recording_size(path) -> tuple[int, int, float]:
     """(detectors, samples, sampling rate [Hz]) a recording file declares, its datasets'
-    shapes checked and none of its data read."""
+    shapes checked and none of its data read; of a list of files of one observation, their
+    detectors summed (their samples and rates must agree)."""
     import h5py
 
+    if isinstance(path, (list, tuple)):
+        sizes = [recording_size(p) for p in path]
+        if len({size[1:] for size in sizes}) > 1:
+            listed = ", ".join(f"{p}: {n} samples at {r:g} Hz" for p, (_, n, r) in zip(path, sizes))
+            fail(", ".join(map(str, path)), f"not one observation ({listed})")
+        return sum(size[0] for size in sizes), sizes[0][1], sizes[0][2]
     path = Path(path)
     try:
         check_file(path)

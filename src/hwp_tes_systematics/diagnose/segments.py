@@ -116,7 +116,7 @@ def diagnose_segments(
     return the combined :class:`.report.diagnosis.Diagnosis`; with ``out_dir``, each segment's
     report in ``out_dir/segments/<i>/`` and the combined diagnosis.json and diagnosis.md
     in ``out_dir``. ``options``: passed to :func:`.pipeline.diagnose`."""
-    path = Path(path)
+    path = [Path(p) for p in path] if isinstance(path, (list, tuple)) else Path(path)
     n_det, n, rate = recording_size(path)
     budget = available_memory_bytes() if memory_budget_bytes is None else memory_budget_bytes
     bounds = plan_segments(n, n_det, rate, budget, segment_hours, str(path))
