@@ -10,11 +10,12 @@ import numpy as np
 
 MIN_SAMPLES = 64
 # What diagnosing a recording needs in memory, checked from the declared sizes before
-# anything is read: the peak RSS of diagnose() grows by 1269 B per detector-sample
-# (M1-140 pair at 31 Hz, 2 h -> 6 h: 429 -> 1509 MiB above the 451-613 MiB of the loaded
-# package; `python benchmarks/diagnose_memory.py --hours 2 6`, with the pointing effects'
-# templates; 1190 B before them), on top of ~0.7 GB.
-DIAGNOSIS_BYTES_PER_DETECTOR_SAMPLE = 1300
+# anything is read: the peak RSS of diagnose() grows by 1808 B per detector-sample
+# (M1-140 pair at 31 Hz, 2 h -> 6 h: 552 -> 2091 MiB above the 457-625 MiB of the loaded
+# package; `python benchmarks/diagnose_memory.py --hours 2 6`, with the smooth gain drift's
+# templates; 1269 B before them; 14 detectors on two wafers with the group forms, 1 -> 2 h
+# at 19 Hz: 1514 B), on top of ~0.7 GB.
+DIAGNOSIS_BYTES_PER_DETECTOR_SAMPLE = 1850
 DIAGNOSIS_BASE_BYTES = 0.7e9
 # A dataset (tod, pointings, hwp_angle, RLE flags) storing less than 1/this of the bytes
 # its shape declares is either compressible data (accepted if every chunk is stored) or

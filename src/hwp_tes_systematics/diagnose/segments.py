@@ -1,7 +1,7 @@
 """Recordings longer than memory allows: diagnosed segment by segment, then combined.
 
 A recording whose diagnosis would need more memory than the budget
-(:func:`.recording.diagnosis_memory_bytes`, ~1300 B per detector-sample, against the
+(:func:`.recording.diagnosis_memory_bytes`, ~1850 B per detector-sample, against the
 available memory or ``--memory-gb``) is cut into equal segments that fit it. Each segment
 is read from the file alone (:func:`.recording.read_recording` with ``samples``) and
 diagnosed in full (:func:`.pipeline.diagnose`; its report in ``segments/<i>/``), so the
