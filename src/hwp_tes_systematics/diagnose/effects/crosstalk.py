@@ -14,13 +14,17 @@ where uncorrelated detectors have none. Normalised, z_f = Re(R_i R_j*) / sqrt(S_
 mean x_ij = c_ij sqrt(S_j / S_i) + c_ji sqrt(S_i / S_j) and variance 1 / 2 per mode: the
 fit (:func:`fit_crosstalk`) is the mean of z over the modes where the white noise rules,
 
-    x_ij = sum_f z_f / M,   sigma = 1 / sqrt(2 M v_ij),   Delta chi^2_ij = (x_ij / sigma)^2,
+    x_ij = sum_f z_f / M,   sigma = 1 / sqrt(2 M v_ij),   Delta chi^2_ij = (x_ij / sigma)^2
 
+(with the sideband shapes below, least squares and its marginal sigma), over the
 M modes above 1 Hz, above three times the pair's higher knee and off the HWP and spin
 lines (the sky, which both detectors see, and a noise common to them through a bath or a
-shared readout below their knee, correlate them at low frequencies only; modes where a
-fitted gain fluctuation's sidebands exceed a tenth of the noise are left out: a coherent
-gain correlates the detectors there), v_ij the fraction of samples valid in both. In the
+shared readout below their knee, correlate them at low frequencies only), v_ij the
+fraction of samples valid in both. A gain fluctuating alike in the detectors correlates
+them too, in the sidebands of the 2f HWPSS: z is fitted as x plus two sideband shapes,
+(|f - 2 f_HWP|^-beta + (f + 2 f_HWP)^-beta) / sqrt(S_i S_j) for beta = 1 and 2, and x's
+sigma is its marginal one (and modes where a fitted fluctuation's sidebands exceed a
+tenth of the noise are left out). In the
 white regime S_j / S_i is a constant, so the data give x_ij: the leak both ways, c_ij +
 c_ji for equal noise levels; which way it goes is not told. A pair is taken when its own
 Delta BIC = -Delta chi^2 + ln N_eff is below the selection threshold (5 sigma for a few
@@ -74,6 +78,7 @@ def fit_crosstalk(ctx: Context, residual_f, noise, ln_n_eff: float, threshold: f
     usable = (freqs >= MIN_FREQUENCY_HZ) & (freqs < 0.5 * fs)
     usable &= ~line_exclusion_mask(freqs, ctx.f_hwp_hz, ctx.f_spin_hz, max(3 * fs / n, 2e-3))
     valid = np.asarray(ctx.valid, dtype=bool)
+    carrier = 2 * ctx.f_hwp_hz
     psd = []
     for k, model in enumerate(noise):
         psd.append(periodogram_scale(n, fs, float(valid[k].mean())) * model.psd(freqs))
@@ -90,12 +95,20 @@ def fit_crosstalk(ctx: Context, residual_f, noise, ln_n_eff: float, threshold: f
             if m < 100:
                 continue
             both = float(np.mean(valid[i] & valid[j]))
-            overlap = both / math.sqrt(float(valid[i].mean() * valid[j].mean()))
-            z = (residual_f[i][used] * residual_f[j][used].conj()).real
-            z /= np.sqrt(psd[i][used] * psd[j][used])
+            overlap = max(both / math.sqrt(float(valid[i].mean() * valid[j].mean())), 1e-12)
+            norm = np.sqrt(psd[i][used] * psd[j][used])
+            z = (residual_f[i][used] * residual_f[j][used].conj()).real / norm
+            # a gain fluctuation common to the detectors correlates them as its sidebands
+            # do, ~|f - 2 f_HWP|^-beta: fitted beside the flat x (beta 1 and 2)
+            offset = np.abs(freqs[used] - carrier)
+            columns = [np.ones(m)] + [
+                (offset**-beta + (freqs[used] + carrier) ** -beta) / norm for beta in (1, 2)
+            ]
+            design = np.stack([c / np.abs(c).max() for c in columns], axis=1)
+            covariance = np.linalg.inv(design.T @ design) / (2 * max(both, 1e-12))
             pairs.append((i, j))
-            coupling.append(float(z.mean()) / max(overlap, 1e-12))
-            sigma.append(1.0 / math.sqrt(2 * m * max(both, 1e-12)) / max(overlap, 1e-12))
+            coupling.append(float(np.linalg.lstsq(design, z, rcond=None)[0][0]) / overlap)
+            sigma.append(math.sqrt(covariance[0, 0]) / overlap)
             modes.append(m)
     coupling, sigma = np.array(coupling), np.array(sigma)
     gain = (coupling / sigma) ** 2 if coupling.size else np.zeros(0)

@@ -178,13 +178,16 @@ def fit_fluctuations(
     psi = carrier_phases(ctx, carrier)
     fmins = [m.fmin_hz for m in noise]
     poles = [rolloff(f, getattr(m, "tau_s", 0.0) ** 2) for m in noise]  # held
-    n_noise = 3 * n_det
+    # a pair's noise has a white correlation x too (crosstalk, :mod:`.crosstalk`), fitted
+    # with and without the fluctuation: the pair's coherent sidebands are not credited
+    # with a correlation a leak between the detectors makes at every frequency
+    n_noise = 3 * n_det + (1 if pair else 0)
 
     def as_start(models):
         out = []
         for m in models:
             out += [math.log(m.net_k_sqrt_s), math.log(max(m.fknee_hz, 1e-5)), m.alpha]
-        return np.array(out)
+        return np.array(out + ([0.0] if pair else []))
 
     start = as_start(noise)
     starts = [start] if also_from is None else [start, as_start(also_from)]
@@ -196,6 +199,8 @@ def fit_fluctuations(
             (math.log(1e-6), math.log(knee_max_hz)),
             (0.05, 6.0),
         ]
+    if pair:
+        noise_bounds.append((-0.5, 0.5))
     excess_bounds = [(math.log(1e-9), 0.0), SLOPE_BOUNDS, (0.0, 1.0)]
 
     def spectra(theta, with_excess):
@@ -208,8 +213,9 @@ def fit_fluctuations(
                 * noise_psd(f, math.exp(log_net), math.exp(log_fknee), alpha, fmins[k])
                 * poles[k]
             )
+        leak = theta[3 * n_det] * np.sqrt(total[0] * total[1]) if pair else None
         if not with_excess:
-            return total, None, None
+            return total, leak, None if leak is None else total[0] * total[1] - leak**2
         log_a, slope, rho = theta[n_noise:]
         lower = gain_psd(f - carrier, math.exp(log_a), slope, resolution)
         upper = gain_psd(f + carrier, math.exp(log_a), slope, resolution)
@@ -223,6 +229,8 @@ def fit_fluctuations(
                 * (lower * np.exp(1j * d_psi) + upper * np.exp(-1j * d_psi))
             )
             det = pair_determinant(total, excess_scales, lower, upper, rho, d_psi)
+            det = det - 2 * (c.real * leak) - leak**2  # |C + X|^2, X = x sqrt(S_A S_B)
+            c = c + leak
         for k in range(n_det):
             total[k] = total[k] + excess_scales[k] * (lower + upper)
         return total, c, det
@@ -234,6 +242,7 @@ def fit_fluctuations(
                 2 * float(np.sum(power[k] / total[k] + counts * np.log(total[k])))
                 for k in range(n_det)
             )
+        det = np.maximum(det, 1e-12 * total[0] * total[1])  # (a far corner of x, rho)
         quadratic = (total[1] * power[0] + total[0] * power[1] - 2 * (c * cross).real) / det
         return 2 * float(np.sum(counts * np.log(det) + quadratic))
 
