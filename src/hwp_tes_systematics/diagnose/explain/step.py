@@ -82,7 +82,8 @@ def explain_effects(
 
 
 def look_alikes(steps, threshold: float) -> dict[str, list[str]]:
-    """For each effect added: the candidates whose Delta BIC came within |threshold| of it.
+    """For each effect added: the candidates whose Delta BIC, their prior penalties left
+    out, came within |threshold| of it.
 
     Those explained the residual (nearly) equally well at that step, so the data do not
     tell them apart (e.g. a gain drift and a 2f amplitude drift in a recording too short
@@ -103,14 +104,21 @@ def look_alikes(steps, threshold: float) -> dict[str, list[str]]:
             continue
         if not step.added or step.added not in step.candidates:
             continue
-        best = step.candidates[step.added]["delta_bic"]
+        # the data's part of the BIC: a prior penalty (Effect.prior_penalty) is not the
+        # data telling two effects apart, so it is left out of the comparison
+        best = step.candidates[step.added]["delta_bic"] - _prior(step.added)
         ties = [
             name
             for name, c in step.candidates.items()
-            if not same_physics(name, step.added) and c["delta_bic"] - best < -threshold
+            if not same_physics(name, step.added)
+            and c["delta_bic"] - _prior(name) - best < -threshold
         ]
         out[step.added] = sorted(set(out.get(step.added, [])) | set(ties))
     return out
+
+
+def _prior(name: str) -> float:
+    return CATALOG[name].prior_penalty if name in CATALOG else 0.0
 
 
 def merge_members(effects: list[dict]) -> list[dict]:
