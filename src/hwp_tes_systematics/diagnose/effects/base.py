@@ -251,6 +251,24 @@ OUTSIDE_CATALOG: dict[str, Effect] = {}  # simulated only: the diagnosis has no 
 REGISTRIES = {"catalog": CATALOG, "injection": INJECTION_ONLY, "outside": OUTSIDE_CATALOG}
 
 
+class PerGroup:
+    """Mixin of a shared effect's per-group form: one instance per focal-plane key of
+    ``group_keys`` (:data:`GROUP_KEYS`), named "<base_name>_per_<key>"."""
+
+    group_keys: ClassVar[tuple[str, ...]] = ()
+    base_name: ClassVar[str] = ""
+    base_title: ClassVar[str] = ""
+
+    def __init__(self, key: str):
+        self.group_by = key
+        self.name = f"{self.base_name}_per_{key}"
+        self.title = f"{self.base_title} common to each {GROUP_KEYS[key]}"
+
+    @classmethod
+    def instances(cls) -> tuple:
+        return tuple(cls(key) for key in cls.group_keys)
+
+
 def group_sentence(effect: Effect, fit, parameters, unit: str) -> str:
     """The sentence stating a per-group effect's values, ``parameters`` of each group in
     ``unit``, and what sharing them within the groups cost (:attr:`Effect.group_by`)."""

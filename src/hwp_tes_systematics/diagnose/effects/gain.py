@@ -12,6 +12,7 @@ from .base import (
     GROUP_KEYS,
     MODULATION_MIN,
     Effect,
+    PerGroup,
     _value,
     group_sentence,
     modulation_degree,
@@ -161,7 +162,7 @@ class GainDriftCommon(GainDrift):
 
 
 @register
-class GainDriftPerGroup(GainDriftCommon):
+class GainDriftPerGroup(PerGroup, GainDriftCommon):
     """A gain drift the same within each focal-plane group and different between groups: a
     wafer's bath temperature, a readout line's bias (``group_by``: one instance per key).
 
@@ -187,14 +188,8 @@ class GainDriftPerGroup(GainDriftCommon):
         "worse: the detectors of a group drift together"
     )
 
-    def __init__(self, key: str = "wafer"):
-        self.group_by = key
-        self.name = f"gain_drift_per_{key}"
-        self.title = f"gain drift common to each {GROUP_KEYS[key]}"
-
-    @classmethod
-    def instances(cls) -> tuple[Effect, ...]:
-        return tuple(cls(key) for key in ("wafer", "squid"))
+    group_keys = ("wafer", "squid")
+    base_name, base_title = "gain_drift", "gain drift"
 
     def degrees(self, ctx) -> tuple[int, ...]:
         top = MODULATION_MIN if ctx is None else modulation_degree(ctx.duration_s)

@@ -7,7 +7,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from .base import GROUP_KEYS, Effect, group_sentence, register
+from .base import Effect, PerGroup, group_sentence, register
 
 SECONDS_PER_HOUR = 3600.0
 
@@ -123,7 +123,7 @@ class PointingOffsetCommon(PointingOffset):
 
 
 @register
-class PointingOffsetPerGroup(PointingOffsetCommon):
+class PointingOffsetPerGroup(PerGroup, PointingOffsetCommon):
     """A pointing offset the same within each focal-plane group: a pixel's horn, a wafer's
     mount moved (``group_by``: one instance per key). The templates of
     :class:`PointingOffset` with one (x, y) per group; offered where the recording's
@@ -137,14 +137,8 @@ class PointingOffsetPerGroup(PointingOffsetCommon):
         "detectors of a group moved together"
     )
 
-    def __init__(self, key: str = "pixel"):
-        self.group_by = key
-        self.name = f"pointing_offset_per_{key}"
-        self.title = f"pointing offset common to each {GROUP_KEYS[key]}"
-
-    @classmethod
-    def instances(cls) -> tuple[Effect, ...]:
-        return tuple(cls(key) for key in ("pixel", "wafer"))
+    group_keys = ("pixel", "wafer")
+    base_name, base_title = "pointing_offset", "pointing offset"
 
     def evidence(self, ev, fit) -> str:
         return "the residual follows the dipole's and the sky's gradient, with " + group_sentence(
