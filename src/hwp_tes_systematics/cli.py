@@ -421,9 +421,11 @@ def main(argv: list[str] | None = None, prog: str | None = None) -> int:
         logging.WARNING if arguments.quiet else logging.DEBUG if arguments.verbose else logging.INFO
     )
     setup_logging(level=level)
-    if not arguments.verbose:  # -v: every module's debug lines; otherwise the package's
+    # -v: every module's debug lines; otherwise the package's (set either way: an earlier
+    # call in the same process may have left the package's logger at another level)
+    log.setLevel(level)
+    if not arguments.verbose:
         logging.getLogger().setLevel(logging.WARNING)
-        log.setLevel(level)
     try:
         result = run_diagnose(
             arguments.recording,

@@ -12,6 +12,7 @@ and put what no catalog effect explains in ``unexplained``.
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -310,7 +311,9 @@ def test_hwp_temperature_drift_is_one_relative_drift_for_all_detectors(tmp_path)
     assert top["name"] == "hwp_temperature_drift", result.effect_names
     assert within(top["parameters"]["r1[common]"], 3e-5 / A2_K)
     assert "gain_drift" in top["look_alikes"], top["look_alikes"]
-    assert "NOT told apart from gain_drift" in top["evidence"], top["evidence"]
+    # said as a tie of the selection (the data fit both within the threshold, priors left
+    # out) or as a signature below detection
+    assert re.search(r"NOT told apart (in this recording )?from gain_drift", top["evidence"])
 
 
 def test_common_mode_gain_drift_is_told_by_the_dipole(tmp_path):
