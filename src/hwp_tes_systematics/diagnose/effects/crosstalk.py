@@ -11,25 +11,24 @@ frequency, with the cross-spectrum
     E[R_i R_j*] = c_ij S_j(f) + c_ji S_i(f),
 
 where uncorrelated detectors have none. Normalised, z_f = Re(R_i R_j*) / sqrt(S_i S_j) has
-mean x_ij = c_ij sqrt(S_j / S_i) + c_ji sqrt(S_i / S_j) and variance 1 / 2 per mode: the
-fit (:func:`fit_crosstalk`) is the mean of z over the modes where the white noise rules,
+mean x_ij = c_ij sqrt(S_j / S_i) + c_ji sqrt(S_i / S_j) and variance 1 / 2 per mode. The
+fit (:func:`fit_crosstalk`) takes the M modes above 1 Hz, above three times the pair's
+higher knee and off the HWP and spin lines (the sky, which both detectors see, and a noise
+common to them through a bath or a shared readout below their knee correlate them at low
+frequencies only). A gain fluctuating alike in the detectors correlates them too, in the
+sidebands of the 2f HWPSS, so z is fitted by least squares as x plus two sideband shapes,
+(|f - 2 f_HWP|^-beta + (f + 2 f_HWP)^-beta) / sqrt(S_i S_j) for beta = 1 and 2:
 
-    x_ij = sum_f z_f / M,   sigma = 1 / sqrt(2 M v_ij),   Delta chi^2_ij = (x_ij / sigma)^2
+    x_ij = the flat term,   sigma = its marginal error (1 / sqrt(2 M v_ij) without the
+    shapes),   Delta chi^2_ij = (x_ij / sigma)^2,
 
-(with the sideband shapes below, least squares and its marginal sigma), over the
-M modes above 1 Hz, above three times the pair's higher knee and off the HWP and spin
-lines (the sky, which both detectors see, and a noise common to them through a bath or a
-shared readout below their knee, correlate them at low frequencies only), v_ij the
-fraction of samples valid in both. A gain fluctuating alike in the detectors correlates
-them too, in the sidebands of the 2f HWPSS: z is fitted as x plus two sideband shapes,
-(|f - 2 f_HWP|^-beta + (f + 2 f_HWP)^-beta) / sqrt(S_i S_j) for beta = 1 and 2, and x's
-sigma is its marginal one (and modes where a fitted fluctuation's sidebands exceed a
-tenth of the noise are left out). In the
-white regime S_j / S_i is a constant, so the data give x_ij: the leak both ways, c_ij +
-c_ji for equal noise levels; which way it goes is not told. A pair is taken when its own
-Delta BIC = -Delta chi^2 + ln N_eff is below the selection threshold (5 sigma for a few
-hours); the effect's Delta BIC is the sum over the pairs taken, and the report gives the
-coupling matrix and a bound |x| + 2 sigma for the pairs not taken.
+v_ij the fraction of samples valid in both (modes where a fitted fluctuation's sidebands
+exceed a tenth of the noise are left out). In the white regime S_j / S_i is a constant, so
+the data give x_ij: the leak both ways, c_ij + c_ji for equal noise levels; which way it
+goes is not told. A pair is taken when its own Delta BIC = -Delta chi^2 + ln N_eff is below
+the selection threshold (5 sigma for a few hours); the effect's Delta BIC is the sum over
+the pairs taken, and the report gives the coupling matrix and a bound |x| + 2 sigma for
+the pairs not taken.
 """
 
 from __future__ import annotations

@@ -29,6 +29,12 @@ def _one_relative_drift(fit, param: str, of: str, why: str = "") -> str:
     )
 
 
+def smooth_degrees(ctx) -> tuple[int, ...]:
+    """1..D, D the slow 2f modulation's degree for this recording (its minimum without one)."""
+    top = MODULATION_MIN if ctx is None else modulation_degree(ctx.duration_s)
+    return tuple(range(1, top + 1))
+
+
 def _common_part(g1, sigma, key: str, labels) -> str:
     """A per-detector drift's part common to each group of ``key``: the weighted mean of
     g1 per group and the chi^2 of the detectors about it (per detector beyond it)."""
@@ -192,8 +198,7 @@ class GainDriftPerGroup(PerGroup, GainDriftCommon):
     base_name, base_title = "gain_drift", "gain drift"
 
     def degrees(self, ctx) -> tuple[int, ...]:
-        top = MODULATION_MIN if ctx is None else modulation_degree(ctx.duration_s)
-        return tuple(range(1, top + 1))
+        return smooth_degrees(ctx)
 
     def evidence(self, ev, fit) -> str:
         """The signature measured on the residual ``ev`` (:class:`.evidence.Evidence`), in words."""
@@ -227,8 +232,7 @@ class GainDriftSmooth(GainDrift):
     )
 
     def degrees(self, ctx) -> tuple[int, ...]:
-        top = MODULATION_MIN if ctx is None else modulation_degree(ctx.duration_s)
-        return tuple(range(1, top + 1))
+        return smooth_degrees(ctx)
 
 
 @register
