@@ -63,9 +63,9 @@ def write_toast_recording(
     saved; ``truth`` (a dict) receives each detector's gain g(t) GainDrifter applied: the
     end of the ramp g - 1 as ``gain_drift_slope`` and its Legendre coefficients over the
     recording (unweighted) as ``gain_drift_mean`` (P0) and ``gain_drift_legendre``
-    (P1..P3); ``start``: the observation's start (UTC). ``crosstalk``: {(i, j): c_ij}, TOAST's ``CrossTalk`` adding
-    c_ij of detector j's TOD (signal and noise) to detector i's, i and j indices in the
-    focal plane's order."""
+    (P1..P3); ``start``: the observation's start (UTC). ``crosstalk``: {(i, j): c_ij},
+    TOAST's ``CrossTalk`` adding c_ij of detector j's TOD (signal and noise) to detector
+    i's, i and j indices in the focal plane's order."""
     from toast import ops
     from toast.observation import default_values as defaults
 

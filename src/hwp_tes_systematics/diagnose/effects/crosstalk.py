@@ -57,16 +57,8 @@ class CrosstalkFit:
     coupling: np.ndarray  # x_ij per pair
     sigma: np.ndarray
     taken: np.ndarray  # bool per pair: Delta BIC below the threshold
-    modes: np.ndarray  # modes used per pair
     delta_chi2: float  # -sum over the pairs taken of (x / sigma)^2
     delta_bic: float
-
-    def matrix(self, n_detectors: int) -> np.ndarray:
-        """The symmetric coupling matrix x (0 on the diagonal)."""
-        out = np.zeros((n_detectors, n_detectors))
-        for (i, j), x in zip(self.pairs, self.coupling, strict=True):
-            out[i, j] = out[j, i] = x
-        return out
 
 
 def fit_crosstalk(ctx: Context, residual_f, noise, ln_n_eff: float, threshold: float):
@@ -85,7 +77,7 @@ def fit_crosstalk(ctx: Context, residual_f, noise, ln_n_eff: float, threshold: f
         if excess is not None:  # a fitted gain fluctuation: its sidebands are coherent
             base = model.base.psd(freqs)
             usable &= np.interp(freqs, model.freqs_hz, excess) < EXCESS_FRACTION * base
-    pairs, coupling, sigma, modes = [], [], [], []
+    pairs, coupling, sigma = [], [], []
     for i in range(ctx.n_detectors):
         for j in range(i + 1, ctx.n_detectors):
             knee = max(getattr(noise[i], "fknee_hz", 0.0), getattr(noise[j], "fknee_hz", 0.0))
@@ -104,11 +96,10 @@ def fit_crosstalk(ctx: Context, residual_f, noise, ln_n_eff: float, threshold: f
                 (offset**-beta + (freqs[used] + carrier) ** -beta) / norm for beta in (1, 2)
             ]
             design = np.stack([c / np.abs(c).max() for c in columns], axis=1)
-            covariance = np.linalg.inv(design.T @ design) / (2 * max(both, 1e-12))
+            inverse = np.linalg.inv(design.T @ design)  # the normal equations, var(z) = 1/2
             pairs.append((i, j))
-            coupling.append(float(np.linalg.lstsq(design, z, rcond=None)[0][0]) / overlap)
-            sigma.append(math.sqrt(covariance[0, 0]) / overlap)
-            modes.append(m)
+            coupling.append(float(inverse[0] @ (design.T @ z)) / overlap)
+            sigma.append(math.sqrt(inverse[0, 0] / (2 * max(both, 1e-12))) / overlap)
     coupling, sigma = np.array(coupling), np.array(sigma)
     gain = (coupling / sigma) ** 2 if coupling.size else np.zeros(0)
     taken = -gain + ln_n_eff < threshold
@@ -118,7 +109,6 @@ def fit_crosstalk(ctx: Context, residual_f, noise, ln_n_eff: float, threshold: f
         coupling=coupling,
         sigma=sigma,
         taken=taken,
-        modes=np.array(modes),
         delta_chi2=delta_chi2,
         delta_bic=delta_chi2 + int(taken.sum()) * ln_n_eff if taken.any() else 0.0,
     )
