@@ -49,6 +49,14 @@ per detector, 1 - m common to a wafer):
 each g1 (a group's, or each detector's) against the P1 coefficient of the gain stream
 over (1 + its P0) (the group's mean for a group).
 
+``bath_fluctuation``: 14 detectors on 2 or 3 wafers, TOAST's ``GainDrifter`` in
+``thermal_drift`` mode twice (a 1/f bath temperature up to Nyquist, fknee 20 mHz): a
+stream common to each wafer or, half of the time, to all detectors, its sigma_drift
+log-uniform in 1e-5 - 1e-4 K (``--thermal-range``), and a stream of each detector's own,
+0.3 - 1.5 times it; expected ``gain_fluctuations`` first, its scope the groups of the
+common stream and rho within 3 sigma of the common stream's share of the gain power
+(a smooth drift named beside it is its slow part, counted as another effect).
+
 Prints one line per recording and, per case, the rates: per recording (every detector's
 parameters within 3 sigma; a parameter without a sigma fails) and per parameter, the
 pulls' standard deviation, and the rates by the effect's strength |truth| / sigma (the
@@ -79,7 +87,14 @@ from hwp_tes_systematics.sky import cmb_map
 CASES = ("clean", "nonlinearity", "gain_drift", "both")
 # 14 detectors on 2 or 3 wafers, TOAST's slow_drift: a 1/f gain stream below 0.2 mHz,
 # detector_mismatch m its part per detector, 1 - m common to a wafer
-WAFER_CASES = ("clean_wafers", "wafer_drift", "detector_drift", "mixed_drift", "crosstalk")
+WAFER_CASES = (
+    "clean_wafers",
+    "wafer_drift",
+    "detector_drift",
+    "mixed_drift",
+    "crosstalk",
+    "bath_fluctuation",
+)
 MISMATCH = {"wafer_drift": (0.0, 0.0), "detector_drift": (1.0, 1.0), "mixed_drift": (0.2, 0.5)}
 EXPECTED_SCOPE = {"wafer_drift": "wafer", "detector_drift": "detector"}
 NONLINEARITY_NAMES = ("tes_nonlinearity", "tes_nonlinearity_cubic")
@@ -91,7 +106,13 @@ def log_uniform(rng, bounds) -> float:
 
 
 def draw(
-    case: str, rng: np.random.Generator, g1_range, drift_range, slow_range, crosstalk_range=None
+    case: str,
+    rng: np.random.Generator,
+    g1_range,
+    drift_range,
+    slow_range,
+    crosstalk_range=None,
+    thermal_range=None,
 ) -> dict:
     """The recording's set-up, nominal errors and injected effect."""
     a2_true = float(rng.uniform(0.1, 0.4))
@@ -121,6 +142,10 @@ def draw(
             if rng.random() < 0.5:
                 couplings[f"{j},{i}"] = value * float(rng.uniform(0.0, 1.0))
         setup["crosstalk"] = couplings
+    if case == "bath_fluctuation":  # a stream common to a wafer (or all), one per detector
+        common = log_uniform(rng, thermal_range)
+        setup["thermal_drift"] = [common, common * float(rng.uniform(0.3, 1.5))]
+        setup["thermal_drift_common_to"] = str(rng.choice(["wafer", "all"]))
     if case in MISMATCH:
         setup["gain_drift_mode"] = "slow_drift"
         setup["gain_drift_mismatch"] = float(rng.uniform(*MISMATCH[case]))
@@ -191,6 +216,30 @@ def score_wafer(case: str, result: dict, truth: dict) -> dict:
     return record
 
 
+def score_fluctuation(result: dict, setup: dict) -> dict:
+    """A bath temperature: gain_fluctuations named, its scope, rho against the common
+    stream's share of the gain power."""
+    effects = result["effects"]
+    record = {"reported": [e["name"] for e in effects], "unexplained": len(result["unexplained"])}
+    match = [e for e in effects if e["name"] == "gain_fluctuations"]
+    record["named"] = bool(match)
+    record["first"] = bool(effects) and effects[0]["name"] == "gain_fluctuations"
+    record["scope_expected"] = setup["thermal_drift_common_to"]
+    record["pulls"], record["within_3_sigma"] = [], False
+    if not match:
+        return record
+    record["scope"] = match[0]["scope"]["by"]
+    common, own = setup["thermal_drift"]
+    rho = match[0]["parameters"]["rho[common]"]
+    expected = common**2 / (common**2 + own**2)
+    record["rho_fitted"], record["rho_expected"] = [rho["value"], rho["sigma"]], expected
+    pulls, strength = within({"rho": rho}, "rho", {"common": expected})
+    record["rho_strength"] = round(strength, 2)
+    record["pulls"] = [round(p, 2) for p in pulls]
+    record["within_3_sigma"] = all(abs(p) < 3 for p in pulls)
+    return record
+
+
 def score_crosstalk(result: dict, setup: dict, truth: dict) -> dict:
     """TOAST's CrossTalk: detector_crosstalk named, the pairs it takes against the pairs
     coupled, x_ij against c_ij + c_ji for each pair coupled (TOAST's detectors have one NET)."""
@@ -238,6 +287,8 @@ def score(case: str, result: dict, setup: dict, truth: dict) -> dict:
         return score_wafer(case, result, truth)
     if case == "crosstalk":
         return score_crosstalk(result, setup, truth)
+    if case == "bath_fluctuation":
+        return score_fluctuation(result, setup)
     expected = []
     if case in ("nonlinearity", "both"):
         expected.append("nonlinearity")
@@ -276,7 +327,7 @@ def score(case: str, result: dict, setup: dict, truth: dict) -> dict:
 
 def one(case: str, seed: int, folder: Path, ranges: tuple) -> dict:
     """Draw, write with TOAST, read and diagnose one recording; its record. ``ranges``:
-    those of g1, the linear drift, the slow drift and the crosstalk."""
+    those of g1, the linear drift, the slow drift, the crosstalk and the bath's stream."""
     rng = np.random.default_rng([seed, (CASES + WAFER_CASES).index(case)])
     drawn = draw(case, rng, *ranges)
     sky = cmb_map(NSIDE, 3 * NSIDE - 1, 0.0, MASTER_SEED, drawn["sky_seed"], 30.8)
@@ -329,6 +380,9 @@ def summary(records: list[dict]) -> list[str]:
                 f"per parameter {inside_p}/{len(pulls)}; pulls' sd {np.std(finite):.2f}"
             )
             lines += by_amplitude(case, rows)
+            if case == "bath_fluctuation":
+                right = sum(r.get("scope") == r["scope_expected"] for r in rows)
+                lines.append(f"    scope the common stream's groups: {right}/{n}")
             if case in MISMATCH:
                 if all("look_alike" in r for r in rows):  # (records made before it: not)
                     alike = sum(not r["named"] and r["look_alike"] for r in rows)
@@ -367,6 +421,9 @@ def by_amplitude(case: str, rows: list[dict]) -> list[str]:
         )
         return [f"    pairs coupled {coupled}: missed {missed}, taken uncoupled {false}"]
     key = "g1_per_k" if case in ("nonlinearity", "both") else "gain_drift_sigma"
+    if case == "bath_fluctuation":  # the common stream's sigma
+        key = "thermal_drift"
+        rows = [{**r, "setup": {key: r["setup"][key][0]}} for r in rows]
     decades = sorted({math.floor(math.log10(abs(r["setup"][key]))) for r in rows})
     if len(decades) < 2:
         return []
@@ -401,6 +458,9 @@ def main() -> None:
     parser.add_argument(
         "--crosstalk-range", nargs=2, type=float, default=(1e-2, 5e-2), help="|c_ij|"
     )
+    parser.add_argument(
+        "--thermal-range", nargs=2, type=float, default=(1e-5, 1e-4), help="common stream's K"
+    )
     arguments = parser.parse_args()
     if arguments.combine:
         records = [r for path in arguments.combine for r in json.loads(path.read_text())]
@@ -420,6 +480,7 @@ def main() -> None:
                         arguments.drift_range,
                         arguments.slow_range,
                         arguments.crosstalk_range,
+                        arguments.thermal_range,
                     ),
                 )
                 records.append(record)

@@ -43,6 +43,8 @@ def write_toast_recording(
     gain_drift_mode: str = "linear_drift",
     gain_drift_mismatch: float = 1.0,
     wafers: int = 1,
+    thermal_drift: tuple[float, float] = (0.0, 0.0),
+    thermal_drift_common_to: str = "wafer",
     crosstalk: dict | None = None,
     dipole: bool = True,
     noise: bool = True,
@@ -65,7 +67,13 @@ def write_toast_recording(
     recording (unweighted) as ``gain_drift_mean`` (P0) and ``gain_drift_legendre``
     (P1..P3); ``start``: the observation's start (UTC). ``crosstalk``: {(i, j): c_ij},
     TOAST's ``CrossTalk`` adding c_ij of detector j's TOD (signal and noise) to detector
-    i's, i and j indices in the focal plane's order."""
+    i's, i and j indices in the focal plane's order. ``thermal_drift``: GainDrifter's
+    ``thermal_drift`` (a bath temperature fluctuating as 1/f up to Nyquist, TOAST's
+    defaults: fknee 20 mHz, alpha 1, 1 K per K over a 100 mK bath) twice, its
+    ``sigma_drift`` [K] for a stream common to each wafer (each pixel with one wafer; with
+    ``thermal_drift_common_to`` "all", to all detectors) and for a stream of each
+    detector's own: the gain's common part has the power fraction
+    rho = s_w^2 / (s_w^2 + s_d^2)."""
     from toast import ops
     from toast.observation import default_values as defaults
 
@@ -87,6 +95,20 @@ def write_toast_recording(
         group = "wafer" if wafers > 1 else "pixel"  # what slow_drift's common part follows
         drifter = (gain_drift_mode, gain_drift_sigma, gain_drift_mismatch, group, seed)
         _drift_gains(data, drifter, truth)
+    common = "pixel" if thermal_drift_common_to == "wafer" and wafers == 1 else "wafer"
+    if thermal_drift_common_to == "all":
+        common = "focalplane"  # a column of one value
+        observation.telescope.focalplane.detector_data[common] = "FP"
+    for component, (group, sigma) in enumerate(zip((common, "name"), thermal_drift)):
+        if sigma:
+            ops.GainDrifter(
+                drift_mode="thermal_drift",
+                sigma_drift=sigma,
+                detector_mismatch=0.0,
+                focalplane_group=group,
+                realization=seed,
+                component=1 + component,
+            ).apply(data)
     if noise:
         ops.DefaultNoiseModel().apply(data)
         ops.SimNoise(realization=seed).apply(data)

@@ -45,6 +45,7 @@ from ..noise import (
     periodogram_scale,
     rolloff,
 )
+from .coherence import CoherenceFit, fit_coherence
 
 F_REF_HZ = 0.01  # the frequency at which the gain PSD's amplitude a is quoted
 # the likelihood leaves out the modes within this of 2 f_HWP: the deterministic effects
@@ -100,6 +101,9 @@ class FluctuationFit:
     base_noise: list  # the white + 1/f models refitted with the excess
     carriers_k: np.ndarray  # A_k
     carrier_hz: float
+    # three or more detectors: rho, and the groups it holds in (:mod:`.coherence`); None
+    # for one detector or a pair (the pair's rho is fitted with the noise)
+    coherence: CoherenceFit | None = None
 
     def rms(self, f_lo_hz: float, f_hi_hz: float) -> float:
         """sqrt(int P_g df) over [f_lo, f_hi]: the gain's rms fluctuation in that band."""
@@ -142,6 +146,7 @@ def fit_fluctuations(
     used: np.ndarray,
     ln_n_eff: float,
     also_from: list[NoiseModel] | None = None,
+    coherence_below: float | None = None,
 ) -> FluctuationFit:
     """Maximum-Whittle-likelihood (a, beta, rho) of the 2f sidebands with each detector's
     noise refitted alongside (module docstring); ``used`` the modes of the likelihood;
@@ -154,7 +159,9 @@ def fit_fluctuations(
     e^{i dpsi} + P_g(f + f_0) e^{-i dpsi}] (dpsi the carriers' phase difference), and
     -2 ln L = sum_f 2 [ln det + R^H Sigma^-1 R]: a gain common to the detectors (rho = 1)
     makes their sidebands coherent while their noise is independent, which separates the
-    sidebands' far wings from the white noise they would otherwise pass for.
+    sidebands' far wings from the white noise they would otherwise pass for. With three or
+    more detectors they are fitted as independent, and, where Delta BIC is below
+    ``coherence_below``, rho and the groups it holds in follow (:mod:`.coherence`).
     """
     n, fs = ctx.n_samples, ctx.sampling_rate_hz
     freqs = scipy.fft.rfftfreq(n, 1.0 / fs)
@@ -297,6 +304,23 @@ def fit_fluctuations(
         base.append(model)
         excess = sideband_psd(freqs, carrier, carriers[k], amplitude, slope, resolution)
         with_excess.append(WithExcess(model, freqs, excess))
+    coherence = None
+    delta_bic = delta_chi2 + (3 if pair else 2) * ln_n_eff
+    if n_det > 2 and coherence_below is not None and delta_bic < coherence_below:
+        coherence = fit_coherence(
+            ctx,
+            rows,
+            freqs[used],
+            carrier,
+            [scales[k] * base[k].psd(freqs[used]) for k in range(n_det)],
+            [scales[k] * carriers[k] ** 2 / 4 for k in range(n_det)],
+            psi,
+            amplitude,
+            slope,
+            resolution,
+            independent,
+        )
+        rho, sigmas[2] = coherence.correlation, coherence.sigma_correlation
     return FluctuationFit(
         amplitude=amplitude,
         slope=slope,
@@ -304,9 +328,10 @@ def fit_fluctuations(
         sigma_amplitude=amplitude * sigmas[0],
         sigma_slope=sigmas[1],
         sigma_correlation=sigmas[2],
+        coherence=coherence,
         # the pair's likelihood counts rho: three parameters (two for one detector)
         delta_chi2=delta_chi2,
-        delta_bic=delta_chi2 + (3 if pair else 2) * ln_n_eff,
+        delta_bic=delta_bic,
         noise=with_excess,
         base_noise=base,
         carriers_k=carriers,

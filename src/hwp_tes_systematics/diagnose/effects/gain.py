@@ -241,8 +241,10 @@ class GainFluctuations(Effect):
     d_obs = (1 + g(t)) d, seen as broadband sidebands of the 2f HWPSS,
     E_k(f) = (A_k^2 / 4) [P_g(|f - 2 f_HWP|) + P_g(f + 2 f_HWP)] (:mod:`.fluctuations`).
 
-    One (a, beta) for all detectors, rho the coherence of their fluctuations (1: one
-    focal-plane temperature; 0: each TES its own); fitted as an excess noise
+    One (a, beta) for all detectors, rho the share of each detector's gain power common to
+    its group (1: one focal-plane or wafer temperature; 0: each TES its own), the groups
+    (all detectors, or each wafer, readout line or pixel) those that fit best
+    (:mod:`.coherence`, three or more detectors; the report's scope); fitted as an excess noise
     by the Whittle likelihood on the residual after the selection, with the detectors'
     noise refitted alongside (``kind`` "noise": :mod:`..select.step` tests it, the linear
     selection never offers it).
@@ -272,7 +274,8 @@ class GainFluctuations(Effect):
 
     def fit_noise(self, ctx, residual_f, noise, used, ln_n_eff, **options):
         """The Whittle fit of (a, beta, rho) with the noise refitted alongside
-        (:func:`.fluctuations.fit_fluctuations`; ``options``: its ``also_from``)."""
+        (:func:`.fluctuations.fit_fluctuations`; ``options``: its ``also_from``,
+        ``coherence_below``)."""
         from .fluctuations import fit_fluctuations
 
         return fit_fluctuations(ctx, residual_f, noise, used, ln_n_eff, **options)
@@ -308,6 +311,7 @@ class GainFluctuations(Effect):
                 if len(fit.carriers_k) == 2
                 else ""
             )
+            + (coherence_sentence(ctx, fit.coherence) + "; " if fit.coherence else "")
             + f"the gain's rms between 0.1 mHz and f_HWP is "
             f"{fit.rms(1e-4, ctx.f_hwp_hz):.3g}; the noise alone fits worse by Delta chi^2 "
             f"{-fit.delta_chi2:.0f}. A gain would also modulate the dipole and the sky: Delta chi^2 "
@@ -351,4 +355,39 @@ class GainFluctuations(Effect):
             "evidence": evidence,
             "signature": self.signature,
             "look_alikes": [look_alike],
+            "scope": fluctuation_scope(ctx, fit.coherence),
         }
+
+
+def fluctuation_scope(ctx, coherence) -> dict:
+    """The report's scope of a gain fluctuation: the groups within which its common part
+    is shared (:class:`.coherence.CoherenceFit`), "all" for a pair or one detector."""
+    names = np.asarray(ctx.detector_names)
+    if coherence is None or coherence.by == "all":
+        return {"by": "all", "groups": {"all": names.tolist()}}
+    return {
+        "by": coherence.by,
+        "groups": {label: names[m].tolist() for label, m in coherence.groups.items()},
+    }
+
+
+def coherence_sentence(ctx, coherence) -> str:
+    """rho and the partition it holds in, against the other partitions, in words."""
+    where = (
+        "across all detectors"
+        if coherence.by == "all"
+        else f"within each {GROUP_KEYS[coherence.by]} and independent between them"
+    )
+    best = coherence.partitions[coherence.by]
+    others = "; ".join(
+        ("one common part for all detectors" if key == "all" else f"per {GROUP_KEYS[key]}")
+        + f" fits worse by Delta chi^2 {value - best:.1f}"
+        for key, value in coherence.partitions.items()
+        if key != coherence.by
+    )
+    return (
+        f"the sidebands are coherent {where}: rho = {coherence.correlation:.3f} +- "
+        f"{coherence.sigma_correlation:.2g} of each detector's gain power is common, the "
+        f"rest its own (independent detectors fit worse by Delta chi^2 "
+        f"{-coherence.delta_chi2:.1f}" + (f"; {others}" if others else "") + ")"
+    )

@@ -98,9 +98,15 @@ def select_effects(
         previous = final.selected  # checked first with the new weights, then extended
     remaining_f = problem.residual_f - np.array(final.model_f)  # of the final fit
 
-    def fluctuation_beside(noise):
+    def fluctuation_beside(noise):  # with the detectors' coherence where it is taken
         return noise_effect("excess").fit_noise(
-            ctx, remaining_f, noise, problem.modes, problem.ln_n_eff, also_from=nominal
+            ctx,
+            remaining_f,
+            noise,
+            problem.modes,
+            problem.ln_n_eff,
+            also_from=nominal,
+            coherence_below=delta_bic_threshold,
         )
 
     if fluctuation is not None:  # its parameters on the final residual
