@@ -172,3 +172,66 @@ def test_crosstalk_among_fourteen_detectors_takes_exactly_the_coupled_pairs(tmp_
     taken = {p["detector"] for p in entry["parameters"].values() if p["taken"]}
     assert len(entry["parameters"]) == 91
     assert taken == coupled
+
+
+def test_a_rank_one_pattern_is_a_common_noise_and_chosen_pairs_are_crosstalk():
+    """The pairs' correlations x_ij = b_i b_j within two groups (and 0 across) are fitted
+    back to b by the rank-one fit of the groups' partition, which beats one group of all;
+    two coupled pairs alone are not a rank-one pattern."""
+    from types import SimpleNamespace
+
+    from hwp_tes_systematics.diagnose.effects.common_mode import fit_common_mode
+
+    rng = np.random.default_rng(3)
+    n_det = 8
+    wafer = ["W0"] * 4 + ["W1"] * 4
+    ctx = SimpleNamespace(n_detectors=n_det, groups={"wafer": tuple(wafer)})
+    b = rng.uniform(0.2, 0.35, n_det)
+    pairs = [(i, j) for i in range(n_det) for j in range(i + 1, n_det)]
+    sigma = np.full(len(pairs), 0.004)
+    same = np.array([wafer[i] == wafer[j] for i, j in pairs])
+    pattern = np.array([b[i] * b[j] for i, j in pairs]) * same
+    x = pattern + rng.normal(0.0, 0.004, len(pairs))
+    common = fit_common_mode(ctx, pairs, x, sigma, ln_n_eff=12.0)
+    assert common.by == "wafer"
+    assert np.all(np.abs(common.share - b) < 4 * common.sigma)
+    assert common.partitions["all"] - common.partitions["wafer"] > 100
+    coupled = np.zeros(len(pairs))
+    coupled[[3, 17]] = 0.05
+    sparse = fit_common_mode(ctx, pairs, coupled + rng.normal(0, 0.004, len(pairs)), sigma, 12.0)
+    # two pairs' chi^2 of ~300 cannot pay 8 parameters' ln N_eff and the pattern's misfit
+    assert sparse.delta_bic > -2 * 0.05**2 / 0.004**2 + 2 * 12.0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("key", "n_pixels"), [("wafer", 7), ("pixel", 1)])
+def test_toasts_common_mode_noise_is_not_crosstalk(tmp_path, sky_fits, key, n_pixels):
+    """TOAST's CommonModeNoise (15 uK sqrt(s) common to each wafer, beside each detector's
+    50): named common_mode_noise with the wafers as its scope and its NET within 10 %, no
+    crosstalk. In a pair the two are one signal: crosstalk, with common_mode_noise as its
+    look-alike."""
+    pytest.importorskip("toast", reason="the toast extra is not installed")
+    from hwp_tes_systematics.diagnose.toast_testbed import write_toast_recording
+
+    path = write_toast_recording(
+        tmp_path,
+        sky_fits,
+        hours=1.0,
+        seed=3,
+        n_pixels=n_pixels,
+        wafers=2 if n_pixels > 1 else 1,
+        a2_k=A2_K,
+        common_mode=(15.0, 20.0, key),
+    )
+    result = diagnose(read_recording(path), sky_map(), A2_K, figures=False).to_dict()
+    names = [e["name"] for e in result["effects"]]
+    if n_pixels == 1:
+        assert names == ["detector_crosstalk"], names
+        assert result["effects"][0]["look_alikes"] == ["common_mode_noise"]
+        return
+    assert names == ["common_mode_noise"], names
+    (entry,) = result["effects"]
+    assert entry["scope"]["by"] == "wafer"
+    shares = [p["value"] ** 2 for p in entry["parameters"].values()]
+    expected = 15.0**2 / (15.0**2 + 50.0**2)  # the common part of each white noise
+    assert abs(np.median(shares) / expected - 1) < 0.2, (shares, expected)

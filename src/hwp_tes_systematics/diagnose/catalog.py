@@ -42,8 +42,10 @@ def _instances(cls: type[Effect]) -> list[Effect]:
 
 def _role(effect: Effect) -> str:
     """How the selection uses the effect, from its ``selectable`` and ``reported_as``."""
-    if effect.kind == "noise" and effect.selectable:
+    if effect.kind == "noise" and effect.selectable and effect.noise_signature == "excess":
         return "tested on the selection's residual as an excess noise, then the selection is run again with it"
+    if effect.kind == "noise" and effect.selectable:
+        return "fitted on the correlation of the detectors' residuals after the selection"
     if effect.kind == "noise":
         return "named as a look-alike only (its fit is its look-alike's)"
     if effect.reported_as:

@@ -46,6 +46,7 @@ def write_toast_recording(
     thermal_drift: tuple[float, float] = (0.0, 0.0),
     thermal_drift_common_to: str = "wafer",
     crosstalk: dict | None = None,
+    common_mode: tuple[float, float, str] | None = None,
     dipole: bool = True,
     noise: bool = True,
     net_uk_rts: float = 50.0,
@@ -73,7 +74,10 @@ def write_toast_recording(
     ``sigma_drift`` [K] for a stream common to each wafer (each pixel with one wafer; with
     ``thermal_drift_common_to`` "all", to all detectors) and for a stream of each
     detector's own: the gain's common part has the power fraction
-    rho = s_w^2 / (s_w^2 + s_d^2)."""
+    rho = s_w^2 / (s_w^2 + s_d^2). ``common_mode``: (NET [uK sqrt(s)], knee [mHz], key),
+    TOAST's ``CommonModeNoise`` (alpha 1, coupling 1) adding to the noise model a noise
+    common to the detectors of each value of the focal-plane column ``key`` ("wafer",
+    "pixel", or "all" for every detector), drawn by ``SimNoise`` with the rest."""
     from toast import ops
     from toast.observation import default_values as defaults
 
@@ -95,22 +99,12 @@ def write_toast_recording(
         group = "wafer" if wafers > 1 else "pixel"  # what slow_drift's common part follows
         drifter = (gain_drift_mode, gain_drift_sigma, gain_drift_mismatch, group, seed)
         _drift_gains(data, drifter, truth)
-    common = "pixel" if thermal_drift_common_to == "wafer" and wafers == 1 else "wafer"
-    if thermal_drift_common_to == "all":
-        common = "focalplane"  # a column of one value
-        observation.telescope.focalplane.detector_data[common] = "FP"
-    for component, (group, sigma) in enumerate(zip((common, "name"), thermal_drift)):
-        if sigma:
-            ops.GainDrifter(
-                drift_mode="thermal_drift",
-                sigma_drift=sigma,
-                detector_mismatch=0.0,
-                focalplane_group=group,
-                realization=seed,
-                component=1 + component,
-            ).apply(data)
+    if any(thermal_drift):
+        _thermal_drifts(data, thermal_drift, thermal_drift_common_to, wafers, seed)
     if noise:
         ops.DefaultNoiseModel().apply(data)
+        if common_mode is not None:
+            _common_mode(data, *common_mode)
         ops.SimNoise(realization=seed).apply(data)
     ops.Delete(detdata=[pixels.pixels, weights.weights, pointing.quats]).apply(data)
     if crosstalk:
@@ -230,6 +224,28 @@ def _drift_gains(data, drifter: tuple, truth: dict | None) -> None:
     ops.Delete(detdata=["unit_gain"]).apply(data)
 
 
+def _thermal_drifts(data, sigmas, common_to: str, wafers: int, seed: int) -> None:
+    """GainDrifter's thermal_drift twice: ``sigmas`` [K] of a stream common to each wafer
+    (each pixel with one wafer; to every detector with ``common_to`` "all") and of a stream
+    of each detector's own."""
+    from toast import ops
+
+    common = "pixel" if common_to == "wafer" and wafers == 1 else "wafer"
+    if common_to == "all":
+        common = "focalplane"  # a column of one value
+        data.obs[0].telescope.focalplane.detector_data[common] = "FP"
+    for component, (group, sigma) in enumerate(zip((common, "name"), sigmas, strict=True)):
+        if sigma:
+            ops.GainDrifter(
+                drift_mode="thermal_drift",
+                sigma_drift=sigma,
+                detector_mismatch=0.0,
+                focalplane_group=group,
+                realization=seed,
+                component=1 + component,
+            ).apply(data)
+
+
 def _crosstalk(data, couplings: dict, folder: Path) -> None:
     """TOAST's CrossTalk with the matrix of ``couplings`` (written as its .npz file)."""
     from toast import ops
@@ -242,6 +258,23 @@ def _crosstalk(data, couplings: dict, folder: Path) -> None:
     np.savez(path, matrix=matrix)
     ops.CrossTalk(xtalk_mat_file=str(path)).apply(data)
     path.unlink()
+
+
+def _common_mode(data, net_uk_rts: float, fknee_mhz: float, key: str) -> None:
+    """TOAST's CommonModeNoise on the noise model: a noise common to each ``key`` group."""
+    import astropy.units as u
+    from toast import ops
+
+    if key == "all":
+        key = "focalplane"
+        data.obs[0].telescope.focalplane.detector_data[key] = "FP"
+    ops.CommonModeNoise(
+        focalplane_key=key,
+        fmin=1e-5 * u.Hz,
+        fknee=fknee_mhz * 1e-3 * u.Hz,
+        alpha=1.0,
+        NET=net_uk_rts * 1e-6 * u.K * u.s**0.5,
+    ).apply(data)
 
 
 def _flag_stretches(observation, fraction: float, rng, n_stretches: int = 4) -> None:

@@ -43,6 +43,7 @@ import scipy.fft
 from ..model import Context
 from ..noise import line_exclusion_mask, periodogram_scale
 from .base import SELECTION_THRESHOLD, Effect, register
+from .common_mode import CommonModeFit, common_pattern, fit_common_mode
 
 MIN_FREQUENCY_HZ = 1.0  # below it, the sky both detectors see and common 1/f noise
 KNEE_FACTOR = 3.0  # the modes used are above this times the pair's higher knee
@@ -59,6 +60,12 @@ class CrosstalkFit:
     taken: np.ndarray  # bool per pair: Delta BIC below the threshold
     delta_chi2: float  # -sum over the pairs taken of (x / sigma)^2
     delta_bic: float
+    # a noise common to groups of detectors, taken before the pairs (then ``coupling`` is
+    # each pair's x beyond b_i b_j), or None (:mod:`.common_mode`)
+    common: CommonModeFit | None = None
+    taken_alone: int = 0  # the pairs, and Delta BIC, of crosstalk alone, without it
+    delta_bic_alone: float = 0.0
+    tied: bool = False  # the two readings within the threshold: not told apart
 
 
 def fit_crosstalk(ctx: Context, residual_f, noise, ln_n_eff: float, threshold: float):
@@ -101,6 +108,26 @@ def fit_crosstalk(ctx: Context, residual_f, noise, ln_n_eff: float, threshold: f
             coupling.append(float(inverse[0] @ (design.T @ z)) / overlap)
             sigma.append(math.sqrt(inverse[0, 0] / (2 * max(both, 1e-12))) / overlap)
     coupling, sigma = np.array(coupling), np.array(sigma)
+    alone = _pairs_taken(pairs, coupling, sigma, ln_n_eff, threshold)
+    common = fit_common_mode(ctx, pairs, coupling, sigma, ln_n_eff)
+    if common is None or common.delta_bic >= threshold:
+        return alone
+    beyond = _pairs_taken(
+        pairs, coupling - common_pattern(pairs, common), sigma, ln_n_eff, threshold
+    )
+    with_common = common.delta_bic + beyond.delta_bic
+    tied = abs(with_common - alone.delta_bic) < -threshold
+    alone.taken_alone, alone.delta_bic_alone = int(alone.taken.sum()), alone.delta_bic
+    if with_common < alone.delta_bic + threshold:  # the common noise, then pairs beyond it
+        beyond.common = common
+        beyond.taken_alone, beyond.delta_bic_alone = alone.taken_alone, alone.delta_bic
+        return beyond
+    alone.tied = tied
+    return alone
+
+
+def _pairs_taken(pairs, coupling, sigma, ln_n_eff: float, threshold: float) -> CrosstalkFit:
+    """Each pair taken at its own Delta BIC = -(x / sigma)^2 + ln N_eff."""
     gain = (coupling / sigma) ** 2 if coupling.size else np.zeros(0)
     taken = -gain + ln_n_eff < threshold
     delta_chi2 = -float(gain[taken].sum())
@@ -133,9 +160,10 @@ class DetectorCrosstalk(Effect):
     )
     discrimination = (
         "the leaked signal is a gain, 2f and polarisation change the nominal adjustments "
-        "take; a noise common to the detectors (a bath, a shared bias) or the sky they both "
-        "see correlate them below their knee and below 1 Hz only, a coherent gain "
-        "fluctuation near 2 f_HWP only: those modes are left out"
+        "take; the sky both see and a common 1/f noise correlate them below 1 Hz and their "
+        "knee only, a coherent gain fluctuation near 2 f_HWP only: those modes are left "
+        "out; a white noise common to a group (common_mode_noise) correlates every pair of "
+        "it as b_i b_j, where crosstalk couples chosen pairs"
     )
 
     def fit_noise(self, ctx, residual_f, noise, used, ln_n_eff, **options):
@@ -164,11 +192,18 @@ class DetectorCrosstalk(Effect):
             abs(x) + 2 * s for x, s, keep in zip(fit.coupling, fit.sigma, fit.taken) if not keep
         ]
         bound = f"; the other pairs |x| < {max(others):.2g} (2 sigma)" if others else ""
+        beyond = " beyond the common noise's b_i b_j" if fit.common is not None else ""
         evidence = (
-            f"the residuals of {len(taken)} of {len(fit.pairs)} pairs are correlated above "
+            f"the residuals of {len(taken)} of {len(fit.pairs)} pairs are correlated{beyond} above "
             f"1 Hz and above their knee, as a leak of one detector's TOD into the other makes "
             f"({'; '.join(taken)}){bound}; x = c_ij + c_ji for equal noise levels (which way "
             "it leaks is not told: in the white noise the two directions look alike)"
+            + (
+                "; NOT told apart from common_mode_noise: a noise common to the detectors "
+                "(x_ij = b_i b_j) fits within the threshold of the pairs"
+                if fit.tied
+                else ""
+            )
         )
         return {
             "name": self.name,
@@ -179,6 +214,6 @@ class DetectorCrosstalk(Effect):
             "delta_bic": fit.delta_bic,
             "evidence": evidence,
             "signature": self.signature,
-            "look_alikes": [],
+            "look_alikes": ["common_mode_noise"] if fit.tied else [],
             "scope": {"by": "pair", "groups": {}},
         }

@@ -76,6 +76,9 @@ def explain_effects(
         else:  # also seen in the lines: the noise's roll-off added to its evidence
             entry["evidence"] += "; " + new["evidence"]
     crosstalk = selection.crosstalk
+    if crosstalk is not None and crosstalk.common is not None:  # a noise common to groups
+        common = CATALOG["common_mode_noise"]
+        effects_out.append(common.noise_entry(ctx, crosstalk, noise_models))
     if crosstalk is not None and crosstalk.delta_bic < delta_bic_threshold:
         effects_out.append(noise_effect("correlation").noise_entry(ctx, crosstalk, noise_models))
     return merge_members(effects_out)
