@@ -57,6 +57,13 @@ log-uniform in 1e-5 - 1e-4 K (``--thermal-range``), and a stream of each detecto
 common stream and rho within 3 sigma of the common stream's share of the gain power
 (a smooth drift named beside it is its slow part, counted as another effect).
 
+``common_mode``: 14 detectors on 2 or 3 wafers, TOAST's ``CommonModeNoise`` (alpha 1,
+knee 20 mHz, coupling 1) common to each wafer or, half of the time, to all detectors, its
+NET 0.1 - 0.5 times the detectors' (``--common-range``), and in half of the recordings a
+crosstalk coupling of 2 - 5 % in one pair beside it; expected ``common_mode_noise`` first,
+its scope the common noise's groups, each b_i within 3 sigma of NET_c / sqrt(NET_i^2 +
+NET_c^2), and the coupled pair (if any) as ``detector_crosstalk``.
+
 Prints one line per recording and, per case, the rates: per recording (every detector's
 parameters within 3 sigma; a parameter without a sigma fails) and per parameter, the
 pulls' standard deviation, and the rates by the effect's strength |truth| / sigma (the
@@ -94,6 +101,7 @@ WAFER_CASES = (
     "mixed_drift",
     "crosstalk",
     "bath_fluctuation",
+    "common_mode",
 )
 MISMATCH = {"wafer_drift": (0.0, 0.0), "detector_drift": (1.0, 1.0), "mixed_drift": (0.2, 0.5)}
 EXPECTED_SCOPE = {"wafer_drift": "wafer", "detector_drift": "detector"}
@@ -113,6 +121,7 @@ def draw(
     slow_range,
     crosstalk_range=None,
     thermal_range=None,
+    common_range=None,
 ) -> dict:
     """The recording's set-up, nominal errors and injected effect."""
     a2_true = float(rng.uniform(0.1, 0.4))
@@ -146,6 +155,12 @@ def draw(
         common = log_uniform(rng, thermal_range)
         setup["thermal_drift"] = [common, common * float(rng.uniform(0.3, 1.5))]
         setup["thermal_drift_common_to"] = str(rng.choice(["wafer", "all"]))
+    if case == "common_mode":  # a noise common to each wafer (or all), a coupled pair
+        net_common = setup["net_uk_rts"] * float(rng.uniform(*common_range))
+        setup["common_mode"] = [net_common, 20.0, str(rng.choice(["wafer", "all"]))]
+        if rng.random() < 0.5:
+            i, j = (int(k) for k in rng.choice(14, 2, replace=False))
+            setup["crosstalk"] = {f"{i},{j}": float(rng.uniform(0.02, 0.05))}
     if case in MISMATCH:
         setup["gain_drift_mode"] = "slow_drift"
         setup["gain_drift_mismatch"] = float(rng.uniform(*MISMATCH[case]))
@@ -240,6 +255,37 @@ def score_fluctuation(result: dict, setup: dict) -> dict:
     return record
 
 
+def score_common_mode(result: dict, setup: dict, truth: dict) -> dict:
+    """TOAST's CommonModeNoise: common_mode_noise named, its scope, each b_i against
+    NET_c / sqrt(NET_i^2 + NET_c^2) (TOAST's detectors have one NET); a coupled pair
+    beside it named as crosstalk."""
+    effects = result["effects"]
+    record = {"reported": [e["name"] for e in effects], "unexplained": len(result["unexplained"])}
+    match = [e for e in effects if e["name"] == "common_mode_noise"]
+    crosstalk = [e for e in effects if e["name"] == "detector_crosstalk"]
+    record["crosstalk_named"] = bool(crosstalk) == bool(setup.get("crosstalk"))
+    record["named"] = bool(match) and record["crosstalk_named"]
+    record["first"] = bool(effects) and effects[0]["name"] == "common_mode_noise"
+    record["scope_expected"] = setup["common_mode"][2]
+    record["pulls"], record["within_3_sigma"] = [], False
+    if not match:
+        return record
+    record["scope"] = match[0]["scope"]["by"]
+    net_common, net = setup["common_mode"][0], setup["net_uk_rts"]
+    expected = net_common / math.hypot(net, net_common)
+    b = {p["detector"]: p for p in match[0]["parameters"].values()}
+    truth_b = {name: expected for name in b}
+    pulls, strength = within(
+        {k: {**p, "value": abs(p["value"])} for k, p in b.items()}, "b", truth_b
+    )
+    record["b_fitted"] = {k: [p["value"], p["sigma"]] for k, p in b.items()}
+    record["b_expected"] = expected
+    record["b_strength"] = round(strength, 2)
+    record["pulls"] = [round(p, 2) for p in pulls]
+    record["within_3_sigma"] = all(abs(p) < 3 for p in pulls)
+    return record
+
+
 def score_crosstalk(result: dict, setup: dict, truth: dict) -> dict:
     """TOAST's CrossTalk: detector_crosstalk named, the pairs it takes against the pairs
     coupled, x_ij against c_ij + c_ji for each pair coupled (TOAST's detectors have one NET)."""
@@ -289,6 +335,8 @@ def score(case: str, result: dict, setup: dict, truth: dict) -> dict:
         return score_crosstalk(result, setup, truth)
     if case == "bath_fluctuation":
         return score_fluctuation(result, setup)
+    if case == "common_mode":
+        return score_common_mode(result, setup, truth)
     expected = []
     if case in ("nonlinearity", "both"):
         expected.append("nonlinearity")
@@ -327,7 +375,8 @@ def score(case: str, result: dict, setup: dict, truth: dict) -> dict:
 
 def one(case: str, seed: int, folder: Path, ranges: tuple) -> dict:
     """Draw, write with TOAST, read and diagnose one recording; its record. ``ranges``:
-    those of g1, the linear drift, the slow drift, the crosstalk and the bath's stream."""
+    those of g1, the linear drift, the slow drift, the crosstalk, the bath's stream and
+    the common noise."""
     rng = np.random.default_rng([seed, (CASES + WAFER_CASES).index(case)])
     drawn = draw(case, rng, *ranges)
     sky = cmb_map(NSIDE, 3 * NSIDE - 1, 0.0, MASTER_SEED, drawn["sky_seed"], 30.8)
@@ -380,9 +429,16 @@ def summary(records: list[dict]) -> list[str]:
                 f"per parameter {inside_p}/{len(pulls)}; pulls' sd {np.std(finite):.2f}"
             )
             lines += by_amplitude(case, rows)
-            if case == "bath_fluctuation":
+            if case in ("bath_fluctuation", "common_mode"):
                 right = sum(r.get("scope") == r["scope_expected"] for r in rows)
-                lines.append(f"    scope the common stream's groups: {right}/{n}")
+                lines.append(f"    scope the common part's groups: {right}/{n}")
+            if case == "common_mode":
+                right = sum(r["crosstalk_named"] for r in rows)
+                coupled = sum(bool(r["setup"].get("crosstalk")) for r in rows)
+                lines.append(
+                    f"    crosstalk named where a pair was coupled ({coupled}) and only there: "
+                    f"{right}/{n}"
+                )
             if case in MISMATCH:
                 if all("look_alike" in r for r in rows):  # (records made before it: not)
                     alike = sum(not r["named"] and r["look_alike"] for r in rows)
@@ -421,8 +477,8 @@ def by_amplitude(case: str, rows: list[dict]) -> list[str]:
         )
         return [f"    pairs coupled {coupled}: missed {missed}, taken uncoupled {false}"]
     key = "g1_per_k" if case in ("nonlinearity", "both") else "gain_drift_sigma"
-    if case == "bath_fluctuation":  # the common stream's sigma
-        key = "thermal_drift"
+    if case in ("bath_fluctuation", "common_mode"):  # the common part's sigma or NET
+        key = "thermal_drift" if case == "bath_fluctuation" else "common_mode"
         rows = [{**r, "setup": {key: r["setup"][key][0]}} for r in rows]
     decades = sorted({math.floor(math.log10(abs(r["setup"][key]))) for r in rows})
     if len(decades) < 2:
@@ -461,6 +517,9 @@ def main() -> None:
     parser.add_argument(
         "--thermal-range", nargs=2, type=float, default=(1e-5, 1e-4), help="common stream's K"
     )
+    parser.add_argument(
+        "--common-range", nargs=2, type=float, default=(0.1, 0.5), help="NET_c / NET"
+    )
     arguments = parser.parse_args()
     if arguments.combine:
         records = [r for path in arguments.combine for r in json.loads(path.read_text())]
@@ -481,6 +540,7 @@ def main() -> None:
                         arguments.slow_range,
                         arguments.crosstalk_range,
                         arguments.thermal_range,
+                        arguments.common_range,
                     ),
                 )
                 records.append(record)
