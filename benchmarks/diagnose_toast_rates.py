@@ -30,6 +30,10 @@ fainter than the map the diagnosis is given. Then one case:
   diagnosis's gain takes; the diagnosis composes the nonlinearity on the drifted signal,
   so the ramp's change of g1 over the recording, +-s/2, is left to the residual).
 
+``--net-spread s``: each detector's NET drawn around the recording's, times 1 + s N(0, 1)
+(the last draw, so the rest of a recording is the same without it; the truths of
+crosstalk and the common noise follow each detector's NET).
+
 ``crosstalk``: TOAST's ``CrossTalk`` (after the noise: the readout's) with 1 coupling
 (a pair) or 1-3 (14 detectors) between random detectors, |c_ij| 1e-2 - 5e-2
 (``--crosstalk-range``), half of them with a coupling back of 0 - 1 times it; expected
@@ -122,6 +126,7 @@ def draw(
     crosstalk_range=None,
     thermal_range=None,
     common_range=None,
+    net_spread=0.0,
 ) -> dict:
     """The recording's set-up, nominal errors and injected effect."""
     a2_true = float(rng.uniform(0.1, 0.4))
@@ -156,7 +161,7 @@ def draw(
         setup["thermal_drift"] = [common, common * float(rng.uniform(0.3, 1.5))]
         setup["thermal_drift_common_to"] = str(rng.choice(["wafer", "all"]))
     if case == "common_mode":  # a noise common to each wafer (or all), a coupled pair
-        net_common = setup["net_uk_rts"] * float(rng.uniform(*common_range))
+        net_common = float(np.mean(setup["net_uk_rts"])) * float(rng.uniform(*common_range))
         setup["common_mode"] = [net_common, 20.0, str(rng.choice(["wafer", "all"]))]
         if rng.random() < 0.5:
             i, j = (int(k) for k in rng.choice(14, 2, replace=False))
@@ -171,7 +176,15 @@ def draw(
         setup["gain_drift_sigma"] = log_uniform(rng, drift_range)
     a2_told = a2_true * (1.0 + rng.normal(0.0, 0.03))
     sky = {"sky_seed": int(rng.integers(1, 2**31)), "sky_scale": float(1 + rng.normal(0, 0.05))}
+    if net_spread:  # each detector its own NET (drawn last: the rest is unchanged)
+        spread = 1 + net_spread * rng.normal(0.0, 1.0, 2 * setup["n_pixels"])
+        setup["net_uk_rts"] = (setup["net_uk_rts"] * np.clip(spread, 0.5, 1.5)).tolist()
     return {"setup": setup, "a2_told_k": float(a2_told), **sky}
+
+
+def detector_nets(setup: dict, n_det: int) -> np.ndarray:
+    """Each detector's NET [uK sqrt(s)] of a drawn set-up."""
+    return np.broadcast_to(np.asarray(setup["net_uk_rts"], dtype=float), (n_det,))
 
 
 def within(parameters: dict, name: str, truth: dict) -> tuple[list[float], float]:
@@ -257,8 +270,7 @@ def score_fluctuation(result: dict, setup: dict) -> dict:
 
 def score_common_mode(result: dict, setup: dict, truth: dict) -> dict:
     """TOAST's CommonModeNoise: common_mode_noise named, its scope, each b_i against
-    NET_c / sqrt(NET_i^2 + NET_c^2) (TOAST's detectors have one NET); a coupled pair
-    beside it named as crosstalk."""
+    NET_c / sqrt(NET_i^2 + NET_c^2); a coupled pair beside it named as crosstalk."""
     effects = result["effects"]
     record = {"reported": [e["name"] for e in effects], "unexplained": len(result["unexplained"])}
     match = [e for e in effects if e["name"] == "common_mode_noise"]
@@ -271,10 +283,14 @@ def score_common_mode(result: dict, setup: dict, truth: dict) -> dict:
     if not match:
         return record
     record["scope"] = match[0]["scope"]["by"]
-    net_common, net = setup["common_mode"][0], setup["net_uk_rts"]
-    expected = net_common / math.hypot(net, net_common)
+    net_common = setup["common_mode"][0]
+    nets = detector_nets(setup, len(truth["detectors"]))
+    expected = {
+        name: net_common / math.hypot(net, net_common)
+        for name, net in zip(truth["detectors"], nets, strict=True)
+    }
     b = {p["detector"]: p for p in match[0]["parameters"].values()}
-    truth_b = {name: expected for name in b}
+    truth_b = {name: expected[name] for name in b}
     pulls, strength = within(
         {k: {**p, "value": abs(p["value"])} for k, p in b.items()}, "b", truth_b
     )
@@ -288,15 +304,16 @@ def score_common_mode(result: dict, setup: dict, truth: dict) -> dict:
 
 def score_crosstalk(result: dict, setup: dict, truth: dict) -> dict:
     """TOAST's CrossTalk: detector_crosstalk named, the pairs it takes against the pairs
-    coupled, x_ij against c_ij + c_ji for each pair coupled (TOAST's detectors have one NET)."""
+    coupled, x_ij against c_ij NET_j / NET_i + c_ji NET_i / NET_j for each pair coupled."""
     effects = result["effects"]
     record = {"reported": [e["name"] for e in effects], "unexplained": len(result["unexplained"])}
     names = truth["detectors"]
     coupled: dict[str, float] = {}
-    for key, value in setup["crosstalk"].items():
-        i, j = sorted(int(k) for k in key.split(","))
-        pair = f"{names[i]}-{names[j]}"
-        coupled[pair] = coupled.get(pair, 0.0) + value
+    nets = detector_nets(setup, len(names))
+    for key, value in setup["crosstalk"].items():  # d_i += c_ij d_j: x += c_ij NET_j / NET_i
+        i, j = (int(k) for k in key.split(","))
+        pair = f"{names[min(i, j)]}-{names[max(i, j)]}"
+        coupled[pair] = coupled.get(pair, 0.0) + value * nets[j] / nets[i]
     match = [e for e in effects if e["name"] == "detector_crosstalk"]
     record["named"] = bool(match)
     record["first"] = bool(effects) and effects[0]["name"] == "detector_crosstalk"
@@ -520,6 +537,9 @@ def main() -> None:
     parser.add_argument(
         "--common-range", nargs=2, type=float, default=(0.1, 0.5), help="NET_c / NET"
     )
+    parser.add_argument(
+        "--net-spread", type=float, default=0.0, help="relative spread of the detectors' NETs"
+    )
     arguments = parser.parse_args()
     if arguments.combine:
         records = [r for path in arguments.combine for r in json.loads(path.read_text())]
@@ -541,6 +561,7 @@ def main() -> None:
                         arguments.crosstalk_range,
                         arguments.thermal_range,
                         arguments.common_range,
+                        arguments.net_spread,
                     ),
                 )
                 records.append(record)

@@ -49,7 +49,7 @@ def write_toast_recording(
     common_mode: tuple[float, float, str] | None = None,
     dipole: bool = True,
     noise: bool = True,
-    net_uk_rts: float = 50.0,
+    net_uk_rts: float | list = 50.0,
     fknee_mhz: float = 20.0,
     net_written_factor: float = 1.0,
     flagged_fraction: float = 0.0,
@@ -77,11 +77,14 @@ def write_toast_recording(
     rho = s_w^2 / (s_w^2 + s_d^2). ``common_mode``: (NET [uK sqrt(s)], knee [mHz], key),
     TOAST's ``CommonModeNoise`` (alpha 1, coupling 1) adding to the noise model a noise
     common to the detectors of each value of the focal-plane column ``key`` ("wafer",
-    "pixel", or "all" for every detector), drawn by ``SimNoise`` with the rest."""
+    "pixel", or "all" for every detector), drawn by ``SimNoise`` with the rest.
+    ``net_uk_rts``: one NET for all detectors, or one per detector in the focal plane's
+    order."""
+    import astropy.units as u
     from toast import ops
     from toast.observation import default_values as defaults
 
-    focalplane = _focalplane(n_pixels, sample_rate_hz, net_uk_rts, fknee_mhz, wafers)
+    focalplane = _focalplane(n_pixels, sample_rate_hz, np.mean(net_uk_rts), fknee_mhz, wafers)
     data = _satellite_scan(focalplane, start, hours, hwp_rpm, coord)
     pointing = ops.PointingDetectorSimple(boresight=defaults.boresight_radec)
     pixels = ops.PixelsHealpix(nside=_nside(sky_fits), detector_pointing=pointing)
@@ -102,6 +105,9 @@ def write_toast_recording(
     if any(thermal_drift):
         _thermal_drifts(data, thermal_drift, thermal_drift_common_to, wafers, seed)
     if noise:
+        if np.ndim(net_uk_rts):  # one NET per detector, as the noise model reads them
+            table = observation.telescope.focalplane.detector_data
+            table["psd_net"] = np.asarray(net_uk_rts) * 1e-6 * u.K * np.sqrt(1 * u.s)
         ops.DefaultNoiseModel().apply(data)
         if common_mode is not None:
             _common_mode(data, *common_mode)

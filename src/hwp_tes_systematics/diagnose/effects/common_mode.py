@@ -14,10 +14,12 @@ crosstalk couples chosen pairs, each its own x_ij, with no such pattern. The fit
 (:func:`fit_common_mode`): b by weighted least squares on the pairs for each partition of
 the detectors (all in one group, the groups of each focal-plane key the recording carries),
 the best partition kept; its parameters counted as m per group of m >= 3 detectors and 1
-per group of two (a pair gives b_i b_j only). Against the crosstalk's pairs taken one by one
-by the BIC: the better model is taken, and when they come within the selection threshold
-neither is told from the other. The pairs' correlation beyond b_i b_j is then tested as
-crosstalk, pair by pair.
+per group of two (a pair gives b_i b_j only). The pairs' correlation beyond b_i b_j is then
+tested as crosstalk, pair by pair, and b fitted again without the pairs taken or more
+than 4 sigma off the pattern (a coupled pair pulls the b of its two detectors), until
+those stay the same; the pattern's chi^2 is then that of the pairs not taken. Against the crosstalk's pairs taken one by one alone, by the BIC: the
+better model is taken, and when they come within the selection threshold neither is told
+from the other.
 """
 
 from __future__ import annotations
@@ -52,6 +54,7 @@ def rank_one_fit(pairs, coupling, sigma, groups, n_det: int):
     for g, members in enumerate(groups.values()):
         group_of[members] = g
     pairs = np.asarray(pairs, dtype=int).reshape(-1, 2)
+    coupling, sigma = np.asarray(coupling), np.asarray(sigma)
     inside = group_of[pairs[:, 0]] == group_of[pairs[:, 1]]
     i, j = pairs[inside, 0], pairs[inside, 1]
     x, s = coupling[inside], sigma[inside]
@@ -81,8 +84,15 @@ def rank_one_fit(pairs, coupling, sigma, groups, n_det: int):
     return b, errors, outside + float(np.sum(solution.fun**2))
 
 
-def fit_common_mode(ctx, pairs, coupling, sigma, ln_n_eff: float) -> CommonModeFit | None:
-    """The rank-one pattern's best partition (module docstring); None without pairs."""
+def fit_common_mode(
+    ctx, pairs, coupling, sigma, ln_n_eff: float, exclude=None
+) -> CommonModeFit | None:
+    """The rank-one pattern's best partition (module docstring), on the pairs not in
+    ``exclude`` (bool per pair: those a crosstalk of their own takes); None without pairs."""
+    if exclude is not None:
+        keep = ~np.asarray(exclude, dtype=bool)
+        pairs = [p for p, k in zip(pairs, keep, strict=True) if k]
+        coupling, sigma = np.asarray(coupling)[keep], np.asarray(sigma)[keep]
     if len(pairs) == 0:
         return None
     n_det = ctx.n_detectors

@@ -48,6 +48,8 @@ from .common_mode import CommonModeFit, common_pattern, fit_common_mode
 MIN_FREQUENCY_HZ = 1.0  # below it, the sky both detectors see and common 1/f noise
 KNEE_FACTOR = 3.0  # the modes used are above this times the pair's higher knee
 EXCESS_FRACTION = 0.1  # modes where a fitted gain fluctuation's sidebands exceed this are out
+COMMON_PASSES = 4  # the common noise's b and the pairs beyond it, fitted in turn
+OUTLIER_SIGMA = 4.0  # a pair this far off the common pattern is left out of its fit
 
 
 @dataclass
@@ -109,13 +111,28 @@ def fit_crosstalk(ctx: Context, residual_f, noise, ln_n_eff: float, threshold: f
             sigma.append(math.sqrt(inverse[0, 0] / (2 * max(both, 1e-12))) / overlap)
     coupling, sigma = np.array(coupling), np.array(sigma)
     alone = _pairs_taken(pairs, coupling, sigma, ln_n_eff, threshold)
-    common = fit_common_mode(ctx, pairs, coupling, sigma, ln_n_eff)
-    if common is None or common.delta_bic >= threshold:
-        return alone
-    beyond = _pairs_taken(
-        pairs, coupling - common_pattern(pairs, common), sigma, ln_n_eff, threshold
-    )
-    with_common = common.delta_bic + beyond.delta_bic
+    outliers = np.zeros(len(pairs), dtype=bool)  # pairs left out of the pattern's fit
+    for _ in range(COMMON_PASSES):
+        common = fit_common_mode(ctx, pairs, coupling, sigma, ln_n_eff, exclude=outliers)
+        if common is None or common.delta_bic >= threshold:
+            return alone
+        beyond_x = coupling - common_pattern(pairs, common)
+        beyond = _pairs_taken(pairs, beyond_x, sigma, ln_n_eff, threshold)
+        # a coupled pair pulls the b of its detectors: left out, with those far off it
+        now = beyond.taken | (np.abs(beyond_x) > OUTLIER_SIGMA * sigma)
+        if np.array_equal(now, outliers):
+            break
+        outliers = now
+    taken = beyond.taken
+    # the whole model's Delta BIC over every pair: the pattern where no pair is taken, each
+    # pair taken fitted by its own x; the parameters of both. Split between the entries:
+    # the pairs', what leaving them out of it costs; the common noise's, the rest.
+    misfit = float(np.sum((beyond_x[~taken] / sigma[~taken]) ** 2))
+    none = float(np.sum((coupling / sigma) ** 2))
+    n_parameters = common.n_parameters + int(taken.sum())
+    with_common = misfit - none + n_parameters * ln_n_eff
+    common.delta_chi2 = misfit - none - beyond.delta_chi2
+    common.delta_bic = with_common - beyond.delta_bic
     tied = abs(with_common - alone.delta_bic) < -threshold
     alone.taken_alone, alone.delta_bic_alone = int(alone.taken.sum()), alone.delta_bic
     if with_common < alone.delta_bic + threshold:  # the common noise, then pairs beyond it
