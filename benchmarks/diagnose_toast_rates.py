@@ -91,6 +91,7 @@ import healpy as hp
 import numpy as np
 
 from hwp_tes_systematics.diagnose import diagnose, read_recording
+from hwp_tes_systematics.diagnose.recording_checks import RecordingError
 from hwp_tes_systematics.diagnose.testbed import MASTER_SEED, NSIDE
 from hwp_tes_systematics.diagnose.toast_testbed import write_toast_recording
 from hwp_tes_systematics.sky import cmb_map
@@ -421,6 +422,21 @@ def one(case: str, seed: int, folder: Path, ranges: tuple) -> dict:
     return record
 
 
+def when_memory_allows(case: str, seed: int, folder: Path, ranges: tuple, tries: int = 30):
+    """:func:`one`, tried again a minute later while the diagnosis refuses the recording
+    for the memory available (another job on the machine holds it)."""
+    for attempt in range(tries):
+        try:
+            return one(case, seed, folder, ranges)
+        except RecordingError as error:
+            if "available" not in str(error) or attempt == tries - 1:
+                raise
+            print(f"{case} {seed}: waiting for memory ({error})", file=sys.stderr, flush=True)
+            shutil.rmtree(folder, ignore_errors=True)
+            time.sleep(60)
+    raise AssertionError("unreachable")
+
+
 def summary(records: list[dict]) -> list[str]:
     lines = []
     for case in CASES + WAFER_CASES:
@@ -550,20 +566,16 @@ def main() -> None:
         folder = Path(folder)
         for case in arguments.only:
             for seed in range(arguments.first_seed, arguments.first_seed + arguments.per_case):
-                record = one(
-                    case,
-                    seed,
-                    folder / f"{case}_{seed}",
-                    (
-                        arguments.g1_range,
-                        arguments.drift_range,
-                        arguments.slow_range,
-                        arguments.crosstalk_range,
-                        arguments.thermal_range,
-                        arguments.common_range,
-                        arguments.net_spread,
-                    ),
+                ranges = (
+                    arguments.g1_range,
+                    arguments.drift_range,
+                    arguments.slow_range,
+                    arguments.crosstalk_range,
+                    arguments.thermal_range,
+                    arguments.common_range,
+                    arguments.net_spread,
                 )
+                record = when_memory_allows(case, seed, folder / f"{case}_{seed}", ranges)
                 records.append(record)
                 print(json.dumps(record), file=sys.stderr, flush=True)
                 if arguments.out:
