@@ -131,7 +131,7 @@ def fit_coherence(
     detector's S_k(f) at ``f``; ``weights``: e_k; ``phases``: psi_k; ``amplitude``,
     ``slope``: the independent fit's (a, beta); ``independent``: the gapped
     periodogram's independent modes per mode."""
-    from .fluctuations import SLOPE_BOUNDS, _curvature_sigmas, gain_psd
+    from .fluctuations import SLOPE_BOUNDS, gain_psd, marginal_sigmas
 
     bins, mean_f, counts = contiguous_bins(f, carrier_hz)
     starts = np.array([b[0] for b in bins] + [f.size])
@@ -178,7 +178,9 @@ def fit_coherence(
     by = min(fits, key=lambda key: fits[key][1])
     x, value = fits[by]
     _, independent_value = best(by, (0.0,))
-    sigmas = _curvature_sigmas(lambda p: total(p, by), x, steps=(0.02, 0.02, 0.01), bounds=bounds)
+    # marginal errors: rho and a are correlated (a^2 rho sets the cross-spectra, a^2 the
+    # detectors' own), so rho's conditional curvature error alone is too small
+    sigmas = marginal_sigmas(lambda p: total(p, by), x, steps=(0.02, 0.02, 0.01), bounds=bounds)
     return CoherenceFit(
         by=by,
         groups=partitions[by],

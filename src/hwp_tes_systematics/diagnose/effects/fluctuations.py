@@ -379,6 +379,40 @@ def _curvature_sigmas(function, x, steps, bounds=None):
     return sigmas
 
 
+def marginal_sigmas(function, x, steps, bounds):
+    """1-sigma of each parameter marginalised over the others: sqrt(2 (H^-1)_ii) of the
+    Hessian H of -2 ln L by central differences of step h, its centre moved inside the
+    ``bounds`` by h where x sits within h of one; the conditional errors of
+    :func:`_curvature_sigmas` where H is not positive definite."""
+    x = np.asarray(x, dtype=float)
+    steps = np.asarray(steps, dtype=float)
+    lower = np.array([b[0] for b in bounds]) + steps
+    upper = np.array([b[1] for b in bounds]) - steps
+    centre = np.clip(x, lower, upper)
+    n = x.size
+    hessian = np.empty((n, n))
+    f_centre = function(centre)
+    for i in range(n):
+        for j in range(i, n):
+
+            def at(di, dj, i=i, j=j):
+                point = centre.copy()
+                point[i] += di * steps[i]
+                point[j] += dj * steps[j]
+                return function(point)
+
+            if i == j:
+                value = (at(1, 0) - 2 * f_centre + at(-1, 0)) / steps[i] ** 2
+            else:
+                value = (at(1, 1) - at(1, -1) - at(-1, 1) + at(-1, -1)) / (4 * steps[i] * steps[j])
+            hessian[i, j] = hessian[j, i] = value
+    try:
+        np.linalg.cholesky(hessian)
+    except np.linalg.LinAlgError:
+        return _curvature_sigmas(function, x, steps, bounds)
+    return [float(v) for v in np.sqrt(2.0 * np.diag(np.linalg.inv(hessian)))]
+
+
 def dipole_signature(ctx: Context, fit: FluctuationFit, noise) -> float:
     """The Delta(-2 ln L) a gain fluctuation's dipole and sky sidebands would add, from the
     fitted P_g and the nominal sky + dipole spectrum (what would tell a gain fluctuation from
