@@ -508,7 +508,18 @@ def by_amplitude(case: str, rows: list[dict]) -> list[str]:
         coupled = sum(
             len({tuple(sorted(k.split(","))) for k in r["setup"]["crosstalk"]}) for r in rows
         )
-        return [f"    pairs coupled {coupled}: missed {missed}, taken uncoupled {false}"]
+        found, lost = [], []  # the pairs' expected |x| / sigma
+        for r in rows:
+            for pair, strength in expected_strengths(r).items():
+                gone = not r["named"] or pair in r.get("pairs_missed", [])
+                (lost if gone else found).append(strength)
+        return [
+            f"    pairs coupled {coupled}: missed {missed}, taken uncoupled {false}",
+            (
+                "    expected |x| / sigma (x from c and the NETs, sigma = 1 / sqrt(2 M), M the "
+                f"modes above 1 Hz): found {_range(found)}, missed {_range(lost)}"
+            ),
+        ]
     key = "g1_per_k" if case in ("nonlinearity", "both") else "gain_drift_sigma"
     if case in ("bath_fluctuation", "common_mode"):  # the common part's sigma or NET
         key = "thermal_drift" if case == "bath_fluctuation" else "common_mode"
@@ -526,6 +537,28 @@ def by_amplitude(case: str, rows: list[dict]) -> list[str]:
             f"within 3 sigma {good}/{len(named)}"
         )
     return out
+
+
+def expected_strengths(record: dict) -> dict:
+    """{pair: |x| / sigma} of a crosstalk record's coupled pairs: x = sum c_ij NET_j / NET_i,
+    sigma = 1 / sqrt(2 M) with M the rfft modes between 1 Hz (or three knees) and Nyquist
+    (the fit's flat term alone; its sideband shapes and the lines left out add a little)."""
+    setup = record["setup"]
+    names = record["truth"]["detectors"]
+    nets = detector_nets(setup, len(names))
+    x: dict[str, float] = {}
+    for key, value in setup["crosstalk"].items():
+        i, j = (int(k) for k in key.split(","))
+        pair = f"{names[min(i, j)]}-{names[max(i, j)]}"
+        x[pair] = x.get(pair, 0.0) + value * nets[j] / nets[i]
+    low = max(1.0, 3 * setup["fknee_mhz"] * 1e-3)
+    modes = (setup["sample_rate_hz"] / 2 - low) * setup["hours"] * 3600
+    modes *= 1 - setup.get("flagged_fraction", 0.0)
+    return {pair: abs(value) * math.sqrt(2 * modes) for pair, value in x.items()}
+
+
+def _range(values: list[float]) -> str:
+    return f"{min(values):.1f}-{max(values):.1f} ({len(values)})" if values else "none"
 
 
 def main() -> None:
