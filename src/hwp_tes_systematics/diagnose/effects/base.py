@@ -269,6 +269,33 @@ class PerGroup:
         return tuple(cls(key) for key in cls.group_keys)
 
 
+def detector_partitions(ctx: Context) -> dict[str, dict[str, np.ndarray]]:
+    """The ways to split a recording's detectors into groups: {"all": {"all": every
+    detector}} and, for each focal-plane key it carries, {key: {label: its detectors}}."""
+    partitions = {"all": {"all": np.arange(ctx.n_detectors)}}
+    for key, labels in ctx.groups.items():
+        labels = np.asarray(labels)
+        partitions[key] = {str(g): np.flatnonzero(labels == g) for g in dict.fromkeys(labels)}
+    return partitions
+
+
+def partition_scope(ctx: Context, by: str, groups: dict) -> dict:
+    """The report's scope (:meth:`Effect.scope`) of a partition ``by`` with its ``groups``."""
+    names = np.asarray(ctx.detector_names)
+    return {"by": by, "groups": {label: names[m].tolist() for label, m in groups.items()}}
+
+
+def other_partitions(values: dict[str, float], by: str, all_text: str) -> str:
+    """How much worse (in -2 ln L or chi^2) each partition but ``by`` fits, in words;
+    ``all_text`` names the partition of all detectors in one group."""
+    return "; ".join(
+        (all_text if key == "all" else f"per {GROUP_KEYS[key]}")
+        + f" fits worse by chi^2 {value - values[by]:.1f}"
+        for key, value in values.items()
+        if key != by
+    )
+
+
 def group_sentence(effect: Effect, fit, parameters, unit: str) -> str:
     """The sentence stating a per-group effect's values, ``parameters`` of each group in
     ``unit``, and what sharing them within the groups cost (:attr:`Effect.group_by`)."""

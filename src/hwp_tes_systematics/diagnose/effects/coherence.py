@@ -37,6 +37,7 @@ import numpy as np
 import scipy.optimize
 
 from ..model import Context
+from .base import detector_partitions
 
 RHO_STARTS = (0.0, 0.5, 0.9, 1.0)
 
@@ -138,10 +139,7 @@ def fit_coherence(
     noise_binned = np.stack([np.add.reduceat(s, starts[:-1]) / counts for s in noise])
     cross = binned_cross(rows, bins)
     weights, phases = np.asarray(weights, float), np.asarray(phases, float)
-    partitions = {"all": {"all": np.arange(len(weights))}}
-    for key, labels in ctx.groups.items():
-        labels = np.asarray(labels)
-        partitions[key] = {str(g): np.flatnonzero(labels == g) for g in dict.fromkeys(labels)}
+    partitions = detector_partitions(ctx)
 
     blocks = {  # each partition's groups: their cross-periodograms, S_k, e_k, psi_k
         key: [

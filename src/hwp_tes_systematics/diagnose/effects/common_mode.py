@@ -31,7 +31,14 @@ from typing import ClassVar
 import numpy as np
 import scipy.optimize
 
-from .base import GROUP_KEYS, Effect, register
+from .base import (
+    GROUP_KEYS,
+    Effect,
+    detector_partitions,
+    other_partitions,
+    partition_scope,
+    register,
+)
 
 
 @dataclass
@@ -96,10 +103,7 @@ def fit_common_mode(
     if len(pairs) == 0:
         return None
     n_det = ctx.n_detectors
-    partitions = {"all": {"all": np.arange(n_det)}}
-    for key, labels in ctx.groups.items():
-        labels = np.asarray(labels)
-        partitions[key] = {str(g): np.flatnonzero(labels == g) for g in dict.fromkeys(labels)}
+    partitions = detector_partitions(ctx)
     fits = {
         key: rank_one_fit(pairs, coupling, sigma, groups, n_det)
         for key, groups in partitions.items()
@@ -176,13 +180,7 @@ class CommonModeNoise(Effect):
             if common.by == "all"
             else f"the detectors of each {GROUP_KEYS[common.by]}"
         )
-        best = common.partitions[common.by]
-        others = "; ".join(
-            ("one group of all detectors" if key == "all" else f"per {GROUP_KEYS[key]}")
-            + f" fits worse by chi^2 {value - best:.1f}"
-            for key, value in common.partitions.items()
-            if key != common.by
-        )
+        others = other_partitions(common.partitions, common.by, "one group of all detectors")
         evidence = (
             f"the residuals of {where} are correlated above 1 Hz and above their knee in the "
             f"rank-one pattern x_ij = b_i b_j of one noise they share (b^2, its share of "
@@ -203,8 +201,5 @@ class CommonModeNoise(Effect):
             "evidence": evidence,
             "signature": self.signature,
             "look_alikes": ["detector_crosstalk"] if fit.tied else [],
-            "scope": {
-                "by": common.by,
-                "groups": {label: names[m].tolist() for label, m in common.groups.items()},
-            },
+            "scope": partition_scope(ctx, common.by, common.groups),
         }

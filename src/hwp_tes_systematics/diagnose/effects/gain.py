@@ -16,6 +16,8 @@ from .base import (
     _value,
     group_sentence,
     modulation_degree,
+    other_partitions,
+    partition_scope,
     register,
 )
 
@@ -362,13 +364,9 @@ class GainFluctuations(Effect):
 def fluctuation_scope(ctx, coherence) -> dict:
     """The report's scope of a gain fluctuation: the groups within which its common part
     is shared (:class:`.coherence.CoherenceFit`), "all" for a pair or one detector."""
-    names = np.asarray(ctx.detector_names)
     if coherence is None or coherence.by == "all":
-        return {"by": "all", "groups": {"all": names.tolist()}}
-    return {
-        "by": coherence.by,
-        "groups": {label: names[m].tolist() for label, m in coherence.groups.items()},
-    }
+        return {"by": "all", "groups": {"all": list(ctx.detector_names)}}
+    return partition_scope(ctx, coherence.by, coherence.groups)
 
 
 def coherence_sentence(ctx, coherence) -> str:
@@ -378,12 +376,8 @@ def coherence_sentence(ctx, coherence) -> str:
         if coherence.by == "all"
         else f"within each {GROUP_KEYS[coherence.by]} and independent between them"
     )
-    best = coherence.partitions[coherence.by]
-    others = "; ".join(
-        ("one common part for all detectors" if key == "all" else f"per {GROUP_KEYS[key]}")
-        + f" fits worse by Delta chi^2 {value - best:.1f}"
-        for key, value in coherence.partitions.items()
-        if key != coherence.by
+    others = other_partitions(
+        coherence.partitions, coherence.by, "one common part for all detectors"
     )
     return (
         f"the sidebands are coherent {where}: rho = {coherence.correlation:.3f} +- "
