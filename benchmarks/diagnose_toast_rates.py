@@ -270,8 +270,8 @@ def score_fluctuation(result: dict, setup: dict) -> dict:
 
 
 def score_common_mode(result: dict, setup: dict, truth: dict) -> dict:
-    """TOAST's CommonModeNoise: common_mode_noise named, its scope, each b_i against
-    NET_c / sqrt(NET_i^2 + NET_c^2); a coupled pair beside it named as crosstalk."""
+    """TOAST's CommonModeNoise: common_mode_noise named, its scope, each b_i against its
+    truth (:func:`common_mode_pulls`); a coupled pair beside it named as crosstalk."""
     effects = result["effects"]
     record = {"reported": [e["name"] for e in effects], "unexplained": len(result["unexplained"])}
     match = [e for e in effects if e["name"] == "common_mode_noise"]
@@ -284,23 +284,39 @@ def score_common_mode(result: dict, setup: dict, truth: dict) -> dict:
     if not match:
         return record
     record["scope"] = match[0]["scope"]["by"]
-    net_common = setup["common_mode"][0]
-    nets = detector_nets(setup, len(truth["detectors"]))
-    expected = {
-        name: net_common / math.hypot(net, net_common)
-        for name, net in zip(truth["detectors"], nets, strict=True)
+    record["b_fitted"] = {
+        p["detector"]: [p["value"], p["sigma"]] for p in match[0]["parameters"].values()
     }
-    b = {p["detector"]: p for p in match[0]["parameters"].values()}
-    truth_b = {name: expected[name] for name in b}
-    pulls, strength = within(
-        {k: {**p, "value": abs(p["value"])} for k, p in b.items()}, "b", truth_b
-    )
-    record["b_fitted"] = {k: [p["value"], p["sigma"]] for k, p in b.items()}
-    record["b_expected"] = expected
-    record["b_strength"] = round(strength, 2)
-    record["pulls"] = [round(p, 2) for p in pulls]
-    record["within_3_sigma"] = all(abs(p) < 3 for p in pulls)
-    return record
+    return {**record, **common_mode_pulls({**record, "setup": setup, "truth": truth})}
+
+
+def common_mode_pulls(record: dict) -> dict:
+    """Each fitted |b_i| against a_i NET_c / sqrt(NET_i^2 + a_i^2 NET_c^2), a_i = 1 +
+    sum_j c_ij the detector's coupling to the common noise (its own, 1, and what a
+    crosstalk leaks from its partners, who carry the same noise): pulls, the weakest
+    strength, within 3 sigma. From the record alone (``--combine`` scores old records
+    with it)."""
+    setup, names = record["setup"], record["truth"]["detectors"]
+    net_common = setup["common_mode"][0]
+    nets = detector_nets(setup, len(names))
+    coupling = np.ones(len(names))
+    for key, value in setup.get("crosstalk", {}).items():
+        coupling[int(key.split(",")[0])] += value
+    expected = {
+        name: a * net_common / math.hypot(net, a * net_common)
+        for name, net, a in zip(names, nets, coupling, strict=True)
+    }
+    fitted = {
+        name: {"value": abs(v), "sigma": s, "detector": name, "parameter": "b"}
+        for name, (v, s) in record["b_fitted"].items()
+    }
+    pulls, strength = within(fitted, "b", {name: expected[name] for name in fitted})
+    return {
+        "b_expected": expected,
+        "b_strength": round(strength, 2),
+        "pulls": [round(p, 2) for p in pulls],
+        "within_3_sigma": all(abs(p) < 3 for p in pulls),
+    }
 
 
 def score_crosstalk(result: dict, setup: dict, truth: dict) -> dict:
@@ -592,6 +608,9 @@ def main() -> None:
     arguments = parser.parse_args()
     if arguments.combine:
         records = [r for path in arguments.combine for r in json.loads(path.read_text())]
+        records = [  # the common noise scored with the current truth
+            {**r, **common_mode_pulls(r)} if "b_fitted" in r else r for r in records
+        ]
         print("\n".join(summary(records)))
         return
     records = []
