@@ -52,6 +52,7 @@ def benchmarks(repo, monkeypatch):
         "resolution_study",
         "diagnose_benchmark",
         "diagnose_lbs_rates",
+        "diagnose_toast_rates",
         "map_domain_cost",
         "map_domain_validation",
         "seed_part_share",
@@ -632,3 +633,32 @@ def test_calibration_vs_length_tests_its_law_on_a_length_it_was_not_fitted_to(re
         and row["residual_delta_r_fisher"] < row["uncorrected_delta_r_fisher"]
         for row in per_length.values()
     )
+
+
+def test_toast_rates_truths_of_a_common_noise_and_crosstalk(benchmarks):
+    """The TOAST rates' truths (benchmarks/diagnose_toast_rates.py): a common noise's b_i =
+    a_i NET_c / sqrt(NET_i^2 + a_i^2 NET_c^2), a_i = 1 + c_ij where a partner leaks into
+    detector i; a coupled pair's expected |x| / sigma = |c NET_j / NET_i| sqrt(2 M)."""
+    import diagnose_toast_rates as rates
+
+    setup = {
+        "common_mode": [20.0, 20.0, "wafer"],
+        "net_uk_rts": [40.0, 60.0, 50.0],
+        "crosstalk": {"1,0": 0.05},
+        "fknee_mhz": 20.0,
+        "sample_rate_hz": 19.0,
+        "hours": 1.0,
+    }
+    record = {
+        "setup": setup,
+        "truth": {"detectors": ["a", "b", "c"]},
+        "b_fitted": {"a": [0.447, 0.01], "b": [-0.330, 0.01], "c": [0.371, 0.01]},
+    }
+    scored = rates.common_mode_pulls(record)
+    expected_b = 1.05 * 20 / np.hypot(60, 1.05 * 20)
+    assert scored["b_expected"]["b"] == pytest.approx(expected_b)
+    assert scored["b_expected"]["a"] == pytest.approx(20 / np.hypot(40, 20))
+    assert scored["within_3_sigma"]
+    strengths = rates.expected_strengths(record)
+    modes = (9.5 - 1.0) * 3600
+    assert strengths == {"a-b": pytest.approx(0.05 * 40 / 60 * np.sqrt(2 * modes))}
