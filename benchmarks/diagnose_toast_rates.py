@@ -319,18 +319,24 @@ def common_mode_pulls(record: dict) -> dict:
     }
 
 
+def coupled_pairs(setup: dict, names) -> dict[str, float]:
+    """{"<name_i>-<name_j>" (i < j): x_ij} of the couplings drawn: d_i += c_ij d_j adds
+    c_ij NET_j / NET_i to the pair's x."""
+    nets = detector_nets(setup, len(names))
+    x: dict[str, float] = {}
+    for key, value in setup["crosstalk"].items():
+        i, j = (int(k) for k in key.split(","))
+        pair = f"{names[min(i, j)]}-{names[max(i, j)]}"
+        x[pair] = x.get(pair, 0.0) + value * nets[j] / nets[i]
+    return x
+
+
 def score_crosstalk(result: dict, setup: dict, truth: dict) -> dict:
     """TOAST's CrossTalk: detector_crosstalk named, the pairs it takes against the pairs
     coupled, x_ij against c_ij NET_j / NET_i + c_ji NET_i / NET_j for each pair coupled."""
     effects = result["effects"]
     record = {"reported": [e["name"] for e in effects], "unexplained": len(result["unexplained"])}
-    names = truth["detectors"]
-    coupled: dict[str, float] = {}
-    nets = detector_nets(setup, len(names))
-    for key, value in setup["crosstalk"].items():  # d_i += c_ij d_j: x += c_ij NET_j / NET_i
-        i, j = (int(k) for k in key.split(","))
-        pair = f"{names[min(i, j)]}-{names[max(i, j)]}"
-        coupled[pair] = coupled.get(pair, 0.0) + value * nets[j] / nets[i]
+    coupled = coupled_pairs(setup, truth["detectors"])
     match = [e for e in effects if e["name"] == "detector_crosstalk"]
     record["named"] = bool(match)
     record["first"] = bool(effects) and effects[0]["name"] == "detector_crosstalk"
@@ -560,13 +566,7 @@ def expected_strengths(record: dict) -> dict:
     sigma = 1 / sqrt(2 M) with M the rfft modes between 1 Hz (or three knees) and Nyquist
     (the fit's flat term alone; its sideband shapes and the lines left out add a little)."""
     setup = record["setup"]
-    names = record["truth"]["detectors"]
-    nets = detector_nets(setup, len(names))
-    x: dict[str, float] = {}
-    for key, value in setup["crosstalk"].items():
-        i, j = (int(k) for k in key.split(","))
-        pair = f"{names[min(i, j)]}-{names[max(i, j)]}"
-        x[pair] = x.get(pair, 0.0) + value * nets[j] / nets[i]
+    x = coupled_pairs(setup, record["truth"]["detectors"])
     low = max(1.0, 3 * setup["fknee_mhz"] * 1e-3)
     modes = (setup["sample_rate_hz"] / 2 - low) * setup["hours"] * 3600
     modes *= 1 - setup.get("flagged_fraction", 0.0)

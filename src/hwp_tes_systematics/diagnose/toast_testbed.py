@@ -236,10 +236,7 @@ def _thermal_drifts(data, sigmas, common_to: str, wafers: int, seed: int) -> Non
     of each detector's own."""
     from toast import ops
 
-    common = "pixel" if common_to == "wafer" and wafers == 1 else "wafer"
-    if common_to == "all":
-        common = "focalplane"  # a column of one value
-        data.obs[0].telescope.focalplane.detector_data[common] = "FP"
+    common = "pixel" if common_to == "wafer" and wafers == 1 else _group_column(data, common_to)
     for component, (group, sigma) in enumerate(zip((common, "name"), sigmas, strict=True)):
         if sigma:
             ops.GainDrifter(
@@ -250,6 +247,15 @@ def _thermal_drifts(data, sigmas, common_to: str, wafers: int, seed: int) -> Non
                 realization=seed,
                 component=1 + component,
             ).apply(data)
+
+
+def _group_column(data, key: str) -> str:
+    """The focal-plane column whose values group the detectors: ``key``, or for "all" a
+    column of one value added to the table."""
+    if key != "all":
+        return key
+    data.obs[0].telescope.focalplane.detector_data["focalplane"] = "FP"
+    return "focalplane"
 
 
 def _crosstalk(data, couplings: dict, folder: Path) -> None:
@@ -271,11 +277,8 @@ def _common_mode(data, net_uk_rts: float, fknee_mhz: float, key: str) -> None:
     import astropy.units as u
     from toast import ops
 
-    if key == "all":
-        key = "focalplane"
-        data.obs[0].telescope.focalplane.detector_data[key] = "FP"
     ops.CommonModeNoise(
-        focalplane_key=key,
+        focalplane_key=_group_column(data, key),
         fmin=1e-5 * u.Hz,
         fknee=fknee_mhz * 1e-3 * u.Hz,
         alpha=1.0,

@@ -68,18 +68,13 @@ def binned_cross(rows, bins) -> np.ndarray:
     return out
 
 
-def contiguous_bins(f, carrier_hz: float, relative_width: float = 0.005):
-    """(start, stop) runs of consecutive modes of ``f`` (ascending) sharing one bin of
-    relative width ``relative_width`` in both f and |f - f_0| (each side of f_0 apart),
-    as :func:`.fluctuations._binned` bins them; and each run's mean frequency."""
-    offset = f - carrier_hz
-    key = np.stack(
-        [
-            np.floor(np.log(f) / relative_width),
-            np.floor(np.log(np.abs(offset)) / relative_width),
-            offset > 0,
-        ]
-    )
+def contiguous_bins(f, carrier_hz: float):
+    """(start, stop) runs of consecutive modes of ``f`` (ascending) in one sideband bin
+    (:func:`.fluctuations.bin_labels`, as the independent fit bins them); each run's mean
+    frequency and its modes."""
+    from .fluctuations import bin_labels
+
+    key = np.stack(bin_labels(f, carrier_hz))
     starts = np.concatenate([[0], np.flatnonzero(np.any(np.diff(key, axis=1) != 0, axis=0)) + 1])
     stops = np.append(starts[1:], f.size)
     counts = (stops - starts).astype(float)

@@ -53,6 +53,9 @@ class CommonModeFit:
     n_parameters: int
     delta_bic: float
     partitions: dict  # {key: chi^2 of the pairs at that partition's best b}
+    # what crosstalk alone, one x per pair, would take: its pairs and Delta BIC
+    pairs_alone: int = 0
+    delta_bic_alone: float = 0.0
 
 
 def rank_one_fit(pairs, coupling, sigma, groups, n_det: int):
@@ -188,8 +191,8 @@ class CommonModeNoise(Effect):
             f"{np.max(common.share[in_groups] ** 2):.3g}: a common noise of "
             f"{1e6 * np.nanmedian(nets):.3g} uK sqrt(s) (median)); Delta chi^2 "
             f"{-common.delta_chi2:.0f} for {common.n_parameters} parameters, where a crosstalk "
-            f"per pair takes {int(fit.taken_alone)} pairs for Delta BIC "
-            f"{fit.delta_bic_alone:.0f}" + (f"; {others}" if others else "")
+            f"per pair takes {common.pairs_alone} pairs for Delta BIC "
+            f"{common.delta_bic_alone:.0f}" + (f"; {others}" if others else "")
         )
         return {
             "name": self.name,

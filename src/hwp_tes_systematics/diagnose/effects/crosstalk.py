@@ -65,8 +65,6 @@ class CrosstalkFit:
     # a noise common to groups of detectors, taken before the pairs (then ``coupling`` is
     # each pair's x beyond b_i b_j), or None (:mod:`.common_mode`)
     common: CommonModeFit | None = None
-    taken_alone: int = 0  # the pairs, and Delta BIC, of crosstalk alone, without it
-    delta_bic_alone: float = 0.0
     tied: bool = False  # the two readings within the threshold: not told apart
 
 
@@ -133,13 +131,11 @@ def fit_crosstalk(ctx: Context, residual_f, noise, ln_n_eff: float, threshold: f
     with_common = misfit - none + n_parameters * ln_n_eff
     common.delta_chi2 = misfit - none - beyond.delta_chi2
     common.delta_bic = with_common - beyond.delta_bic
-    tied = abs(with_common - alone.delta_bic) < -threshold
-    alone.taken_alone, alone.delta_bic_alone = int(alone.taken.sum()), alone.delta_bic
     if with_common < alone.delta_bic + threshold:  # the common noise, then pairs beyond it
+        common.pairs_alone, common.delta_bic_alone = int(alone.taken.sum()), alone.delta_bic
         beyond.common = common
-        beyond.taken_alone, beyond.delta_bic_alone = alone.taken_alone, alone.delta_bic
         return beyond
-    alone.tied = tied
+    alone.tied = abs(with_common - alone.delta_bic) < -threshold
     return alone
 
 

@@ -339,16 +339,27 @@ def fit_fluctuations(
     )
 
 
-def _binned(f, carrier_hz, powers, cross, relative_width=0.005):
-    """(mean f, modes, summed periodograms, summed cross-periodogram) per bin of relative
-    width ``relative_width`` in both f and |f - f_0| (each side of f_0 apart)."""
+BIN_WIDTH = 0.005  # the sideband bins' relative width in f and in |f - f_0|
+
+
+def bin_labels(f, carrier_hz):
+    """(bin in f, bin in |f - f_0|, the side of f_0) of each mode: the sidebands' bins,
+    BIN_WIDTH wide in ln f and in ln |f - f_0|, over which S, E and C are constant to ~1e-2
+    of themselves."""
     offset = f - carrier_hz
-    in_f = np.floor(np.log(f) / relative_width).astype(np.int64)
-    in_offset = np.floor(np.log(np.abs(offset)) / relative_width).astype(np.int64)
+    in_f = np.floor(np.log(f) / BIN_WIDTH).astype(np.int64)
+    in_offset = np.floor(np.log(np.abs(offset)) / BIN_WIDTH).astype(np.int64)
+    return in_f, in_offset, (offset > 0).astype(np.int64)
+
+
+def _binned(f, carrier_hz, powers, cross):
+    """(mean f, modes, summed periodograms, summed cross-periodogram) per bin
+    (:func:`bin_labels`)."""
+    in_f, in_offset, side = bin_labels(f, carrier_hz)
     key = (
         (in_f - in_f.min()) * 4 * (np.abs(in_offset).max() + 2)
         + 2 * (in_offset - in_offset.min())
-        + (offset > 0)
+        + side
     )
     _, index = np.unique(key, return_inverse=True)
     counts = np.bincount(index).astype(float)

@@ -14,6 +14,7 @@ from .base import (
     Effect,
     PerGroup,
     _value,
+    detector_partitions,
     group_sentence,
     modulation_degree,
     other_partitions,
@@ -364,8 +365,8 @@ class GainFluctuations(Effect):
 def fluctuation_scope(ctx, coherence) -> dict:
     """The report's scope of a gain fluctuation: the groups within which its common part
     is shared (:class:`.coherence.CoherenceFit`), "all" for a pair or one detector."""
-    if coherence is None or coherence.by == "all":
-        return {"by": "all", "groups": {"all": list(ctx.detector_names)}}
+    if coherence is None:
+        return partition_scope(ctx, "all", detector_partitions(ctx)["all"])
     return partition_scope(ctx, coherence.by, coherence.groups)
 
 
