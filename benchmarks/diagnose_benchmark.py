@@ -49,6 +49,7 @@ from hwp_tes_systematics.diagnose import (
     write_recording,
 )
 from hwp_tes_systematics.diagnose.effects import family_of
+from hwp_tes_systematics.io import reuse_freed_memory
 
 EFFECTS = {
     "none": [],
@@ -664,6 +665,7 @@ def main() -> None:
         run_rates(arguments)
         return
 
+    reuse_freed_memory()  # as the diagnose command does
     sky_map = sky.cmb_map(arguments.nside, 3 * arguments.nside - 1, 0.0, 1, 0, 30.8)
     started = time.perf_counter()
     recording = simulate_recording(

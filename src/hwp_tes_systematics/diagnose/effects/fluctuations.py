@@ -35,6 +35,7 @@ import numpy as np
 import scipy.fft
 import scipy.optimize
 
+from ..fourier import rfft
 from ..model import Context
 from ..noise import (
     NoiseModel,
@@ -434,7 +435,7 @@ def dipole_signature(ctx: Context, fit: FluctuationFit, noise) -> float:
     resolution = fs / n
     total = 0.0
     for k in range(ctx.n_detectors):
-        spectrum = scipy.fft.rfft(ctx.sky[k] + ctx.dipole[k] - np.mean(ctx.dipole[k]))
+        spectrum = rfft(ctx.sky[k] + ctx.dipole[k] - np.mean(ctx.dipole[k]))
         power = spectrum.real**2 + spectrum.imag**2
         strongest = np.argsort(power)[-64:]
         excess = np.zeros(freqs.size)

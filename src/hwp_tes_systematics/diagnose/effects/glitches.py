@@ -11,6 +11,7 @@ import numpy as np
 import scipy.fft
 import scipy.optimize
 
+from ..fourier import irfft
 from ..model import unit_vectors
 from .base import Effect, format_temperature, register
 
@@ -314,12 +315,12 @@ def find_transients(
     n = valid.size
     fs = 1.0 / (times_s[1] - times_s[0])
     freqs = scipy.fft.rfftfreq(n, 1.0 / fs)
-    r_time = scipy.fft.irfft(r_f, n=n, workers=workers) * valid
+    r_time = irfft(r_f, n=n, workers=workers) * valid
     high = freqs > 0.25 * freqs[-1]
     s_white = float(np.median(s[high])) if high.any() else float(np.median(s[1:]))
     whitening = np.sqrt(s_white / np.maximum(s, 1e-300))
     whitening[0] = 0.0
-    z = scipy.fft.irfft(r_f * whitening, n=n, workers=workers)
+    z = irfft(r_f * whitening, n=n, workers=workers)
     zv = z[valid]
     sigma = 1.4826 * float(np.median(np.abs(zv - np.median(zv))))
     if not sigma > 0:

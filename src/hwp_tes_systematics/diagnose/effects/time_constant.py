@@ -9,6 +9,7 @@ import numpy as np
 import scipy.fft
 import scipy.optimize
 
+from ..fourier import irfft, rfft
 from .base import Effect, _value, format_temperature, register
 
 
@@ -127,9 +128,9 @@ class DetectorTimeConstant(Effect):
 
     def templates(self, ctx):
         freqs = scipy.fft.rfftfreq(ctx.n_samples, 1.0 / ctx.sampling_rate_hz)
-        spectrum = scipy.fft.rfft(ctx.d_nom, axis=-1)
+        spectrum = rfft(ctx.d_nom, axis=-1)
         change = self.linearised_f(freqs, spectrum)
-        return scipy.fft.irfft(change, n=ctx.n_samples, axis=-1)[:, None, :]
+        return irfft(change, n=ctx.n_samples, axis=-1)[:, None, :]
 
     def injection_stage(self, params):
         """With ``through_noise``, on the optical signal and the detector noise together
@@ -141,10 +142,10 @@ class DetectorTimeConstant(Effect):
         tod = ctx.d_nom if tod is None else tod
         tau = _value(params, "tau", tod.shape[0])
         freqs = scipy.fft.rfftfreq(tod.shape[-1], 1.0 / ctx.sampling_rate_hz)
-        spectrum = scipy.fft.rfft(tod, axis=-1)
+        spectrum = rfft(tod, axis=-1)
         out = np.empty_like(tod)
         for k in range(tod.shape[0]):
-            out[k] = scipy.fft.irfft(spectrum[k] * single_pole(freqs, tau[k]), n=tod.shape[-1])
+            out[k] = irfft(spectrum[k] * single_pole(freqs, tau[k]), n=tod.shape[-1])
         return out
 
     def evidence(self, ev, fit) -> str:

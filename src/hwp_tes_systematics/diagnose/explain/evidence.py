@@ -14,6 +14,7 @@ import math
 import numpy as np
 import scipy.fft
 
+from ..fourier import rfft
 from ..locate import dc_offset, drifts, hwp_profile, line_at
 from ..noise import independent_fraction, periodogram_scale
 
@@ -58,7 +59,7 @@ class Evidence:
             s = periodogram_scale(ctx.n_samples, ctx.sampling_rate_hz, v) * self.noise[k].psd(freqs)
             weights = np.zeros(freqs.size)
             weights[1:-1] = v / s[1:-1]  # noise module
-            residual_f = scipy.fft.rfft(self.residual[k], workers=self.workers)
+            residual_f = rfft(self.residual[k], workers=self.workers)
             self._drifts[k] = {
                 d["quantity"]: d for d in drifts(residual_f, ctx, k, weights, self.workers)
             }

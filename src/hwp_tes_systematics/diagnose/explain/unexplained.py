@@ -45,6 +45,7 @@ import scipy.fft
 from ...simulation import data_model
 from ..effects import format_temperature
 from ..effects.glitches import event_directions, find_transients, sky_fixed_groups
+from ..fourier import irfft, rfft
 from ..locate import excess_bands, find_lines, line_at, sinusoid_fit, sky_residual
 from ..model import Context
 from ..noise import (
@@ -186,7 +187,7 @@ def find_unexplained(
     freqs = scipy.fft.rfftfreq(n, 1.0 / fs)
     modes = fitted_modes(n)
     lines = line_exclusion_mask(freqs, ctx.f_hwp_hz, ctx.f_spin_hz, max(3 * resolution, 2e-4))
-    residual_f = scipy.fft.rfft(residual_after, axis=-1, workers=workers)
+    residual_f = rfft(residual_after, axis=-1, workers=workers)
     transients = []
     for k, det in enumerate(ctx.detector_names):
         scale = periodogram_scale(n, fs, float(ctx.valid[k].mean()))
@@ -280,7 +281,7 @@ def _segments(residual_f, s, ctx: Context, k: int, tried, workers) -> list[dict]
     s_white = float(np.median(s[high]))
     whitening = np.sqrt(s_white / np.maximum(s, 1e-300))
     whitening[0] = 0.0
-    z = scipy.fft.irfft(residual_f * whitening, n=n, workers=workers)
+    z = irfft(residual_f * whitening, n=n, workers=workers)
     valid = ctx.valid[k]
     edges = np.linspace(0, n, TIME_SEGMENTS + 1).astype(int)
     # (lo, hi, valid samples, sum of z^2) of the segments with enough samples

@@ -6,8 +6,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import scipy.fft
 
+from ..fourier import rfft
 from ..linalg import whitened_lstsq
 from ..model import Context
 from ..noise import (
@@ -31,7 +31,7 @@ def drifts(
         dipole,
         p1 * dipole,
     ]
-    templates_f = scipy.fft.rfft(np.stack(rows) * ctx.valid[k], axis=-1, workers=workers)
+    templates_f = rfft(np.stack(rows) * ctx.valid[k], axis=-1, workers=workers)
     values, sigmas = whitened_lstsq(residual_f, templates_f, weights)
     hours = ctx.duration_s / 3600.0
     name = ctx.detector_names[k]

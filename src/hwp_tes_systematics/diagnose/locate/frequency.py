@@ -13,6 +13,7 @@ import scipy.signal
 import scipy.special
 import scipy.stats
 
+from ..fourier import rfft
 from ..model import Context
 from ..noise import (
     NoiseModel,
@@ -173,7 +174,7 @@ def find_lines(
     for _ in range(2 * max_lines):
         if len(lines) >= max_lines:
             break
-        spectrum = scipy.fft.rfft(work * window)
+        spectrum = rfft(work * window)
         z = (spectrum.real**2 + spectrum.imag**2) / norm
         z[~searched] = 0.0
         peak = int(np.argmax(z))

@@ -9,6 +9,7 @@ import numpy as np
 import scipy.fft
 
 from ..effects.glitches import GlitchEvent, find_transients
+from ..fourier import rfft
 from ..model import Context
 from ..noise import (
     NoiseModel,
@@ -70,7 +71,7 @@ def locate(
     freqs = scipy.fft.rfftfreq(n, 1.0 / fs)
     residual = np.where(ctx.valid, residual, 0.0)
     if residual_f is None:
-        residual_f = scipy.fft.rfft(residual, axis=-1, workers=workers)
+        residual_f = rfft(residual, axis=-1, workers=workers)
     modes = fitted_modes(n)
     lines_mask = line_exclusion_mask(freqs, ctx.f_hwp_hz, ctx.f_spin_hz, max(3 * fs / n, 2e-4))
     sigma_samples = []

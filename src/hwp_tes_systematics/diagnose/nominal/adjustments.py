@@ -78,6 +78,7 @@ import scipy.fft
 
 from ..effects import Effect
 from ..effects.hwpss import harmonic_templates
+from ..fourier import rfft
 from ..linalg import cross, solve_normal
 from ..model import Context, coarse_pixels
 from ..noise import (
@@ -190,8 +191,8 @@ def fit_nominal(
     scale = [periodogram_scale(n, fs, float(valid[k].mean())) for k in range(n_det)]
     residual0 = np.where(valid, tod - ctx.d_nom, 0.0)
     templates = NOMINAL.templates(ctx)
-    templates_f = scipy.fft.rfft(templates * valid[:, None, :], axis=-1, workers=workers)
-    residual0_f = scipy.fft.rfft(residual0, axis=-1, workers=workers)
+    templates_f = rfft(templates * valid[:, None, :], axis=-1, workers=workers)
+    residual0_f = rfft(residual0, axis=-1, workers=workers)
 
     pixels, nside = (None, None)
     if sky_residual_nside and ctx.pixels is not None:
@@ -221,9 +222,9 @@ def fit_nominal(
             # samples a constant: masked, it is no longer the DC mode the fit leaves out, and
             # a nonlinearity's g1 A_2^2 / 2 (21 mK on H3-402 at g1 = 3e-3) cut by a gap leaked
             # into the gain, leaving the dipole at f_spin in the residual (fit.GAP_OFFSET)
-            parts = [templates_f[k], scipy.fft.rfft(lines[k] * valid[k], axis=-1, workers=workers)]
+            parts = [templates_f[k], rfft(lines[k] * valid[k], axis=-1, workers=workers)]
             if not valid[k].all():
-                parts.append(scipy.fft.rfft(valid[k].astype(float), workers=workers)[None])
+                parts.append(rfft(valid[k].astype(float), workers=workers)[None])
             bank = np.concatenate(parts)
             solution, full_covariance = solve_normal(
                 cross(bank, bank, w), cross(bank, residual0_f[k] - sky_f[k], w)
@@ -236,12 +237,12 @@ def fit_nominal(
         residual1 = np.where(valid, residual1 - offsets[:, None], 0.0)
         if pixels is not None:
             sky_map, hits, sky_tod = _sky_residual(residual1, valid, pixels, 12 * nside * nside)
-            sky_f = scipy.fft.rfft(sky_tod, axis=-1, workers=workers)
+            sky_f = rfft(sky_tod, axis=-1, workers=workers)
         # the noise is fitted BEFORE the sky residual is removed: binning in pixels would
         # also remove 1/f noise (a destriper) and bias the knee low
         # the noise without the lines too: an unmodelled one leaks far beyond its bins
         line_tod = np.einsum("kj,kjn->kn", line_values, lines) * valid
-        residual1_f = scipy.fft.rfft(residual1 - line_tod, axis=-1, workers=workers)
+        residual1_f = rfft(residual1 - line_tod, axis=-1, workers=workers)
         noise, noise_cov, _ = refit_noise(ctx, residual1_f, noise)
 
     offset_sigmas = np.array(

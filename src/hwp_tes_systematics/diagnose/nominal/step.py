@@ -7,9 +7,9 @@ import logging
 import math
 
 import numpy as np
-import scipy.fft
 
 from ..effects import noise_effect
+from ..fourier import rfft
 from ..model import build_context, load_sky, per_detector
 from ..noise import NoiseModel, estimate_noise, fitted_modes
 from ..recording import Recording
@@ -81,12 +81,12 @@ def fit_nominal_model(
     noise_models = adjusted.noise
     residual = np.where(ctx.valid, recording.tod - ctx.d_nom, 0.0)
     modes = fitted_modes(residual.shape[1])
-    residual_f = scipy.fft.rfft(residual, axis=-1, workers=workers)  # locate's and FitProblem's too
+    residual_f = rfft(residual, axis=-1, workers=workers)  # locate's and FitProblem's too
     ln_n_eff = math.log(2 * modes.sum() * ctx.n_detectors)
     # fitted before any effect, on the residual without the HWP lines: a strong line (the
     # 4f of a nonlinearity, 21 mK on H3-402 at g1 = 3e-3) cut by a gap leaks over the whole
     # band and passed for a pole of 27 ms, which corrupted every later noise fit
-    line_free_f = residual_f - scipy.fft.rfft(adjusted.nuisance_lines_tod, axis=-1, workers=workers)
+    line_free_f = residual_f - rfft(adjusted.nuisance_lines_tod, axis=-1, workers=workers)
     early = noise_effect("rolloff").fit_noise(ctx, line_free_f, noise_models, modes, ln_n_eff)
     if early.delta_bic < delta_bic_threshold and not _sidebands_fit_better(
         ctx, early, line_free_f, noise_models, modes, ln_n_eff

@@ -10,10 +10,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import scipy.fft
 import scipy.optimize
 
 from ..effects import SELECTION_THRESHOLD, GlitchEvent
+from ..fourier import irfft, rfft
 from ..linalg import cross, realify, solve_normal
 from .results import EffectFit, FitResult
 
@@ -181,10 +181,12 @@ def fit_iterative(problem, selected, initial_extra=None, gain_after=False) -> Fi
     values = [np.zeros(rows.size) for _ in range(n_det)]
     covariances = [np.zeros((rows.size, rows.size)) for _ in range(n_det)]
     models = [np.zeros(problem.freqs.size, complex) for _ in range(n_det)]
+    # each detector's rows, a private copy (fancy indexing copies): a rebuild rewrites the
+    # nonlinearity's rows in place, and used_nl keeps the rows its last fit used
     banks = [problem.bank[k][rows] for k in range(n_det)]
     recomposed = [False] * n_det  # the nonlinearity rows of banks[k] were recomputed
     built_on = [None] * n_det  # the extra signal they were recomputed with (None: none)
-    used_banks = list(banks)
+    used_nl = [banks[k][nl_rows] for k in range(n_det)]
     nonlinear_parts = [0.0] * n_det
     first_pass_inflation = np.ones(n_det)  # the nonlinearity's variance inflation, pass 1
 
@@ -192,11 +194,8 @@ def fit_iterative(problem, selected, initial_extra=None, gain_after=False) -> Fi
         """The nonlinearity's template rows of detector k built on d_nom + ``extra``."""
         recomposed[k] = True
         built_on[k] = extra
-        banks[k] = banks[k].copy()
         templates = np.concatenate([e.response_templates(ctx.d_nom[k] + extra) for e in responses])
-        banks[k][nl_rows] = scipy.fft.rfft(
-            templates * problem.valid[k], axis=-1, workers=problem.workers
-        )
+        banks[k][nl_rows] = rfft(templates * problem.valid[k], axis=-1, workers=problem.workers)
 
     if composed and initial_extra is not None:
         for k in range(n_det):
@@ -226,7 +225,7 @@ def fit_iterative(problem, selected, initial_extra=None, gain_after=False) -> Fi
             if composed and previous_chi2 == math.inf and nl_rows.size:
                 g = nl_rows[0]  # marginal over conditional variance of g1 (1: no degeneracy)
                 first_pass_inflation[k] = float(cov[g, g] * gram[g, g])
-            used_banks[k], nonlinear_parts[k] = bank, m_nonlinear
+            used_nl[k], nonlinear_parts[k] = bank[nl_rows], m_nonlinear
             models[k] = (a @ bank if rows.size else 0.0) + m_nonlinear + events_f[k]
             if composed:  # the nonlinearity acts on d_nom + the other fitted effects
                 model_f = models[k] - events_f[k]  # a bank + m_nonlinear
@@ -234,7 +233,7 @@ def fit_iterative(problem, selected, initial_extra=None, gain_after=False) -> Fi
                 signal_f = model_f - a[nl_rows] @ bank[nl_rows]
                 if gain_rows.size:  # a readout gain: half its drift before the nonlinearity
                     signal_f = signal_f - 0.5 * (a[gain_rows] @ bank[gain_rows])
-                extra = scipy.fft.irfft(signal_f, n=problem.n, workers=problem.workers)
+                extra = irfft(signal_f, n=problem.n, workers=problem.workers)
                 # and the offset before the nonlinearity: the adjusted offset matched the
                 # recorded mean, which holds the model's mean (g1 <d^2> ~ g1 A_2^2 / 2);
                 # left in, it makes 2 g1 O d, which the gain takes and rescales d^2 by
@@ -263,7 +262,9 @@ def fit_iterative(problem, selected, initial_extra=None, gain_after=False) -> Fi
         values, covariances, shared = problem.share(linear, values, covariances)
         if shared:
             for k in range(n_det):
-                models[k] = values[k] @ used_banks[k] + nonlinear_parts[k] + events_f[k]
+                # the bank its fit used: the nonlinearity's rows as they were then
+                since = values[k][nl_rows] @ (used_nl[k] - banks[k][nl_rows])
+                models[k] = values[k] @ banks[k] + since + nonlinear_parts[k] + events_f[k]
         if events_effect is not None:
             events = []
             for k in range(n_det):
@@ -286,11 +287,11 @@ def fit_iterative(problem, selected, initial_extra=None, gain_after=False) -> Fi
             lowest = total
             kept = [
                 list(x) if isinstance(x, list) else x
-                for x in (values, covariances, shared, models, used_banks)
+                for x in (values, covariances, shared, models, used_nl)
                 + (nonlinear_parts, theta, theta_sigma, events, events_f)
             ]
         elif composed and total > lowest + CHI2_RISE:  # walking away from it: back
-            (values, covariances, shared, models, used_banks) = kept[:5]
+            (values, covariances, shared, models, used_nl) = kept[:5]
             (nonlinear_parts, theta, theta_sigma, events, events_f) = kept[5:]
             break
         # while the nonlinearity's templates still move, chi^2 does not tell: it is
@@ -301,7 +302,9 @@ def fit_iterative(problem, selected, initial_extra=None, gain_after=False) -> Fi
         previous_chi2 = total
     chi2s = np.array([problem.chi2_of(k, models[k]) for k in range(n_det)])
     fits = problem.with_shared(problem.linear_effect_fits(selected, values, covariances), shared)
-    parts = problem.linear_parts(selected, used_banks, values)
+    for k in range(n_det):  # the rows each detector's kept fit used
+        banks[k][nl_rows] = used_nl[k]
+    parts = problem.linear_parts(selected, banks, values)
     if nonlinear is not None:
         (parameter,) = nonlinear.parameters
         fits[nonlinear.name] = EffectFit(
@@ -373,7 +376,7 @@ def start_after(problem, before, signal) -> list[np.ndarray]:
         bank = problem.bank[k][rows]
         residual = problem.residual_f[k] - (base.model_f[k] if base is not None else 0.0)
         a, _ = solve_normal(problem.gram_nom[k][np.ix_(rows, rows)], cross(bank, residual, w))
-        extra = scipy.fft.irfft(a @ bank, n=problem.n, workers=problem.workers)
+        extra = irfft(a @ bank, n=problem.n, workers=problem.workers)
         extras.append(extra - float(np.mean(extra[problem.valid[k]])))
     if base is not None:
         base.model_f = base.parts = None  # as the cache keeps a fit (FitProblem.fit)

@@ -13,6 +13,7 @@ import scipy.fft
 import scipy.optimize
 
 from ..effects import CATALOG, SELECTION_THRESHOLD, Effect
+from ..fourier import irfft, rfft
 from ..linalg import cross, share_across_detectors, solve_normal
 from ..model import Context
 from ..noise import NoiseModel, fitted_modes, independent_fraction, periodogram_scale
@@ -71,7 +72,7 @@ class FitProblem:
         self.scale = [periodogram_scale(n, fs, v) for v in self.independent]
         if residual_f is None:
             residual = np.where(self.valid, tod - ctx.d_nom, 0.0)
-            residual_f = scipy.fft.rfft(residual, axis=-1, workers=workers)
+            residual_f = rfft(residual, axis=-1, workers=workers)
         self.residual_f = residual_f
 
         # Linear template bank per detector, rows grouped by effect; the nominal
@@ -95,7 +96,7 @@ class FitProblem:
             k = len(self.units[name])
             self.slices[name] = slice(size, size + k)
             size += k
-        self.bank = np.zeros((self.n_det, size, self.freqs.size), dtype=complex)
+        self.bank = np.empty((self.n_det, size, self.freqs.size), dtype=complex)  # every row set
         sources = [(name, effects[name]) for name in self.linear_names]
         if nominal is not None:
             self.slices[nominal.name] = slice(0, self.n_nominal)
@@ -109,12 +110,12 @@ class FitProblem:
                 templates = np.concatenate([templates, offset_row.astype(float)], axis=1)
             start = self.slices[name].start
             for k in range(self.n_det):
+                gapped = self.gapped[k]
                 for j in range(templates.shape[1]):
-                    self.bank[k, start + j] = scipy.fft.rfft(
-                        templates[k, j] * self.valid[k], workers=workers
-                    )
+                    row = templates[k, j] * self.valid[k] if gapped else templates[k, j]
+                    rfft(row, workers=workers, out=self.bank[k, start + j])
             del templates
-        self.d_nom_f = scipy.fft.rfft(ctx.d_nom, axis=-1, workers=workers)
+        self.d_nom_f = rfft(ctx.d_nom, axis=-1, workers=workers)
         # each nonlinear effect's first-order template per detector (its linearised fit)
         self.linearised_f = {
             name: [
@@ -139,7 +140,10 @@ class FitProblem:
         for k in range(self.n_det):
             gram = np.empty((size, size))
             for lo in range(0, size, 8):  # row blocks bound the temporary memory
-                gram[lo : lo + 8] = cross(self.bank[k][lo : lo + 8], self.bank[k], self.w_nom[k])
+                # the upper triangle's blocks; the gram is symmetric
+                block = cross(self.bank[k][lo : lo + 8], self.bank[k][lo:], self.w_nom[k])
+                gram[lo : lo + 8, lo:] = block
+                gram[lo:, lo : lo + 8] = block.T
             self.gram_nom.append(gram)
             self.rhs_nom.append(cross(self.bank[k], self.residual_f[k], self.w_nom[k]))
             self.yy_nom.append(
@@ -158,14 +162,14 @@ class FitProblem:
     def masked_rfft(self, tod: np.ndarray) -> np.ndarray:
         """rfft along the last axis of tod (n_det, ..., n) times the valid mask."""
         mask = self.valid.reshape((self.n_det,) + (1,) * (tod.ndim - 2) + (self.n,))
-        return scipy.fft.rfft(tod * mask, axis=-1, workers=self.workers)
+        return rfft(tod * mask, axis=-1, workers=self.workers)
 
     def valid_mean(self, k: int, spectrum: np.ndarray) -> float:
         """Mean over detector k's valid samples of irfft(spectrum), without the inverse FFT:
         sum_t v_t x_t = (1/n) sum_f c_f Re(X_f V_f*), V = rfft(v), c_f = 2 but at 0 and
         n/2 (Parseval for real sequences)."""
         if not hasattr(self, "_valid_f"):
-            self._valid_f = scipy.fft.rfft(self.valid.astype(float), axis=-1, workers=self.workers)
+            self._valid_f = rfft(self.valid.astype(float), axis=-1, workers=self.workers)
             self._parseval_weights = np.full(self._valid_f.shape[-1], 2.0)
             self._parseval_weights[0] = 1.0
             if self.n % 2 == 0:
@@ -182,8 +186,8 @@ class FitProblem:
         """rfft(valid_k x irfft(spectrum)): the masked version of an unmasked spectrum."""
         if self.valid[k].all():
             return spectrum
-        tod = scipy.fft.irfft(spectrum, n=self.n, axis=-1, workers=self.workers)
-        return scipy.fft.rfft(tod * self.valid[k], axis=-1, workers=self.workers)
+        tod = irfft(spectrum, n=self.n, axis=-1, workers=self.workers)
+        return rfft(tod * self.valid[k], axis=-1, workers=self.workers)
 
     def weights(self, s: np.ndarray) -> np.ndarray:
         """1 / S_f on the used modes, 0 elsewhere."""
@@ -406,7 +410,7 @@ class FitProblem:
         if result.model_f is None:
             result = self.fit(result.selected, keep_model=True)
         diff = self.residual_f - np.array(result.model_f)
-        return scipy.fft.irfft(diff, n=self.n, axis=-1, workers=self.workers) * self.valid
+        return irfft(diff, n=self.n, axis=-1, workers=self.workers) * self.valid
 
     def partial_residuals(self, result: FitResult) -> dict[str, np.ndarray]:
         """For each selected effect: the residual minus the OTHER effects' fitted models.
@@ -420,8 +424,8 @@ class FitProblem:
         for name in result.selected:
             own = np.array(result.parts[name]) if name in result.parts else 0.0
             diff = self.residual_f - (total - own)
-            out[name] = scipy.fft.irfft(diff, n=self.n, axis=-1, workers=self.workers) * self.valid
+            out[name] = irfft(diff, n=self.n, axis=-1, workers=self.workers) * self.valid
         return out
 
     def residual_before(self) -> np.ndarray:
-        return scipy.fft.irfft(self.residual_f, n=self.n, axis=-1, workers=self.workers)
+        return irfft(self.residual_f, n=self.n, axis=-1, workers=self.workers)

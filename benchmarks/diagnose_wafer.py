@@ -1,0 +1,105 @@
+"""Cost of diagnosing a wafer: a TOAST recording of many detectors through the command a
+user runs, ``python -m hwp_tes_systematics diagnose``, within a memory budget.
+
+    python benchmarks/diagnose_wafer.py --pixels 37 --hours 6 --rate 31 --memory-gb 16
+
+Writes one TOAST observation (``toast_testbed.write_toast_recording``: a hexagon of
+``--pixels`` pixels, two detectors each, split in ``--wafers`` wafers; the HWPSS at
+``--a2`` K_CMB and a TES nonlinearity ``--g1`` [1/K] in every detector; TOAST's 1/f noise)
+and the sky it scans, then runs the command in a child process with ``--memory-gb``
+(a recording whose diagnosis would not fit is diagnosed in segments). Prints the
+detectors, samples, wall time, the child's peak resident memory, the segments and the
+effects reported. Targets (the wafer diagnosis issue): 64 detectors for 6 hours at 31 Hz
+in at most 15 minutes within 16 GB on this machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import healpy as hp
+import numpy as np
+
+from hwp_tes_systematics import sky
+from hwp_tes_systematics.diagnose.toast_testbed import write_toast_recording
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--pixels", type=int, default=37, help="hexagon pixels: 1, 7, 19, 37")
+    parser.add_argument("--wafers", type=int, default=2)
+    parser.add_argument("--hours", type=float, default=6.0)
+    parser.add_argument("--rate", type=float, default=31.0, help="sampling rate [Hz]")
+    parser.add_argument("--a2", type=float, default=0.264, help="HWPSS 2f amplitude [K_CMB]")
+    parser.add_argument("--g1", type=float, default=-0.04, help="TES nonlinearity [1/K]")
+    parser.add_argument("--memory-gb", type=float, default=16.0)
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--keep", help="write the recording and the report here (kept)")
+    arguments = parser.parse_args()
+
+    with tempfile.TemporaryDirectory() as scratch:
+        folder = Path(arguments.keep or scratch)
+        folder.mkdir(parents=True, exist_ok=True)
+        sky_fits = folder / "sky.fits"
+        hp.write_map(sky_fits, sky.cmb_map(64, 191, 0.0, 1, 0, 30.8), dtype=np.float64)
+        started = time.perf_counter()
+        path = write_toast_recording(
+            folder,
+            sky_fits,
+            hours=arguments.hours,
+            seed=arguments.seed,
+            n_pixels=arguments.pixels,
+            wafers=arguments.wafers,
+            sample_rate_hz=arguments.rate,
+            a2_k=arguments.a2,
+            g1_per_k=arguments.g1,
+        )
+        n_det = 2 * arguments.pixels
+        n_samples = round(arguments.hours * 3600 * arguments.rate)
+        print(
+            f"TOAST recording: {n_det} detectors x {arguments.hours:g} h at {arguments.rate:g} Hz "
+            f"({n_det * n_samples:.3g} detector-samples), written in "
+            f"{time.perf_counter() - started:.0f} s",
+            flush=True,
+        )
+        out = folder / "diagnosis"
+        command = [
+            sys.executable,
+            "-m",
+            "hwp_tes_systematics",
+            "diagnose",
+            str(path),
+            "--sky",
+            str(sky_fits),
+            "--a2",
+            str(arguments.a2),
+            "--memory-gb",
+            str(arguments.memory_gb),
+            "--out",
+            str(out),
+        ]
+        print("$", " ".join(command[1:]), flush=True)
+        started = time.perf_counter()
+        subprocess.run(command, check=True)
+        seconds = time.perf_counter() - started
+        peak_gb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 2**20
+        result = json.loads((out / "diagnosis.json").read_text())
+        segments = result.get("segments")
+        names = [effect["name"] for effect in result.get("effects", [])]
+        print(
+            f"diagnose: {seconds:.0f} s ({seconds / 60:.1f} min; "
+            f"{n_det * n_samples / seconds:.3g} detector-samples/s), peak RSS {peak_gb:.1f} GB "
+            f"(budget {arguments.memory_gb:g} GB), "
+            f"{len(segments) if segments else 'no'} segments; effects {names}"
+        )
+
+
+if __name__ == "__main__":
+    main()
