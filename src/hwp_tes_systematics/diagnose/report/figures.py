@@ -9,6 +9,29 @@ from ...simulation.spectral import amplitude_spectrum
 from ..effects import CATALOG
 
 MAX_POINTS = 20000
+MAX_PANELS = 8  # detectors drawn per figure; a wafer shows the ones the fit changed most
+
+
+def panel_detectors(before, after, valid, at_most: int = MAX_PANELS) -> list[int]:
+    """The detectors a figure draws, in recording order: all if at most ``at_most``, else
+    the ``at_most`` whose residual the fit changed most, sum_t (before^2 - after^2) over
+    the valid samples in units of the residual's own variance after the fit."""
+    n_det = before.shape[0]
+    if n_det <= at_most:
+        return list(range(n_det))
+    change = np.empty(n_det)
+    for k in range(n_det):
+        b, a = before[k][valid[k]], after[k][valid[k]]
+        change[k] = (np.sum(b * b) - np.sum(a * a)) / max(float(np.var(a)), 1e-300)
+    return sorted(np.argsort(-change, kind="stable")[:at_most].tolist())
+
+
+def _title(ctx, detectors, what: str) -> str:
+    """A figure's title: what it shows, and which detectors when not all of them."""
+    n_det = len(ctx.detector_names)
+    if len(detectors) == n_det:
+        return what
+    return f"{what}: {len(detectors)} of {n_det} detectors, those the fit changed most"
 
 
 def _max_decimate(x: np.ndarray, y: np.ndarray, n_out: int = MAX_POINTS):
@@ -22,11 +45,12 @@ def _max_decimate(x: np.ndarray, y: np.ndarray, n_out: int = MAX_POINTS):
     return x[index], y[index]
 
 
-def plot_residual_spectrum(ctx, before, after, noise_models, lines, path) -> None:
+def plot_residual_spectrum(ctx, before, after, noise_models, lines, path, detectors) -> None:
     """Amplitude spectra of the residual before and after the fit, per detector."""
-    n_det = before.shape[0]
-    fig, axes = subplots(n_det, 1, figsize=(9, 3.2 * n_det), squeeze=False)
-    for k, ax in enumerate(axes[:, 0]):
+    n_panels = len(detectors)
+    fig, axes = subplots(n_panels, 1, figsize=(9, 3.2 * n_panels), squeeze=False)
+    fig.suptitle(_title(ctx, detectors, "residual spectrum"), fontsize=10)
+    for k, ax in zip(detectors, axes[:, 0], strict=True):
         freqs, amp_before = amplitude_spectrum(before[k], ctx.sampling_rate_hz)
         _, amp_after = amplitude_spectrum(after[k], ctx.sampling_rate_hz)
         keep = freqs > 0
@@ -53,11 +77,12 @@ def plot_residual_spectrum(ctx, before, after, noise_models, lines, path) -> Non
     save_figure(fig, path)
 
 
-def plot_hwp_profile(ctx, profiles_before, profiles_after, path) -> None:
+def plot_hwp_profile(ctx, profiles_before, profiles_after, path, detectors) -> None:
     """Residual averaged in bins of the HWP angle, before and after the fit."""
-    n_det = len(ctx.detector_names)
-    fig, axes = subplots(n_det, 1, figsize=(8, 2.8 * n_det), squeeze=False, sharex=True)
-    for k, ax in enumerate(axes[:, 0]):
+    n_panels = len(detectors)
+    fig, axes = subplots(n_panels, 1, figsize=(8, 2.8 * n_panels), squeeze=False, sharex=True)
+    fig.suptitle(_title(ctx, detectors, "residual versus HWP angle"), fontsize=10)
+    for k, ax in zip(detectors, axes[:, 0], strict=True):
         name = ctx.detector_names[k]
         centres, profile, sigma = profiles_before[name]
         ax.errorbar(np.degrees(centres), 1e6 * profile, 1e6 * sigma, fmt=".", ms=3, label="before")
@@ -81,11 +106,12 @@ def _block_mean(times, values, valid, n_blocks=2000):
         return times[:m].reshape(-1, size).mean(axis=1), v.sum(axis=1) / w.sum(axis=1)
 
 
-def plot_residual_timeseries(ctx, before, after, events, path) -> None:
+def plot_residual_timeseries(ctx, before, after, events, path, detectors) -> None:
     """Residual versus time (block means), with the glitches found."""
-    n_det = before.shape[0]
-    fig, axes = subplots(n_det, 1, figsize=(9, 2.8 * n_det), squeeze=False, sharex=True)
-    for k, ax in enumerate(axes[:, 0]):
+    n_panels = len(detectors)
+    fig, axes = subplots(n_panels, 1, figsize=(9, 2.8 * n_panels), squeeze=False, sharex=True)
+    fig.suptitle(_title(ctx, detectors, "residual versus time"), fontsize=10)
+    for k, ax in zip(detectors, axes[:, 0], strict=True):
         t, m = _block_mean(ctx.times_s, before[k], ctx.valid[k])
         ax.plot(t / 3600, 1e6 * m, lw=0.6, label=f"before (means over {t[1] - t[0]:.3g} s)")
         t, m = _block_mean(ctx.times_s, after[k], ctx.valid[k])
@@ -126,6 +152,7 @@ def diagnosis_figures(
     from ..locate import hwp_profile, sky_residual
 
     files = {}
+    detectors = panel_detectors(residual, residual_after, np.asarray(ctx.valid, dtype=bool))
     plot_residual_spectrum(
         ctx,
         residual,
@@ -133,14 +160,18 @@ def diagnosis_figures(
         noise_models,
         result["lines"],
         out_dir / "residual_spectrum.png",
+        detectors,
     )
     files["residual spectrum before/after"] = "residual_spectrum.png"
     after_profiles = {}
-    for k, name in enumerate(ctx.detector_names):
+    for k in detectors:
+        name = ctx.detector_names[k]
         sigma = noise_models[k].net_k_sqrt_s * np.sqrt(ctx.sampling_rate_hz)
         centres, profile, err, _ = hwp_profile(residual_after[k], ctx, k, sigma)
         after_profiles[name] = (centres, profile, err)
-    plot_hwp_profile(ctx, mismatch.profiles, after_profiles, out_dir / "residual_vs_hwp_angle.png")
+    plot_hwp_profile(
+        ctx, mismatch.profiles, after_profiles, out_dir / "residual_vs_hwp_angle.png", detectors
+    )
     files["residual versus HWP angle"] = "residual_vs_hwp_angle.png"
     events = []
     for effect in result["effects"]:
@@ -150,7 +181,9 @@ def diagnosis_figures(
                     events.append(
                         {"detector": ctx.detector_names.index(p["detector"]), "time_s": p["value"]}
                     )
-    plot_residual_timeseries(ctx, residual, residual_after, events, out_dir / "residual_time.png")
+    plot_residual_timeseries(
+        ctx, residual, residual_after, events, out_dir / "residual_time.png", detectors
+    )
     files["residual time series"] = "residual_time.png"
     if mismatch.sky.get("available") and "residual_map" in mismatch.sky:
         plot_residual_map(
