@@ -212,6 +212,8 @@ def fit_fluctuations(
         noise_bounds.append((-0.5, 0.5))
     excess_bounds = [(math.log(1e-9), 0.0), SLOPE_BOUNDS, (0.0, 1.0)]
 
+    excess_scales = [scales[k] * carriers[k] ** 2 / 4 for k in range(n_det)]  # A_k^2 / 4
+
     def noise_of(theta, k):
         """S_k, detector k's noise in the bins."""
         log_net, log_fknee, alpha = theta[3 * k : 3 * k + 3]
@@ -228,7 +230,6 @@ def fit_fluctuations(
         log_a, slope, rho = theta[n_noise:]
         lower = gain_psd(f - carrier, math.exp(log_a), slope, resolution)
         upper = gain_psd(f + carrier, math.exp(log_a), slope, resolution)
-        excess_scales = [scales[k] * carriers[k] ** 2 / 4 for k in range(n_det)]
         c = det = None
         if pair:
             d_psi = psi[0] - psi[1]
@@ -270,7 +271,6 @@ def fit_fluctuations(
             excess = gain_psd(f - carrier, math.exp(log_a), slope, resolution) + gain_psd(
                 f + carrier, math.exp(log_a), slope, resolution
             )
-        excess_scales = [scales[k] * carriers[k] ** 2 / 4 for k in range(n_det)]
         terms = [term(k, noise_of(theta, k) + excess_scales[k] * excess) for k in range(n_det)]
         value = sum(terms)
         gradient = np.zeros(theta.size)
