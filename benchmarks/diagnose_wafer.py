@@ -5,9 +5,10 @@ user runs, ``python -m hwp_tes_systematics diagnose``, within a memory budget.
 
 Writes one TOAST observation (``toast_testbed.write_toast_recording``: a hexagon of
 ``--pixels`` pixels, two detectors each, split in ``--wafers`` wafers; the HWPSS at
-``--a2`` K_CMB and a TES nonlinearity ``--g1`` [1/K] in every detector; TOAST's 1/f noise)
-and the sky it scans, then runs the command in a child process with ``--memory-gb``
-(a recording whose diagnosis would not fit is diagnosed in segments). Prints the
+``--a2`` K_CMB and a TES nonlinearity ``--g1`` [1/K] in every detector; TOAST's 1/f noise;
+with ``--drift-sigma`` TOAST's slow gain drift beside it, common to each wafer with a
+part per detector) and the sky it scans, then runs the command in a child process with
+``--memory-gb`` (a recording whose diagnosis would not fit is diagnosed in segments). Prints the
 detectors, samples, wall time, the child's peak resident memory, the segments and the
 effects reported. Targets (the wafer diagnosis issue): 64 detectors for 6 hours at 31 Hz
 in at most 15 minutes within 16 GB on this machine.
@@ -39,6 +40,15 @@ def main() -> None:
     parser.add_argument("--rate", type=float, default=31.0, help="sampling rate [Hz]")
     parser.add_argument("--a2", type=float, default=0.264, help="HWPSS 2f amplitude [K_CMB]")
     parser.add_argument("--g1", type=float, default=-0.04, help="TES nonlinearity [1/K]")
+    parser.add_argument(
+        "--drift-sigma",
+        type=float,
+        default=0.0,
+        help="TOAST GainDrifter slow_drift beside the nonlinearity (its sigma; 0: none)",
+    )
+    parser.add_argument(
+        "--drift-mismatch", type=float, default=0.5, help="the drift's part per detector"
+    )
     parser.add_argument("--memory-gb", type=float, default=16.0)
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--keep", help="write the recording and the report here (kept)")
@@ -60,6 +70,9 @@ def main() -> None:
             sample_rate_hz=arguments.rate,
             a2_k=arguments.a2,
             g1_per_k=arguments.g1,
+            gain_drift_sigma=arguments.drift_sigma,
+            gain_drift_mode="slow_drift",
+            gain_drift_mismatch=arguments.drift_mismatch,
         )
         n_det = 2 * arguments.pixels
         n_samples = round(arguments.hours * 3600 * arguments.rate)

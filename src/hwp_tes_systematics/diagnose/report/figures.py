@@ -22,6 +22,9 @@ def panel_detectors(before, after, valid, at_most: int = MAX_PANELS) -> list[int
     change = np.empty(n_det)
     for k in range(n_det):
         b, a = before[k][valid[k]], after[k][valid[k]]
+        if a.size == 0:  # every sample flagged: nothing to draw
+            change[k] = -np.inf
+            continue
         change[k] = (np.sum(b * b) - np.sum(a * a)) / max(float(np.var(a)), 1e-300)
     return sorted(np.argsort(-change, kind="stable")[:at_most].tolist())
 
