@@ -221,15 +221,26 @@ def fit_fluctuations(
             scales[k] * noise_psd(f, math.exp(log_net), math.exp(log_fknee), alpha, fmins[k])
         ) * poles[k]
 
+    def sidebands(theta):
+        """P_g(|f - f_0|) and P_g(f + f_0) of the gain in theta's last three parameters."""
+        log_a, slope, _ = theta[n_noise:]
+        return (
+            gain_psd(f - carrier, math.exp(log_a), slope, resolution),
+            gain_psd(f + carrier, math.exp(log_a), slope, resolution),
+        )
+
+    def term(k, total_k):
+        """Detector k's part of -2 ln L when the detectors are independent (no pair)."""
+        return 2 * float(np.sum(power[k] / total_k + counts * np.log(total_k)))
+
     def spectra(theta, with_excess):
         """(S_k + E_k per detector, the cross term C or None)."""
         total = [noise_of(theta, k) for k in range(n_det)]
         leak = theta[3 * n_det] * np.sqrt(total[0] * total[1]) if pair else None
         if not with_excess:
             return total, leak, None if leak is None else total[0] * total[1] - leak**2
-        log_a, slope, rho = theta[n_noise:]
-        lower = gain_psd(f - carrier, math.exp(log_a), slope, resolution)
-        upper = gain_psd(f + carrier, math.exp(log_a), slope, resolution)
+        rho = theta[n_noise + 2]
+        lower, upper = sidebands(theta)
         c = det = None
         if pair:
             d_psi = psi[0] - psi[1]
@@ -248,29 +259,17 @@ def fit_fluctuations(
     def minus_two_ln_l(theta, with_excess: bool):
         total, c, det = spectra(theta, with_excess)
         if c is None:
-            return sum(
-                2 * float(np.sum(power[k] / total[k] + counts * np.log(total[k])))
-                for k in range(n_det)
-            )
+            return sum(term(k, total[k]) for k in range(n_det))
         det = np.maximum(det, 1e-12 * total[0] * total[1])  # (a far corner of x, rho)
         quadratic = (total[1] * power[0] + total[0] * power[1] - 2 * (c * cross).real) / det
         return 2 * float(np.sum(counts * np.log(det) + quadratic))
-
-    def term(k, total_k):
-        """Detector k's part of -2 ln L when the detectors are independent (no pair)."""
-        return 2 * float(np.sum(power[k] / total_k + counts * np.log(total_k)))
 
     def with_gradient(theta, with_excess: bool, upper_bounds):
         """-2 ln L and its forward differences (steps of GRADIENT_STEP, backward at an upper
         bound, as L-BFGS-B's own), for three or more detectors: -2 ln L = sum_k L_k, and
         detector k's noise parameters move L_k alone, so each costs one detector's term
         (not all of them): 3 n_det + 3 evaluations of every term become ~9."""
-        excess = 0.0
-        if with_excess:
-            log_a, slope, _ = theta[n_noise:]
-            excess = gain_psd(f - carrier, math.exp(log_a), slope, resolution) + gain_psd(
-                f + carrier, math.exp(log_a), slope, resolution
-            )
+        excess = sum(sidebands(theta)) if with_excess else 0.0
         terms = [term(k, noise_of(theta, k) + excess_scales[k] * excess) for k in range(n_det)]
         value = sum(terms)
         gradient = np.zeros(theta.size)
