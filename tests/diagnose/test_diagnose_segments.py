@@ -207,3 +207,50 @@ def test_segments_without_a_nonlinearity_combine_their_bounds_on_g1():
     assert detector["bound_per_k"] == pytest.approx(abs(mean) + 2 * weights.sum() ** -0.5)
     assert check["sentence"].startswith("No TES nonlinearity found")
     json.dumps(combined)
+
+
+def _with_drift(result: dict, chosen: str, other: str, margin: float) -> dict:
+    """``result`` with ``chosen`` selected at step 2 and ``other`` its candidate there,
+    ``margin`` behind in Delta BIC (both detected on their own)."""
+    drift = {**result["effects"][0], "name": chosen, "parameters": {}, "look_alikes": []}
+    candidates = {
+        chosen: {"delta_chi2": -1e6, "delta_bic": -1e6},
+        other: {"delta_chi2": -1e6 + margin, "delta_bic": -1e6 + margin},
+        "glitches": {"delta_chi2": 0.0, "delta_bic": 0.0},
+    }
+    step = {"step": 2, "added": chosen, "removed": None, "candidates": candidates, "note": ""}
+    return {**result, "effects": [*result["effects"], drift], "steps": [step]}
+
+
+def test_effects_that_take_each_others_place_in_different_segments_are_named_look_alikes():
+    """A gain drift in segments 0 and 2, the HWP's slow modulation in 1 in its place, each
+    the other's detected alternative where it was added: both entries name the other, with
+    the summed preference (-30 - 5 + 3 = -32: toward gain_drift); glitches found in one
+    segment only, never an alternative elsewhere, pair with nothing."""
+    base = segment_result(-3.0e-3, 1e-4)
+    results = [
+        _with_drift(
+            segment_result(-3.0e-3, 1e-4, glitch_time_s=10.0),
+            "gain_drift",
+            "hwpss_slow_modulation",
+            30.0,
+        ),
+        _with_drift(base, "hwpss_slow_modulation", "gain_drift", 3.0),
+        _with_drift(base, "gain_drift", "hwpss_slow_modulation", 5.0),
+    ]
+    combined = combine_segments(results, [(0, 10), (10, 20), (20, 30)], 1.0, REQUIREMENT)
+    by_name = {e["name"]: e for e in combined["effects"]}
+    assert by_name["gain_drift"]["look_alikes"] == ["hwpss_slow_modulation"]
+    assert by_name["hwpss_slow_modulation"]["look_alikes"] == ["gain_drift"]
+    (pair,) = by_name["gain_drift"]["look_alikes_across_segments"]
+    assert pair["segments"] == [[0, 2], [1]]
+    assert pair["preference_delta_bic"] == pytest.approx(-32.0)
+    assert "lean to it" in by_name["gain_drift"]["evidence"]
+    assert "lean to gain_drift" in by_name["hwpss_slow_modulation"]["evidence"]
+    assert by_name["glitches"]["look_alikes"] == []
+    assert by_name["tes_nonlinearity"]["look_alikes"] == []
+    json.dumps(combined)
+    # the same segments where the other was no alternative (below detection): no pair
+    quiet = [_with_drift(base, "gain_drift", "hwpss_slow_modulation", 1e6 - 1.0), results[1]]
+    combined = combine_segments(quiet, [(0, 10), (10, 20)], 1.0, REQUIREMENT)
+    assert all(not e["look_alikes"] for e in combined["effects"])

@@ -15,6 +15,10 @@ peak memory is one segment's. The segments' findings are then combined:
   events of an event effect (glitches) are kept per segment, their times counted from
   the start of the recording;
 * Delta chi2 and Delta BIC: sums over the segments that selected the effect;
+* look-alikes over the recording: two effects selected in different segments, each in
+  the other's place (the other detected on its own at the step that added it, or
+  replaced), are named as not told apart, with their Delta BIC summed over the segments
+  (:func:`look_alikes_across_segments`);
 * the nominal adjustments per detector, combined as the parameters;
 * unexplained structure: every segment's, with the segment and its start;
 * chi2, BIC, N_eff and dof: sums over the segments.
@@ -61,7 +65,13 @@ log = logging.getLogger(__name__)
 VARIES_P = 1e-3  # a parameter whose segments disagree at p below this is marked as varying
 MIN_SEGMENT_H = 1.0  # h; shorter segments would lose the slow signatures (spin, drifts); assumption
 
-__all__ = ["combine_segments", "diagnose_segments", "needs_segments", "plan_segments"]
+__all__ = [
+    "combine_segments",
+    "diagnose_segments",
+    "look_alikes_across_segments",
+    "needs_segments",
+    "plan_segments",
+]
 
 
 def needs_segments(n_detectors: int, n_samples: int, memory_budget_bytes=None) -> bool:
@@ -230,6 +240,90 @@ def _combined_effect(name: str, found: list[tuple[int, dict]], starts_s, n_segme
     }
 
 
+def _family_candidates(step: dict) -> dict[str, float]:
+    """{family: its best member's Delta BIC, prior penalty left out} of one step's
+    candidates (a segment's diagnosis.json ``steps``)."""
+    out: dict[str, float] = {}
+    for name, candidate in step.get("candidates", {}).items():
+        value = candidate["delta_bic"] - (CATALOG[name].prior_penalty if name in CATALOG else 0)
+        out[family_of(name)] = min(out.get(family_of(name), math.inf), value)
+    return out
+
+
+def _in_place_of(result: dict, family: str, other: str, threshold: float) -> float | None:
+    """In one segment: the Delta BIC by which ``family`` beat ``other`` (< 0) at the step
+    that added it, when ``other`` was an alternative there (a candidate detected on its
+    own, Delta BIC < ``threshold``, or the effect it replaced); None when it was not."""
+    for step in result.get("steps", []):
+        added = step.get("added")
+        if not added or family_of(added) != family:
+            continue
+        if step.get("removed") and family_of(step["removed"]) == other:
+            return float(step["delta_bic"])  # a swap: its gain
+        candidates = _family_candidates(step)
+        if candidates.get(other, math.inf) < threshold and family in candidates:
+            return float(candidates[family] - candidates[other])
+    return None
+
+
+def look_alikes_across_segments(results: list[dict], threshold: float) -> list[dict]:
+    """Pairs of effects the segments do not tell apart: A selected in some segments
+    without B, B in others without A, and in a segment of each the other an alternative
+    at the step that added it (:func:`_in_place_of`: detected on its own, or replaced).
+    Per pair, those Delta BIC per segment and their sum (A's gains counted negative, B's
+    positive: < 0 the recording as a whole leans to A). Effects of disjoint segments that
+    were no alternative to each other (events in different hours) are not paired."""
+    families = [{family_of(e["name"]): e["name"] for e in r["effects"]} for r in results]
+    names = {f: n for found in families for f, n in found.items()}
+    pairs = []
+    for a in sorted(names):
+        for b in sorted(names):
+            if b <= a:
+                continue
+            only_a = [i for i, found in enumerate(families) if a in found and b not in found]
+            only_b = [i for i, found in enumerate(families) if b in found and a not in found]
+            gains_a = {i: _in_place_of(results[i], a, b, threshold) for i in only_a}
+            gains_b = {i: _in_place_of(results[i], b, a, threshold) for i in only_b}
+            gains_a = {i: g for i, g in gains_a.items() if g is not None}
+            gains_b = {i: g for i, g in gains_b.items() if g is not None}
+            if not (gains_a and gains_b):
+                continue
+            pairs.append(
+                {
+                    "effects": [names[a], names[b]],
+                    "segments": [only_a, only_b],
+                    "delta_bic_per_segment": [gains_a, gains_b],
+                    "preference_delta_bic": float(sum(gains_a.values()) - sum(gains_b.values())),
+                }
+            )
+    return pairs
+
+
+def _name_look_alikes(effects: list[dict], pairs: list[dict], threshold: float) -> None:
+    """Each pair of :func:`look_alikes_across_segments` named in both effects' entries
+    (``look_alikes``, ``look_alikes_across_segments``, a sentence of evidence)."""
+    by_name = {effect["name"]: effect for effect in effects}
+    for pair in pairs:
+        preference = pair["preference_delta_bic"]
+        for side in (0, 1):
+            effect, other = by_name[pair["effects"][side]], pair["effects"][1 - side]
+            mine, theirs = pair["segments"][side], pair["segments"][1 - side]
+            lean = preference if side == 0 else -preference
+            if abs(lean) < -threshold:
+                verdict = "the recording as a whole does not choose"
+            else:
+                favoured = "it" if lean < 0 else other
+                verdict = f"summed over the segments, the data lean to {favoured}"
+            effect["look_alikes"] = sorted(set(effect["look_alikes"]) | {other})
+            effect.setdefault("look_alikes_across_segments", []).append(pair)
+            effect["evidence"] += (
+                f"; NOT told apart from {other} over the recording: selected in segment(s) "
+                f"{', '.join(map(str, mine))}, {other} in {', '.join(map(str, theirs))} in "
+                f"its place, each the other's alternative where it was added ({verdict}: "
+                f"Delta BIC {lean:+.1f}); read it as one of the two"
+            )
+
+
 def combine_segments(
     results: list[dict], bounds: list[tuple[int, int]], sampling_rate_hz: float, requirement
 ) -> dict:
@@ -244,6 +338,8 @@ def combine_segments(
             by_name.setdefault(effect["name"], []).append((index, effect))
     effects = [_combined_effect(n, found, starts_s, n_segments) for n, found in by_name.items()]
     effects.sort(key=lambda effect: -effect["delta_chi2"])
+    threshold = results[0]["delta_bic_threshold"]
+    _name_look_alikes(effects, look_alikes_across_segments(results, threshold), threshold)
     unexplained = []
     for index, result in enumerate(results):
         for entry in result["unexplained"]:
