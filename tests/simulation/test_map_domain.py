@@ -426,6 +426,38 @@ def test_the_bb_excess_is_what_the_filter_adds_beyond_the_transfer(setup):
         assert emulated[band].sum() / tod[band].sum() < 0.5
 
 
+def test_a_seeds_r_scales_the_excess_of_b_origin_and_not_the_leakage():
+    """ChannelSeeds.cmb_excess_alm: a seed at r = 0.03 on a pass whose reference CMB had
+    r = 0 keeps the pass's T-E leakage (its T and E modes do not grow with r) and scales
+    the excess of B origin as C_BB(0.03) / C_BB(0) per multipole; a pass without the
+    ``cmb_r`` attribute is read at the seed's r."""
+    import types
+
+    lmax = 47
+    excess = np.array([np.full(lmax + 1, 0.5), np.full(lmax + 1, 2.0)])
+
+    def excess_of(seed_r, attributes):
+        stub = types.SimpleNamespace(
+            fixed=types.SimpleNamespace(cmb_bb_excess=excess),
+            filter_lmax=lmax,
+            fwhm_arcmin=30.0,
+            attributes=attributes,
+            config={"simulation": {"cmb_r": seed_r}, "master_seed": 7},
+        )
+        stub._beamed_excess = lambda *a: map_domain.ChannelSeeds._beamed_excess(stub, *a)
+        return map_domain.ChannelSeeds.cmb_excess_alm(stub, seed=3)
+
+    at_zero, at_r = excess_of(0.0, {"cmb_r": 0.0}), excess_of(0.03, {"cmb_r": 0.0})
+    np.testing.assert_array_equal(at_r[1], at_zero[1])  # the leakage
+    ratio = sky_cmb.cmb_spectra(0.03, lmax)[2][2:] / sky_cmb.cmb_spectra(0.0, lmax)[2][2:]
+    power = [hp.alm2cl(alm[0, 2])[2:] for alm in (at_r, at_zero)]
+    np.testing.assert_allclose(power[0] / power[1], ratio, rtol=1e-10)
+    assert ratio[0] > 5  # the reionization bump: a test that can fail
+    unmarked = excess_of(0.03, {})  # a pass from before the attribute: the seed's r
+    power_leak = hp.alm2cl(unmarked[1, 2])[2:] / hp.alm2cl(at_zero[1, 2])[2:]
+    np.testing.assert_allclose(power_leak, ratio, rtol=1e-10)
+
+
 def test_the_bb_excess_of_an_emulated_filter_is_zero_and_of_added_power_its_ratio():
     """measure_excess_bb: an output that is the emulation T a_lm has no excess (to
     rounding); adding to the B-only output an independent B field of power P C_BB gives

@@ -201,14 +201,20 @@ def excess_bb_alms(
 ) -> np.ndarray:
     """(n, 3, nalm) the B-mode a_lm [K_CMB] a seed adds to its emulated filtered CMB, by
     origin (EXCESS_ORIGINS; n = 2, or the first n of them), up to ``lmax``:
-    a_B = sqrt(max(E_ell, 0) C_ell^BB) u_lm, with ``excess`` E_ell of :func:`measure_excess_bb`, ``reference_bb_k2`` the model BB
-    of the seed's CMB at the channel's beam [K_CMB^2] and ``unit_alms`` (n, nalm) B
-    fields of unit power (:func:`sky.cmb.filter_excess_unit_alms`, the same for every
-    channel: the filters' mixing is taken as common to the channels, which the HILC
-    then cannot average down)."""
+
+        a_B = sqrt(max(E_ell, 0) C_ell^BB) u_lm,
+
+    with ``excess`` E_ell of :func:`measure_excess_bb`, ``reference_bb_k2`` the BB
+    [K_CMB^2] at the channel's beam that E_ell multiplies (one spectrum for every origin,
+    or one row per origin) and ``unit_alms`` (n, nalm) B fields of unit power
+    (:func:`sky.cmb.filter_excess_unit_alms`, the same for every channel: the filters'
+    mixing is taken as common to the channels, which the HILC then cannot average down)."""
     unit_alms = np.atleast_2d(unit_alms)
-    out = np.zeros((unit_alms.shape[0], 3, unit_alms.shape[-1]), dtype=complex)
-    for row in range(unit_alms.shape[0]):
-        power = np.clip(excess[row, : lmax + 1], 0.0, None) * reference_bb_k2[: lmax + 1]
+    n_rows = unit_alms.shape[0]
+    reference = np.atleast_2d(reference_bb_k2)[:, : lmax + 1]
+    reference = np.broadcast_to(reference, (n_rows, reference.shape[1]))
+    out = np.zeros((n_rows, 3, unit_alms.shape[-1]), dtype=complex)
+    for row in range(n_rows):
+        power = np.clip(excess[row, : lmax + 1], 0.0, None) * reference[row]
         out[row, 2] = hp.almxfl(unit_alms[row], np.sqrt(power))
     return out

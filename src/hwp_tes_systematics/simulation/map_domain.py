@@ -301,22 +301,30 @@ class ChannelSeeds:
 
     def cmb_excess_alm(self, seed: int) -> np.ndarray | None:
         """(2, 3, nalm) the filters' excess BB of ``seed`` at band ``filter_lmax``
-        (:func:`filter_response.excess_bb_alms` of the pass's E_ell, the model BB at
-        ``simulation.cmb_r`` and the channel's beam); None if the pass did not measure it."""
+        (:func:`filter_response.excess_bb_alms` of the pass's E_ell at the channel's beam):
+        of B origin on the model BB at the seed's r (``simulation.cmb_r``), which scales
+        the sky's B modes; of T and E origin on the model BB at the r of the pass's
+        reference CMB (attribute ``cmb_r``; the seed's r in a pass that lacks it), which it
+        was measured against, so that the leakage does not grow with the seed's r (the T
+        and E modes it comes from do not); None if the pass did not measure it."""
         if not self.fixed.cmb_bb_excess.size:
             return None
         lmax = self.filter_lmax
-        reference_bb = sky_cmb.cmb_spectra(self.config["simulation"]["cmb_r"], lmax)[2]
+        seed_r = self.config["simulation"]["cmb_r"]
+        pass_r = float(self.attributes.get("cmb_r", seed_r))
+        reference_bb = [sky_cmb.cmb_spectra(r, lmax)[2] for r in (seed_r, pass_r)]
         units = sky_cmb.filter_excess_unit_alms(lmax, self.config["master_seed"], seed)
-        return self._beamed_excess(reference_bb, units)
+        return self._beamed_excess(np.array(reference_bb), units)
 
     def _beamed_excess(self, reference_bb_k2: np.ndarray, units: np.ndarray) -> np.ndarray:
         """:func:`filter_response.excess_bb_alms` of the pass's first len(units) E_ell rows
-        on ``reference_bb_k2`` (band ``filter_lmax``) at the channel's beam."""
+        on ``reference_bb_k2`` (band ``filter_lmax``; one spectrum, or one per row) at the
+        channel's beam."""
         lmax = self.filter_lmax
         beam = hp.gauss_beam(np.radians(self.fwhm_arcmin / 60.0), lmax=lmax, pol=True)[:, 2]
         excess = self.fixed.cmb_bb_excess[: len(units)]
-        return excess_bb_alms(excess, units, reference_bb_k2[: lmax + 1] * beam**2, lmax)
+        reference = np.atleast_2d(reference_bb_k2)[:, : lmax + 1] * beam**2
+        return excess_bb_alms(excess, units, reference, lmax)
 
     def tensor_alms(self, seed: int) -> tuple[np.ndarray, np.ndarray] | None:
         """(the tensor probe's a_lm at band ``lmax``, its filters' excess of B origin at

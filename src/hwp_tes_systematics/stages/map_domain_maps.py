@@ -96,6 +96,7 @@ def run_fixed_pass(
         ]
         attributes["map_maker"] = "demodulated" if demodulated else "binned"
         attributes["sky_scanning"] = config["simulation"]["sky_scanning"]
+        attributes["cmb_r"] = config["simulation"]["cmb_r"]  # of the reference CMB
         del attributes["seed"]
         out_h5 = out_h5s[name]
         holder = Path(out_h5s[cfg.moments_variant(config, nside)]).name
