@@ -15,6 +15,14 @@ held-out halves (model from the even seeds of the r = 0 run, data from the odd s
 the r run, and the other way), whose noise realizations differ too; a half's standard
 error adds, in quadrature, the model half's own (r read through the model on the r = 0
 seeds it was measured on), as ``consistency.held_out_r_recovery`` does.
+
+Then the response, from the same seeds' maps at r and at 0, which share their noise and
+foreground realizations: per seed, the difference of r read on the two maps through the
+model (one Newton step from the same r, so linear in the spectra), over r; and per bin of
+ell, the power r adds (mean over seeds of the difference of the two maps' BB) over the
+model's r C_GW term, with the bin's share of the Fisher information. 1 where the model's
+response is the map's; the paired differences remove each seed's noise and the model
+half's offset.
 """
 
 from __future__ import annotations
@@ -26,9 +34,11 @@ import numpy as np
 import pandas as pd
 
 from hwp_tes_systematics.analysis.consistency import check_r_recovery
+from hwp_tes_systematics.analysis.likelihood import linear_r_estimate
 from hwp_tes_systematics.analysis.noise_model import measure, model_from_noise_table
 
 ANALYSES = ("transfer_in_model", "recovered_power")
+BINS = ((2, 4), (5, 10), (11, 20), (21, 40), (41, 80), (81, 128))
 
 
 def seed_tables(results: Path) -> dict[str, pd.DataFrame]:
@@ -86,6 +96,47 @@ def main() -> None:
     print("per bin, all seeds, recovered_power: data / model at r input")
     for row in everything["recovered_power"]["bins"]:
         print(f"  ell {row['ell'][0]:3d}-{row['ell'][1]:3d}  {row['data_over_model']:.3f}")
+    paired = [seed for seed in with_r if seed in without_r]
+    print_response(noise, with_r, without_r, paired, args)
+    for model_half, data_half in (("even", "odd"), ("odd", "even")):
+        model_noise = measure([without_r[n] for n in halves[model_half]])
+        seeds = [n for n in halves[data_half] if n in with_r]
+        print(f"model {model_half} (r = 0), data {data_half}:", end=" ")
+        print_response(model_noise, with_r, without_r, seeds, args, per_bin=False)
+
+
+def print_response(noise, with_r, without_r, seeds, args, per_bin=True) -> None:
+    """The model's response against the map's, from paired seeds (module docstring)."""
+    lmax = args.lmax
+    maps = {
+        label: np.array([runs[n]["bb_recovered_k2"].to_numpy()[: lmax + 1] for n in seeds])
+        for label, runs in (("r", with_r), ("0", without_r))
+    }
+    for analysis in ANALYSES:
+        model = model_from_noise_table(noise, args.lmin, lmax, analysis)
+        read = {
+            label: np.array([linear_r_estimate(row, model, args.r) for row in rows])
+            for label, rows in maps.items()
+        }
+        ratio = (read["r"] - read["0"]) / args.r
+        sem = ratio.std(ddof=1) / np.sqrt(ratio.size)
+        print(f"{analysis}: (r read at r - at 0) / r = {ratio.mean():.3f} +- {sem:.3f}", end="; ")
+        if not per_bin:
+            continue
+        added = maps["r"] - maps["0"]
+        information = model.fisher_terms(args.r)
+        ell_used = model.ell[model.mask]
+        print(f"\n  ell      added / model's r C_GW +- error  share of information ({analysis})")
+        for first, last in BINS:
+            where = (model.ell >= first) & (model.ell <= last)
+            modes = 2 * model.ell[where] + 1.0
+            term = args.r * model.c_gw_r1[where]
+            per_seed = (added[:, where] * modes).sum(axis=1) / np.sum(modes * term)
+            error = per_seed.std(ddof=1) / np.sqrt(per_seed.size)
+            used = (ell_used >= first) & (ell_used <= last)
+            share = information[used].sum() / information.sum()
+            print(f"  {first:3d}-{last:3d}  {per_seed.mean():6.3f} +- {error:.3f}  {share:6.3f}")
+    print()
 
 
 if __name__ == "__main__":

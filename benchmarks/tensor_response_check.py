@@ -23,7 +23,7 @@ import pandas as pd
 
 from hwp_tes_systematics import sky
 
-BINS = ((2, 10), (11, 20), (21, 40), (41, 80), (81, 128))
+BINS = ((2, 4), (5, 10), (11, 20), (21, 40), (41, 80), (81, 128))
 COLUMN = "bb_cmb_recovered_b_only_k2"
 
 
