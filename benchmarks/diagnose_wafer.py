@@ -112,6 +112,38 @@ def main() -> None:
             f"(budget {arguments.memory_gb:g} GB), "
             f"{len(segments) if segments else 'no'} segments; effects {names}"
         )
+        print("\n".join(summary(result, arguments.g1)))
+
+
+def summary(result: dict, g1_per_k: float) -> list[str]:
+    """Lines of a wafer's diagnosis.json: each effect's segments and look-alikes, and the
+    fitted g1 against the injected ``g1_per_k`` (pulls per detector)."""
+    lines = []
+    for effect in result["effects"]:
+        line = f"{effect['name']}: named in segments {effect.get('segments', 'all')}"
+        for pair in effect.get("look_alikes_across_segments", []):
+            other = next(name for name in pair["effects"] if name != effect["name"])
+            line += (
+                f"; look-alike {other} (segments {pair['segments']}, Delta BIC summed "
+                f"{pair['preference_delta_bic']:+.1f}, < 0: {pair['effects'][0]})"
+            )
+        lines.append(line)
+    nonlinearity = next((e for e in result["effects"] if e["name"] == "tes_nonlinearity"), None)
+    if nonlinearity is not None:
+        pulls = {
+            key.removeprefix("g1[").removesuffix("]"): (entry["value"] - g1_per_k) / entry["sigma"]
+            for key, entry in nonlinearity["parameters"].items()
+            if key.startswith("g1[") and entry.get("sigma")
+        }
+        values = np.array(list(pulls.values()))
+        worst = max(pulls, key=lambda name: abs(pulls[name]))
+        lines.append(
+            f"g1 against the injected {g1_per_k:g} /K: {values.size} detectors, pulls mean "
+            f"{values.mean():+.2f} +- {values.std(ddof=1) / np.sqrt(values.size):.2f}, sd "
+            f"{values.std(ddof=1):.2f}, within 3 sigma {np.sum(np.abs(values) <= 3)}/"
+            f"{values.size} (largest {worst} {pulls[worst]:+.2f})"
+        )
+    return lines
 
 
 if __name__ == "__main__":
