@@ -36,6 +36,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--pixels", type=int, default=37, help="hexagon pixels: 1, 7, 19, 37")
     parser.add_argument("--wafers", type=int, default=2)
+    parser.add_argument(
+        "--use-pixels", type=int, help="only the hexagon's first N pixels (32 of 37: 64 detectors)"
+    )
     parser.add_argument("--hours", type=float, default=6.0)
     parser.add_argument("--rate", type=float, default=31.0, help="sampling rate [Hz]")
     parser.add_argument("--a2", type=float, default=0.264, help="HWPSS 2f amplitude [K_CMB]")
@@ -67,6 +70,7 @@ def main() -> None:
             seed=arguments.seed,
             n_pixels=arguments.pixels,
             wafers=arguments.wafers,
+            use_pixels=arguments.use_pixels,
             sample_rate_hz=arguments.rate,
             a2_k=arguments.a2,
             g1_per_k=arguments.g1,
@@ -74,7 +78,7 @@ def main() -> None:
             gain_drift_mode="slow_drift",
             gain_drift_mismatch=arguments.drift_mismatch,
         )
-        n_det = 2 * arguments.pixels
+        n_det = 2 * min(arguments.pixels, arguments.use_pixels or arguments.pixels)
         n_samples = round(arguments.hours * 3600 * arguments.rate)
         print(
             f"TOAST recording: {n_det} detectors x {arguments.hours:g} h at {arguments.rate:g} Hz "

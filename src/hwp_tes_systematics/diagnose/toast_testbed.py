@@ -43,6 +43,7 @@ def write_toast_recording(
     gain_drift_mode: str = "linear_drift",
     gain_drift_mismatch: float = 1.0,
     wafers: int = 1,
+    use_pixels: int | None = None,
     thermal_drift: tuple[float, float] = (0.0, 0.0),
     thermal_drift_common_to: str = "wafer",
     crosstalk: dict | None = None,
@@ -59,7 +60,8 @@ def write_toast_recording(
 ) -> Path:
     """Write one TOAST observation of ``2 n_pixels`` detectors (``n_pixels`` 1, 7, 19: a
     hexagon) into ``folder``; return the file's path. ``wafers``: the pixels split in that
-    many groups of consecutive pixels, a ``wafer`` column of the focal plane. The gain
+    many groups of consecutive pixels, a ``wafer`` column of the focal plane;
+    ``use_pixels``: only the hexagon's first that many pixels (32 of 37: 64 detectors). The gain
     drift is GainDrifter's ``gain_drift_mode`` ("linear_drift", or "slow_drift": a 1/f
     stream below 0.2 mHz, ``gain_drift_mismatch`` its part per detector and the rest
     common to a wafer). ``edit(data)`` is called on the ``toast.Data`` just before it is
@@ -84,7 +86,9 @@ def write_toast_recording(
     from toast import ops
     from toast.observation import default_values as defaults
 
-    focalplane = _focalplane(n_pixels, sample_rate_hz, np.mean(net_uk_rts), fknee_mhz, wafers)
+    focalplane = _focalplane(
+        n_pixels, sample_rate_hz, np.mean(net_uk_rts), fknee_mhz, wafers, use_pixels
+    )
     data = _satellite_scan(focalplane, start, hours, hwp_rpm, coord)
     pointing = ops.PointingDetectorSimple(boresight=defaults.boresight_radec)
     pixels = ops.PixelsHealpix(nside=_nside(sky_fits), detector_pointing=pointing)
@@ -159,10 +163,12 @@ def _satellite_scan(focalplane, start, hours: float, hwp_rpm: float, coord: str)
     return data
 
 
-def _focalplane(n_pixels, sample_rate_hz, net_uk_rts, fknee_mhz, wafers: int):
-    """TOAST's hexagon of ``n_pixels`` pixels, 5 deg wide, 140 GHz, 30 arcmin; with
-    ``wafers`` > 1 a ``wafer`` column: the pixels split in that many consecutive groups."""
+def _focalplane(n_pixels, sample_rate_hz, net_uk_rts, fknee_mhz, wafers: int, use_pixels=None):
+    """TOAST's hexagon of ``n_pixels`` pixels, 5 deg wide, 140 GHz, 30 arcmin (its first
+    ``use_pixels`` pixels only, if given); with ``wafers`` > 1 a ``wafer`` column: the
+    pixels split in that many consecutive groups."""
     import astropy.units as u
+    from toast.instrument import Focalplane
     from toast.instrument_sim import fake_hexagon_focalplane
 
     focalplane = fake_hexagon_focalplane(
@@ -175,6 +181,11 @@ def _focalplane(n_pixels, sample_rate_hz, net_uk_rts, fknee_mhz, wafers: int):
         bandcenter=140 * u.GHz,
         fwhm=30 * u.arcmin,
     )
+    if use_pixels is not None and use_pixels < n_pixels:
+        table = focalplane.detector_data
+        kept = set(list(dict.fromkeys(str(p) for p in table["pixel"]))[:use_pixels])
+        rows = np.array([str(p) in kept for p in table["pixel"]])
+        focalplane = Focalplane(detector_data=table[rows], sample_rate=sample_rate_hz * u.Hz)
     if wafers > 1:
         table = focalplane.detector_data
         pixel_names = list(dict.fromkeys(str(p) for p in table["pixel"]))

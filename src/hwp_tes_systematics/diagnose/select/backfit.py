@@ -242,12 +242,7 @@ def fit_iterative(problem, selected, initial_extra=None, gain_after=False) -> Fi
                 # chi^2 of the cross term 2 g1 d_nom x (extra - the extra the templates
                 # were last built with): skip the rebuild when negligible
                 change = extra if built_on[k] is None else extra - built_on[k]
-                sigma2 = (
-                    float(np.median(problem.s_nom[k][problem.modes]))
-                    / problem.scale[k]
-                    * ctx.sampling_rate_hz
-                    / 2
-                )
+                sigma2 = problem.white_variance(k)
                 g1 = a[nl_rows[0]]
                 cross_chi2 = (
                     4

@@ -131,6 +131,7 @@ class FitProblem:
         """Noise weights and the normal equations of the whole bank (linear fits take sub-blocks)."""
         self.nominal_noise = list(nominal_noise)
         self.s_nom = [self.scale[k] * nominal_noise[k].psd(self.freqs) for k in range(self.n_det)]
+        self._white_variance: dict[int, float] = {}  # white_variance, per detector
         # v_k / S_f: a gapped detector's chi^2 counts its independent modes (module docstring)
         self.w_nom = [
             self.weights(s) * v for s, v in zip(self.s_nom, self.independent, strict=True)
@@ -163,6 +164,14 @@ class FitProblem:
         """rfft along the last axis of tod (n_det, ..., n) times the valid mask."""
         mask = self.valid.reshape((self.n_det,) + (1,) * (tod.ndim - 2) + (self.n,))
         return rfft(tod * mask, axis=-1, workers=self.workers)
+
+    def white_variance(self, k: int) -> float:
+        """Detector k's per-sample noise variance at its nominal PSD's median level over
+        the fitted modes, sigma^2 = median(S) f_s / 2 (unscaled), computed once."""
+        if k not in self._white_variance:
+            median = float(np.median(self.s_nom[k][self.modes]))
+            self._white_variance[k] = median / self.scale[k] * self.ctx.sampling_rate_hz / 2
+        return self._white_variance[k]
 
     def valid_mean(self, k: int, spectrum: np.ndarray) -> float:
         """Mean over detector k's valid samples of irfft(spectrum), without the inverse FFT:
