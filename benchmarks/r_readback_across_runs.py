@@ -67,9 +67,18 @@ def main() -> None:
     parser.add_argument("--r", type=float, required=True, help="the r of the first run")
     parser.add_argument("--lmin", type=int, default=2, help="likelihood lmin (config)")
     parser.add_argument("--lmax", type=int, default=128, help="likelihood lmax (config)")
+    parser.add_argument(
+        "--measure-model",
+        action="store_true",
+        help="measure the r = 0 model from the run's seed tables (noise_model.measure), not "
+        "its noise_model.csv: for seeds added to a run without its requirement",
+    )
     args = parser.parse_args()
     with_r, without_r = seed_tables(args.with_r), seed_tables(args.without_r)
-    noise = pd.read_csv(args.without_r / "spectra" / "noise_model.csv")
+    if args.measure_model:
+        noise = measure(list(without_r.values()))
+    else:
+        noise = pd.read_csv(args.without_r / "spectra" / "noise_model.csv")
     rows = []
     everything = read_back(noise, list(with_r.values()), args.r, args.lmin, args.lmax)
     rows += [("all seeds", a, res) for a, res in everything.items()]
