@@ -47,7 +47,7 @@ from .bound.requirement_check import (
     compare_nonlinearity,
     load_requirement,
 )
-from .effects import CATALOG, family_of
+from .effects import CATALOG, family_of, prior_penalty_of
 from .model import load_sky
 from .pipeline import diagnose
 from .recording import read_recording
@@ -245,7 +245,7 @@ def _family_candidates(step: dict) -> dict[str, float]:
     candidates (a segment's diagnosis.json ``steps``)."""
     out: dict[str, float] = {}
     for name, candidate in step.get("candidates", {}).items():
-        value = candidate["delta_bic"] - (CATALOG[name].prior_penalty if name in CATALOG else 0)
+        value = candidate["delta_bic"] - prior_penalty_of(name)
         out[family_of(name)] = min(out.get(family_of(name), math.inf), value)
     return out
 

@@ -118,6 +118,12 @@ def family_of(name: str) -> str:
     return CATALOG[name].family if name in CATALOG else name
 
 
+def prior_penalty_of(name: str) -> float:
+    """An effect's prior penalty (:attr:`Effect.prior_penalty`, added to its BIC); 0 for
+    a name outside the catalog."""
+    return CATALOG[name].prior_penalty if name in CATALOG else 0.0
+
+
 def get_effect(name: str) -> Effect:
     try:
         return CATALOG[name]
@@ -188,6 +194,7 @@ __all__ = [
     "glitch_tod",
     "harmonic_templates",
     "modulation_degree",
+    "prior_penalty_of",
     "register",
     "reported_name",
     "single_pole",

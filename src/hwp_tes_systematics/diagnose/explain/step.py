@@ -3,7 +3,7 @@ look-alikes."""
 
 from __future__ import annotations
 
-from ..effects import CATALOG, family_of, noise_effect, reported_name
+from ..effects import CATALOG, family_of, noise_effect, prior_penalty_of, reported_name
 from ..nominal.step import NominalFit
 from ..select.step import Selection
 from .evidence import Evidence
@@ -109,19 +109,15 @@ def look_alikes(steps, threshold: float) -> dict[str, list[str]]:
             continue
         # the data's part of the BIC: a prior penalty (Effect.prior_penalty) is not the
         # data telling two effects apart, so it is left out of the comparison
-        best = step.candidates[step.added]["delta_bic"] - _prior(step.added)
+        best = step.candidates[step.added]["delta_bic"] - prior_penalty_of(step.added)
         ties = [
             name
             for name, c in step.candidates.items()
             if not same_physics(name, step.added)
-            and c["delta_bic"] - _prior(name) - best < -threshold
+            and c["delta_bic"] - prior_penalty_of(name) - best < -threshold
         ]
         out[step.added] = sorted(set(out.get(step.added, [])) | set(ties))
     return out
-
-
-def _prior(name: str) -> float:
-    return CATALOG[name].prior_penalty if name in CATALOG else 0.0
 
 
 def merge_members(effects: list[dict]) -> list[dict]:
