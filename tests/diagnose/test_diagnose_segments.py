@@ -113,6 +113,7 @@ def test_parameters_combine_as_the_inverse_variance_mean_and_events_stay_per_seg
     assert g1["value"] == pytest.approx(np.sum(weights * [-3.0e-3, -3.2e-3]) / weights.sum())
     assert g1["sigma"] == pytest.approx(weights.sum() ** -0.5)
     assert g1["consistency_dof"] == 1 and not g1["varies_between_segments"]
+    assert "sigma_scaled" not in g1
     assert [s["value"] for s in g1["per_segment"]] == [-3.0e-3, -3.2e-3]
     assert nonlinearity["segments"] == [0, 1] and nonlinearity["delta_chi2"] == 200.0
     glitches = next(e for e in combined["effects"] if e["name"] == "glitches")
@@ -131,6 +132,8 @@ def test_a_parameter_that_changes_between_segments_is_marked():
     combined = combine_segments(results, [(0, 10), (10, 20)], 1.0, REQUIREMENT)
     g1 = combined["effects"][0]["parameters"]["g1[d0]"]
     assert g1["consistency_p"] < VARIES_P and g1["varies_between_segments"]
+    scale = np.sqrt(g1["consistency_chi2"] / g1["consistency_dof"])
+    assert g1["sigma_scaled"] == pytest.approx(g1["sigma"] * scale) and scale > 10
     assert combined["effects"][0]["varies_between_segments"] == ["g1[d0]"]
     assert "differ between segments" in combined["effects"][0]["evidence"]
 

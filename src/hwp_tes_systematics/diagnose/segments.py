@@ -11,7 +11,8 @@ peak memory is one segment's. The segments' findings are then combined:
   inverse-variance mean, sigma = (sum_i sigma_i^-2)^-1/2, with the consistency
   chi2 = sum_i ((x_i - mean) / sigma_i)^2 on n - 1 dof; p < ``VARIES_P`` marks it as
   varying between segments (the effect changes over the recording, or a segment's fit
-  absorbs something else). Every segment's value stays beside it (``per_segment``). The
+  absorbs something else), with ``sigma_scaled`` = sigma sqrt(chi2 / (n - 1)) beside
+  sigma (the Particle Data Group's scale factor). Every segment's value stays beside it (``per_segment``). The
   events of an event effect (glitches) are kept per segment, their times counted from
   the start of the recording;
 * Delta chi2 and Delta BIC: sums over the segments that selected the effect;
@@ -184,6 +185,8 @@ def _combined_value(entries: list[dict]) -> dict:
         out.update(value=mean, sigma=float(np.sum(weights) ** -0.5))
         out.update(consistency_chi2=chi2, consistency_dof=dof, consistency_p=p_value)
         out["varies_between_segments"] = bool(dof and p_value < VARIES_P)
+        if out["varies_between_segments"]:  # the PDG's scale factor sqrt(chi2 / dof)
+            out["sigma_scaled"] = out["sigma"] * math.sqrt(chi2 / dof)
     else:
         out.update(value=float(np.mean(values)), sigma=None)
     return out
@@ -225,7 +228,8 @@ def _combined_effect(name: str, found: list[tuple[int, dict]], starts_s, n_segme
         evidence += (
             f"; {', '.join(varying)} differ between segments beyond their errors "
             f"(p < {VARIES_P:g}): the effect changes over the recording, or a segment's fit "
-            "absorbs something else"
+            "absorbs something else (their errors scaled by the segments' scatter, "
+            "sqrt(chi2 / dof): sigma_scaled in diagnosis.json)"
         )
     return {
         **{key: best[key] for key in ("name", "title", "signature", "main_parameters")},
