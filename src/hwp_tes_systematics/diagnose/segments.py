@@ -12,9 +12,9 @@ peak memory is one segment's. The segments' findings are then combined:
   chi2 = sum_i ((x_i - mean) / sigma_i)^2 on n - 1 dof; p < ``VARIES_P`` marks it as
   varying between segments (the effect changes over the recording, or a segment's fit
   absorbs something else), with ``sigma_scaled`` = sigma sqrt(chi2 / (n - 1)) beside
-  sigma (the Particle Data Group's scale factor). Every segment's value stays beside it (``per_segment``). The
-  events of an event effect (glitches) are kept per segment, their times counted from
-  the start of the recording;
+  sigma (the Particle Data Group's scale factor). Every segment's value stays beside it
+  (``per_segment``). The events of an event effect (glitches) are kept per segment,
+  their times counted from the start of the recording;
 * Delta chi2 and Delta BIC: sums over the segments that selected the effect;
 * look-alikes over the recording: two effects selected in different segments, each in
   the other's place (the other detected on its own at the step that added it, or
@@ -33,6 +33,7 @@ differ between segments, which the consistency chi2 shows).
 from __future__ import annotations
 
 import gc
+import itertools
 import logging
 import math
 import time
@@ -280,26 +281,23 @@ def look_alikes_across_segments(results: list[dict], threshold: float) -> list[d
     families = [{family_of(e["name"]): e["name"] for e in r["effects"]} for r in results]
     names = {f: n for found in families for f, n in found.items()}
     pairs = []
-    for a in sorted(names):
-        for b in sorted(names):
-            if b <= a:
-                continue
-            only_a = [i for i, found in enumerate(families) if a in found and b not in found]
-            only_b = [i for i, found in enumerate(families) if b in found and a not in found]
-            gains_a = {i: _in_place_of(results[i], a, b, threshold) for i in only_a}
-            gains_b = {i: _in_place_of(results[i], b, a, threshold) for i in only_b}
-            gains_a = {i: g for i, g in gains_a.items() if g is not None}
-            gains_b = {i: g for i, g in gains_b.items() if g is not None}
-            if not (gains_a and gains_b):
-                continue
-            pairs.append(
-                {
-                    "effects": [names[a], names[b]],
-                    "segments": [only_a, only_b],
-                    "delta_bic_per_segment": [gains_a, gains_b],
-                    "preference_delta_bic": float(sum(gains_a.values()) - sum(gains_b.values())),
-                }
-            )
+    for a, b in itertools.combinations(sorted(names), 2):
+        only_a = [i for i, found in enumerate(families) if a in found and b not in found]
+        only_b = [i for i, found in enumerate(families) if b in found and a not in found]
+        gains_a = {i: _in_place_of(results[i], a, b, threshold) for i in only_a}
+        gains_b = {i: _in_place_of(results[i], b, a, threshold) for i in only_b}
+        gains_a = {i: g for i, g in gains_a.items() if g is not None}
+        gains_b = {i: g for i, g in gains_b.items() if g is not None}
+        if not (gains_a and gains_b):
+            continue
+        pairs.append(
+            {
+                "effects": [names[a], names[b]],
+                "segments": [only_a, only_b],
+                "delta_bic_per_segment": [gains_a, gains_b],
+                "preference_delta_bic": float(sum(gains_a.values()) - sum(gains_b.values())),
+            }
+        )
     return pairs
 
 

@@ -183,15 +183,20 @@ def _focalplane(n_pixels, sample_rate_hz, net_uk_rts, fknee_mhz, wafers: int, us
     )
     if use_pixels is not None and use_pixels < n_pixels:
         table = focalplane.detector_data
-        kept = set(list(dict.fromkeys(str(p) for p in table["pixel"]))[:use_pixels])
+        kept = set(_pixel_names(table)[:use_pixels])
         rows = np.array([str(p) in kept for p in table["pixel"]])
         focalplane = Focalplane(detector_data=table[rows], sample_rate=sample_rate_hz * u.Hz)
     if wafers > 1:
         table = focalplane.detector_data
-        pixel_names = list(dict.fromkeys(str(p) for p in table["pixel"]))
+        pixel_names = _pixel_names(table)
         wafer_of = {p: f"W{i * wafers // len(pixel_names)}" for i, p in enumerate(pixel_names)}
         table["wafer"] = [wafer_of[str(p)] for p in table["pixel"]]
     return focalplane
+
+
+def _pixel_names(table) -> list[str]:
+    """The focal plane table's pixels, in their order of first appearance."""
+    return list(dict.fromkeys(str(p) for p in table["pixel"]))
 
 
 def _add_response(observation, a2_k, hwpss_phase_rad, g1_per_k, gain) -> None:
