@@ -257,3 +257,32 @@ def test_effects_that_take_each_others_place_in_different_segments_are_named_loo
     quiet = [_with_drift(base, "gain_drift", "hwpss_slow_modulation", 1e6 - 1.0), results[1]]
     combined = combine_segments(quiet, [(0, 10), (10, 20)], 1.0, REQUIREMENT)
     assert all(not e["look_alikes"] for e in combined["effects"])
+
+
+def test_the_look_alike_verdict_reads_the_final_margins_where_every_segment_logged_one():
+    """The steps' margins lean to gain_drift (-30 + 3 = -27), but under each segment's final
+    noise the swaps say otherwise (gain_drift ahead by 2 in segment 0, the slow modulation
+    ahead by 12 in segment 1): the pair carries both sums and the verdict reads the final
+    one, one kind of margin throughout; without margins in a segment it keeps the steps'."""
+    base = segment_result(-3.0e-3, 1e-4)
+
+    def margins(result, selected, other, margin):
+        return {**result, "swap_margins": {"effects": {selected: {other: margin}}}}
+
+    drift, slow = "gain_drift", "hwpss_slow_modulation"
+    results = [
+        margins(_with_drift(base, drift, slow, 30.0), drift, slow, 2.0),
+        margins(_with_drift(base, slow, drift, 3.0), slow, drift, 12.0),
+    ]
+    combined = combine_segments(results, [(0, 10), (10, 20)], 1.0, REQUIREMENT)
+    by_name = {e["name"]: e for e in combined["effects"]}
+    (pair,) = by_name[drift]["look_alikes_across_segments"]
+    assert pair["preference_delta_bic"] == pytest.approx(-27.0)
+    assert pair["preference_final_delta_bic"] == pytest.approx(-2.0 + 12.0)
+    assert pair["final_delta_bic_per_segment"] == [{0: -2.0}, {1: -12.0}]
+    assert f"lean to {slow}" in by_name[drift]["evidence"]
+    assert "under its final noise" in by_name[drift]["evidence"]
+    results[1] = {k: v for k, v in results[1].items() if k != "swap_margins"}
+    combined = combine_segments(results, [(0, 10), (10, 20)], 1.0, REQUIREMENT)
+    (pair,) = {e["name"]: e for e in combined["effects"]}[drift]["look_alikes_across_segments"]
+    assert "preference_final_delta_bic" not in pair

@@ -23,7 +23,8 @@ Returns the ``diagnosis.json``-shaped dict::
                       "tried_and_rejected", "text"}, ...],
      "nominal_adjustments": {detector: {name: {"value", "sigma", "unit", "nominal"}}},
      "chi2_before", "chi2_after", "dof", "n_eff", "delta_bic_threshold",
-     "steps": [...], "lines": [...], "noise": {...}, "locate": {...}, "recording": {...}}
+     "steps": [...], "swap_margins": {"effects": {effect: {look-alike: Delta BIC}}},
+     "lines": [...], "noise": {...}, "locate": {...}, "recording": {...}}
 
 "effects" is ranked by the drop-one Delta chi^2 (how much worse the final model gets
 without the effect); "delta_bic" is BIC(final) - BIC(final without it) (< 0 for a

@@ -19,7 +19,8 @@ peak memory is one segment's. The segments' findings are then combined:
 * look-alikes over the recording: two effects selected in different segments, each in
   the other's place (the other detected on its own at the step that added it, or
   replaced), are named as not told apart, with their Delta BIC summed over the segments
-  (:func:`look_alikes_across_segments`);
+  and, where every segment logged it, the sum of the swaps' margins under each segment's
+  final noise (:func:`look_alikes_across_segments`);
 * the nominal adjustments per detector, combined as the parameters;
 * unexplained structure: every segment's, with the segment and its start;
 * chi2, BIC, N_eff and dof: sums over the segments.
@@ -271,13 +272,34 @@ def _in_place_of(result: dict, family: str, other: str, threshold: float) -> flo
     return None
 
 
+def _final_margin(result: dict, family: str, other: str) -> float | None:
+    """In one segment: minus the BIC margin by which its selected member of ``family`` beat
+    the best member of ``other`` put in its place, under the segment's final noise weights
+    (diagnosis.json ``swap_margins``; < 0 as :func:`_in_place_of`'s gains); None when the
+    segment did not log one (a nonlinear effect, or a report without margins)."""
+    margins = (result.get("swap_margins") or {}).get("effects", {})
+    values = [
+        value
+        for name, row in margins.items()
+        if family_of(name) == family
+        for alternative, value in row.items()
+        if family_of(alternative) == other
+    ]
+    return -min(values) if values else None
+
+
 def look_alikes_across_segments(results: list[dict], threshold: float) -> list[dict]:
     """Pairs of effects the segments do not tell apart: A selected in some segments
     without B, B in others without A, and in a segment of each the other an alternative
     at the step that added it (:func:`_in_place_of`: detected on its own, or replaced).
     Per pair, those Delta BIC per segment and their sum (A's gains counted negative, B's
-    positive: < 0 the recording as a whole leans to A). Effects of disjoint segments that
-    were no alternative to each other (events in different hours) are not paired."""
+    positive: < 0 the recording as a whole leans to A). Those margins are of two kinds (a
+    candidate's Delta BIC at the step that added the effect, or a swap's gain after the
+    noise refit); where every segment of the pair logged its final margin (the swap's BIC
+    under its final noise, :func:`_final_margin`), their sum is given beside it
+    (``preference_final_delta_bic``), one kind throughout, and the verdict reads it.
+    Effects of disjoint segments that were no alternative to each other (events in
+    different hours) are not paired."""
     families = [{family_of(e["name"]): e["name"] for e in r["effects"]} for r in results]
     names = {f: n for found in families for f, n in found.items()}
     pairs = []
@@ -290,14 +312,20 @@ def look_alikes_across_segments(results: list[dict], threshold: float) -> list[d
         gains_b = {i: g for i, g in gains_b.items() if g is not None}
         if not (gains_a and gains_b):
             continue
-        pairs.append(
-            {
-                "effects": [names[a], names[b]],
-                "segments": [only_a, only_b],
-                "delta_bic_per_segment": [gains_a, gains_b],
-                "preference_delta_bic": float(sum(gains_a.values()) - sum(gains_b.values())),
-            }
-        )
+        pair = {
+            "effects": [names[a], names[b]],
+            "segments": [only_a, only_b],
+            "delta_bic_per_segment": [gains_a, gains_b],
+            "preference_delta_bic": float(sum(gains_a.values()) - sum(gains_b.values())),
+        }
+        final_a = {i: _final_margin(results[i], a, b) for i in gains_a}
+        final_b = {i: _final_margin(results[i], b, a) for i in gains_b}
+        if None not in (*final_a.values(), *final_b.values()):
+            pair["final_delta_bic_per_segment"] = [final_a, final_b]
+            pair["preference_final_delta_bic"] = float(
+                sum(final_a.values()) - sum(final_b.values())
+            )
+        pairs.append(pair)
     return pairs
 
 
@@ -306,7 +334,13 @@ def _name_look_alikes(effects: list[dict], pairs: list[dict], threshold: float) 
     (``look_alikes``, ``look_alikes_across_segments``, a sentence of evidence)."""
     by_name = {effect["name"]: effect for effect in effects}
     for pair in pairs:
-        preference = pair["preference_delta_bic"]
+        final = "preference_final_delta_bic" in pair
+        preference = pair["preference_final_delta_bic" if final else "preference_delta_bic"]
+        margins = (
+            "each segment's swap under its final noise"
+            if final
+            else "margins at the steps that added them"
+        )
         for side in (0, 1):
             effect, other = by_name[pair["effects"][side]], pair["effects"][1 - side]
             mine, theirs = pair["segments"][side], pair["segments"][1 - side]
@@ -322,7 +356,7 @@ def _name_look_alikes(effects: list[dict], pairs: list[dict], threshold: float) 
                 f"; NOT told apart from {other} over the recording: selected in segment(s) "
                 f"{', '.join(map(str, mine))}, {other} in {', '.join(map(str, theirs))} in "
                 f"its place, each the other's alternative where it was added ({verdict}: "
-                f"Delta BIC {lean:+.1f}); read it as one of the two"
+                f"Delta BIC {lean:+.1f}, {margins}); read it as one of the two"
             )
 
 

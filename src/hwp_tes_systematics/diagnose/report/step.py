@@ -50,6 +50,12 @@ def report(
         "information_criterion": "BIC = chi2 + k ln N_eff (N_eff = real Fourier dof used)",
         "requirement_check": requirement_check,
         "steps": [dict(step.as_dict(), step=i + 1) for i, step in enumerate(selection.history)],
+        "swap_margins": {
+            "definition": "per selected linear signal effect, BIC with each unselected one in "
+            "its place minus the final BIC, under the final fit's noise weights (> 0: the "
+            "selected effect is preferred by that much)",
+            "effects": steps.swap_margins,
+        },
         "lines": lines,
         "noise": {
             "nominal": [

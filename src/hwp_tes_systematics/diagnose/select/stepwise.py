@@ -3,7 +3,7 @@ them redundant, swapped for look-alikes that fit better (:mod:`.`, "StepwiseResu
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from .bank import DELTA_BIC_THRESHOLD, FitProblem
 from .results import FitResult
@@ -61,6 +61,8 @@ class StepwiseResult:
     threshold: float
     delta_chi2: dict[str, float]  # effect -> chi^2(final without it) - chi^2(final)
     delta_bic: dict[str, float]  # effect -> BIC(final) - BIC(final without it)  (< 0)
+    # selected effect -> {look-alike: BIC with it in the effect's place - BIC(final)}
+    swap_margins: dict[str, dict[str, float]] = field(default_factory=dict)
 
     @property
     def ranked(self) -> list[str]:
@@ -255,6 +257,27 @@ def _swap_look_alikes(problem, names, templates, current, steps):
         current = trial
 
 
+def final_swap_margins(problem, names, templates, final) -> dict[str, dict[str, float]]:
+    """{selected: {alternative: BIC(alternative in its place) - BIC(final)}} for each
+    selected linear signal effect and each unselected one whose fit in its place is
+    physical, under the final noise weights: > 0 the data prefer the selected effect by
+    that much. The same fits the swap step tried (cached), on the final selection, so
+    that recordings diagnosed in parts compare margins of one kind."""
+    ln_n = problem.ln_n_eff
+    margins: dict[str, dict[str, float]] = {}
+    for out in [n for n in templates if _swappable(problem.effects[n])]:
+        kept = tuple(t for t in templates if t != out)
+        row = {}
+        for candidate in names:
+            if candidate in templates or not _swappable(problem.effects[candidate]):
+                continue
+            trial = problem.fit(kept + (candidate,))
+            if problem.effects[candidate].unphysical(trial.effects[candidate]) is None:
+                row[candidate] = float(trial.bic(ln_n) - final.bic(ln_n))
+        margins[out] = row
+    return margins
+
+
 def _one_family_for_a_line(problem, templates, current, threshold, steps):
     """Mechanism parsimony: when a family found line by line (``Effect.reported_as``: the
     HWPSS harmonics) is among the selected effects, an effect whose lines one more member
@@ -333,4 +356,5 @@ def stepwise(
         threshold=delta_bic_threshold,
         delta_chi2=delta_chi2,
         delta_bic=delta_bic,
+        swap_margins=final_swap_margins(problem, names, final.selected, final),
     )
