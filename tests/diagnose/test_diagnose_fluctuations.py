@@ -181,3 +181,28 @@ def test_the_curvature_of_a_parameter_at_its_bound_is_taken_inside():
     assert math.isclose(sigma, 0.05, rel_tol=1e-9)
     (sigma,) = _curvature_sigmas(minus_two_ln_l, np.array([0.9]), (0.01,), [(0.0, 1.0)])
     assert math.isclose(sigma, 0.05, rel_tol=1e-9)
+
+
+def test_litebird_sims_thermal_gain_has_the_gain_spectrum_of_the_docstring():
+    """The module docstring's translation of litebird_sim's THERMAL_GAIN into (a, beta):
+    the relative gain of a TOD of ones, (T_fluct / T_bath) times its 1/f stream, has the
+    one-sided PSD a^2 (f_ref / f)^beta with beta = alpha_drift and a = sqrt(2) sigma_drift
+    (T_fluct / T_bath) (f_knee / f_ref)^(beta / 2): its generator's PSD is two-sided."""
+    rate, n = 20.0, 2**20
+    params = lbs.GainDriftParams(
+        drift_type=lbs.GainDriftType.THERMAL_GAIN,
+        sigma_drift=1e-4,
+        detector_mismatch=0.0,
+        alpha_drift=1.0,
+    )
+    tod = np.ones(n)
+    lbs.apply_gaindrift_for_one_detector(
+        tod, rate, drift_params=params, random=np.random.default_rng(4)
+    )
+    freqs = np.fft.rfftfreq(n, 1 / rate)
+    measured = 2 * np.abs(np.fft.rfft(tod - 1.0)) ** 2 / (rate * n)
+    band = (freqs > 0.05) & (freqs < 2.0)  # away from the stream's mean removal
+    ratio_t = params.thermal_fluctuation_amplitude_K / params.focalplane_Tbath_K
+    a = math.sqrt(2) * 1e-4 * ratio_t * math.sqrt(params.fknee_drift_mHz * 1e-3 / F_REF_HZ)
+    expected = gain_psd(freqs[band], a, 1.0, rate / n)
+    assert np.mean(measured[band] / expected) == pytest.approx(1.0, rel=0.02)

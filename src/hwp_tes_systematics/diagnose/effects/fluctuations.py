@@ -7,8 +7,8 @@ HWPSS A_k cos(2 pi f_0 t + phi), f_0 = 2 f_HWP) adds to detector k's residual th
     E_k(f) = (A_k^2 / 4) [P_g(|f - f_0|) + P_g(f + f_0)],   P_g(f) = a^2 (f_ref / f)^beta
 
 [K^2/Hz], f_ref = 10 mHz, the offset clipped at the frequency resolution. (litebird_sim's
-thermal gain drift has beta = alpha_drift and a = sigma_drift (T_fluct / T_bath) (fknee /
-f_ref)^(beta/2).) Its sky and dipole sidebands are (D / A_k)^2 ~ 1e-4 of these and sit in
+thermal gain drift has beta = alpha_drift and a = sqrt(2) sigma_drift (T_fluct / T_bath)
+(fknee / f_ref)^(beta/2): its stream's one-sided PSD is twice its ``_get_psd``.) Its sky and dipole sidebands are (D / A_k)^2 ~ 1e-4 of these and sit in
 the 1/f noise: a gain fluctuation and an HWP emission fluctuation, which moves the HWPSS
 alone, are told apart only when that part shows (:func:`dipole_signature`).
 
@@ -55,6 +55,11 @@ F_REF_HZ = 0.01  # the frequency at which the gain PSD's amplitude a is quoted
 INNER_HZ = 2e-3
 SLOPE_BOUNDS = (0.0, 3.0)
 GRADIENT_STEP = 1e-8  # the forward difference of the fit's gradient (L-BFGS-B's own default)
+# the second differences of the errors: (ln a, beta, rho), (ln NET, ln f_knee, alpha) per
+# detector, and a pair's white correlation x
+EXCESS_STEPS = (0.02, 0.02, 0.01)
+NOISE_STEPS = (0.02, 0.02, 0.02)
+X_STEP = 0.01
 
 
 @dataclass(frozen=True)
@@ -328,12 +333,37 @@ def fit_fluctuations(
     # v: the independent modes per mode of the pair's gapped periodograms (noise module)
     independent = float(np.mean([independent_fraction(valid) for valid in ctx.valid]))
     delta_chi2 = independent * float(best.fun - min(without.fun, again.fun))
+    # errors of (ln a, beta, rho): the conditional curvature of each, then, where the
+    # Hessian is positive definite, marginal over each other and, for one detector or a
+    # pair, over the noise and the pair's x too (a gain's far wings trade with the white
+    # level and the 1/f, rho with x); with more detectors the noise is held (3 n_det more
+    # parameters), and rho's error is the coherence fit's (below)
     sigmas = _curvature_sigmas(
         lambda p: independent * minus_two_ln_l(np.concatenate([best.x[:n_noise], p]), True),
         best.x[n_noise:],
-        steps=(0.02, 0.02, 0.01),
+        steps=EXCESS_STEPS,
         bounds=excess_bounds,
     )
+    if n_det <= 2:
+        free = n_noise + (3 if pair else 2)  # one detector's likelihood has no rho
+        rest = best.x[free:]
+        marginal = marginal_sigmas(
+            lambda p: independent * minus_two_ln_l(np.concatenate([p, rest]), True),
+            best.x[:free],
+            steps=NOISE_STEPS * n_det
+            + ((X_STEP,) if pair else ())
+            + EXCESS_STEPS[: free - n_noise],
+            bounds=(noise_bounds + excess_bounds)[:free],
+        )[n_noise:]
+    else:
+        head, rest = best.x[:n_noise], best.x[n_noise + 2 :]
+        marginal = marginal_sigmas(
+            lambda p: independent * minus_two_ln_l(np.concatenate([head, p, rest]), True),
+            best.x[n_noise : n_noise + 2],
+            steps=EXCESS_STEPS[:2],
+            bounds=excess_bounds[:2],
+        )
+    sigmas[: len(marginal)] = marginal
     amplitude, slope, rho = (
         math.exp(best.x[n_noise]),
         float(best.x[n_noise + 1]),
