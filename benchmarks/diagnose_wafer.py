@@ -55,7 +55,14 @@ def main() -> None:
     parser.add_argument("--memory-gb", type=float, default=16.0)
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--keep", help="write the recording and the report here (kept)")
+    parser.add_argument(
+        "--summary-of", type=Path, metavar="DIR", help="print the lines of DIR/diagnosis.json only"
+    )
     arguments = parser.parse_args()
+    if arguments.summary_of:  # a kept diagnosis, read again
+        result = json.loads((arguments.summary_of / "diagnosis.json").read_text())
+        print("\n".join(summary(result, arguments.g1)))
+        return
 
     with tempfile.TemporaryDirectory() as scratch:
         folder = Path(arguments.keep or scratch)
@@ -129,8 +136,18 @@ def summary(result: dict, g1_per_k: float) -> list[str]:
             other = next(name for name in pair["effects"] if name != effect["name"])
             line += (
                 f"; look-alike {other} (segments {pair['segments']}, Delta BIC summed "
-                f"{pair['preference_delta_bic']:+.1f}, < 0: {pair['effects'][0]})"
+                f"{pair['preference_delta_bic']:+.1f}"
             )
+            if "preference_final_delta_bic" in pair:  # the swaps under each final noise
+                per_segment = {**pair["final_delta_bic_per_segment"][0]}
+                per_segment.update(
+                    {i: -v for i, v in pair["final_delta_bic_per_segment"][1].items()}
+                )
+                line += (
+                    f", under the final noise {pair['preference_final_delta_bic']:+.1f}: "
+                    + ", ".join(f"{i} {v:+.1f}" for i, v in sorted(per_segment.items()))
+                )
+            line += f"; < 0: {pair['effects'][0]})"
         lines.append(line)
     nonlinearity = next((e for e in result["effects"] if e["name"] == "tes_nonlinearity"), None)
     if nonlinearity is not None:

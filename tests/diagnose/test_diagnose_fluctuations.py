@@ -172,14 +172,14 @@ def test_the_pair_determinant_stays_positive_where_the_sidebands_dwarf_the_noise
 def test_the_curvature_of_a_parameter_at_its_bound_is_taken_inside():
     """-2 ln L = (rho - 0.9)^2 / 0.05^2, undefined beyond rho = 1: at the bound the second
     difference moves inside and still gives sigma = 0.05 (centred, it read NaN)."""
-    from hwp_tes_systematics.diagnose.effects.fluctuations import _curvature_sigmas
+    from hwp_tes_systematics.diagnose.curvature import curvature_sigmas
 
     def minus_two_ln_l(p):
         return (p[0] - 0.9) ** 2 / 0.05**2 if p[0] <= 1.0 else math.nan
 
-    (sigma,) = _curvature_sigmas(minus_two_ln_l, np.array([1.0]), (0.01,), [(0.0, 1.0)])
+    (sigma,) = curvature_sigmas(minus_two_ln_l, np.array([1.0]), (0.01,), [(0.0, 1.0)])
     assert math.isclose(sigma, 0.05, rel_tol=1e-9)
-    (sigma,) = _curvature_sigmas(minus_two_ln_l, np.array([0.9]), (0.01,), [(0.0, 1.0)])
+    (sigma,) = curvature_sigmas(minus_two_ln_l, np.array([0.9]), (0.01,), [(0.0, 1.0)])
     assert math.isclose(sigma, 0.05, rel_tol=1e-9)
 
 

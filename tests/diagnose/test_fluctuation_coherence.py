@@ -135,10 +135,7 @@ def test_a_bath_temperature_shared_by_a_wafer_or_all_detectors(
 def test_the_errors_are_marginal_over_correlated_parameters():
     """-2 ln L = (x - mu)^T C^-1 (x - mu): sqrt(C_ii) whatever the correlation, where the
     curvature along one axis gives the conditional sqrt(1 / (C^-1)_ii), 0.44 of it at 0.9."""
-    from hwp_tes_systematics.diagnose.effects.fluctuations import (
-        _curvature_sigmas,
-        marginal_sigmas,
-    )
+    from hwp_tes_systematics.diagnose.curvature import curvature_sigmas, marginal_sigmas
 
     covariance = np.array(
         [[4e-4, 0.9 * 2e-2 * 3e-2, 0.0], [0.9 * 2e-2 * 3e-2, 9e-4, 0.0], [0, 0, 1e-2]]
@@ -152,5 +149,5 @@ def test_the_errors_are_marginal_over_correlated_parameters():
     bounds = [(-5, 5), (-5, 5), (0.0, 0.505)]  # the last within a step of its bound
     marginal = marginal_sigmas(minus_two_ln_l, mu, (1e-3, 1e-3, 1e-2), bounds)
     assert np.allclose(marginal, np.sqrt(np.diag(covariance)), rtol=1e-6)
-    conditional = _curvature_sigmas(minus_two_ln_l, mu, (1e-3, 1e-3, 1e-2), bounds)
+    conditional = curvature_sigmas(minus_two_ln_l, mu, (1e-3, 1e-3, 1e-2), bounds)
     assert conditional[0] == pytest.approx(2e-2 * math.sqrt(1 - 0.81), rel=1e-6)

@@ -127,7 +127,8 @@ def fit_coherence(
     detector's S_k(f) at ``f``; ``weights``: e_k; ``phases``: psi_k; ``amplitude``,
     ``slope``: the independent fit's (a, beta); ``independent``: the gapped
     periodogram's independent modes per mode."""
-    from .fluctuations import SLOPE_BOUNDS, gain_psd, marginal_sigmas
+    from ..curvature import marginal_sigmas
+    from .fluctuations import SLOPE_BOUNDS, gain_psd
 
     bins, mean_f, counts = contiguous_bins(f, carrier_hz)
     starts = np.array([b[0] for b in bins] + [f.size])
