@@ -8,9 +8,10 @@ HWPSS A_k cos(2 pi f_0 t + phi), f_0 = 2 f_HWP) adds to detector k's residual th
 
 [K^2/Hz], f_ref = 10 mHz, the offset clipped at the frequency resolution. (litebird_sim's
 thermal gain drift has beta = alpha_drift and a = sqrt(2) sigma_drift (T_fluct / T_bath)
-(fknee / f_ref)^(beta/2): its stream's one-sided PSD is twice its ``_get_psd``.) Its sky and dipole sidebands are (D / A_k)^2 ~ 1e-4 of these and sit in
-the 1/f noise: a gain fluctuation and an HWP emission fluctuation, which moves the HWPSS
-alone, are told apart only when that part shows (:func:`dipole_signature`).
+(fknee / f_ref)^(beta/2): its stream's one-sided PSD is twice its ``_get_psd``.) Its sky
+and dipole sidebands are (D / A_k)^2 ~ 1e-4 of these and sit in the 1/f noise: a gain
+fluctuation and an HWP emission fluctuation, which moves the HWPSS alone, are told apart
+only when that part shows (:func:`dipole_signature`).
 
 Fit (:func:`fit_fluctuations`): the Whittle likelihood of the residual periodogram,
 
