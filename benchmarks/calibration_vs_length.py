@@ -182,7 +182,7 @@ def main() -> None:
         source = str(arguments.requirement)
         data = json.loads(arguments.requirement.read_text())
     else:
-        source = "the shipped one-year result (docs/one_year/requirement.json)"
+        source = "the shipped one-year result (docs/one_year/recovered_power/requirement.json)"
         shipped = resources.files("hwp_tes_systematics") / "data" / "one_year_requirement.json"
         data = json.loads(shipped.read_text())
     budget = data["delta_r_budget"]

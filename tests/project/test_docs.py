@@ -154,7 +154,7 @@ def test_readme_is_a_short_front_door():
     assert len(readme.splitlines()) <= 150
     for needed in (
         "## Set-up",
-        "docs/one_year/fig8_requirement.png",
+        "docs/one_year/recovered_power/fig8_requirement.png",
         "docs/results/one_year.md",
         "assumptions",
         "CITATION.cff",

@@ -27,7 +27,10 @@ from hwp_tes_systematics.instrument.hwp_power import read_hwp_curves
 # Files of config/ that the package ships, under the same relative paths below data/.
 SHIPPED = ["config/config.yaml", "config/hwp/mft_hwp_curves.csv", "config/hwp/hft_hwp_curves.csv"]
 # The one-year requirement a diagnosed nonlinearity is compared with: data/ name -> source.
-SHIPPED_REQUIREMENT = ("one_year_requirement.json", "docs/one_year/requirement.json")
+SHIPPED_REQUIREMENT = (
+    "one_year_requirement.json",
+    "docs/one_year/recovered_power/requirement.json",
+)
 PACKAGE_DATA = Path("src/hwp_tes_systematics/data")
 
 
@@ -117,7 +120,7 @@ def test_built_package_ships_the_default_config_and_curve_tables(repo, tmp_path)
     for name in ("pyproject.toml", "README.md"):
         shutil.copy(repo / name, source / name)
     shutil.copytree(repo / "config", source / "config")
-    (source / "docs/one_year").mkdir(parents=True)
+    (source / SHIPPED_REQUIREMENT[1]).parent.mkdir(parents=True)
     shutil.copy(repo / SHIPPED_REQUIREMENT[1], source / SHIPPED_REQUIREMENT[1])
     shutil.copytree(
         repo / "src",

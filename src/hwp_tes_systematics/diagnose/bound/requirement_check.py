@@ -8,8 +8,9 @@ correcting with the fitted g1 leaves an error within it) and how large g1 itself
 against it (the bias a detector with this g1 would bring if left uncorrected). When no
 nonlinearity is found, g1 fitted beside the effects that were bounds it instead:
 |g1| < |g1_fit| + 2 sigma per detector (:func:`bound_nonlinearity`). Without a
-file given, the shipped one-year result is used (``docs/one_year/requirement.json``,
-packaged as ``data/one_year_requirement.json``).
+file given, the shipped one-year result is used
+(``docs/one_year/recovered_power/requirement.json``, packaged as
+``data/one_year_requirement.json``).
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ def load_requirement(path=None) -> dict:
     from a workflow's ``requirement.json`` (``path``; None: the shipped one-year result)."""
     if path is None:
         source = resources.files("hwp_tes_systematics") / "data" / SHIPPED
-        label = "the shipped one-year result (docs/one_year/requirement.json)"
+        label = "the shipped one-year result (docs/one_year/recovered_power/requirement.json)"
     else:
         source, label = Path(path), str(path)
     try:
