@@ -610,9 +610,9 @@ def test_requirement_vs_notch_orders_the_runs_by_width(repo, tmp_path):
 @pytest.mark.slow
 def test_calibration_vs_length_tests_its_law_on_a_length_it_was_not_fitted_to(repo, tmp_path):
     """benchmarks/calibration_vs_length.py on M1-140 for 0.05 and 0.1 h, predicting 0.15 h:
-    a row per length, the law's prediction beside the run, and a calibration that is far
-    better than the one-year requirement at the nominal A_2 (the 4f line of g1 ~ 5e-3 in
-    minutes of data)."""
+    a row per length, the law's prediction beside the run, and a calibration five times
+    better than the one-year requirement at the nominal A_2 or more (the 4f line of g1 ~
+    5e-3 in minutes of data)."""
     import subprocess
 
     done = subprocess.run(
@@ -629,7 +629,7 @@ def test_calibration_vs_length_tests_its_law_on_a_length_it_was_not_fitted_to(re
     per_length = out["channels"]["M1-140"]["per_length"]
     assert sorted(per_length, key=float) == ["0.05", "0.1", "0.15"]
     assert all(
-        row["rms_error_per_k"] < 0.1 * row["sigma_req_per_k"]["Fisher"]
+        row["rms_error_per_k"] < 0.2 * row["sigma_req_per_k"]["Fisher"]
         and row["residual_delta_r_fisher"] < row["uncorrected_delta_r_fisher"]
         for row in per_length.values()
     )
