@@ -54,7 +54,7 @@ def report(
             "definition": "per selected linear signal effect, BIC with each unselected one in "
             "its place minus the final BIC, under the final fit's noise weights (> 0: the "
             "selected effect is preferred by that much)",
-            "effects": steps.swap_margins,
+            "effects": selection.swap_margins,
         },
         "lines": lines,
         "noise": {

@@ -11,7 +11,7 @@ from ..effects import noise_effect
 from ..nominal.adjustments import NOMINAL, refit_noise
 from ..nominal.step import NominalFit
 from .bank import FitProblem
-from .stepwise import stepwise
+from .stepwise import final_swap_margins, stepwise
 
 log = logging.getLogger(__name__)
 
@@ -34,6 +34,8 @@ class Selection:
     noise_models: list  # the noise of the final fit
     residual_after: np.ndarray  # (n_det, n_samples) the residual less the final fit [K]
     partial: dict  # {effect: the residual with that effect alone put back}
+    # per selected linear signal effect, {look-alike: BIC in its place - BIC(final)}
+    swap_margins: dict
 
 
 def select_effects(
@@ -162,4 +164,5 @@ def select_effects(
         noise_models,
         residual_after,
         partial,
+        final_swap_margins(problem, final),  # the last pass's noise weights
     )

@@ -3,7 +3,7 @@ them redundant, swapped for look-alikes that fit better (:mod:`.`, "StepwiseResu
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from .bank import DELTA_BIC_THRESHOLD, FitProblem
 from .results import FitResult
@@ -61,8 +61,6 @@ class StepwiseResult:
     threshold: float
     delta_chi2: dict[str, float]  # effect -> chi^2(final without it) - chi^2(final)
     delta_bic: dict[str, float]  # effect -> BIC(final) - BIC(final without it)  (< 0)
-    # selected effect -> {look-alike: BIC with it in the effect's place - BIC(final)}
-    swap_margins: dict[str, dict[str, float]] = field(default_factory=dict)
 
     @property
     def ranked(self) -> list[str]:
@@ -226,19 +224,9 @@ def _swap_look_alikes(problem, names, templates, current, steps):
     seen = {frozenset(templates)}
     while True:
         best = None
-        for out in [n for n in templates if _swappable(problem.effects[n])]:
-            kept = tuple(t for t in templates if t != out)
-            for candidate in names:
-                if candidate in templates or not _swappable(problem.effects[candidate]):
-                    continue
-                if frozenset(kept + (candidate,)) in seen:
-                    continue
-                trial = problem.fit(kept + (candidate,))
-                if problem.effects[candidate].unphysical(trial.effects[candidate]):
-                    continue
-                gain = trial.bic(ln_n) - current.bic(ln_n)
-                if gain < 0 and (best is None or gain < best[3]):
-                    best = (out, candidate, trial, gain)
+        for out, candidate, trial, gain in _swap_trials(problem, names, templates, current, seen):
+            if gain < 0 and (best is None or gain < best[3]):
+                best = (out, candidate, trial, gain)
         if best is None:
             return templates, current
         out, candidate, trial, gain = best
@@ -257,24 +245,37 @@ def _swap_look_alikes(problem, names, templates, current, steps):
         current = trial
 
 
-def final_swap_margins(problem, names, templates, final) -> dict[str, dict[str, float]]:
-    """{selected: {alternative: BIC(alternative in its place) - BIC(final)}} for each
-    selected linear signal effect and each unselected one whose fit in its place is
-    physical, under the final noise weights: > 0 the data prefer the selected effect by
-    that much. The same fits the swap step tried (cached), on the final selection, so
-    that recordings diagnosed in parts compare margins of one kind."""
+def _swap_trials(problem, names, templates, current, seen=frozenset()):
+    """(out, candidate, trial fit, BIC(trial) - BIC(current)) for each selected linear
+    signal effect ``out`` and each unselected one of ``names`` put in its place, whose fit
+    is physical; sets in ``seen`` are not fitted again."""
     ln_n = problem.ln_n_eff
-    margins: dict[str, dict[str, float]] = {}
     for out in [n for n in templates if _swappable(problem.effects[n])]:
         kept = tuple(t for t in templates if t != out)
-        row = {}
         for candidate in names:
             if candidate in templates or not _swappable(problem.effects[candidate]):
                 continue
+            if frozenset(kept + (candidate,)) in seen:
+                continue
             trial = problem.fit(kept + (candidate,))
-            if problem.effects[candidate].unphysical(trial.effects[candidate]) is None:
-                row[candidate] = float(trial.bic(ln_n) - final.bic(ln_n))
-        margins[out] = row
+            if problem.effects[candidate].unphysical(trial.effects[candidate]):
+                continue
+            yield out, candidate, trial, trial.bic(ln_n) - current.bic(ln_n)
+
+
+def final_swap_margins(problem, final) -> dict[str, dict[str, float]]:
+    """{selected: {alternative: BIC(alternative in its place) - BIC(final)}} for each
+    selected linear signal effect of the ``final`` fit and each unselected one of the
+    catalog whose fit in its place is physical, under ``problem``'s noise weights: > 0 the
+    data prefer the selected effect by that much. The fits the swap step tried (cached),
+    so that recordings diagnosed in parts compare margins of one kind."""
+    margins: dict[str, dict[str, float]] = {
+        out: {} for out in final.selected if _swappable(problem.effects[out])
+    }
+    for out, candidate, _, gain in _swap_trials(
+        problem, list(problem.effects), final.selected, final
+    ):
+        margins[out][candidate] = float(gain)
     return margins
 
 
@@ -356,5 +357,4 @@ def stepwise(
         threshold=delta_bic_threshold,
         delta_chi2=delta_chi2,
         delta_bic=delta_bic,
-        swap_margins=final_swap_margins(problem, names, final.selected, final),
     )
