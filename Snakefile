@@ -13,6 +13,7 @@ report: "workflow/report/workflow.rst"
 
 from hwp_tes_systematics import paths
 from hwp_tes_systematics.config import (
+    analysis_lmax,
     analysis_variant,
     check_config,
     demodulated_variants,

@@ -176,17 +176,36 @@ def check_config(config: dict, source: str = "configuration") -> None:
             f"instrument.channels {channels}"
         )
     _check_fixed_pass_variants(config, source)
-    spectra_lmax = config["component_separation"]["lmax"] or 2 * config["maps"]["nside"]
+    nside = config["maps"]["nside"]
+    if analysis_nside(config) > nside:
+        raise ConfigError(
+            f"{source}: component_separation.analysis_nside = {analysis_nside(config)} "
+            f"exceeds maps.nside = {nside} (the mask's region is decided on a grid no finer "
+            "than the maps')"
+        )
+    spectra_lmax = analysis_lmax(config)
     if config["likelihood"]["lmax"] > spectra_lmax:
         raise ConfigError(
             f"{source}: likelihood.lmax = {config['likelihood']['lmax']} exceeds the spectra's "
-            f"lmax = {spectra_lmax} (component_separation.lmax, default 2 maps.nside)"
+            f"lmax = {spectra_lmax} (component_separation.lmax, default 2 analysis_nside)"
         )
     if config["tes"]["tbath_k"] >= config["tes"]["tc_k"]:
         raise ConfigError(
             f"{source}: tes.tbath_k = {config['tes']['tbath_k']} must be below "
             f"tes.tc_k = {config['tes']['tc_k']} (a TES needs a bath colder than Tc)"
         )
+
+
+def analysis_nside(config: dict) -> int:
+    """The resolution the analysis mask's region is decided on
+    (component_separation.analysis_nside, else maps.nside)."""
+    return config["component_separation"].get("analysis_nside") or config["maps"]["nside"]
+
+
+def analysis_lmax(config: dict) -> int:
+    """The last multipole of the HILC and the spectra (component_separation.lmax, else
+    2 analysis_nside)."""
+    return config["component_separation"]["lmax"] or 2 * analysis_nside(config)
 
 
 def fixed_pass_nsides(config: dict) -> list[int]:

@@ -137,3 +137,51 @@ def test_binned_spectrum_weights_and_centres():
     np.testing.assert_allclose(flat, 2.5)
     with pytest.raises(ValueError):
         spectra.binned_spectrum(cl, [(2, 12)])
+
+
+# -------------------------------------------------------- one analysis resolution
+def test_common_mask_region_on_a_coarser_grid():
+    """region_nside decides the region on a coarser grid: a coarse pixel is kept whole or
+    dropped whole, by its centre's latitude and by every fine pixel inside it."""
+    nside, region = 32, 8
+    maps = [np.zeros((3, hp.nside2npix(nside)))]
+    coarse = spectra.galactic_mask(region, 30.0)
+    expected = hp.ud_grade(coarse.astype(float), nside) == 1.0
+    np.testing.assert_array_equal(spectra.common_mask(maps, 30.0, region_nside=region), expected)
+    # one unobserved fine pixel drops its coarse parent: (nside / region)^2 fine pixels
+    kept = np.flatnonzero(expected)
+    maps[0][1, kept[0]] = hp.UNSEEN
+    mask = spectra.common_mask(maps, 30.0, region_nside=region)
+    assert expected.sum() - mask.sum() == (nside // region) ** 2
+    parent = hp.ang2pix(region, *hp.pix2ang(nside, kept[0]))
+    children = hp.ang2pix(region, *hp.pix2ang(nside, np.arange(hp.nside2npix(nside)))) == parent
+    assert not mask[children].any()
+    # the fine grid's own cut follows the fine pixel centres: another region
+    assert spectra.common_mask(maps, 30.0).sum() != mask.sum()
+    with pytest.raises(ValueError, match="region_nside = 64"):
+        spectra.common_mask(maps, 30.0, region_nside=64)
+
+
+def test_one_analysis_mask_at_every_map_resolution_gives_one_spectrum():
+    """Maps of one band-limited sky made at nside 32 and 64, analysed on the nside-16
+    region at one lmax and beam: the masks cover the same region (f_sky within 0.2 %) and
+    the BB pseudo-spectra agree to 1 % at ell 4-40 (the pixel windows are not applied:
+    the maps are alm2map of the same a_lm). Each on its own grid's region: 0.8 % and 2.8 %."""
+    from hwp_tes_systematics.analysis import channel_alms
+
+    lmax = 40
+    ell = np.arange(lmax + 1)
+    cl = np.zeros((4, lmax + 1))
+    cl[:3, 2:] = 1.0 / ell[2:] ** 2
+    np.random.seed(1)  # hp.synalm draws from numpy's global generator
+    alm = hp.synalm(cl, lmax=lmax, new=True)
+    settings = {"galactic_cut_deg": 20.0, "mask_apodization_deg": 10.0, "analysis_nside": 16}
+    harmonic = channel_alms.HarmonicSettings(lmax=lmax, common_fwhm_arcmin=60.0, map2alm_iter=3)
+    spectra_bb, f_sky = [], []
+    for nside in (32, 64):
+        maps = hp.alm2map(alm, nside, lmax=lmax)
+        mask = channel_alms.analysis_mask([np.ones(hp.nside2npix(nside), bool)], settings)
+        f_sky.append(mask.mean())
+        spectra_bb.append(hp.alm2cl(harmonic.alm(maps, 60.0, mask))[2])
+    assert abs(f_sky[1] / f_sky[0] - 1) < 2e-3
+    np.testing.assert_allclose(spectra_bb[1][4:], spectra_bb[0][4:], rtol=0.01)

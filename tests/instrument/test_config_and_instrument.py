@@ -70,6 +70,14 @@ def test_every_schema_key_has_a_description():
         ),
         (lambda c: c["tes"].__setitem__("tbath_k", 0.2), "tes.tbath_k"),
         (lambda c: c.__setitem__("master_seed", "abc"), "master_seed"),
+        (
+            lambda c: c["component_separation"].__setitem__("analysis_nside", 128),
+            "component_separation.analysis_nside = 128 exceeds maps.nside = 64",
+        ),
+        (
+            lambda c: c["component_separation"].__setitem__("analysis_nside", 48),
+            "component_separation.analysis_nside = 48",
+        ),
     ],
 )
 def test_bad_config_names_the_key(default_config, mutate, message):

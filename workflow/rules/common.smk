@@ -118,7 +118,7 @@ def component_separation_mem_mb(wildcards, attempt):
     kinds, 3 template terms per detector of a pair, their sums and each detector's whole
     template: ~14 sets of 3 complex a_lm up to the analysis lmax)."""
     nside = config["maps"]["nside"]
-    lmax = config["component_separation"]["lmax"] or 2 * nside
+    lmax = analysis_lmax(config)
     maps_mb = 0 if MAP_DOMAIN else 12 * nside**2 * 60 * 8 / 2**20
     alms_mb = (
         len(CHANNELS) * 14 * 3 * (lmax + 1) ** 2 / 2 * 16 * 3 / 2**20

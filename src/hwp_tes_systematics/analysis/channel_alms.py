@@ -53,10 +53,14 @@ FIT_RESIDUAL, FIT_REMOVED, FIT_COMMON_RESIDUAL = FIT_KINDS
 
 
 def analysis_mask(observed: list[np.ndarray], settings: dict) -> np.ndarray:
-    """Apodized common mask: observed in every channel (``observed``: one (npix,) bool or
-    (3, npix) map per channel, UNSEEN where unobserved), |b| >= cut."""
+    """Apodized common mask at the maps' resolution: observed in every channel
+    (``observed``: one (npix,) bool or (3, npix) map per channel, UNSEEN where
+    unobserved), |b| >= cut, the region decided on the ``analysis_nside`` grid (if set:
+    the same region at every map-making resolution, :func:`spectra.common_mask`)."""
     maps = [np.where(o, 0.0, hp.UNSEEN) if o.dtype == bool else o for o in observed]
-    binary = spectra.common_mask(maps, settings["galactic_cut_deg"])
+    binary = spectra.common_mask(
+        maps, settings["galactic_cut_deg"], region_nside=settings.get("analysis_nside")
+    )
     if binary.sum() == 0:
         raise ValueError(
             "the common mask is empty: no pixel is observed by every channel outside the "
@@ -78,9 +82,8 @@ class HarmonicSettings:
     def from_config(cls, config: dict) -> HarmonicSettings:
         settings = config["component_separation"]
         fwhms = [cfg.channel(config, name).fwhm_arcmin for name in cfg.selected_channels(config)]
-        lmax = settings["lmax"] if settings["lmax"] is not None else 2 * config["maps"]["nside"]
         return cls(
-            lmax=lmax,
+            lmax=cfg.analysis_lmax(config),
             common_fwhm_arcmin=settings["common_fwhm_arcmin"] or max(fwhms),
             map2alm_iter=settings["map2alm_iter"],
         )
@@ -362,6 +365,7 @@ def write_mask(path, mask: np.ndarray, settings: dict) -> None:
         out.attrs.update(
             {key: settings[key] for key in ("galactic_cut_deg", "mask_apodization_deg")}
         )
+        out.attrs["analysis_nside"] = settings.get("analysis_nside") or hp.npix2nside(mask.size)
 
 
 def read_mask(path) -> np.ndarray:

@@ -89,9 +89,17 @@ def galactic_mask(nside: int, galactic_cut_deg: float) -> np.ndarray:
     return np.abs(z) >= np.sin(np.radians(cut))
 
 
-def common_mask(maps: Sequence[np.ndarray], galactic_cut_deg: float) -> np.ndarray:
+def common_mask(
+    maps: Sequence[np.ndarray], galactic_cut_deg: float, region_nside: int | None = None
+) -> np.ndarray:
     """(npix,) bool: pixels observed in EVERY map (no UNSEEN / non-finite value in any of
-    its I, Q, U) and with |b| >= ``galactic_cut_deg`` (:func:`galactic_mask`)."""
+    its I, Q, U) and with |b| >= ``galactic_cut_deg`` (:func:`galactic_mask`).
+
+    ``region_nside`` (at most the maps' nside): the region is decided on that coarser
+    grid, then returned at the maps' resolution: a coarse pixel is kept if its centre
+    passes the cut and every map pixel inside it is observed in every map. The region is
+    then the same at every map resolution (a coarse pixel is a union of fine ones).
+    """
     if len(maps) == 0:
         raise ValueError("common_mask: expected at least one map")
     npix = np.shape(maps[0])[-1]
@@ -102,7 +110,17 @@ def common_mask(maps: Sequence[np.ndarray], galactic_cut_deg: float) -> np.ndarr
         if np.shape(m)[-1] != npix:
             raise ValueError(f"map {k} has {np.shape(m)[-1]} pixels, map 0 has {npix}")
         keep &= ~unseen_pixels(m)
-    return keep & galactic_mask(hp.npix2nside(npix), galactic_cut_deg)
+    nside = hp.npix2nside(npix)
+    if region_nside is None or region_nside == nside:
+        return keep & galactic_mask(nside, galactic_cut_deg)
+    if not hp.isnsideok(region_nside) or region_nside > nside:
+        raise ValueError(
+            f"region_nside = {region_nside}: expected a power of 2 at most the maps' nside {nside}"
+        )
+    # ud_grade averages the fine pixels of each coarse one: 1 where every one is kept
+    all_observed = hp.ud_grade(keep.astype(float), region_nside) == 1.0
+    coarse = all_observed & galactic_mask(region_nside, galactic_cut_deg)
+    return hp.ud_grade(coarse.astype(float), nside) == 1.0
 
 
 def apodized_mask(
