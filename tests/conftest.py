@@ -15,7 +15,7 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
-from helpers import make_workdir, snakemake
+from helpers import make_workdir, snakemake, tiny_configfiles
 
 from hwp_tes_systematics.config import load_config
 
@@ -37,8 +37,8 @@ def default_config(monkeypatch) -> dict:
 
 @pytest.fixture(scope="session")
 def tiny_local_run(repo, tmp_path_factory):
-    """The whole DAG on tests/configs/tiny.yaml, local, 2 cores: (workdir, result with
-    ``returncode`` and ``stderr``).
+    """The whole DAG on the tiny configuration (helpers.TINY_CONFIGS), local, 2 cores:
+    (workdir, result with ``returncode`` and ``stderr``).
 
     Run once per pytest run and shared by the end-to-end test and the SLURM comparison:
     under xdist the first worker to ask runs it (holding a file lock in the directory the
@@ -54,8 +54,8 @@ def tiny_local_run(repo, tmp_path_factory):
         if not outcome.exists():
             shutil.rmtree(workdir, ignore_errors=True)  # left by a worker that crashed
             make_workdir(repo, workdir)
-            config = repo / "tests/configs/tiny.yaml"
-            result = snakemake(workdir, extra=("--configfile", str(config), "--cores", "2"))
+            configs = tiny_configfiles(repo)
+            result = snakemake(workdir, extra=("--configfile", *configs, "--cores", "2"))
             outcome.write_text(
                 json.dumps({"returncode": result.returncode, "stderr": result.stderr[-20000:]})
             )

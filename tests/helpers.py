@@ -5,6 +5,14 @@ import shutil
 import subprocess
 import sys
 
+# the tests' workflow runs: the one-day machinery (config/one_day.yaml) at tiny size
+TINY_CONFIGS = ("config/one_day.yaml", "tests/configs/tiny.yaml")
+
+
+def tiny_configfiles(repo) -> list[str]:
+    """The tiny test configuration's files, in merge order (after the embedded default)."""
+    return [str(repo / name) for name in TINY_CONFIGS]
+
 
 def make_workdir(repo, workdir):
     """A copy of the workflow (Snakefile, rules, scripts, config) in ``workdir``."""

@@ -27,6 +27,7 @@ from .instrument.hwp_power import HwpCurves, OpticalElement, read_hwp_curves
 
 SCHEMA_RESOURCE = "config.schema.yaml"
 DEFAULT_CONFIG_RESOURCE = "config/config.yaml"  # under data/, as in the repository
+ONE_YEAR_REQUIREMENT_RESOURCE = "one_year_requirement.json"
 
 
 class ConfigError(ValueError):
@@ -41,6 +42,13 @@ def data_path() -> Path:
 def schema_path() -> Path:
     """Path of the configuration JSON schema shipped with the package."""
     return data_path() / SCHEMA_RESOURCE
+
+
+def one_year_requirement_path() -> Path:
+    """The shipped one-year answer (``docs/one_year/recovered_power/requirement.json``,
+    packaged as ``data/one_year_requirement.json``): what ``diagnose`` compares a fitted
+    g1 with, and what a shorter run is put beside."""
+    return data_path() / ONE_YEAR_REQUIREMENT_RESOURCE
 
 
 def default_config_path() -> Path:

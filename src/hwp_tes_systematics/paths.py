@@ -38,6 +38,7 @@ RESIDUAL_SPECTRA_MEANS = f"{RESULTS}/spectra/residual_bb_means.csv"
 LIKELIHOOD = f"{RESULTS}/likelihood/seed{{seed}}.json"
 DELTA_R_TABLE = f"{RESULTS}/delta_r.csv"
 REQUIREMENT = f"{RESULTS}/requirement.json"
+ANSWER_TABLE = f"{RESULTS}/answer.csv"  # the requirement and its checks in a few rows
 
 # Stage: diagnosis of recordings (and the workflow's own example recording)
 EXAMPLE_RECORDING = f"{RESULTS}/diagnose/example_recording.h5"

@@ -1,12 +1,14 @@
 """Requirement on sigma_g1: delta r, summaries over seeds, quadratic and power-law fits,
 edge cases, and the Fig. 8 figure."""
 
+import json
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
 
+from hwp_tes_systematics import config as cfg
 from hwp_tes_systematics.analysis import requirement as rq
 from hwp_tes_systematics.figures.results import plot_requirement
 
@@ -310,3 +312,42 @@ def test_figure8_command_redraws_a_committed_run(tmp_path, capsys):
     assert "absent.json: no such file" in capsys.readouterr().err
     assert status_of("figure8", run / "requirement.json", "--out", tmp_path / "fig8.svg") == 2
     assert "fig8.svg: expected a file name ending in .png" in capsys.readouterr().err
+
+
+def test_a_run_says_what_it_is_and_where_it_stands_beside_the_year(default_config):
+    """requirement.json's headline names the run (its days, channels, seeds, maps) and
+    puts its answer beside the shipped one-year answer when the two are one analysis."""
+    import copy
+
+    from hwp_tes_systematics.stages import requirement as stage
+
+    year = copy.deepcopy(default_config)
+    year["simulation"].update(
+        seeds=20, duration_days=365.25, chunk_stride=1, noise_scale=1.0, realizations="map_domain"
+    )
+    year["likelihood"]["model"] = "recovered_power"
+    one_in_ten = copy.deepcopy(year)
+    one_in_ten["simulation"].update(chunk_stride=10, noise_scale=0.3162)
+    assert stage.days_simulated(year) == 365.25
+    assert stage.days_simulated(one_in_ten) == 37.0  # days 0, 10, ..., 360
+    sampled = stage.run_settings(one_in_ten)
+    assert "one day in 10 (37 days simulated" in stage.describe_run(one_in_ten)
+    assert "22 channels" in stage.describe_run(one_in_ten)
+
+    shipped = json.loads(cfg.one_year_requirement_path().read_text())
+    answer = shipped["headline"]["requirement_sigma_g1_per_k"]
+    beside = stage.one_year_comparison({"requirement_sigma_g1_per_k": answer / 2}, sampled)
+    assert beside["same_analysis"] and beside["differing_settings"] == []
+    assert beside["one_year_over_this_run"] == pytest.approx(2.0)
+    assert "2.00 times this run's" in beside["note"]
+    itself = stage.one_year_comparison(shipped["headline"], stage.run_settings(year))
+    assert itself["note"] == "the one-year answer's configuration: ratio 1.000"
+
+    other = copy.deepcopy(one_in_ten)
+    other["maps"]["baseline_length_s"] = None
+    other["likelihood"]["model"] = "paper_recipe"
+    apart = stage.one_year_comparison(
+        {"requirement_sigma_g1_per_k": 1e-5}, stage.run_settings(other)
+    )
+    assert not apart["same_analysis"] and "one_year_over_this_run" not in apart
+    assert apart["differing_settings"] == ["baseline_length_s", "likelihood_model"]

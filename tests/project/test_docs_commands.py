@@ -10,7 +10,7 @@ import time
 
 import pandas as pd
 import pytest
-from helpers import make_workdir
+from helpers import make_workdir, tiny_configfiles
 
 pytestmark = pytest.mark.slow
 
@@ -34,7 +34,7 @@ def test_unlock_and_rerun_incomplete_after_a_hard_kill(repo, tmp_path):
     with "Directory cannot be locked"; `snakemake --unlock`, then `--rerun-incomplete`,
     finish the job."""
     workdir = make_workdir(repo, tmp_path / "work")
-    config = ("--configfile", str(repo / "tests/configs/tiny.yaml"))
+    config = ("--configfile", *tiny_configfiles(repo))
     running = subprocess.Popen(
         [sys.executable, "-m", "snakemake", "--cores", "1", TARGET, *config],
         cwd=workdir,
@@ -71,7 +71,7 @@ def test_supplied_hwp_curves_are_used(repo, tmp_path):
     pointing at a table of one's own: the MFT channels' HWP power follows it, the other
     telescopes' does not move."""
     workdir = make_workdir(repo, tmp_path / "work")
-    config = ("--configfile", str(repo / "tests/configs/tiny.yaml"))
+    config = ("--configfile", *tiny_configfiles(repo))
     shipped = snakemake(workdir, TARGET, *config)
     assert shipped.returncode == 0, shipped.stderr[-3000:]
     before = pd.read_csv(workdir / TARGET, comment="#").set_index("channel")

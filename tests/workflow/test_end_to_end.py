@@ -3,6 +3,7 @@
 import json
 
 import numpy as np
+import pandas as pd
 import pytest
 
 pytestmark = pytest.mark.slow
@@ -58,6 +59,14 @@ def test_whole_workflow_on_tiny_config(tiny_local_run):
     assert headline["consistent"] == requirement["consistency"]["consistent"]
     assert [row["ell"][0] for row in requirement["consistency"]["bins"]][:2] == [2, 5]
     assert np.isfinite(headline["fisher_peak_shift_requirement_sigma_g1_per_k"])
+    # the report's first page: the answer, its checks, the run and the year beside it
+    answer = pd.read_csv(workdir / "results/answer.csv").set_index("quantity")["value"]
+    assert float(answer["sigma_g1 requirement, 68 % point [1/K]"]) == pytest.approx(
+        headline["requirement_sigma_g1_per_k"], rel=1e-2
+    )
+    assert answer["verdict"] == headline["note"]
+    assert answer["this run"].startswith("0.04 days; 2 channels")
+    assert "of another analysis: likelihood_model, nside" in answer["beside the one-year answer"]
     shift = requirement["systematic_only"]["fraction_point"]
     assert len(shift["mean_delta_r"]) == len(shift["sigma_g1_per_k"]) == 21
     computed = np.array(shift["mean_delta_r"])  # NaN beyond 1e3 x the budget
@@ -85,10 +94,11 @@ def test_whole_workflow_on_tiny_config(tiny_local_run):
 def scheduled_rules(workdir, repo, *more_configfiles):
     """{rule: count} of the jobs a dry run of the tiny configuration (with more config files
     merged over it) would run."""
-    from helpers import snakemake
+    from helpers import snakemake, tiny_configfiles
 
-    config = str(repo / "tests/configs/tiny.yaml")
-    result = snakemake(workdir, extra=("-n", "--configfile", config, *more_configfiles))
+    result = snakemake(
+        workdir, extra=("-n", "--configfile", *tiny_configfiles(repo), *more_configfiles)
+    )
     assert result.returncode == 0, result.stderr[-3000:]
     lines = (result.stdout + result.stderr).splitlines()
     rules = {}
@@ -118,12 +128,13 @@ def test_figure_only_edit_reruns_no_science_job(tiny_local_run, repo):
 def test_report_builds_with_every_figure(tiny_local_run, repo):
     """`snakemake --report` on the tiny run: one HTML page with the workflow description,
     every figure and the delta r table."""
-    from helpers import snakemake
+    from helpers import snakemake, tiny_configfiles
 
     workdir, result = tiny_local_run
     assert result.returncode == 0, result.stderr[-4000:]
-    config = str(repo / "tests/configs/tiny.yaml")
-    built = snakemake(workdir, extra=("--configfile", config, "--report", "report.zip"))
+    built = snakemake(
+        workdir, extra=("--configfile", *tiny_configfiles(repo), "--report", "report.zip")
+    )
     assert built.returncode == 0, built.stderr[-3000:]
     import zipfile
 

@@ -6,7 +6,7 @@ import sys
 
 import pytest
 import yaml
-from helpers import make_workdir
+from helpers import make_workdir, tiny_configfiles
 
 TINY_NODE_MEM_MB = 8000  # what a laptop-sized SLURM node can give one job
 
@@ -42,7 +42,7 @@ def test_profile_dry_run_on_tiny_config(repo, tmp_path, name):
     workdir = make_workdir(repo, tmp_path)
     result = subprocess.run(
         [sys.executable, "-m", "snakemake", "--profile", str(repo / "profiles" / name)]
-        + ["--configfile", str(repo / "tests/configs/tiny.yaml"), "--dry-run"],
+        + ["--configfile", *tiny_configfiles(repo), "--dry-run"],
         cwd=workdir,
         capture_output=True,
         text=True,

@@ -3,7 +3,7 @@
 import h5py
 import numpy as np
 import pytest
-from helpers import make_workdir, snakemake
+from helpers import make_workdir, snakemake, tiny_configfiles
 
 pytestmark = pytest.mark.slow
 
@@ -26,7 +26,7 @@ def test_pair_maps_are_reproducible_and_independent_of_job_order(repo, tmp_path)
         result = snakemake(
             workdir,
             *ordered,
-            extra=("--configfile", str(repo / "tests/configs/tiny.yaml"), "--cores", cores),
+            extra=("--configfile", *tiny_configfiles(repo), "--cores", cores),
         )
         assert result.returncode == 0, result.stderr[-3000:]
         runs[order] = workdir
@@ -73,7 +73,7 @@ def test_map_domain_alms_reproduce_and_equal_the_maps_path(repo, tmp_path, tiny_
     assert tod_result.returncode == 0, tod_result.stderr[-3000:]
     override = tmp_path / "map_domain.yaml"
     override.write_text("simulation:\n  realizations: map_domain\n")
-    configs = ("--configfile", str(repo / "tests/configs/tiny.yaml"), str(override))
+    configs = ("--configfile", *tiny_configfiles(repo), str(override))
     targets = [
         "results/alms/M1-140/seed1.h5",
         "results/alms/M1-140/seed0.h5",
@@ -111,7 +111,7 @@ def test_map_domain_alms_reproduce_and_equal_the_maps_path(repo, tmp_path, tiny_
 
     # the same seed through maps files: the HILC's residual spectra agree to round-off
     config = deep_merge(
-        load_config(repo / "config/config.yaml", repo / "tests/configs/tiny.yaml"),
+        load_config(repo / "config/config.yaml", *tiny_configfiles(repo)),
         {"simulation": {"realizations": "map_domain"}},
     )
     map_paths = {}
@@ -184,7 +184,7 @@ def test_a_demodulated_analysis_runs_from_its_own_fixed_pass_file(repo, tmp_path
     override.write_text("simulation:\n  realizations: map_domain\n")
     configs = (
         "--configfile",
-        str(repo / "tests/configs/tiny.yaml"),
+        *tiny_configfiles(repo),
         str(override),
         str(repo / "config/demodulated.yaml"),
     )

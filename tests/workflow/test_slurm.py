@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 import yaml
-from helpers import make_workdir, snakemake
+from helpers import make_workdir, snakemake, tiny_configfiles
 
 pytestmark = pytest.mark.slow
 
@@ -67,9 +67,7 @@ def slurm_profile(repo, directory):
 
 def dag_job_counts(workdir, config):
     """Jobs per rule of the whole DAG (dry run), from Snakemake's job stats table."""
-    result = snakemake(
-        workdir, extra=("--configfile", str(config), "--dry-run", "--quiet", "rules")
-    )
+    result = snakemake(workdir, extra=("--configfile", *config, "--dry-run", "--quiet", "rules"))
     assert result.returncode == 0, result.stderr[-4000:]
     counts, in_table = {}, False
     for line in (result.stdout + result.stderr).splitlines():
@@ -141,7 +139,7 @@ def submissions_per_rule(jobs, groups):
 
 
 def test_tiny_workflow_through_slurm_equals_local_run(repo, tmp_path, slurm_cluster, request):
-    config = repo / "tests/configs/tiny.yaml"
+    config = tiny_configfiles(repo)
     profile = slurm_profile(repo, tmp_path / "profile")
     settings = yaml.safe_load((profile / "profile.yaml").read_text())
     cluster_dir = make_workdir(repo, tmp_path / "slurm")
@@ -152,7 +150,7 @@ def test_tiny_workflow_through_slurm_equals_local_run(repo, tmp_path, slurm_clus
     try:
         cluster = subprocess.run(
             [sys.executable, "-m", "snakemake", "--profile", str(profile)]
-            + ["--configfile", str(config)],
+            + ["--configfile", *config],
             cwd=cluster_dir,
             capture_output=True,
             text=True,

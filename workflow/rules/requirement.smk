@@ -24,6 +24,11 @@ rule requirement:
             category="3. Requirement",
         ),
         requirement=paths.REQUIREMENT,
+        answer=report(
+            paths.ANSWER_TABLE,
+            caption="../report/answer.rst",
+            category="0. The answer",
+        ),
         fig_likelihoods=report(
             paths.FIG7_LIKELIHOODS,
             caption="../report/fig7.rst",
@@ -32,7 +37,7 @@ rule requirement:
         fig_requirement=report(
             paths.FIG8_REQUIREMENT,
             caption="../report/fig8.rst",
-            category="3. Requirement",
+            category="0. The answer",
         ),
         fig_a2_scaling=report(
             paths.FIG_A2_SCALING,

@@ -10,6 +10,7 @@ requirement.run(
     list(snakemake.input.likelihoods),
     table_csv=snakemake.output.table,
     requirement_json=snakemake.output.requirement,
+    answer_csv=snakemake.output.answer,
     fig_likelihoods=snakemake.output.fig_likelihoods,
     fig_requirement=snakemake.output.fig_requirement,
     fig_a2_scaling=snakemake.output.fig_a2_scaling,

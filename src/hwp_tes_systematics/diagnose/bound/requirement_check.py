@@ -17,12 +17,12 @@ from __future__ import annotations
 
 import json
 import math
-from importlib import resources
 from pathlib import Path
 
 from scipy import stats
 
-SHIPPED = "one_year_requirement.json"  # under the package's data/
+from ...config import one_year_requirement_path
+
 NONLINEARITY_FAMILY = "tes_nonlinearity"
 # a second solution of the fit beside (select.backfit.fit_composed) within this Delta chi^2
 # of the first (2 sigma for one parameter) is one the recording cannot rule out
@@ -37,7 +37,7 @@ def load_requirement(path=None) -> dict:
     """{source, sigma_g1_per_k, error_per_k, delta_r_budget, definition, settings, consistent}
     from a workflow's ``requirement.json`` (``path``; None: the shipped one-year result)."""
     if path is None:
-        source = resources.files("hwp_tes_systematics") / "data" / SHIPPED
+        source = one_year_requirement_path()
         label = "the shipped one-year result (docs/one_year/recovered_power/requirement.json)"
     else:
         source, label = Path(path), str(path)
