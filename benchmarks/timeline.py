@@ -2,7 +2,7 @@
 
     snakemake --cores 2
     python benchmarks/timeline.py .snakemake/log/<latest>.snakemake.log --cores 2 \
-        --out docs/timeline_default.png
+        --out docs/one_day/timeline.png
 
 Reads the scheduler's own log (a timestamp before every "rule ..."/"localrule ..."
 start and every "Finished jobid: N (Rule: ...)" line; one-second resolution), draws

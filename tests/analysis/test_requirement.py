@@ -319,7 +319,7 @@ def test_a_run_says_what_it_is_and_where_it_stands_beside_the_year(default_confi
     puts its answer beside the shipped one-year answer when the two are one analysis."""
     import copy
 
-    from hwp_tes_systematics.stages import requirement as stage
+    from hwp_tes_systematics.analysis import run_summary as stage
 
     year = copy.deepcopy(default_config)
     year["simulation"].update(

@@ -139,12 +139,14 @@ def test_the_answer_and_the_range_of_readings_are_the_runs():
 
 # Whole-run costs: each has one source, a run record, and the pages quote it or link to it.
 DEFAULT_RUN = REPO / "docs" / "default_run" / "run.json"
+ONE_DAY_RUN = REPO / "docs" / "one_day" / "run.json"
 ONE_YEAR_RUN = REPO / "docs" / "one_year" / "recovered_power" / "run.json"
 # jobs of a configuration's DAG (a dry run checks each: test_job_counts_are_the_dags)
 JOB_COUNTS = {
-    "config/config.yaml": 70,
+    "config/config.yaml": 197,
+    "config/one_day.yaml": 70,
     "config/one_year.yaml": 197,
-    "tests/configs/tiny.yaml": 26,
+    "config/one_day.yaml tests/configs/tiny.yaml": 26,
     "config/one_year.yaml config/paper.yaml config/full_focal_plane.yaml": 757,
 }
 PAGES = [REPO / "README.md"] + sorted(
@@ -166,6 +168,8 @@ def test_the_run_records_hold_their_configurations_job_counts():
     assert default["jobs"] == JOB_COUNTS["config/config.yaml"]
     assert year["command"] == "snakemake --cores 2 --configfile config/one_year.yaml"
     assert year["jobs"] == JOB_COUNTS["config/one_year.yaml"]
+    one_day = json.loads(ONE_DAY_RUN.read_text())
+    assert one_day["jobs"] == JOB_COUNTS["config/one_day.yaml"]
 
 
 def test_the_readme_quotes_the_run_records():
@@ -183,10 +187,31 @@ def test_the_readme_quotes_the_run_records():
     assert int(hours) == round(year["wall_s"] / 3600)
 
 
+def test_the_readme_quotes_the_default_runs_answer():
+    """The README's default answer, its error and its ratio to the year are the committed
+    default run's requirement.json (docs/default_run/)."""
+    readme = " ".join((REPO / "README.md").read_text().split())
+    found = re.search(
+        rf"\*\*sigma_g1 < {NUMBER} \+- {NUMBER} K\^-1\*\*, consistent, (\d+\.\d+) times tighter "
+        "than the year's",
+        readme[readme.index("**The default**") :],
+    )
+    assert found, "README: the default's answer is not where it was"
+    result = json.loads((REPO / "docs/default_run/requirement.json").read_text())
+    headline = result["headline"]
+    assert headline["consistent"] and headline["consistent_held_out"]
+    value, error = quoted(found[0])[:2]
+    assert matches(headline["requirement_sigma_g1_per_k"], value)
+    assert matches(headline["error_per_k"], error)
+    ratio = headline["one_year_answer"]["one_year_over_this_run"]
+    assert f"{ratio:.2f}" == found[5]
+
+
 def test_the_configuration_table_quotes_the_run_records():
     table = (REPO / "docs" / "workflow" / "configuration.md").read_text()
     for record, row_start in (
         (DEFAULT_RUN, "| `config/config.yaml`"),
+        (ONE_DAY_RUN, "| `config/one_day.yaml`"),
         (ONE_YEAR_RUN, "| `config/one_year.yaml`"),
     ):
         run = json.loads(record.read_text())

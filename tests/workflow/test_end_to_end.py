@@ -185,3 +185,36 @@ def test_tiny_requirement_unchanged(tiny_local_run, repo):
         and not np.isclose(produced[key], expected[key], rtol=1e-6, atol=0, equal_nan=True)
     }
     assert not moved, moved
+
+
+def test_the_default_at_tiny_size(tiny_local_run, repo, tmp_path):
+    """The embedded default's path (map-domain seeds, the observation sampled one chunk in
+    two, the recovered-power model) at tiny size, end to end: its requirement.json and
+    results/answer.csv say what the run is, pass the model checks and put it beside the
+    shipped one-year answer, naming what differs."""
+    import shutil
+
+    from helpers import make_workdir, snakemake
+
+    tod_workdir, tod_result = tiny_local_run
+    assert tod_result.returncode == 0, tod_result.stderr[-3000:]
+    workdir = make_workdir(repo, tmp_path / "run")
+    for inputs in ("results/inputs", "results/sky"):  # the same upstream stages
+        shutil.copytree(tod_workdir / inputs, workdir / inputs)
+    config = str(repo / "tests/configs/tiny_default.yaml")
+    result = snakemake(workdir, extra=("--configfile", config, "--cores", "2"))
+    assert result.returncode == 0, result.stderr[-3000:]
+    requirement = json.loads((workdir / "results/requirement.json").read_text())
+    headline, settings = requirement["headline"], requirement["settings"]
+    assert settings["chunk_stride"] == 2 and settings["days_simulated"] == 0.0625
+    assert settings["likelihood_model"] == "recovered_power" and requirement["n_seeds"] == 4
+    assert headline["run"].startswith("0.125 days sampled one 0.5-hour chunk in 2")
+    assert headline["consistent"] and headline["consistent_held_out"]
+    beside = headline["one_year_answer"]
+    assert not beside["same_analysis"]
+    assert beside["differing_settings"] == ["nside", "channels", "analysis_nside"]
+    answer = pd.read_csv(workdir / "results/answer.csv").set_index("quantity")["value"]
+    assert answer["model check, all seeds"] == "passes"
+    assert float(answer["sigma_g1 requirement, 68 % point [1/K]"]) == pytest.approx(
+        headline["requirement_sigma_g1_per_k"], rel=1e-2
+    )
