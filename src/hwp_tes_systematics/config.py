@@ -28,6 +28,8 @@ from .instrument.hwp_power import HwpCurves, OpticalElement, read_hwp_curves
 SCHEMA_RESOURCE = "config.schema.yaml"
 DEFAULT_CONFIG_RESOURCE = "config/config.yaml"  # under data/, as in the repository
 ONE_YEAR_REQUIREMENT_RESOURCE = "one_year_requirement.json"
+# the run the shipped one-year requirement is (the repository's copy of it)
+ONE_YEAR_REQUIREMENT_SOURCE = "docs/one_year/recovered_power/requirement.json"
 
 
 class ConfigError(ValueError):

@@ -36,9 +36,9 @@ def run_settings(config: dict) -> dict:
         "notch_width_divisor": config["notch"]["width_divisor"],
         "removed_hwp_harmonics": config["maps"]["removed_hwp_harmonics"],
         "hwpss_a2_over_delta_p": config["optics"]["hwpss_a2_over_delta_p"],
-        "duration_days": config["simulation"]["duration_days"],
+        "duration_days": simulation["duration_days"],
         "nside": config["maps"]["nside"],
-        "cmb_r": config["simulation"]["cmb_r"],
+        "cmb_r": simulation["cmb_r"],
     }
 
 
@@ -99,7 +99,7 @@ def one_year_comparison(headline: dict, settings: dict) -> dict:
     differing = [key for key in SAME_ANALYSIS_KEYS if theirs[key] != settings[key]]
     answer = shipped["headline"]["requirement_sigma_g1_per_k"]
     comparison = {
-        "source": "the shipped one-year answer (docs/one_year/recovered_power/requirement.json)",
+        "source": f"the shipped one-year answer ({cfg.ONE_YEAR_REQUIREMENT_SOURCE})",
         "requirement_sigma_g1_per_k": answer,
         "error_per_k": shipped["headline"]["error_per_k"],
         "fisher_peak_shift_requirement_sigma_g1_per_k": shipped["headline"][

@@ -21,7 +21,7 @@ from pathlib import Path
 
 from scipy import stats
 
-from ...config import one_year_requirement_path
+from ...config import ONE_YEAR_REQUIREMENT_SOURCE, one_year_requirement_path
 
 NONLINEARITY_FAMILY = "tes_nonlinearity"
 # a second solution of the fit beside (select.backfit.fit_composed) within this Delta chi^2
@@ -38,7 +38,7 @@ def load_requirement(path=None) -> dict:
     from a workflow's ``requirement.json`` (``path``; None: the shipped one-year result)."""
     if path is None:
         source = one_year_requirement_path()
-        label = "the shipped one-year result (docs/one_year/recovered_power/requirement.json)"
+        label = f"the shipped one-year result ({ONE_YEAR_REQUIREMENT_SOURCE})"
     else:
         source, label = Path(path), str(path)
     try:
