@@ -186,6 +186,7 @@ def check_config(config: dict, source: str = "configuration") -> None:
             f"instrument.channels {channels}"
         )
     _check_fixed_pass_variants(config, source)
+    _check_emulated_pairs(config, channels, source)
     nside = config["maps"]["nside"]
     if analysis_nside(config) > nside:
         raise ConfigError(
@@ -204,6 +205,37 @@ def check_config(config: dict, source: str = "configuration") -> None:
             f"{source}: tes.tbath_k = {config['tes']['tbath_k']} must be below "
             f"tes.tc_k = {config['tes']['tc_k']} (a TES needs a bath colder than Tc)"
         )
+
+
+def _check_emulated_pairs(config: dict, channels: list[str], source: str) -> None:
+    """instrument.emulated_pairs_per_channel needs the map-domain seeds (the noise and the
+    templates are scaled there), no template fit (a fit of N_e detectors' templates is not
+    one of N scaled) and, per channel, at least the simulated pairs and at most the
+    channel's own."""
+    settings = config["instrument"]
+    emulated = settings["emulated_pairs_per_channel"]
+    if emulated is None:
+        return
+    key = f"{source}: instrument.emulated_pairs_per_channel = {emulated!r}"
+    if config["simulation"]["realizations"] != "map_domain":
+        raise ConfigError(
+            f"{key} needs simulation.realizations: map_domain (the seeds are scaled in the "
+            f"map domain), not {config['simulation']['realizations']!r}"
+        )
+    if config["mitigation"]["template_fit"] is not None:
+        raise ConfigError(
+            f"{key} needs mitigation.template_fit: null (a fit of the emulated detectors' "
+            "templates is not the fit of the simulated ones, scaled)"
+        )
+    for name in channels:
+        simulated = _pair_count(config, name, settings["pairs_per_channel"])
+        wanted = _pair_count(config, name, emulated)
+        most = _pair_count(config, name, "all")
+        if not simulated <= wanted <= most:
+            raise ConfigError(
+                f"{key} for {name}: expected from the simulated pairs "
+                f"(instrument.pairs_per_channel, {simulated}) to the channel's {most}"
+            )
 
 
 def analysis_nside(config: dict) -> int:
@@ -350,6 +382,33 @@ def channel(config: dict, name: str) -> instrument.Channel:
         settings["pairs_per_channel"],
         field_of_view,
     )
+
+
+def _pair_count(config: dict, channel_name: str, pairs: int | str) -> int:
+    """``pairs`` (a count, or "all") of a channel as a number of pairs."""
+    if pairs != "all":
+        return int(pairs)
+    settings = config["instrument"]
+    return instrument.pixels_with_a_pair(
+        channel_name, settings["imo_location"], settings["imo_release"]
+    )
+
+
+def emulated_pairs_factor(config: dict, channel_name: str) -> float:
+    """f = N / N_e: the channel's simulated pairs N (instrument.pairs_per_channel) over the
+    pairs its map-domain seeds emulate, N_e (instrument.emulated_pairs_per_channel; f = 1
+    when null). A seed of N_e pairs has the binned white noise of N pairs times sqrt(f)
+    (M^-1 scales as 1 / N_e) and each detector's share of the map times f, with N_e / N
+    times as many detectors: a random g1's template power, sum_k C_ell(T_k), scales as f,
+    and so does a common g1's where distinct pixels' templates are uncorrelated
+    (docs/physics/focal_plane.md). The seeds carry the first by the noise, the second by
+    g1 draws times sqrt(f) (:func:`..analysis.channel_alms.channel_g1_draws`)."""
+    settings = config["instrument"]
+    emulated = settings["emulated_pairs_per_channel"]
+    if emulated is None:
+        return 1.0
+    simulated = _pair_count(config, channel_name, settings["pairs_per_channel"])
+    return simulated / _pair_count(config, channel_name, emulated)
 
 
 def simulated_rate_hz(config: dict, channel) -> float:

@@ -49,6 +49,62 @@ def test_every_schema_key_has_a_description():
     walk(load_schema(), "config")
 
 
+def _emulated(config, emulated, **changes):
+    config["instrument"]["emulated_pairs_per_channel"] = emulated
+    config["mitigation"]["template_fit"] = None
+    for key, value in changes.items():
+        section, name = key.split("__")
+        config[section][name] = value
+
+
+@pytest.mark.parametrize(
+    "mutate, message",
+    [
+        (
+            lambda c: _emulated(c, 4, simulation__realizations="tod"),
+            "emulated_pairs_per_channel = 4 needs simulation.realizations: map_domain",
+        ),
+        (
+            lambda c: _emulated(c, 4, mitigation__template_fit="detector"),
+            "needs mitigation.template_fit: null",
+        ),
+        (
+            lambda c: _emulated(c, 2, instrument__pairs_per_channel=4),
+            "= 2 for L1-040: expected from the simulated pairs (instrument.pairs_per_channel, 4)",
+        ),
+        (lambda c: _emulated(c, 13), "= 13 for L2-050: expected from the simulated pairs"),
+    ],
+)
+def test_an_emulated_focal_plane_needs_map_domain_seeds_and_a_count_in_range(
+    default_config, mutate, message
+):
+    config = copy.deepcopy(default_config)
+    mutate(config)
+    with pytest.raises(ConfigError) as error:
+        check_config(config)
+    assert message in str(error.value)
+
+
+def test_the_emulated_pairs_factor_is_simulated_over_emulated_pairs(default_config):
+    """f = N / N_e per channel: every pair of the PTEP model ("all": 2,254 pairs, 12 to
+    244 per channel) emulated from one or from eight; 1 when nothing is emulated."""
+    from hwp_tes_systematics.config import emulated_pairs_factor
+
+    config = copy.deepcopy(default_config)
+    assert emulated_pairs_factor(config, "M2-119") == 1.0
+    _emulated(config, "all")
+    check_config(config)
+    counts = {
+        name: round(1 / emulated_pairs_factor(config, name)) for name in selected_channels(config)
+    }
+    assert sum(counts.values()) == 2254  # 4,508 detectors
+    assert (counts["L2-050"], counts["M2-119"], counts["H3-402"]) == (12, 244, 169)
+    config["instrument"]["pairs_per_channel"] = 8
+    assert emulated_pairs_factor(config, "M2-119") == pytest.approx(8 / 244)
+    config["instrument"]["emulated_pairs_per_channel"] = 12
+    assert emulated_pairs_factor(config, "L2-050") == pytest.approx(8 / 12)
+
+
 @pytest.mark.parametrize(
     "mutate, message",
     [

@@ -101,6 +101,30 @@ def test_g1_draws_per_detector_pair_and_channel():
     assert per_pair[0] == per_channel[0]
 
 
+def test_an_emulated_focal_plane_scales_every_g1_draw_by_the_root_of_the_pairs_ratio(
+    default_config,
+):
+    """A channel of N = 3 simulated pairs whose seeds emulate N_e = 183 (M1-140's every
+    pair): each unit draw is sqrt(3 / 183) of the seed's own, so that the random
+    population's template power, sum_k z_k^2 C_ell(T_k) on average, is that of N_e pairs
+    whose shares of the map are N / N_e of these; outside the systematics channels, zeros."""
+    import copy
+
+    from hwp_tes_systematics.analysis.channel_alms import channel_g1_draws
+
+    config = copy.deepcopy(default_config)
+    config["instrument"]["pairs_per_channel"] = 3
+    detectors = load_channel("M1-140", pairs=3).detectors
+    own = channel_g1_draws(config, "M1-140", 0, detectors)
+    np.testing.assert_array_equal(
+        own, unit_g1_draws(config["master_seed"], "M1-140", 0, detectors, "detector")
+    )
+    config["instrument"]["emulated_pairs_per_channel"] = "all"
+    emulated = channel_g1_draws(config, "M1-140", 0, detectors)
+    np.testing.assert_allclose(emulated, own * np.sqrt(3 / 183), rtol=1e-14)
+    assert not np.any(channel_g1_draws(config, "L1-040", 0, detectors[:2]))
+
+
 def two_pair_simulator(duration_s, nside, positions):
     channel = load_channel("M1-140", pairs=2)
     channel = dataclasses.replace(channel, detector_positions=positions)

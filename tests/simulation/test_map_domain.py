@@ -542,3 +542,37 @@ def test_noise_shaping_pooled_over_a_telescopes_channels():
     assert "M1-140" not in siblings(config, "M1-100")
     config["simulation"]["noise_shaping_pooling"] = "channel"
     assert siblings(config, "M1-100") == ["M1-100"]
+
+
+@pytest.mark.slow
+def test_an_emulated_focal_plane_scales_the_maps_noise_and_not_a_detectors(setup):
+    """map_noise_factor (an emulated focal plane, config.emulated_pairs_factor): the binned
+    white noise of nosys is that factor times the pass's, sky and foregrounds as they were;
+    a detector's own noise through the s h term keeps its size (its share of the map
+    shrinks with the g1 draws' scale, analysis.channel_alms.emulated_template_scale)."""
+    fixed, _, fast = setup
+    fwhm_arcmin = load_channel("M1-140").fwhm_arcmin
+    seed, factor = SEEDS[0], 0.25
+    emulated = map_domain.realize_seed(
+        fixed,
+        sky_cmb.seed_cmb_alm(LMAX, 0.0, MASTER_SEED, seed, fwhm_arcmin),
+        LMAX,
+        A2_K_CMB,
+        NOISE_SCALE,
+        lambda k: seeding.rng(MASTER_SEED, "test", seed, k),
+        map_noise_factor=factor,
+    )
+    noiseless = noiseless_fast(fixed, seed)["nosys"]
+    good = fixed.good
+    noise = fast[seed]["nosys"][:, good] - noiseless[:, good]
+    assert np.std(noise) > 1e-6  # [K]: the pass's noise is there to be scaled
+    np.testing.assert_allclose(
+        emulated["nosys"][:, good] - noiseless[:, good],
+        factor * noise,
+        rtol=0,
+        atol=1e-6 * np.abs(noise).max(),
+    )
+    for piece in map_domain.SH_TERM_PIECES:
+        np.testing.assert_array_equal(
+            emulated["sh_term_pieces"][piece], fast[seed]["sh_term_pieces"][piece]
+        )

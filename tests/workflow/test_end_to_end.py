@@ -218,3 +218,41 @@ def test_the_default_at_tiny_size(tiny_local_run, repo, tmp_path):
     assert float(answer["sigma_g1 requirement, 68 % point [1/K]"]) == pytest.approx(
         headline["requirement_sigma_g1_per_k"], rel=1e-2
     )
+
+
+def test_a_focal_plane_emulated_by_the_seeds_at_tiny_size(tiny_local_run, repo, tmp_path):
+    """The default's path with its seeds emulating every pair of the PTEP model
+    (instrument.emulated_pairs_per_channel: all; M1-140's 183 pairs from one, L1-040's 24):
+    the run says so, and with the noise and the template's power both 1/183 of the
+    pair's (1/24 for the noise of L1-040) sigma_r falls (measured: 326 to 22) and the
+    requirement loosens (4.5e-5 to 1.5e-4 1/K)."""
+    import shutil
+
+    from helpers import make_workdir, snakemake
+
+    tod_workdir, tod_result = tiny_local_run
+    assert tod_result.returncode == 0, tod_result.stderr[-3000:]
+    workdir = make_workdir(repo, tmp_path / "run")
+    for inputs in ("results/inputs", "results/sky"):
+        shutil.copytree(tod_workdir / inputs, workdir / inputs)
+    default = str(repo / "tests/configs/tiny_default.yaml")
+    result = snakemake(workdir, extra=("--configfile", default, "--cores", "2"))
+    assert result.returncode == 0, result.stderr[-3000:]
+    one_pair = json.loads((workdir / "results/requirement.json").read_text())
+    overlay = tmp_path / "emulated.yaml"
+    overlay.write_text(
+        "instrument: {emulated_pairs_per_channel: all}\nmitigation: {template_fit: null}\n"
+    )
+    extra = ("--configfile", default, str(overlay), "--cores", "2", "--forcerun")
+    result = snakemake(workdir, extra=(*extra, "map_domain_alms", "--rerun-triggers", "mtime"))
+    assert result.returncode == 0, result.stderr[-3000:]
+    emulated = json.loads((workdir / "results/requirement.json").read_text())
+    assert emulated["settings"]["emulated_pairs_per_channel"] == "all"
+    assert "their seeds emulating every pair of the channel" in emulated["headline"]["run"]
+    assert (
+        "emulated_pairs_per_channel"
+        in emulated["headline"]["one_year_answer"]["differing_settings"]
+    )
+    before, after = one_pair["headline"], emulated["headline"]
+    assert after["sigma_r_fisher"] < before["sigma_r_fisher"] / 5  # the noise of 24-183 pairs
+    assert after["requirement_sigma_g1_per_k"] > before["requirement_sigma_g1_per_k"]

@@ -287,11 +287,19 @@ def channel_g1_draws(
 ) -> np.ndarray:
     """The unit g1 draws z_k of a channel's detectors (zeros outside the systematics
     channels): the seed's own (``draw`` = :func:`systematics.unit_g1_draws`), or with
-    :func:`systematics.instrument_g1_draws` and ``seed`` the instrument's number."""
+    :func:`systematics.instrument_g1_draws` and ``seed`` the instrument's number; times
+    :func:`emulated_template_scale` for a focal plane emulated by the seeds."""
     if name not in config["instrument"]["systematics_channels"]:
         return np.zeros(len(detectors))
     per = config["requirement"]["g1_per"]
-    return np.asarray(draw(config["master_seed"], name, seed, detectors, per), float)
+    draws = np.asarray(draw(config["master_seed"], name, seed, detectors, per), float)
+    return draws * emulated_template_scale(config, name)
+
+
+def emulated_template_scale(config: dict, name: str) -> float:
+    """sqrt(N / N_e) (:func:`config.emulated_pairs_factor`): a g1 on N simulated detectors
+    whose template power is that of N_e pairs' (1 when the seeds emulate nothing)."""
+    return float(np.sqrt(cfg.emulated_pairs_factor(config, name)))
 
 
 def _input_cmb_map(config: dict, seed: int, fwhm_arcmin: float, npix: int) -> np.ndarray:

@@ -53,6 +53,7 @@ from .channel_alms import (
     HarmonicSettings,
     analysis_mask,
     channel_g1_draws,
+    emulated_template_scale,
     read_channel_alms,
     read_mask,
 )
@@ -253,10 +254,14 @@ class SeedMaps:
     def common_offset_draws(self) -> list[np.ndarray]:
         """g1 = 1 1/K on every detector of the systematics channels (a residual common to
         the focal plane, :func:`fixed_instruments.common_offset_estimator`), zeros on the
-        others: the draws of an instrument with no spread."""
+        others: the draws of an instrument with no spread (times
+        :func:`channel_alms.emulated_template_scale` for an emulated focal plane)."""
         systematic = self.config["instrument"]["systematics_channels"]
         return [
-            np.full(len(detectors), 1.0 if name in systematic else 0.0)
+            np.full(
+                len(detectors),
+                emulated_template_scale(self.config, name) if name in systematic else 0.0,
+            )
             for name, detectors in zip(self.names, self.detectors, strict=True)
         ]
 

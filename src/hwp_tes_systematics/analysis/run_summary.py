@@ -31,6 +31,7 @@ def run_settings(config: dict) -> dict:
         "baseline_length_s": config["maps"]["baseline_length_s"],
         "g1_per": config["requirement"]["g1_per"],
         "pairs_per_channel": config["instrument"]["pairs_per_channel"],
+        "emulated_pairs_per_channel": config["instrument"]["emulated_pairs_per_channel"],
         "detector_positions": config["instrument"]["detector_positions"],
         "likelihood_model": config["likelihood"]["model"],
         "notch_width_divisor": config["notch"]["width_divisor"],
@@ -46,11 +47,14 @@ def run_settings(config: dict) -> dict:
 # from the shipped one-year answer in none of them is put beside it (its days may differ);
 # a file made before a key was logged holds its value then (OLDER_SETTINGS)
 SAME_ANALYSIS_KEYS = (
-    "baseline_length_s", "g1_per", "pairs_per_channel", "detector_positions",
+    "baseline_length_s", "g1_per", "pairs_per_channel", "emulated_pairs_per_channel",
+    "detector_positions",
     "likelihood_model", "notch_width_divisor", "removed_hwp_harmonics",
     "hwpss_a2_over_delta_p", "nside", "cmb_r", "channels", "map_maker", "analysis_nside",
 )  # fmt: skip
-OLDER_SETTINGS = {"channels": 22, "map_maker": "binned", "chunk_stride": 1}
+OLDER_SETTINGS = {
+    "channels": 22, "map_maker": "binned", "chunk_stride": 1, "emulated_pairs_per_channel": None,
+}  # fmt: skip
 
 
 def days_simulated(config: dict) -> float:
@@ -76,9 +80,13 @@ def describe_run(config: dict) -> str:
     )
     baselines = settings["baseline_length_s"]
     offsets = "no offsets removed" if baselines is None else f"{baselines:g} s offsets removed"
+    pairs = f"{settings['pairs_per_channel']} detector pair(s) each"
+    emulated = settings["emulated_pairs_per_channel"]
+    if emulated is not None:
+        count = "every pair of the channel" if emulated == "all" else f"{emulated} pairs"
+        pairs += f", their seeds emulating {count} (noise and g1 scaled)"
     return (
-        f"{observed}; {settings['channels']} channels, {settings['pairs_per_channel']} "
-        f"detector pair(s) each; {settings['seeds']} seeds; {settings['map_maker']} maps at "
+        f"{observed}; {settings['channels']} channels, {pairs}; {settings['seeds']} seeds; {settings['map_maker']} maps at "
         f"nside {settings['nside']} with {offsets}; analysed on the nside-"
         f"{settings['analysis_nside']} mask; likelihood model {settings['likelihood_model']}"
     )

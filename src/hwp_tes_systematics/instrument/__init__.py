@@ -23,6 +23,7 @@ from .channels import (
     most_orthogonal_pair,
     open_imo,
     pixel_of,
+    pixels_with_a_pair,
     telescope_of,
 )
 
@@ -42,5 +43,6 @@ __all__ = [
     "most_orthogonal_pair",
     "open_imo",
     "pixel_of",
+    "pixels_with_a_pair",
     "telescope_of",
 ]

@@ -281,6 +281,25 @@ def load_channel(
     )
 
 
+@lru_cache(maxsize=64)
+def pixels_with_a_pair(
+    channel_name: str, imo_location: str | None = None, release: str = "vPTEP"
+) -> int:
+    """How many pixels of a channel hold an orthogonal pair (PTEP: 12 to 244): the most
+    pairs ``load_channel`` can simulate, ``pairs="all"``."""
+    import litebird_sim as lbs
+
+    imo = open_imo(imo_location)
+    telescope = telescope_of(channel_name, imo_location, release)
+    base = f"/releases/{release}/satellite/{telescope}/{channel_name}"
+    info = lbs.FreqChannelInfo.from_imo(imo, f"{base}/channel_info")
+    infos = [
+        lbs.DetectorInfo.from_imo(imo, f"{base}/{name}/detector_info")
+        for name in info.detector_names
+    ]
+    return len(pixel_pairs(infos))
+
+
 def pixel_pairs(detector_infos) -> dict[str, tuple[str, str]]:
     """{pixel: its most orthogonal pair} for every pixel holding two detectors, in model
     order (``detector_infos``: litebird_sim DetectorInfo of a channel)."""

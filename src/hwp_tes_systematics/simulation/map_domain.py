@@ -140,6 +140,7 @@ def realize_seed(
     full_terms: bool = True,
     cmb_excess_alm: np.ndarray | None = None,
     tensor_alms: tuple[np.ndarray, np.ndarray] | None = None,
+    map_noise_factor: float = 1.0,
 ) -> dict[str, np.ndarray]:
     """The maps of one seed from the fixed pass (see the module docstring): nosys,
     template_terms, templates, cmb_reference, foreground_reference (UNSEEN where the
@@ -166,7 +167,11 @@ def realize_seed(
     ``lmax``), its excess of B origin (band ``operators.filter_lmax``)), giving
     ``tensor_input_b`` and ``tensor_reference_b``, the probe before and after the filters:
     the map's response to r, which the lensing B modes cannot give where the filters and
-    the mask mix multipoles (the spectra's shapes differ)."""
+    the mask mix multipoles (the spectra's shapes differ). ``map_noise_factor``: the
+    binned white noise of nosys times it, sqrt(N / N_e) for a focal plane of N_e pairs
+    emulated from the pass's N (:func:`config.emulated_pairs_factor`); a detector's own
+    noise through the s h term keeps its size (its share of the map shrinks with the g1
+    draws' scale instead)."""
     nside = hp.npix2nside(fixed.good.size)
     good = fixed.good
     operators = operators or SeedOperators(fixed, noise_scale, lmax)
@@ -187,7 +192,7 @@ def realize_seed(
         return shaped[:, good]
 
     noise = np.zeros_like(fixed.nosys)
-    noise[:, good] = filtered_noise(b[:, good], fixed.noise_shaping)
+    noise[:, good] = map_noise_factor * filtered_noise(b[:, good], fixed.noise_shaping)
     nosys = np.full_like(fixed.nosys, hp.UNSEEN)
     nosys[:, good] = fixed.nosys[:, good] + cmb_filtered[:, good] + noise[:, good]
     pieces = {name: np.zeros_like(fixed.template_terms[SH_TERM]) for name in SH_TERM_PIECES}
@@ -367,6 +372,7 @@ class ChannelSeeds:
             full_terms,
             self.cmb_excess_alm(seed),
             self.tensor_alms(seed),
+            np.sqrt(cfg.emulated_pairs_factor(self.config, self.name)),
         )
         maps["attrs"] = {**self.attributes, "seed": seed, "realization": "map_domain"}
         return maps

@@ -1,0 +1,83 @@
+"""Focal planes emulated by the map-domain seeds, against the run of the focal plane they
+emulate.
+
+    python benchmarks/emulated_focal_plane.py --run 8=n8/results/requirement.json \\
+        --emulated 1=e1_to_8/results/requirement.json 2=e2_to_8/results/requirement.json \\
+        --emulated 8=e8_to_all/results/requirement.json
+
+A run with ``instrument.emulated_pairs_per_channel: N_e`` simulates N pairs per channel and
+scales its seeds' binned noise and g1 draws by sqrt(N / N_e) (config.emulated_pairs_factor).
+Each ``--emulated N=path`` is such a run's ``requirement.json`` (N its simulated pairs);
+``--run N_e=path`` the run that simulates the N_e pairs the emulations emulate, if there is
+one. Prints, per quantity of ``requirement_vs_pairs.QUANTITIES`` (the random population's
+68 % point and Fisher reading, the common offset, sigma_r), each file's value, and for each
+emulation its ratio to the run and their difference over the errors added in quadrature
+(where both give one; the runs share the CMB and foreground draws, so that error is an
+upper bound). An emulation whose N_e is not the run's is printed without a comparison.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).parent))
+from requirement_vs_pairs import QUANTITIES
+
+
+def read(item: str, parser, emulated: bool) -> tuple[int, dict]:
+    """(N, requirement.json) of ``N=path``, checking N against the file's settings."""
+    n, _, path = item.partition("=")
+    if not path:
+        parser.error(f"{item!r}: expected N=path/to/requirement.json")
+    data = json.loads(Path(path).read_text())
+    settings = data["settings"]
+    if settings.get("pairs_per_channel") != int(n):
+        parser.error(f"{path}: pairs_per_channel is {settings.get('pairs_per_channel')}, not {n}")
+    if emulated and settings.get("emulated_pairs_per_channel") is None:
+        parser.error(f"{path}: emulates nothing (instrument.emulated_pairs_per_channel null)")
+    return int(n), data
+
+
+def comparison(value, error, truth, truth_error) -> str:
+    """'ratio r, +x.x sigma' of an emulated value against the run's."""
+    text = f"ratio {value / truth:.3f}"
+    if error and truth_error:
+        text += f", {(value - truth) / math.hypot(error, truth_error):+.1f} sigma"
+    return text
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--run", help="N_e=path/to/requirement.json of the run emulated")
+    parser.add_argument("--emulated", nargs="+", required=True, help="N=path/to/requirement.json")
+    args = parser.parse_args()
+    emulations = [read(item, parser, True) for item in args.emulated]
+    run = read(args.run, parser, False) if args.run else None
+    for n, data in emulations:
+        print(f"emulated from N = {n}: {data['headline']['run']}")
+    if run:
+        print(f"run of N = {run[0]}: {run[1]['headline']['run']}")
+    for label, reader in QUANTITIES.items():
+        print(label)
+        truth, truth_error = reader(run[1]) if run else (None, None)
+        if run:
+            print(
+                f"    run, N = {run[0]}: {truth:.3g}"
+                + (f" +- {truth_error:.2g}" if truth_error else "")
+            )
+        for n, data in emulations:
+            value, error = reader(data)
+            emulated = data["settings"]["emulated_pairs_per_channel"]
+            line = f"    emulated {emulated} from N = {n}: {value:.3g}"
+            line += f" +- {error:.2g}" if error else ""
+            if run and emulated == run[0]:
+                line += f" ({comparison(value, error, truth, truth_error)})"
+            print(line)
+
+
+if __name__ == "__main__":
+    main()
