@@ -42,6 +42,11 @@ def read(item: str, parser, emulated: bool) -> tuple[int, dict]:
     return int(n), data
 
 
+def described(data: dict) -> str:
+    """The run's sentence (``headline.run``), or its settings in a file made before it."""
+    return data["headline"].get("run") or json.dumps(data["settings"])
+
+
 def comparison(value, error, truth, truth_error) -> str:
     """'ratio r, +x.x sigma' of an emulated value against the run's."""
     text = f"ratio {value / truth:.3f}"
@@ -58,9 +63,9 @@ def main() -> None:
     emulations = [read(item, parser, True) for item in args.emulated]
     run = read(args.run, parser, False) if args.run else None
     for n, data in emulations:
-        print(f"emulated from N = {n}: {data['headline']['run']}")
+        print(f"emulated from N = {n}: {described(data)}")
     if run:
-        print(f"run of N = {run[0]}: {run[1]['headline']['run']}")
+        print(f"run of N = {run[0]}: {described(run[1])}")
     for label, reader in QUANTITIES.items():
         print(label)
         truth, truth_error = reader(run[1]) if run else (None, None)

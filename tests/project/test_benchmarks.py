@@ -607,6 +607,56 @@ def test_requirement_vs_notch_orders_the_runs_by_width(repo, tmp_path):
     assert (tmp_path / "notch.png").stat().st_size > 10_000
 
 
+def test_emulated_focal_plane_compares_each_emulation_with_the_run_it_emulates(repo, tmp_path):
+    """benchmarks/emulated_focal_plane.py: an emulation of 8 pairs from 1 beside the run of
+    8 (its ratio and its difference over the errors in quadrature), an emulation of every
+    pair printed without a comparison, and a file that emulates nothing refused."""
+    import subprocess
+
+    folder = repo / "docs/focal_plane/requirement_vs_pairs"
+    paths = {}
+    for name, source, emulated in (
+        ("run8", "n8_probe", None),
+        ("e1", "n1_probe", 8),
+        ("all", "n8_probe", "all"),
+    ):
+        data = json.loads((folder / source / "requirement.json").read_text())
+        data["settings"]["emulated_pairs_per_channel"] = emulated
+        paths[name] = tmp_path / f"{name}.json"
+        paths[name].write_text(json.dumps(data))
+    script = [sys.executable, str(repo / "benchmarks" / "emulated_focal_plane.py")]
+    done = subprocess.run(
+        [
+            *script,
+            "--run",
+            f"8={paths['run8']}",
+            "--emulated",
+            f"1={paths['e1']}",
+            f"8={paths['all']}",
+        ],
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=120,
+    )
+    lines = done.stdout.splitlines()
+    first = lines.index("random sigma_g1, 68 % point [1/K]")
+    assert lines[first + 1] == "    run, N = 8: 0.00135 +- 5.5e-05"
+    # the N = 1 run against N = 8's: 0.747e-3 / 1.350e-3 and -0.603e-3 / hypot(0.10, 0.06)e-3
+    assert lines[first + 2].startswith(
+        "    emulated 8 from N = 1: 0.000747 +- 0.0001 (ratio 0.553, -5."
+    )
+    assert lines[first + 3] == "    emulated all from N = 8: 0.00135 +- 5.5e-05"
+    refused = subprocess.run(
+        [*script, "--emulated", f"8={paths['run8']}"],
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert refused.returncode == 2 and "emulates nothing" in refused.stderr
+
+
 @pytest.mark.slow
 def test_calibration_vs_length_tests_its_law_on_a_length_it_was_not_fitted_to(repo, tmp_path):
     """benchmarks/calibration_vs_length.py on M1-140 for 0.05 and 0.1 h, predicting 0.15 h:
