@@ -109,7 +109,7 @@ def test_each_reading_of_the_readme_is_its_runs_requirement_json(label):
 
 
 def test_the_answer_and_the_range_of_readings_are_the_runs():
-    text = (REPO / "README.md").read_text()
+    text = " ".join((REPO / "README.md").read_text().split())  # as read, whatever the wrapping
     answer = run_values(ROWS["**the answer**"][0])
     found = re.search(
         rf"\*\*sigma_g1 < {NUMBER} \+- {NUMBER} K\^-1\*\* \(the seeds scatter by {NUMBER}\)", text
@@ -314,3 +314,34 @@ def test_the_results_page_readings_are_their_runs_requirement_json():
                 numbers = quotes[0::2][: len(paths)]
             for value, quote in zip(expected, numbers[: len(expected)], strict=False):
                 assert matches(value, quote), f"{label}: {key} {quote[0]:g}, run has {value:.4g}"
+
+
+def test_the_readme_quotes_the_emulated_focal_planes_answer():
+    """The README's focal-plane answer (random sigma_g1, its error, the Fisher and the
+    paper's readings, the common |mu_g1| from its own power) is the committed emulation of
+    every pair from the one-year answer (docs/focal_plane/emulated/ey1all/), a run whose
+    checks pass and whose seeds emulate every pair of the one-year answer's configuration."""
+    readme = " ".join((REPO / "README.md").read_text().split())
+    found = re.search(
+        rf"\*\*For LiteBIRD's focal plane: sigma_g1 < {NUMBER} \+- {NUMBER} K\^-1\*\* for a g1 "
+        rf"drawn per detector \(Fisher {NUMBER}, the paper's estimator {NUMBER}\) and "
+        rf"\*\*\|mu_g1\| < {NUMBER} K\^-1\*\*",
+        readme,
+    )
+    assert found, "README: the focal plane's answer is not where it was"
+    result = json.loads((REPO / "docs/focal_plane/emulated/ey1all/requirement.json").read_text())
+    headline = result["headline"]
+    assert headline["consistent"] and headline["consistent_held_out"]
+    assert headline["r_recovered_consistent"]
+    assert result["settings"]["emulated_pairs_per_channel"] == "all"
+    assert headline["one_year_answer"]["differing_settings"] == ["emulated_pairs_per_channel"]
+    values = quoted(found[0])
+    expected = (
+        headline["requirement_sigma_g1_per_k"],
+        headline["error_per_k"],
+        headline["fisher_peak_shift_requirement_sigma_g1_per_k"],
+        headline["paper_estimator_budget_crossing_per_k"],
+        result["common_offset"]["requirement_mu_quadratic_only_per_k"],
+    )
+    for value, quote in zip(expected, values, strict=True):
+        assert matches(value, quote), f"{quote[0]:g} vs {value:.3g}"
