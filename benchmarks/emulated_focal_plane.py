@@ -10,7 +10,9 @@ scales its seeds' binned noise and g1 draws by sqrt(N / N_e) (config.emulated_pa
 Each ``--emulated N=path`` is such a run's ``requirement.json`` (N its simulated pairs);
 ``--run N_e=path`` the run that simulates the N_e pairs the emulations emulate, if there is
 one. Prints, per quantity of ``requirement_vs_pairs.QUANTITIES`` (the random population's
-68 % point and Fisher reading, the common offset, sigma_r), each file's value, and for each
+68 % point and Fisher reading, the common offset, sigma_r) and the systematic's power k of
+its two largest parts (the fixed template's, a detector's noise through the s h term;
+``systematic_only.template_split``), each file's value, and for each
 emulation its ratio to the run and their difference over the errors added in quadrature
 (where both give one; the runs share the CMB and foreground draws, so that error is an
 upper bound). An emulation whose N_e is not the run's is printed without a comparison.
@@ -25,7 +27,20 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).parent))
-from requirement_vs_pairs import QUANTITIES
+from requirement_vs_pairs import QUANTITIES as PAIRS_QUANTITIES
+
+# and the systematic's power k [K^2] of its two largest parts (systematic_only.template_split):
+# the fixed pass's template and a detector's own noise through the s h term
+SPLIT = "systematic_only", "template_split", "k_per_k2"
+QUANTITIES = {
+    **PAIRS_QUANTITIES,
+    "k, fixed x fixed [K^2]": lambda d: (_split(d)["fixed_x_fixed"], None),
+    "k, noise_h x noise_h [K^2]": lambda d: (_split(d)["noise_h_x_noise_h"], None),
+}
+
+
+def _split(data: dict) -> dict:
+    return data[SPLIT[0]][SPLIT[1]][SPLIT[2]]
 
 
 def read(item: str, parser, emulated: bool) -> tuple[int, dict]:
