@@ -79,18 +79,23 @@ def setup():
             )
             maps, _, _ = solve_maps(equations, 100.0)
             full[seed, noise_scale] = split_solved_maps(maps, 2, A2_K_CMB)
-    fast = {
-        seed: map_domain.realize_seed(
-            fixed,
-            sky_cmb.seed_cmb_alm(LMAX, 0.0, MASTER_SEED, seed, channel.fwhm_arcmin),
-            LMAX,
-            A2_K_CMB,
-            NOISE_SCALE,
-            lambda k, seed=seed: seeding.rng(MASTER_SEED, "test", seed, k),
-        )
-        for seed in SEEDS
-    }
+    fast = {seed: fast_seed(fixed, seed) for seed in SEEDS}
     return fixed, full, fast
+
+
+def fast_seed(fixed, seed, *operators, **options):
+    """The map-domain maps of ``seed`` at the module's noise scale, its noise from the
+    stream ("test", seed, detector); ``operators`` and ``options`` passed on."""
+    return map_domain.realize_seed(
+        fixed,
+        sky_cmb.seed_cmb_alm(LMAX, 0.0, MASTER_SEED, seed, load_channel("M1-140").fwhm_arcmin),
+        LMAX,
+        A2_K_CMB,
+        NOISE_SCALE,
+        lambda k: seeding.rng(MASTER_SEED, "test", seed, k),
+        *operators,
+        **options,
+    )
 
 
 def noiseless_fast(fixed, seed):
@@ -261,17 +266,8 @@ def test_shared_seed_operators_give_the_same_seeds(setup):
     fixed, _, fast = setup
     operators = map_domain.SeedOperators(fixed, NOISE_SCALE, LMAX)
     shared = operators.noise
-    fwhm_arcmin = load_channel("M1-140").fwhm_arcmin
     for seed in SEEDS:
-        again = map_domain.realize_seed(
-            fixed,
-            sky_cmb.seed_cmb_alm(LMAX, 0.0, MASTER_SEED, seed, fwhm_arcmin),
-            LMAX,
-            A2_K_CMB,
-            NOISE_SCALE,
-            lambda k, seed=seed: seeding.rng(MASTER_SEED, "test", seed, k),
-            operators,
-        )
+        again = fast_seed(fixed, seed, operators)
         for name in ("nosys", "template_terms"):
             assert np.array_equal(again[name], fast[seed][name]), name
     pixel = int(np.flatnonzero(fixed.good)[0])
@@ -551,17 +547,8 @@ def test_an_emulated_focal_plane_scales_the_maps_noise_and_not_a_detectors(setup
     a detector's own noise through the s h term keeps its size (its share of the map
     shrinks with the g1 draws' scale, analysis.channel_alms.emulated_template_scale)."""
     fixed, _, fast = setup
-    fwhm_arcmin = load_channel("M1-140").fwhm_arcmin
     seed, factor = SEEDS[0], 0.25
-    emulated = map_domain.realize_seed(
-        fixed,
-        sky_cmb.seed_cmb_alm(LMAX, 0.0, MASTER_SEED, seed, fwhm_arcmin),
-        LMAX,
-        A2_K_CMB,
-        NOISE_SCALE,
-        lambda k: seeding.rng(MASTER_SEED, "test", seed, k),
-        map_noise_factor=factor,
-    )
+    emulated = fast_seed(fixed, seed, map_noise_factor=factor)
     noiseless = noiseless_fast(fixed, seed)["nosys"]
     good = fixed.good
     noise = fast[seed]["nosys"][:, good] - noiseless[:, good]
