@@ -86,9 +86,10 @@ def describe_run(config: dict) -> str:
         count = "every pair of the channel" if emulated == "all" else f"{emulated} pairs"
         pairs += f", their seeds emulating {count} (noise and g1 scaled)"
     return (
-        f"{observed}; {settings['channels']} channels, {pairs}; {settings['seeds']} seeds; {settings['map_maker']} maps at "
-        f"nside {settings['nside']} with {offsets}; analysed on the nside-"
-        f"{settings['analysis_nside']} mask; likelihood model {settings['likelihood_model']}"
+        f"{observed}; {settings['channels']} channels, {pairs}; {settings['seeds']} seeds; "
+        f"{settings['map_maker']} maps at nside {settings['nside']} with {offsets}; analysed "
+        f"on the nside-{settings['analysis_nside']} mask; likelihood model "
+        f"{settings['likelihood_model']}"
     )
 
 

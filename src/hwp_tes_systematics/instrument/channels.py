@@ -287,17 +287,7 @@ def pixels_with_a_pair(
 ) -> int:
     """How many pixels of a channel hold an orthogonal pair (PTEP: 12 to 244): the most
     pairs ``load_channel`` can simulate, ``pairs="all"``."""
-    import litebird_sim as lbs
-
-    imo = open_imo(imo_location)
-    telescope = telescope_of(channel_name, imo_location, release)
-    base = f"/releases/{release}/satellite/{telescope}/{channel_name}"
-    info = lbs.FreqChannelInfo.from_imo(imo, f"{base}/channel_info")
-    infos = [
-        lbs.DetectorInfo.from_imo(imo, f"{base}/{name}/detector_info")
-        for name in info.detector_names
-    ]
-    return len(pixel_pairs(infos))
+    return load_channel(channel_name, imo_location, release, pairs="all").n_pairs
 
 
 def pixel_pairs(detector_infos) -> dict[str, tuple[str, str]]:

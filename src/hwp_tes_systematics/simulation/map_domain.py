@@ -270,6 +270,8 @@ class ChannelSeeds:
                 f"{fixed_h5}: the fixed pass measured the filter up to ell = {measured}, but "
                 f"simulation.filter_lmax asks for {self.filter_lmax}: rerun its fixed_pass rule"
             )
+        # sqrt(N / N_e) on the map's binned noise for an emulated focal plane, else 1
+        self.map_noise_factor = float(np.sqrt(cfg.emulated_pairs_factor(config, self.name)))
         self._operators = None
 
     @classmethod
@@ -372,7 +374,7 @@ class ChannelSeeds:
             full_terms,
             self.cmb_excess_alm(seed),
             self.tensor_alms(seed),
-            np.sqrt(cfg.emulated_pairs_factor(self.config, self.name)),
+            self.map_noise_factor,
         )
         maps["attrs"] = {**self.attributes, "seed": seed, "realization": "map_domain"}
         return maps
