@@ -68,6 +68,19 @@ crosstalk coupling of 2 - 5 % in one pair beside it; expected ``common_mode_nois
 its scope the common noise's groups, each b_i within 3 sigma of NET_c / sqrt(NET_i^2 +
 NET_c^2), and the coupled pair (if any) as ``detector_crosstalk``.
 
+``cosmic_rays`` (``--only cosmic_rays``): TOAST's ``InjectCosmicRays`` on a pair or
+14 detectors: direct hits C1 + C2 exp(-t / tau) at 1 kHz, resampled by TOAST to the
+recording's rate over 0.15 s (3 samples at 19 Hz, 5 at 31 Hz), 1e-3 - 5e-3 hits per second
+per detector, C2 drawn over a decade above a level log-uniform in 3 - 300 times the white
+noise per sample (``--hit-range``; the peak after resampling is what is scored), C1 up to
+10 % of C2, tau 2 - 20 ms; and its white wafer noise, rms 0.1 - 0.5 times the detector
+noise per sample, half the time with its pixel-pair common mode requested at 0.3 - 0.9
+correlation (TOAST 3.0.6 draws the two detectors' "common" parts from different counters:
+uncorrelated, < 0.01 measured, so it adds white noise only). Expected ``glitches`` first
+and nothing else; the hits found (an event within 2 samples of a hit's first sample) by
+the hit's peak over the white noise per sample, the events found at no hit, and each
+found hit's time against its first sample (sigma half a sample).
+
 Prints one line per recording and, per case, the rates: per recording (every detector's
 parameters within 3 sigma; a parameter without a sigma fails) and per parameter, the
 pulls' standard deviation, and the rates by the effect's strength |truth| / sigma (the
@@ -78,6 +91,7 @@ and truth), ``--combine`` prints the rates of several such files.
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import math
 import shutil
@@ -110,6 +124,7 @@ WAFER_CASES = (
 )
 MISMATCH = {"wafer_drift": (0.0, 0.0), "detector_drift": (1.0, 1.0), "mixed_drift": (0.2, 0.5)}
 EXPECTED_SCOPE = {"wafer_drift": "wafer", "detector_drift": "detector"}
+OTHER_CASES = ("cosmic_rays",)  # TOAST's InjectCosmicRays on a pair or 14 detectors
 NONLINEARITY_NAMES = ("tes_nonlinearity", "tes_nonlinearity_cubic")
 START = datetime(2032, 1, 1, tzinfo=UTC)
 
@@ -128,6 +143,7 @@ def draw(
     thermal_range=None,
     common_range=None,
     net_spread=0.0,
+    hit_range=(3.0, 300.0),
 ) -> dict:
     """The recording's set-up, nominal errors and injected effect."""
     a2_true = float(rng.uniform(0.1, 0.4))
@@ -167,6 +183,14 @@ def draw(
         if rng.random() < 0.5:
             i, j = (int(k) for k in rng.choice(14, 2, replace=False))
             setup["crosstalk"] = {f"{i},{j}": float(rng.uniform(0.02, 0.05))}
+    if case == "cosmic_rays":  # what cosmic_ray_injection makes the hits and noise of
+        setup["cosmic_rays"] = {
+            "event_rate_hz": log_uniform(rng, (1e-3, 5e-3)),
+            "hit_level": log_uniform(rng, hit_range),  # C2's lower end / the white noise
+            "hit_seed": int(rng.integers(1, 2**31)),
+            "wafer_noise": float(rng.uniform(0.1, 0.5)),  # its rms / the white noise
+            "pair_correlation": float(rng.uniform(0.3, 0.9)) if rng.random() < 0.5 else None,
+        }
     if case in MISMATCH:
         setup["gain_drift_mode"] = "slow_drift"
         setup["gain_drift_mismatch"] = float(rng.uniform(*MISMATCH[case]))
@@ -186,6 +210,30 @@ def draw(
 def detector_nets(setup: dict, n_det: int) -> np.ndarray:
     """Each detector's NET [uK sqrt(s)] of a drawn set-up."""
     return np.broadcast_to(np.asarray(setup["net_uk_rts"], dtype=float), (n_det,))
+
+
+def white_noise_k(setup: dict) -> float:
+    """The detectors' white noise per sample [K]: TOAST's NET sqrt(f_s)."""
+    return float(np.mean(setup["net_uk_rts"])) * 1e-6 * math.sqrt(setup["sample_rate_hz"])
+
+
+def cosmic_ray_injection(setup: dict, n_draws: int = 400) -> dict:
+    """The ``cosmic_rays`` argument of :func:`write_toast_recording` from a drawn set-up:
+    ``n_draws`` hits for TOAST to resample, C2 log-uniform over a decade above the level,
+    C1 up to 10 % of C2, tau 2 - 20 ms."""
+    rays, sigma = setup["cosmic_rays"], white_noise_k(setup)
+    rng = np.random.default_rng(rays["hit_seed"])
+    c2 = rays["hit_level"] * sigma * np.exp(rng.uniform(0.0, math.log(10.0), n_draws))
+    return {
+        "event_rate_hz": rays["event_rate_hz"],
+        "hits": {
+            "c1": c2 * rng.uniform(0.0, 0.1, n_draws),
+            "c2": c2,
+            "tau_ms": rng.uniform(2.0, 20.0, n_draws),
+        },
+        "wafer_noise_k": [0.0, rays["wafer_noise"] * sigma],
+        "pair_correlation": rays["pair_correlation"],
+    }
 
 
 def within(parameters: dict, name: str, truth: dict) -> tuple[list[float], float]:
@@ -362,6 +410,45 @@ def score_crosstalk(result: dict, setup: dict, truth: dict) -> dict:
     return record
 
 
+def score_cosmic_rays(result: dict, setup: dict, truth: dict) -> dict:
+    """TOAST's direct hits: glitches named (first, alone), each hit found or not with its
+    strength (peak over the white noise per sample, the wafer noise included), the events
+    found at no hit, the found hits' time pulls (sigma half a sample)."""
+    effects = result["effects"]
+    names = [e["name"] for e in effects]
+    record = {"reported": names, "unexplained": len(result["unexplained"])}
+    record["named"] = "glitches" in names
+    record["first"] = bool(names) and names[0] == "glitches"
+    fs = setup["sample_rate_hz"]
+    rays = setup["cosmic_rays"]
+    sigma = white_noise_k(setup) * math.sqrt(
+        1 + rays["wafer_noise"] ** 2 * (1 + (rays["pair_correlation"] or 0.0))
+    )
+    events: dict[str, list[float]] = {name: [] for name in truth["detectors"]}
+    for effect in effects:
+        if effect["name"] == "glitches":
+            for p in effect["parameters"].values():
+                if p["parameter"] == "time":
+                    events[p["detector"]].append(p["value"])
+    hits, pulls, false_events = [], [], 0
+    for name in truth["detectors"]:
+        starts = np.array([first / fs for first, _, _ in truth["cosmic_ray_hits"][name]])
+        found = np.array(events[name])
+        for (first, _, peak), start in zip(truth["cosmic_ray_hits"][name], starts, strict=True):
+            near = found[np.abs(found - start) <= 2.0 / fs] if found.size else found
+            hits.append([round(abs(peak) / sigma, 2), bool(near.size)])
+            if near.size:
+                pulls.append(round(float((near[0] - start) / (0.5 / fs)), 2))
+        false_events += int(
+            sum(not starts.size or np.abs(starts - t).min() > 2.0 / fs for t in found)
+        )
+    record["hits"] = hits
+    record["false_events"] = false_events
+    record["pulls"] = pulls
+    record["within_3_sigma"] = record["named"] and all(abs(p) < 3 for p in pulls)
+    return record
+
+
 def score(case: str, result: dict, setup: dict, truth: dict) -> dict:
     effects = result["effects"]
     names = [effect["name"] for effect in effects]
@@ -377,6 +464,8 @@ def score(case: str, result: dict, setup: dict, truth: dict) -> dict:
         return score_fluctuation(result, setup)
     if case == "common_mode":
         return score_common_mode(result, setup, truth)
+    if case == "cosmic_rays":
+        return score_cosmic_rays(result, setup, truth)
     expected = []
     if case in ("nonlinearity", "both"):
         expected.append("nonlinearity")
@@ -417,7 +506,7 @@ def one(case: str, seed: int, folder: Path, ranges: tuple) -> dict:
     """Draw, write with TOAST, read and diagnose one recording; its record. ``ranges``:
     those of g1, the linear drift, the slow drift, the crosstalk, the bath's stream and
     the common noise."""
-    rng = np.random.default_rng([seed, (CASES + WAFER_CASES).index(case)])
+    rng = np.random.default_rng([seed, (CASES + WAFER_CASES + OTHER_CASES).index(case)])
     drawn = draw(case, rng, *ranges)
     sky = cmb_map(NSIDE, 3 * NSIDE - 1, 0.0, MASTER_SEED, drawn["sky_seed"], 30.8)
     folder.mkdir(parents=True)
@@ -429,6 +518,8 @@ def one(case: str, seed: int, folder: Path, ranges: tuple) -> dict:
         setup["crosstalk"] = {
             tuple(int(k) for k in key.split(",")): v for key, v in setup["crosstalk"].items()
         }
+    if "cosmic_rays" in setup:
+        setup["cosmic_rays"] = cosmic_ray_injection(setup)
     truth: dict = {}
     path = write_toast_recording(
         folder, sky_fits, seed=seed, truth=truth, start=start_time, **setup
@@ -461,12 +552,14 @@ def when_memory_allows(case: str, seed: int, folder: Path, ranges: tuple, tries:
 
 def summary(records: list[dict]) -> list[str]:
     lines = []
-    for case in CASES + WAFER_CASES:
+    for case in CASES + WAFER_CASES + OTHER_CASES:
         rows = [r for r in records if r["case"] == case]
         if not rows:
             continue
         n = len(rows)
-        if case in ("clean", "clean_wafers"):
+        if case == "cosmic_rays":
+            lines += cosmic_ray_summary(rows)
+        elif case in ("clean", "clean_wafers"):
             alarms = sum(r["false_alarm"] for r in rows)
             lines.append(f"{case:13s} {n:3d} recordings: false alarms {alarms}/{n}")
         else:
@@ -514,6 +607,36 @@ def summary(records: list[dict]) -> list[str]:
         f"diagnosis time per recording: median {np.median(seconds):.1f} s, max {max(seconds):.1f} s"
     )
     return lines
+
+
+HIT_STRENGTHS = (0.0, 5.0, 10.0, 20.0, math.inf)  # a hit's peak / the white noise per sample
+
+
+def cosmic_ray_summary(rows: list[dict]) -> list[str]:
+    """The cosmic-ray case: glitches ranked first and alone, the hits found by strength,
+    the events found at no hit, the time pulls."""
+    n = len(rows)
+    first = sum(r["first"] for r in rows)
+    alone = sum(r["reported"] == ["glitches"] and not r["unexplained"] for r in rows)
+    others = sorted({name for r in rows for name in r["reported"] if name != "glitches"})
+    hits = np.array([h for r in rows for h in r["hits"]], dtype=float).reshape(-1, 2)
+    bins = []
+    for low, high in itertools.pairwise(HIT_STRENGTHS):
+        inside = hits[(hits[:, 0] >= low) & (hits[:, 0] < high)]
+        bins.append(f"{low:g}-{high:g}: {int(inside[:, 1].sum())}/{len(inside)}")
+    pulls = [p for r in rows for p in r["pulls"]]
+    inside_p = sum(abs(p) < 3 for p in pulls)
+    return [
+        (
+            f"cosmic_rays   {n:3d} recordings: ranked first {first}/{n}, glitches alone (nothing "
+            f"else, nothing unexplained) {alone}/{n}; also named: {', '.join(others) or 'none'}"
+        ),
+        "    hits found by peak / white noise per sample: " + ", ".join(bins),
+        (
+            f"    events found at no hit: {sum(r['false_events'] for r in rows)} in {n} "
+            f"recordings; hit times within 3 sigma (half a sample): {inside_p}/{len(pulls)}"
+        ),
+    ]
 
 
 def by_amplitude(case: str, rows: list[dict]) -> list[str]:
@@ -584,7 +707,11 @@ def main() -> None:
     parser.add_argument("--per-case", type=int, default=20, help="recordings per case")
     parser.add_argument("--first-seed", type=int, default=1)
     parser.add_argument(
-        "--only", nargs="+", choices=CASES + WAFER_CASES, default=list(CASES), help="cases"
+        "--only",
+        nargs="+",
+        choices=CASES + WAFER_CASES + OTHER_CASES,
+        default=list(CASES),
+        help="cases",
     )
     parser.add_argument("--out", type=Path)
     parser.add_argument("--combine", nargs="+", type=Path, metavar="JSON")
@@ -604,6 +731,9 @@ def main() -> None:
     )
     parser.add_argument(
         "--net-spread", type=float, default=0.0, help="relative spread of the detectors' NETs"
+    )
+    parser.add_argument(
+        "--hit-range", nargs=2, type=float, default=(3.0, 300.0), help="C2 / white noise"
     )
     arguments = parser.parse_args()
     if arguments.combine:
@@ -626,6 +756,7 @@ def main() -> None:
                     arguments.thermal_range,
                     arguments.common_range,
                     arguments.net_spread,
+                    arguments.hit_range,
                 )
                 record = when_memory_allows(case, seed, folder / f"{case}_{seed}", ranges)
                 records.append(record)

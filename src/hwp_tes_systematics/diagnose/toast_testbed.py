@@ -4,8 +4,9 @@ extra).
 
 A LiteBIRD scan (``SimSatellite``: spin 20 min at 50 deg, precession 192.348 min at 45 deg,
 a HWP), the sky map scanned by ``ScanHealpixMap`` through ``StokesWeights`` with the HWP,
-TOAST's dipole (``SimDipole``, total), gain drift (``GainDrifter``) and noise
-(``DefaultNoiseModel`` + ``SimNoise``), saved by ``SaveHDF5``. The pointing's frame is
+TOAST's dipole (``SimDipole``, total), gain drift (``GainDrifter``), noise
+(``DefaultNoiseModel`` + ``SimNoise``) and cosmic rays (``InjectCosmicRays``), saved by
+``SaveHDF5``. The pointing's frame is
 Galactic by default: ``ScanHealpixMap`` scans the map in the pointing's frame.
 
 The HWPSS, the nonlinearity and a constant gain have no TOAST operator; they are added to
@@ -48,6 +49,7 @@ def write_toast_recording(
     thermal_drift_common_to: str = "wafer",
     crosstalk: dict | None = None,
     common_mode: tuple[float, float, str] | None = None,
+    cosmic_rays: dict | None = None,
     dipole: bool = True,
     noise: bool = True,
     net_uk_rts: float | list = 50.0,
@@ -81,7 +83,12 @@ def write_toast_recording(
     common to the detectors of each value of the focal-plane column ``key`` ("wafer",
     "pixel", or "all" for every detector), drawn by ``SimNoise`` with the rest.
     ``net_uk_rts``: one NET for all detectors, or one per detector in the focal plane's
-    order."""
+    order. ``cosmic_rays``: TOAST's ``InjectCosmicRays`` (:func:`_cosmic_rays`), keys
+    ``event_rate_hz`` (direct hits per detector), ``hits`` ({"c1", "c2", "tau_ms"}: draws
+    of the hits' C1 + C2 exp(-t / tau) [K, K, ms], which TOAST resamples), ``wafer_noise_k``
+    (the white wafer noise's mean and rms per sample [K]) and ``pair_correlation`` (its
+    part common to each pixel's two detectors, or None); ``truth["cosmic_ray_hits"]``
+    receives each detector's hits as [first sample, samples, peak K]."""
     import astropy.units as u
     from toast import ops
     from toast.observation import default_values as defaults
@@ -116,6 +123,8 @@ def write_toast_recording(
         if common_mode is not None:
             _common_mode(data, *common_mode)
         ops.SimNoise(realization=seed).apply(data)
+    if cosmic_rays is not None:
+        _cosmic_rays(data, cosmic_rays, seed, truth)
     ops.Delete(detdata=[pixels.pixels, weights.weights, pointing.quats]).apply(data)
     if crosstalk:
         _crosstalk(data, crosstalk, Path(folder))
@@ -300,6 +309,88 @@ def _common_mode(data, net_uk_rts: float, fknee_mhz: float, key: str) -> None:
         alpha=1.0,
         NET=net_uk_rts * 1e-6 * u.K * u.s**0.5,
     ).apply(data)
+
+
+MAX_HIT_DRAWS = 50  # InjectCosmicRays fails on a detector drawn without a hit: drawn again
+
+
+def _cosmic_rays(data, rays: dict, seed: int, truth: dict | None) -> None:
+    """TOAST's InjectCosmicRays twice. First the direct hits alone (its wafer noise set to
+    0) into a stream of their own, whose runs of nonzero samples are each detector's hits
+    (the truth), added to the signal; then the white wafer noise, with its part common to
+    each pixel's two detectors, on the signal (another realization). Its data files (one
+    per detector: ``low_noise``, ``sampling_rate`` 1 kHz, ``direct_hits``,
+    ``correlation_matrix``) are in W with a conversion of 1 K/W: amplitudes in K."""
+    import tempfile
+
+    import astropy.units as u
+    from toast import ops
+    from toast.observation import default_values as defaults
+
+    observation = data.obs[0]
+    n_det = len(observation.local_detectors)
+    hits = np.column_stack([np.asarray(rays["hits"][key], float) for key in ("c1", "c2", "tau_ms")])
+    pair_correlation = rays.get("pair_correlation")
+    correlation = np.eye(n_det)
+    for k in range(0, n_det - 1, 2):  # InjectCosmicRays pairs detectors 2k and 2k + 1
+        correlation[k, k + 1] = correlation[k + 1, k] = pair_correlation or 0.0
+    signal = observation.detdata[defaults.det_data]
+    # InjectCosmicRays names a detector's file by replacing "detector" in the whole path
+    with tempfile.TemporaryDirectory(prefix="toast_cosmic_rays_") as folder:
+        for part, low_noise in enumerate(((0.0, 0.0), tuple(rays["wafer_noise_k"]))):
+            for k in range(n_det):
+                np.savez(
+                    Path(folder) / f"part{part}_det{k}.npz",
+                    low_noise=np.asarray(low_noise, float),
+                    sampling_rate=np.array([1000.0]),
+                    direct_hits=hits,
+                    correlation_matrix=correlation,
+                )
+            if part == 0 and not rays["event_rate_hz"]:
+                continue
+            stream = "cosmic_ray_hits" if part == 0 else defaults.det_data
+            observation.detdata.ensure(stream, dtype=np.float64)
+            injector = ops.InjectCosmicRays(
+                det_data=stream,
+                crfile=str(Path(folder) / f"part{part}_detector.npz"),
+                crdata_units=u.W,
+                conversion_factor=1.0 * u.K / u.W,
+                eventrate=rays["event_rate_hz"],
+                inject_direct_hits=part == 0,
+                include_common_mode=part == 1 and pair_correlation is not None,
+                realization=seed + 1000 * part,
+            )
+            for attempt in range(MAX_HIT_DRAWS):
+                # its Poisson count of hits draws from numpy's global state, and a detector
+                # drawn without a hit fails its assertions (a max over no hits)
+                np.random.seed([seed, part, attempt])
+                try:
+                    injector.apply(data)
+                    break
+                except ValueError:
+                    if part == 1 or attempt == MAX_HIT_DRAWS - 1:
+                        raise
+                    observation.detdata[stream][:] = 0.0
+            if part == 0:
+                injected = observation.detdata[stream]
+                found = {}
+                for name in observation.local_detectors:
+                    signal[name][:] += injected[name]
+                    found[name] = _hits(np.asarray(injected[name]))
+                if truth is not None:
+                    truth["cosmic_ray_hits"] = found
+                ops.Delete(detdata=[stream]).apply(data)
+
+
+def _hits(stream: np.ndarray) -> list[list]:
+    """[first sample, samples, peak] of each run of nonzero samples of ``stream``."""
+    nonzero = np.concatenate([[False], stream != 0.0, [False]])
+    edges = np.flatnonzero(np.diff(nonzero.astype(np.int8)))
+    out = []
+    for first, stop in zip(edges[::2], edges[1::2], strict=True):
+        piece = stream[first:stop]
+        out.append([int(first), int(stop - first), float(piece[np.argmax(np.abs(piece))])])
+    return out
 
 
 def _flag_stretches(observation, fraction: float, rng, n_stretches: int = 4) -> None:

@@ -18,7 +18,10 @@ from .base import Effect, format_temperature, register
 
 @dataclass(frozen=True)
 class GlitchEvent:
-    """A cosmic-ray hit: A exp(-(t - t0)/tau) for t >= t0 (t0 = the first affected sample)."""
+    """A cosmic-ray hit: A exp(-(t - t0)/tau) for t >= t0 (t0 = the first affected sample),
+    plus ``departure_k``: where the data ask for it, the event's first samples' departures
+    from that tail (a readout's anti-aliasing or decimation filter shapes and can ring a
+    hit faster than a sample), one free value per sample."""
 
     detector: int
     time_s: float
@@ -27,26 +30,44 @@ class GlitchEvent:
     sigma_amplitude_k: float = 0.0
     sigma_tau_s: float = 0.0
     significance: float = 0.0
+    departure_k: tuple[float, ...] = ()
+    sigma_departure_k: float = 0.0  # each departure's error: the white noise per sample
+
+    @property
+    def n_parameters(self) -> int:
+        """Amplitude, time, tail and one per sample of departure (the BIC's count)."""
+        return 3 + len(self.departure_k)
 
 
 GLITCH_TAIL_CUT = 25.0  # the exponential tail is evaluated over 25 tau
+# a hit's first samples may depart from an exponential tail over this long (a readout
+# filter's response); at least DEPARTURE_MIN_SAMPLES samples
+DEPARTURE_S = 0.25
+DEPARTURE_MIN_SAMPLES = 3
 
 
-def glitch_profile(times_s: np.ndarray, time_s: float, amplitude_k: float, tau_s: float):
-    """(first index, values) of one event: A exp(-(t - t0)/tau) at samples t >= t0."""
+def glitch_profile(
+    times_s: np.ndarray, time_s: float, amplitude_k: float, tau_s: float, departure_k=()
+):
+    """(first index, values) of one event: A exp(-(t - t0)/tau) at samples t >= t0, plus
+    ``departure_k`` on its first samples."""
     first = int(np.searchsorted(times_s, time_s - 1e-9))
     dt = times_s[1] - times_s[0] if times_s.size > 1 else 1.0
-    length = max(1, int(np.ceil(GLITCH_TAIL_CUT * max(tau_s, 1e-6) / dt)) + 1)
+    length = max(1, int(np.ceil(GLITCH_TAIL_CUT * max(tau_s, 1e-6) / dt)) + 1, len(departure_k))
     stop = min(times_s.size, first + length)
     values = amplitude_k * np.exp(-(times_s[first:stop] - time_s) / max(tau_s, 1e-9))
+    shaped = min(len(departure_k), values.size)
+    values[:shaped] += np.asarray(departure_k[:shaped], dtype=float)
     return first, values
 
 
 def glitch_tod(times_s: np.ndarray, n_detectors: int, events) -> np.ndarray:
-    """Sum of the events' exponential tails, (n_det, n)."""
+    """Sum of the events' exponential tails and departures, (n_det, n)."""
     out = np.zeros((n_detectors, times_s.size))
     for event in events:
-        first, values = glitch_profile(times_s, event.time_s, event.amplitude_k, event.tau_s)
+        first, values = glitch_profile(
+            times_s, event.time_s, event.amplitude_k, event.tau_s, event.departure_k
+        )
         out[event.detector, first : first + values.size] += values
     return out
 
@@ -59,12 +80,17 @@ def fit_glitch(
     detector: int,
     tau_guess_s: float,
     window_s: float = 4.0,
+    departure_chi2_per_sample: float | None = None,
 ) -> GlitchEvent | None:
     """Nonlinear least-squares fit of one event at sample ``index`` (the first hit sample).
 
     Model on a window around the event: c + A exp(-(t - t0)/tau) (t >= t0), with c a local
     offset (1/f noise, slow signals); ``scipy.optimize.least_squares`` over (c, A, ln tau);
-    uncertainties from the Jacobian with the white noise ``sigma_k`` per sample.
+    uncertainties from the Jacobian with the white noise ``sigma_k`` per sample. With
+    ``departure_chi2_per_sample`` (the BIC's ln N per parameter), the residual of the
+    event's first P samples (DEPARTURE_S, at least DEPARTURE_MIN_SAMPLES) is kept as its
+    departure from the tail when its chi^2 exceeds P times that: one free value per sample,
+    each with the error sigma_k.
     """
     dt = times_s[1] - times_s[0]
     half = max(8, int(window_s / dt))
@@ -104,6 +130,13 @@ def fit_glitch(
     tau = float(np.exp(log_tau))
     sigma_amplitude = float(np.sqrt(max(cov[1, 1], 0.0)))
     sigma_tau = float(tau * np.sqrt(max(cov[2, 2], 0.0)))
+    departure: tuple[float, ...] = ()
+    if departure_chi2_per_sample is not None:
+        n_shaped = max(DEPARTURE_MIN_SAMPLES, int(np.ceil(DEPARTURE_S / dt)))
+        first = int(np.flatnonzero(after)[0])
+        left = (y - model(solution.x))[first : first + n_shaped]
+        if float(np.sum((left / sigma_k) ** 2)) > left.size * departure_chi2_per_sample:
+            departure = tuple(float(v) for v in left)
     return GlitchEvent(
         detector=detector,
         time_s=float(t0),
@@ -112,6 +145,8 @@ def fit_glitch(
         sigma_amplitude_k=sigma_amplitude,
         sigma_tau_s=sigma_tau,
         significance=float(abs(amplitude) / sigma_amplitude) if sigma_amplitude > 0 else 0.0,
+        departure_k=departure,
+        sigma_departure_k=float(sigma_k) if departure else 0.0,
     )
 
 
@@ -138,15 +173,15 @@ class Glitches(Effect):
         "sky position are a source missing from the sky map: unexplained, with the position)"
     )
 
-    # per event: amplitude, time and tail (the BIC's count)
+    # per event: amplitude, time and tail (the BIC's count; a departure adds one per sample)
     parameters_per_event = 3
 
-    @staticmethod
-    def detect(
-        r_f, s, valid, times_s, scale, detector, threshold_sigma, min_significance, workers=1
-    ):
+    @classmethod
+    def detect(cls, r_f, s, valid, times_s, scale, detector, threshold_sigma, ln_n, workers=1):
         """The events in one detector's residual (rfft ``r_f``, noise periodogram ``s``):
-        :func:`find_transients`."""
+        :func:`find_transients`, each kept when its significance pays its BIC penalty
+        (``parameters_per_event`` ln N) and its departure from an exponential tail when
+        that pays ln N per sample."""
         return find_transients(
             r_f,
             s,
@@ -155,8 +190,9 @@ class Glitches(Effect):
             scale,
             detector,
             threshold_sigma=threshold_sigma,
-            min_significance=min_significance,
+            min_significance=math.sqrt(cls.parameters_per_event * ln_n),
             workers=workers,
+            departure_chi2_per_sample=ln_n,
         )
 
     @staticmethod
@@ -202,6 +238,15 @@ class Glitches(Effect):
                 "detector": det,
                 "parameter": "tau",
             }
+            if e.departure_k:  # the largest of its first samples' departures from the tail
+                largest = max(e.departure_k, key=abs)
+                out[f"glitch{i}.departure[{det}]"] = {
+                    "value": largest,
+                    "sigma": e.sigma_departure_k,
+                    "unit": "K",
+                    "detector": det,
+                    "parameter": "departure",
+                }
         return out
 
     def apply(self, ctx, params, tod=None):
@@ -220,11 +265,21 @@ class Glitches(Effect):
         names = ev.ctx.detector_names
         per_det = {name: sum(e.detector == k for e in events) for k, name in enumerate(names)}
         counts = ", ".join(f"{n} in {name}" for name, n in per_det.items())
+        shaped = [e for e in events if e.departure_k]
+        departures = (
+            f"; {len(shaped)} depart from an exponential tail on their first "
+            f"{len(shaped[0].departure_k)} samples (up to "
+            f"{max(abs(v) / abs(e.amplitude_k) for e in shaped for v in e.departure_k):.0%} "
+            "of the amplitude: a readout filter's response to a hit faster than a sample)"
+            if shaped
+            else ""
+        )
         return (
             f"{len(events)} isolated transients ({counts}); the strongest "
             f"{format_temperature(strongest.amplitude_k)} at t = {strongest.time_s:.2f} s ({strongest.significance:.0f} "
             f"sigma) in {names[strongest.detector]}; exponential tails tau = "
-            f"{np.median(taus) * 1e3:.0f} ms (median); localised in time, not periodic in chi"
+            f"{np.median(taus) * 1e3:.0f} ms (median){departures}; localised in time, not "
+            "periodic in chi"
         )
 
 
@@ -304,13 +359,15 @@ def find_transients(
     threshold_sigma: float = 5.0,
     min_significance: float = 0.0,
     workers: int = 1,
+    departure_chi2_per_sample: float | None = None,
 ) -> list[GlitchEvent]:
     """Transients in a residual given by its rfft r_f, with S_f the expected |R_f|^2 of noise.
 
     Whitened residual z = irfft(r_f sqrt(S_white / S_f)); hits where |z| exceeds
     ``threshold_sigma`` x 1.4826 MAD(z); hits closer than 10 samples form one group, fitted
     at its largest residual sample by :func:`.effects.fit_glitch`; events whose
-    A / sigma_A is below ``min_significance`` are dropped.
+    A / sigma_A is below ``min_significance`` are dropped; ``departure_chi2_per_sample``:
+    :func:`fit_glitch`'s.
     """
     n = valid.size
     fs = 1.0 / (times_s[1] - times_s[0])
@@ -333,7 +390,15 @@ def find_transients(
     events = []
     for group in groups[:1000]:
         peak = int(group[np.argmax(np.abs(r_time[group]))])
-        event = fit_glitch(r_time, times_s, peak, sigma_sample, detector, 1.5 / fs)
+        event = fit_glitch(
+            r_time,
+            times_s,
+            peak,
+            sigma_sample,
+            detector,
+            1.5 / fs,
+            departure_chi2_per_sample=departure_chi2_per_sample,
+        )
         if event is not None and event.significance > min_significance:
             events.append(event)
     return events

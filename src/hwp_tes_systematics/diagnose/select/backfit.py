@@ -126,7 +126,7 @@ def fit_nonlinear(problem, effect, k, y, bank, gram, w, start):
 
 def detect_events(problem, effect, k: int, r_f: np.ndarray, s: np.ndarray) -> list:
     """The events of ``effect`` (glitches) in the residual r_f (rfft) of detector k, kept
-    when their own significance pays their BIC penalty (``parameters_per_event`` ln N_eff)."""
+    when their own significance pays their BIC penalty (``effect.detect`` with ln N_eff)."""
     return effect.detect(
         r_f,
         s,
@@ -135,7 +135,7 @@ def detect_events(problem, effect, k: int, r_f: np.ndarray, s: np.ndarray) -> li
         problem.scale[k],
         k,
         threshold_sigma=problem.glitch_threshold_sigma,
-        min_significance=math.sqrt(effect.parameters_per_event * problem.ln_n_eff),
+        ln_n=problem.ln_n_eff,
         workers=problem.workers,
     )
 
@@ -315,7 +315,7 @@ def fit_iterative(problem, selected, initial_extra=None, gain_after=False) -> Fi
         selected=selected,
         chi2=float(chi2s.sum()),
         chi2_per_detector=chi2s,
-        n_params=problem.count_parameters(selected, len(events)),
+        n_params=problem.count_parameters(selected, sum(e.n_parameters for e in events)),
         prior_penalty=problem.prior_penalty(selected),
         effects=fits,
         model_f=models,

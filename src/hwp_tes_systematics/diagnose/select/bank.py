@@ -235,12 +235,14 @@ class FitProblem:
         diff = self.residual_f[k] - model_f
         return 2 * float((diff.real**2 + diff.imag**2) @ self.w_nom[k])
 
-    def count_parameters(self, selected, n_events: int) -> int:
+    def count_parameters(self, selected, event_parameters: int) -> int:
+        """The parameters of ``selected``: each effect's per detector or per group, and
+        ``event_parameters`` (the events' own, :attr:`.GlitchEvent.n_parameters` summed)."""
         total = 0
         for name in selected:
             effect = self.effects[name]
             if effect.kind == "events":
-                total += effect.parameters_per_event * n_events
+                total += event_parameters
             elif effect.shared:
                 total += len(self.units[name]) * len(effect.shared_groups(self.ctx))
             else:
