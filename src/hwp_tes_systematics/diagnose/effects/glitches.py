@@ -157,11 +157,20 @@ class Glitches(Effect):
     t_i is the first affected sample (a hit between two samples is the same model with A
     scaled by exp(-delta/tau)). Detection: samples of the whitened residual above a robust
     threshold (median absolute deviation), then a nonlinear fit per event (:func:`fit_glitch`).
+    A hit whose first samples (0.25 s, at least three) depart from the tail by more than
+    the BIC pays (ln N per sample: a readout filter's response to a hit faster than a
+    sample, which can ring) keeps those departures, one value per sample; the report
+    gives the largest as ``departure``.
     """
 
     name = "glitches"
     title = "cosmic-ray glitches"
-    parameters: ClassVar[dict[str, str]] = {"amplitude": "K", "time": "s", "tau": "s"}
+    parameters: ClassVar[dict[str, str]] = {
+        "amplitude": "K",
+        "time": "s",
+        "tau": "s",
+        "departure": "K",
+    }
     events: ClassVar[bool] = True
     main_parameters = ("amplitude",)
     kind = "events"
