@@ -1,13 +1,14 @@
-"""Sky-fixed or detector-fixed (issue 29): transients seen at one sky position by both
-detectors (or on several crossings) are a source the sky map lacks, reported in
-`unexplained` with the position; glitches stay detector events at random sky positions."""
+"""Sky-fixed or detector-fixed: transients as long as a beam's crossing seen at one sky
+position by both detectors (or on several crossings) are a source the sky map lacks,
+reported in `unexplained` with the position; glitches stay detector events at random sky
+positions, and hits a few samples long stay glitches where two meet on the sky."""
 
 import numpy as np
 import pytest
 
 from hwp_tes_systematics.diagnose import simulate
 from hwp_tes_systematics.diagnose.effects import GlitchEvent
-from hwp_tes_systematics.diagnose.effects.glitches import sky_fixed_groups
+from hwp_tes_systematics.diagnose.effects.glitches import crossing_times_s, sky_fixed_groups
 from hwp_tes_systematics.diagnose.recording import DEFAULT_START_TDB
 from hwp_tes_systematics.diagnose.testbed import (
     A2_K,
@@ -29,8 +30,30 @@ def _pointings(n_det: int, n: int, seed: int = 1) -> np.ndarray:
     return np.broadcast_to(one, (n_det, n, 3)).copy()
 
 
-def _event(detector, time_s, amplitude_k=3e-3):
-    return GlitchEvent(detector, time_s, amplitude_k, 0.1, 1e-4, 0.01, 30.0)
+SOURCE_TAU_S = 0.7  # what a source's crossing fits (FWHM 30 arcmin at 0.23 deg/s: 2.2 s)
+
+
+def _event(detector, time_s, amplitude_k=3e-3, tau_s=SOURCE_TAU_S):
+    return GlitchEvent(detector, time_s, amplitude_k, tau_s, 1e-4, 0.01, 30.0)
+
+
+def test_the_beams_crossing_time_is_its_fwhm_over_the_scan_speed():
+    pointings = _pointings(2, 20000)
+    times = np.arange(20000) / RATE_HZ
+    crossing = crossing_times_s([_event(0, 500.0), _event(1, 10.0)], pointings, times, 30.0)
+    np.testing.assert_allclose(crossing, 0.5 / 0.23, rtol=1e-6)
+
+
+def test_hits_a_few_samples_long_alike_at_one_position_are_glitches():
+    """Two cosmic-ray hits that meet on the sky (the pair 0.9 s apart, amplitudes within a
+    factor 2), each a tail of 0.05 s: not a source's crossing of 2.2 s."""
+    pointings = _pointings(2, 20000)
+    times = np.arange(20000) / RATE_HZ
+    hits = [_event(0, 500.0, tau_s=0.05), _event(1, 500.9, 2.5e-3, tau_s=0.05)]
+    assert sky_fixed_groups(hits, pointings, times, 30.0) == []
+    assert sky_fixed_groups(
+        [_event(0, 500.0), _event(1, 500.9, 2.5e-3)], pointings, times, 30.0
+    ) == [[0, 1]]
 
 
 def test_both_detectors_alike_at_one_position_are_a_sky_source():
@@ -52,7 +75,7 @@ def test_unrelated_amplitudes_or_one_detector_once_are_glitches():
 
 def test_one_detector_crossing_one_position_twice_is_a_sky_source():
     pointings = _pointings(1, 20000)
-    pointings[0, 15000:, 1] = pointings[0, 5000, 1]  # back over the same point later
+    pointings[0, 15000:, 1] = pointings[0, 4000:9000, 1]  # the same scan again, later
     times = np.arange(20000) / RATE_HZ
     events = [_event(0, 500.0), _event(0, 1600.0), _event(0, 900.0)]
     assert sky_fixed_groups(events, pointings, times, 30.0) == [[0, 1]]

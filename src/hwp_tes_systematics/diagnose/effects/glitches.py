@@ -293,6 +293,10 @@ class Glitches(Effect):
 
 
 SEPARATE_CROSSINGS_S = 30.0  # events further apart in time are different crossings
+# a source's fitted tail tau over the time its beam's FWHM takes to pass (a Gaussian
+# crossing of 1 or 2.2 s FWHM fits tau = 0.28 and 0.31 of it); a cosmic ray's tail is its
+# detector's and readout's response, a few samples (TOAST's hits: 0.05 s of 2.2 s)
+SOURCE_TAU_PER_CROSSING = 0.15
 
 
 def event_directions(events, pointings_ecl: np.ndarray, times_s: np.ndarray) -> np.ndarray:
@@ -307,18 +311,46 @@ def event_directions(events, pointings_ecl: np.ndarray, times_s: np.ndarray) -> 
     return unit_vectors(angles[:, 0], angles[:, 1])[0]
 
 
+def crossing_times_s(events, pointings_ecl: np.ndarray, times_s: np.ndarray, fwhm_arcmin):
+    """(n_events,) the time the beam's FWHM takes to pass each event's position: the FWHM
+    over the scan speed of its detector at its time [s]."""
+    out = np.empty(len(events))
+    for j, event in enumerate(events):
+        i = min(int(np.searchsorted(times_s, event.time_s - 1e-9)), times_s.size - 2)
+        step = pointings_ecl[event.detector, i : i + 2, :2]
+        ends = unit_vectors(step[:, 0], step[:, 1])[0]
+        angle_deg = math.degrees(math.acos(min(1.0, float(ends[0] @ ends[1]))))
+        speed_deg_s = angle_deg / (times_s[i + 1] - times_s[i])
+        out[j] = fwhm_arcmin / 60.0 / speed_deg_s if speed_deg_s > 0 else math.inf
+    return out
+
+
 def sky_fixed_groups(
     events, pointings_ecl: np.ndarray, times_s: np.ndarray, radius_arcmin: float
 ) -> list[list[int]]:
-    """Indices of events that recur at one sky position: events within ``radius_arcmin`` of
-    each other on the sky (linked transitively) seen either on more than one crossing
-    (times > SEPARATE_CROSSINGS_S apart) or by more than one detector with the same sign
-    and amplitudes within a factor 2 (an intensity seen by each detector at its own
-    pointing). A cosmic ray hits one detector (or the two of a pixel, with unrelated
-    amplitudes) once, at a random sky position; a source missing from the sky map is seen
-    at its position each time a detector crosses it."""
-    if len(events) < 2:
+    """Indices of events that recur at one sky position: events as long as a source's
+    crossing (a tail tau of at least SOURCE_TAU_PER_CROSSING times the time the beam's
+    FWHM, ``radius_arcmin``, takes to pass) within ``radius_arcmin`` of each other on the
+    sky (linked transitively), seen either on more than one crossing (times >
+    SEPARATE_CROSSINGS_S apart) or by more than one detector with the same sign and
+    amplitudes within a factor 2 (an intensity seen by each detector at its own pointing).
+    A cosmic ray hits one detector (or the two of a pixel) once, at a random sky position,
+    and lasts its detector's and readout's response; a source missing from the sky map is
+    seen at its position each time a detector crosses it, for a beam's crossing."""
+    crossing = crossing_times_s(events, pointings_ecl, times_s, radius_arcmin)
+    long = [i for i, e in enumerate(events) if e.tau_s >= SOURCE_TAU_PER_CROSSING * crossing[i]]
+    if len(long) < 2:
         return []
+    return [
+        [long[i] for i in group]
+        for group in _positional_groups(
+            [events[i] for i in long], pointings_ecl, times_s, radius_arcmin
+        )
+    ]
+
+
+def _positional_groups(events, pointings_ecl, times_s, radius_arcmin) -> list[list[int]]:
+    """:func:`sky_fixed_groups` without the duration test."""
     directions = event_directions(events, pointings_ecl, times_s)
     cos_radius = math.cos(math.radians(radius_arcmin / 60.0))
     parent = list(range(len(events)))
