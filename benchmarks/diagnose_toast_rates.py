@@ -77,8 +77,9 @@ noise per sample (``--hit-range``; the peak after resampling is what is scored),
 noise per sample, half the time with its pixel-pair common mode requested at 0.3 - 0.9
 correlation (TOAST 3.0.6 draws the two detectors' "common" parts from different counters:
 uncorrelated, < 0.01 measured, so it adds white noise only). Expected ``glitches`` first
-and nothing else; the hits found (an event within 2 samples of a hit's first sample) by
-the hit's peak over the white noise per sample, the events found at no hit, and each
+and nothing else; the hits found (an event within 2 samples of a hit's first sample; a
+hit on flagged samples is not in the recording and not scored) by the hit's peak over the
+white noise per sample, the events found at no hit, and each
 found hit's time against its first sample (sigma half a sample).
 
 Prints one line per recording and, per case, the rates: per recording (every detector's
@@ -526,6 +527,15 @@ def one(case: str, seed: int, folder: Path, ranges: tuple) -> dict:
     )
     recording = read_recording(path)
     truth["detectors"] = recording.detector_names
+    if "cosmic_ray_hits" in truth:  # a hit in flagged samples is not in the recording
+        truth["cosmic_ray_hits_flagged"] = {}
+        for k, name in enumerate(truth["detectors"]):
+            hits = truth["cosmic_ray_hits"][name]
+            seen = [not recording.flags[k, first : first + n].any() for first, n, _ in hits]
+            truth["cosmic_ray_hits"][name] = [h for h, s in zip(hits, seen, strict=True) if s]
+            truth["cosmic_ray_hits_flagged"][name] = [
+                h for h, s in zip(hits, seen, strict=True) if not s
+            ]
     start = time.monotonic()
     result = diagnose(recording, sky, drawn["a2_told_k"], figures=False).to_dict()
     record = {"case": case, "seed": seed, **drawn, "seconds": round(time.monotonic() - start, 1)}

@@ -14,6 +14,7 @@ import pytest
 from hwp_tes_systematics.diagnose.effects.glitches import (
     DEPARTURE_MIN_SAMPLES,
     DEPARTURE_S,
+    find_transients,
     fit_glitch,
     glitch_tod,
 )
@@ -65,3 +66,22 @@ def test_a_shaped_hit_keeps_its_departures(seed):
     np.testing.assert_allclose(
         glitch_tod(times_s, 1, [event])[0][EVENT : EVENT + 3], pulse, atol=3 * SIGMA_K
     )
+
+
+def test_two_hits_eight_samples_apart_are_two_events():
+    """Hits 0.42 s apart in one group of samples above the threshold (TOAST drew two so
+    close in a recording): the second is found once the first is subtracted; a hit closer
+    than the departures' length would be one event with departures."""
+    times_s, tod = _noise(4)
+    hits = [(EVENT, 80 * SIGMA_K), (EVENT + 8, 40 * SIGMA_K)]
+    for first, amplitude in hits:
+        tod[first:] += amplitude * np.exp(-(times_s[first:] - times_s[first]) / 0.05)
+    n = tod.size
+    s = np.full(n // 2 + 1, n * SIGMA_K**2)  # the white noise's expected |R_f|^2
+    scale = n * FS_HZ / 2  # so that the white noise per sample is SIGMA_K
+    events = find_transients(
+        np.fft.rfft(tod), s, np.ones(n, bool), times_s, scale, 0, departure_chi2_per_sample=LN_N
+    )
+    assert sorted(round(e.time_s * FS_HZ) for e in events) == [EVENT, EVENT + 8]
+    for event, (_, amplitude) in zip(sorted(events, key=lambda e: e.time_s), hits, strict=True):
+        assert abs(event.amplitude_k - amplitude) < 3 * event.sigma_amplitude_k

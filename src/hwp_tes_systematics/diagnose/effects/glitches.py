@@ -44,6 +44,7 @@ GLITCH_TAIL_CUT = 25.0  # the exponential tail is evaluated over 25 tau
 # filter's response); at least DEPARTURE_MIN_SAMPLES samples
 DEPARTURE_S = 0.25
 DEPARTURE_MIN_SAMPLES = 3
+MAX_EVENTS_PER_GROUP = 10  # hits fitted in one group of samples above the threshold
 
 
 def glitch_profile(
@@ -406,9 +407,12 @@ def find_transients(
 
     Whitened residual z = irfft(r_f sqrt(S_white / S_f)); hits where |z| exceeds
     ``threshold_sigma`` x 1.4826 MAD(z); hits closer than 10 samples form one group, fitted
-    at its largest residual sample by :func:`.effects.fit_glitch`; events whose
-    A / sigma_A is below ``min_significance`` are dropped; ``departure_chi2_per_sample``:
-    :func:`fit_glitch`'s.
+    at its largest residual sample by :func:`.effects.fit_glitch`, then, with that event
+    subtracted, at the largest sample still above the threshold at least the departures'
+    length (DEPARTURE_S) from the events fitted (two hits closer than that are one event
+    with departures), until none is left; events whose A / sigma_A is below
+    ``min_significance`` are dropped (and end their group's search);
+    ``departure_chi2_per_sample``: :func:`fit_glitch`'s.
     """
     n = valid.size
     fs = 1.0 / (times_s[1] - times_s[0])
@@ -428,18 +432,30 @@ def find_transients(
         return []
     groups = np.split(hits, np.flatnonzero(np.diff(hits) > 10) + 1)
     sigma_sample = math.sqrt(s_white / scale * fs / 2)
+    n_apart = max(DEPARTURE_MIN_SAMPLES, int(np.ceil(DEPARTURE_S * fs)))
     events = []
     for group in groups[:1000]:
-        peak = int(group[np.argmax(np.abs(r_time[group]))])
-        event = fit_glitch(
-            r_time,
-            times_s,
-            peak,
-            sigma_sample,
-            detector,
-            1.5 / fs,
-            departure_chi2_per_sample=departure_chi2_per_sample,
-        )
-        if event is not None and event.significance > min_significance:
+        candidates, peaks = group, []
+        while candidates.size and len(peaks) < MAX_EVENTS_PER_GROUP:
+            peak = int(candidates[np.argmax(np.abs(r_time[candidates]))])
+            event = fit_glitch(
+                r_time,
+                times_s,
+                peak,
+                sigma_sample,
+                detector,
+                1.5 / fs,
+                departure_chi2_per_sample=departure_chi2_per_sample,
+            )
+            if event is None or event.significance <= min_significance:
+                break
             events.append(event)
+            peaks.append(peak)
+            first, values = glitch_profile(
+                times_s, event.time_s, event.amplitude_k, event.tau_s, event.departure_k
+            )
+            r_time[first : first + values.size] -= values * valid[first : first + values.size]
+            z[first : first + values.size] -= values  # the whitening is ~1 at a hit's scale
+            far = np.min(np.abs(group[:, None] - np.array(peaks)[None, :]), axis=1) >= n_apart
+            candidates = group[far & (np.abs(z[group]) > threshold_sigma * sigma)]
     return events
