@@ -256,3 +256,26 @@ def test_toasts_cosmic_rays_are_named_glitches(tmp_path, sky_fits):
                 assert np.min(np.abs(np.array(found[name]) - first / 19.0)) < 1e-6, first
     assert any(p["parameter"] == "departure" for p in parameters)
     assert "depart from an exponential tail" in result["effects"][0]["evidence"]
+
+
+def test_toasts_pair_common_mode_is_not_common(tmp_path, sky_fits):
+    """TOAST 3.0.6's InjectCosmicRays with its pair common mode at a correlation of 0.9:
+    each detector's "common" part is drawn at its own counter, so the two detectors of a
+    pixel stay uncorrelated (|rho| < 0.03 over 0.3 h at 19 Hz, 20,520 samples: 4 sigma),
+    while the wafer noise's variance is (1 + 0.9) times its rms squared. If TOAST makes it
+    common, this fails, and the cosmic-ray case of the rates benchmark should expect a
+    common noise."""
+    rays = {
+        "event_rate_hz": 0.0,
+        "hits": {"c1": [0.0], "c2": [1.0], "tau_ms": [1.0]},
+        "wafer_noise_k": [0.0, 1e-3],
+        "pair_correlation": 0.9,
+    }
+    options = {"n_pixels": 7, "noise": False, "dipole": False}
+    with_rays = write_toast_recording(tmp_path / "a", sky_fits, 0.3, 5, cosmic_rays=rays, **options)
+    without = write_toast_recording(tmp_path / "b", sky_fits, 0.3, 5, **options)
+    wafer_noise = read_recording(with_rays).tod - read_recording(without).tod
+    np.testing.assert_allclose(wafer_noise.std(axis=1), 1e-3 * np.sqrt(1.9), rtol=0.03)
+    correlation = np.corrcoef(wafer_noise)
+    pairs = [correlation[k, k + 1] for k in range(0, 14, 2)]
+    assert max(abs(c) for c in pairs) < 0.03, pairs
