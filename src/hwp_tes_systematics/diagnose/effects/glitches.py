@@ -408,9 +408,10 @@ def find_transients(
     Whitened residual z = irfft(r_f sqrt(S_white / S_f)); hits where |z| exceeds
     ``threshold_sigma`` x 1.4826 MAD(z); hits closer than 10 samples form one group, fitted
     at its largest residual sample by :func:`.effects.fit_glitch`, then, with that event
-    subtracted, at the largest sample still above the threshold at least the departures'
-    length (DEPARTURE_S) from the events fitted (two hits closer than that are one event
-    with departures), until none is left; events whose A / sigma_A is below
+    subtracted, at the largest sample still above the threshold that starts a later hit
+    (at least the departures' length, DEPARTURE_S, after the events fitted: two hits
+    closer than that are one event with departures; a jump above the threshold from the
+    sample before), until none is left; events whose A / sigma_A is below
     ``min_significance`` are dropped (and end their group's search);
     ``departure_chi2_per_sample``: :func:`fit_glitch`'s.
     """
@@ -456,6 +457,13 @@ def find_transients(
             )
             r_time[first : first + values.size] -= values * valid[first : first + values.size]
             z[first : first + values.size] -= values  # the whitening is ~1 at a hit's scale
-            far = np.min(np.abs(group[:, None] - np.array(peaks)[None, :]), axis=1) >= n_apart
-            candidates = group[far & (np.abs(z[group]) > threshold_sigma * sigma)]
+            # a later hit: after the events fitted by the departures' length, with an onset
+            # (a jump from the sample before of the hit's sign, above the threshold); the
+            # flat or falling rest of a longer transient (a source's crossing) has none
+            later = group[group >= max(peaks) + n_apart]
+            onset = (r_time[later] - r_time[later - 1]) * np.sign(r_time[later])
+            candidates = later[
+                (np.abs(z[later]) > threshold_sigma * sigma)
+                & (onset > threshold_sigma * math.sqrt(2) * sigma_sample)
+            ]
     return events
