@@ -10,7 +10,8 @@ scales its seeds' binned noise and g1 draws by sqrt(N / N_e) (config.emulated_pa
 Each ``--emulated N=path`` is such a run's ``requirement.json`` (N its simulated pairs);
 ``--run N_e=path`` the run that simulates the N_e pairs the emulations emulate, if there is
 one. Prints, per quantity of ``requirement_vs_pairs.QUANTITIES`` (the random population's
-68 % point and Fisher reading, the common offset, sigma_r) and the systematic's power k of
+68 % point and Fisher reading, the common offset, sigma_r), the two readings that carry the
+linear term (the paper's estimator and the fixed instruments'), and the systematic's power k of
 its two largest parts (the fixed template's, a detector's noise through the s h term;
 ``systematic_only.template_split``), each file's value, and for each
 emulation its ratio to the run and their difference over the errors added in quadrature
@@ -34,6 +35,17 @@ from requirement_vs_pairs import QUANTITIES as PAIRS_QUANTITIES
 SPLIT = "systematic_only", "template_split", "k_per_k2"
 QUANTITIES = {
     **PAIRS_QUANTITIES,
+    # the readings with the linear term (each seed's sky and noise times the systematic):
+    # the paper's estimator, mean |r_sys - r_nosys| over injected seeds, at the budget, and
+    # the median over fixed instruments (g1 held over the seeds) of the 68 % point's shift
+    "paper's estimator, budget crossing [1/K]": lambda d: (
+        d["budget_crossing"]["sigma_g1_per_k"],
+        None,
+    ),
+    "fixed instruments, 68 % point, median [1/K]": lambda d: (
+        d["fixed_instruments"]["fraction_point"]["requirement_median_per_k"],
+        None,
+    ),
     "k, fixed x fixed [K^2]": lambda d: (_split(d)["fixed_x_fixed"], None),
     "k, noise_h x noise_h [K^2]": lambda d: (_split(d)["noise_h_x_noise_h"], None),
 }
