@@ -82,6 +82,14 @@ hit on flagged samples is not in the recording and not scored) by the hit's peak
 white noise per sample, the events found at no hit, and each
 found hit's time against its first sample (sigma half a sample).
 
+``coincident_rays``: the same, each detector of a wafer (of the recording, for a pair or
+one wafer) given the hits TOAST drew for the wafer's first detector, times a factor of
+0.3 - 1 drawn per detector (``cosmic_rays.shared`` of the testbed): coincident hits, the
+coincidence made by the testbed, the hits by TOAST. Expected ``glitches`` scoped by
+coincidence, and each hit that two or more detectors see above 10 times the white noise
+per sample found as one coincident event; in ``cosmic_rays`` (independent hits) the scope
+by coincidence is a false alarm.
+
 Prints one line per recording and, per case, the rates: per recording (every detector's
 parameters within 3 sigma; a parameter without a sigma fails) and per parameter, the
 pulls' standard deviation, and the rates by the effect's strength |truth| / sigma (the
@@ -125,7 +133,10 @@ WAFER_CASES = (
 )
 MISMATCH = {"wafer_drift": (0.0, 0.0), "detector_drift": (1.0, 1.0), "mixed_drift": (0.2, 0.5)}
 EXPECTED_SCOPE = {"wafer_drift": "wafer", "detector_drift": "detector"}
-OTHER_CASES = ("cosmic_rays",)  # TOAST's InjectCosmicRays on a pair or 14 detectors
+# TOAST's InjectCosmicRays on a pair or 14 detectors: independent hits, or each wafer's
+# (a pair's) hits shared by its detectors
+OTHER_CASES = ("cosmic_rays", "coincident_rays")
+RAY_CASES = OTHER_CASES
 NONLINEARITY_NAMES = ("tes_nonlinearity", "tes_nonlinearity_cubic")
 START = datetime(2032, 1, 1, tzinfo=UTC)
 
@@ -184,7 +195,9 @@ def draw(
         if rng.random() < 0.5:
             i, j = (int(k) for k in rng.choice(14, 2, replace=False))
             setup["crosstalk"] = {f"{i},{j}": float(rng.uniform(0.02, 0.05))}
-    if case == "cosmic_rays":  # what cosmic_ray_injection makes the hits and noise of
+    if case == "coincident_rays" and setup["n_pixels"] > 1:  # hits shared by a wafer
+        setup["wafers"] = int(rng.choice([1, 2]))
+    if case in RAY_CASES:  # what cosmic_ray_injection makes the hits and noise of
         setup["cosmic_rays"] = {
             "event_rate_hz": log_uniform(rng, (1e-3, 5e-3)),
             "hit_level": log_uniform(rng, hit_range),  # C2's lower end / the white noise
@@ -192,6 +205,9 @@ def draw(
             "wafer_noise": float(rng.uniform(0.1, 0.5)),  # its rms / the white noise
             "pair_correlation": float(rng.uniform(0.3, 0.9)) if rng.random() < 0.5 else None,
         }
+        if case == "coincident_rays":  # each detector's share of a hit: 0.3 - 1
+            n_det = 2 * setup["n_pixels"]
+            setup["cosmic_rays"]["shared_scale"] = rng.uniform(0.3, 1.0, n_det).tolist()
     if case in MISMATCH:
         setup["gain_drift_mode"] = "slow_drift"
         setup["gain_drift_mismatch"] = float(rng.uniform(*MISMATCH[case]))
@@ -234,7 +250,16 @@ def cosmic_ray_injection(setup: dict, n_draws: int = 400) -> dict:
         },
         "wafer_noise_k": [0.0, rays["wafer_noise"] * sigma],
         "pair_correlation": rays["pair_correlation"],
-    }
+    } | (
+        {
+            "shared": {
+                "by": "wafer" if setup.get("wafers", 1) > 1 else "all",
+                "scale": rays["shared_scale"],
+            }
+        }
+        if "shared_scale" in rays
+        else {}
+    )
 
 
 def within(parameters: dict, name: str, truth: dict) -> tuple[list[float], float]:
@@ -447,7 +472,36 @@ def score_cosmic_rays(result: dict, setup: dict, truth: dict) -> dict:
     record["false_events"] = false_events
     record["pulls"] = pulls
     record["within_3_sigma"] = record["named"] and all(abs(p) < 3 for p in pulls)
+    record.update(score_coincidences(effects, truth, fs, sigma))
     return record
+
+
+SHARED_HIT_SIGMA = 10.0  # a shared hit is scored where two detectors see it above this
+
+
+def score_coincidences(effects, truth: dict, fs: float, sigma: float) -> dict:
+    """The glitches' scope by coincidence or not, and each hit that two or more detectors
+    share above SHARED_HIT_SIGMA times the white noise per sample found as one coincident
+    event (a group of the scope within 2 samples holding two of those detectors)."""
+    scope = next((e["scope"] for e in effects if e["name"] == "glitches"), {"by": "none"})
+    groups = [
+        (float(label.split()[2]), set(names)) for label, names in scope.get("groups", {}).items()
+    ]
+    seen_by: dict[int, set] = {}
+    for name, hits in truth["cosmic_ray_hits"].items():
+        for first, _, peak in hits:
+            if abs(peak) > SHARED_HIT_SIGMA * sigma:
+                seen_by.setdefault(first, set()).add(name)
+    shared = {first: names for first, names in seen_by.items() if len(names) >= 2}
+    found = sum(
+        any(abs(t - first / fs) <= 2.0 / fs and len(names & members) >= 2 for t, members in groups)
+        for first, names in shared.items()
+    )
+    return {
+        "coincidence_scope": scope["by"] == "coincidence",
+        "shared_hits": len(shared),
+        "shared_hits_found": int(found),
+    }
 
 
 def score(case: str, result: dict, setup: dict, truth: dict) -> dict:
@@ -465,7 +519,7 @@ def score(case: str, result: dict, setup: dict, truth: dict) -> dict:
         return score_fluctuation(result, setup)
     if case == "common_mode":
         return score_common_mode(result, setup, truth)
-    if case == "cosmic_rays":
+    if case in RAY_CASES:
         return score_cosmic_rays(result, setup, truth)
     expected = []
     if case in ("nonlinearity", "both"):
@@ -567,8 +621,8 @@ def summary(records: list[dict]) -> list[str]:
         if not rows:
             continue
         n = len(rows)
-        if case == "cosmic_rays":
-            lines += cosmic_ray_summary(rows)
+        if case in RAY_CASES:
+            lines += cosmic_ray_summary(case, rows)
         elif case in ("clean", "clean_wafers"):
             alarms = sum(r["false_alarm"] for r in rows)
             lines.append(f"{case:13s} {n:3d} recordings: false alarms {alarms}/{n}")
@@ -622,9 +676,10 @@ def summary(records: list[dict]) -> list[str]:
 HIT_STRENGTHS = (0.0, 5.0, 10.0, 20.0, math.inf)  # a hit's peak / the white noise per sample
 
 
-def cosmic_ray_summary(rows: list[dict]) -> list[str]:
-    """The cosmic-ray case: glitches ranked first and alone, the hits found by strength,
-    the events found at no hit, the time pulls."""
+def cosmic_ray_summary(case: str, rows: list[dict]) -> list[str]:
+    """A cosmic-ray case: glitches ranked first and alone, the hits found by strength,
+    the events found at no hit, the time pulls; the glitches scoped by coincidence, and
+    the shared hits found as coincident events."""
     n = len(rows)
     first = sum(r["first"] for r in rows)
     alone = sum(r["reported"] == ["glitches"] and not r["unexplained"] for r in rows)
@@ -636,15 +691,24 @@ def cosmic_ray_summary(rows: list[dict]) -> list[str]:
         bins.append(f"{low:g}-{high:g}: {int(inside[:, 1].sum())}/{len(inside)}")
     pulls = [p for r in rows for p in r["pulls"]]
     inside_p = sum(abs(p) < 3 for p in pulls)
+    coincident = [r for r in rows if "coincidence_scope" in r]  # (not in older records)
+    scoped = sum(r["coincidence_scope"] for r in coincident)
+    shared = sum(r["shared_hits"] for r in coincident)
+    shared_found = sum(r["shared_hits_found"] for r in coincident)
     return [
         (
-            f"cosmic_rays   {n:3d} recordings: ranked first {first}/{n}, glitches alone (nothing "
+            f"{case:15s} {n:3d} recordings: ranked first {first}/{n}, glitches alone (nothing "
             f"else, nothing unexplained) {alone}/{n}; also named: {', '.join(others) or 'none'}"
         ),
         "    hits found by peak / white noise per sample: " + ", ".join(bins),
         (
             f"    events found at no hit: {sum(r['false_events'] for r in rows)} in {n} "
             f"recordings; hit times within 3 sigma (half a sample): {inside_p}/{len(pulls)}"
+        ),
+        (
+            f"    glitches scoped by coincidence: {scoped}/{len(coincident)}; hits shared by "
+            f"two or more detectors above {SHARED_HIT_SIGMA:g} sigma found as one coincident "
+            f"event: {shared_found}/{shared}"
         ),
     ]
 

@@ -8,7 +8,7 @@ import pytest
 
 from hwp_tes_systematics.diagnose import simulate
 from hwp_tes_systematics.diagnose.effects import GlitchEvent
-from hwp_tes_systematics.diagnose.effects.glitches import crossing_times_s, sky_fixed_groups
+from hwp_tes_systematics.diagnose.effects.event_groups import crossing_times_s, sky_fixed_groups
 from hwp_tes_systematics.diagnose.recording import DEFAULT_START_TDB
 from hwp_tes_systematics.diagnose.testbed import (
     A2_K,

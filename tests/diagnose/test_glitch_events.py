@@ -11,9 +11,10 @@ import math
 import numpy as np
 import pytest
 
+from hwp_tes_systematics.diagnose.effects.event_groups import coincidences
 from hwp_tes_systematics.diagnose.effects.glitches import (
-    DEPARTURE_MIN_SAMPLES,
-    DEPARTURE_S,
+    GlitchEvent,
+    departure_samples,
     find_transients,
     fit_glitch,
     glitch_tod,
@@ -51,7 +52,7 @@ def test_a_shaped_hit_keeps_its_departures(seed):
     times_s, tod = _noise(seed)
     pulse = 200 * SIGMA_K * np.array([1.0, 0.37, 0.10])
     tod[EVENT : EVENT + 3] += pulse
-    n_shaped = max(DEPARTURE_MIN_SAMPLES, math.ceil(DEPARTURE_S * FS_HZ))
+    n_shaped = departure_samples(1 / FS_HZ)
     plain = fit_glitch(tod, times_s, EVENT, SIGMA_K, 0, 1.5 / FS_HZ)
     assert plain.departure_k == ()
     left = tod - glitch_tod(times_s, 1, [plain])[0]
@@ -85,3 +86,59 @@ def test_two_hits_eight_samples_apart_are_two_events():
     assert sorted(round(e.time_s * FS_HZ) for e in events) == [EVENT, EVENT + 8]
     for event, (_, amplitude) in zip(sorted(events, key=lambda e: e.time_s), hits, strict=True):
         assert abs(event.amplitude_k - amplitude) < 3 * event.sigma_amplitude_k
+
+
+@pytest.mark.parametrize(("fs_hz", "expected"), [(19.0, 5), (20.0, 5), (10.0, 3), (100.0, 25)])
+def test_the_departure_length_is_one_number_per_rate(fs_hz, expected):
+    """ceil(0.25 s x fs), at least 3 samples, from the interval of rounded sample times
+    as from the rate: at 20 Hz 0.25 s is five samples, not six."""
+    times_s = 1.7e9 + np.arange(4) / fs_hz  # Unix times lose the interval's last digits
+    assert departure_samples(1 / fs_hz) == expected
+    assert departure_samples(times_s[1] - times_s[0]) == expected
+
+
+def _events_at(indices_by_detector, times_s):
+    return [
+        GlitchEvent(detector, float(times_s[i]), 10 * SIGMA_K, 0.01)
+        for detector, indices in enumerate(indices_by_detector)
+        for i in indices
+    ]
+
+
+def test_chance_coincidences_match_their_expectation():
+    """Independent Poisson hits (4 detectors, 20 each in 6000 samples, 10 % of one
+    detector's samples flagged): the coincident pairs averaged over 400 draws equal the
+    expected n_i n_j (2w + 1) / T_ij summed over pairs within 10 %, and fewer than 1 % of
+    the draws are called more than chance."""
+    rng = np.random.default_rng(7)
+    times_s = np.arange(6000) / FS_HZ
+    valid = np.ones((4, times_s.size), bool)
+    valid[2, 1000:1600] = False
+    observed, expected, called = [], [], 0
+    for _ in range(400):
+        indices = [rng.choice(np.flatnonzero(v), 20, replace=False) for v in valid]
+        found = coincidences(_events_at(indices, times_s), times_s, valid)
+        observed.append(found.observed_pairs)
+        expected.append(found.expected_pairs)
+        called += found.significant
+    assert np.mean(observed) == pytest.approx(np.mean(expected), rel=0.1)
+    assert called <= 4
+
+
+def test_hits_shared_by_detectors_are_coincident():
+    """Five hits each in three of four detectors (one a sample late in one of them), and
+    independent ones: the five are the coincident groups, far beyond chance."""
+    rng = np.random.default_rng(3)
+    times_s = np.arange(6000) / FS_HZ
+    shared = np.array([500, 1700, 2900, 4100, 5300])
+    indices = [
+        np.r_[shared, rng.choice(6000, 3)],
+        np.r_[shared + 1, rng.choice(6000, 3)],
+        np.r_[shared, rng.choice(6000, 3)],
+        rng.choice(6000, 5),
+    ]
+    events = _events_at(indices, times_s)
+    found = coincidences(events, times_s, np.ones((4, 6000), bool))
+    assert found.significant
+    big = [g for g in found.groups if len({events[i].detector for i in g}) == 3]
+    assert sorted(min(round(events[i].time_s * FS_HZ) for i in g) for g in big) == list(shared)

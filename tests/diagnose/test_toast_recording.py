@@ -256,6 +256,45 @@ def test_toasts_cosmic_rays_are_named_glitches(tmp_path, sky_fits):
                 assert np.min(np.abs(np.array(found[name]) - first / 19.0)) < 1e-6, first
     assert any(p["parameter"] == "departure" for p in parameters)
     assert "depart from an exponential tail" in result["effects"][0]["evidence"]
+    assert result["effects"][0]["scope"]["by"] == "detector"  # independent per detector
+
+
+@pytest.mark.slow
+def test_toasts_hits_shared_by_a_pair_are_coincident_glitches(tmp_path, sky_fits):
+    """TOAST's direct hits of a pixel's first detector given to both its detectors (the
+    second at 0.6 of the first's amplitude): glitches, scoped by coincidence, every
+    shared hit above 20 sigma per sample in both a coincident event at its first sample,
+    and the evidence calling them shared."""
+    from hwp_tes_systematics.diagnose import diagnose
+
+    sigma_k = 50e-6 * np.sqrt(19.0)
+    rng = np.random.default_rng(9)
+    c2_k = 30 * sigma_k * np.exp(rng.uniform(0.0, np.log(10.0), 400))
+    rays = {
+        "event_rate_hz": 4e-3,
+        "hits": {"c1": 0.05 * c2_k, "c2": c2_k, "tau_ms": rng.uniform(2.0, 20.0, 400)},
+        "wafer_noise_k": [0.0, 0.3 * sigma_k],
+        "pair_correlation": None,
+        "shared": {"by": "all", "scale": [1.0, 0.6]},
+    }
+    truth: dict = {}
+    path = write_toast_recording(
+        tmp_path / "rec", sky_fits, 1.0, 11, a2_k=A2_K, cosmic_rays=rays, truth=truth
+    )
+    first, second = truth["cosmic_ray_hits"].values()
+    assert [h[0] for h in first] == [h[0] for h in second] and len(first) >= 4
+
+    result = diagnose(read_recording(path), sky_map(), A2_K, figures=False).to_dict()
+    assert [e["name"] for e in result["effects"]] == ["glitches"]
+    scope = result["effects"][0]["scope"]
+    assert scope["by"] == "coincidence" and scope["p_value"] < 1e-9
+    times = {float(label.split()[2]): names for label, names in scope["groups"].items()}
+    sigma_all = sigma_k * np.hypot(1.0, 0.3)
+    for start, _, peak in first:
+        if 0.6 * abs(peak) > 20 * sigma_all:
+            nearest = min(times, key=lambda t: abs(t - start / 19.0))
+            assert abs(nearest - start / 19.0) < 0.01 and len(times[nearest]) == 2, start
+    assert "shared by detectors" in result["effects"][0]["evidence"]
 
 
 def test_toasts_pair_common_mode_is_not_common(tmp_path, sky_fits):

@@ -87,8 +87,11 @@ def write_toast_recording(
     ``event_rate_hz`` (direct hits per detector), ``hits`` ({"c1", "c2", "tau_ms"}: draws
     of the hits' C1 + C2 exp(-t / tau) [K, K, ms], which TOAST resamples), ``wafer_noise_k``
     (the white wafer noise's mean and rms per sample [K]) and ``pair_correlation`` (its
-    part common to each pixel's two detectors, or None); ``truth["cosmic_ray_hits"]``
-    receives each detector's hits as [first sample, samples, peak K]."""
+    part common to each pixel's two detectors, or None), optionally ``shared`` ({"by":
+    a focal-plane column or "all", "scale": a factor per detector}: each group's detectors
+    take its first detector's hits times their factor, coincident hits);
+    ``truth["cosmic_ray_hits"]`` receives each detector's hits as [first sample, samples,
+    peak K]."""
     import astropy.units as u
     from toast import ops
     from toast.observation import default_values as defaults
@@ -373,6 +376,8 @@ def _cosmic_rays(data, rays: dict, seed: int, truth: dict | None) -> None:
                     observation.detdata[stream][:] = 0.0
             if part == 0:
                 injected = observation.detdata[stream]
+                if rays.get("shared"):
+                    _share_hits(data, injected, rays["shared"])
                 found = {}
                 for name in observation.local_detectors:
                     signal[name][:] += injected[name]
@@ -380,6 +385,29 @@ def _cosmic_rays(data, rays: dict, seed: int, truth: dict | None) -> None:
                 if truth is not None:
                     truth["cosmic_ray_hits"] = found
                 ops.Delete(detdata=[stream]).apply(data)
+
+
+def _share_hits(data, injected, shared: dict) -> None:
+    """Coincident hits: every detector of a group (``shared["by"]``: a focal-plane column,
+    or "all") takes the hits TOAST drew for the group's first detector, times its own
+    ``shared["scale"]`` (one factor per detector, in the focal plane's order; a hit's
+    energy deposited differs from detector to detector)."""
+    observation = data.obs[0]
+    names = list(observation.local_detectors)
+    scale = np.asarray(shared["scale"], float)
+    if scale.shape != (len(names),):
+        raise ValueError(
+            f"cosmic_rays.shared.scale: {scale.size} factors for {len(names)} detectors"
+        )
+    table = observation.telescope.focalplane.detector_data
+    column = _group_column(data, shared["by"])
+    group_of = {str(row["name"]): str(row[column]) for row in table}
+    first: dict[str, np.ndarray] = {}
+    for k, name in enumerate(names):
+        group = group_of[name]
+        if group not in first:
+            first[group] = np.array(injected[name], dtype=float)
+        injected[name][:] = scale[k] * first[group]
 
 
 def _hits(stream: np.ndarray) -> list[list]:

@@ -135,9 +135,10 @@ class Effect:
         labels = np.asarray(ctx.groups[self.group_by])
         return {label: np.flatnonzero(labels == label) for label in dict.fromkeys(labels)}
 
-    def scope(self, ctx: Context) -> dict:
+    def scope(self, ctx: Context, fit=None) -> dict:
         """The report's scope: {"by": "detector", "all" or the group key, "groups":
-        {label: detector names}} (no groups for "detector")."""
+        {label: detector names}} (no groups for "detector"); ``fit``, its fit, for an
+        effect whose scope the fit decides (glitches shared by detectors)."""
         if not self.shared:
             return {"by": "detector", "groups": {}}
         names = np.asarray(ctx.detector_names)

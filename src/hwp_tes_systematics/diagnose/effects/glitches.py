@@ -1,5 +1,6 @@
-"""Cosmic-ray glitches, all in one place: the event model, its per-event fit, the detection
-in a whitened residual and the catalog effect."""
+"""Cosmic-ray glitches: the event model, its per-event fit, the detection in a whitened
+residual and the catalog effect (how the events group, on the sky or in time:
+:mod:`.event_groups`)."""
 
 from __future__ import annotations
 
@@ -12,8 +13,8 @@ import scipy.fft
 import scipy.optimize
 
 from ..fourier import irfft
-from ..model import unit_vectors
 from .base import Effect, format_temperature, register
+from .event_groups import coincidence_sentence, coincidences, sky_fixed_groups
 
 
 @dataclass(frozen=True)
@@ -45,6 +46,12 @@ GLITCH_TAIL_CUT = 25.0  # the exponential tail is evaluated over 25 tau
 DEPARTURE_S = 0.25
 DEPARTURE_MIN_SAMPLES = 3
 MAX_EVENTS_PER_GROUP = 10  # hits fitted in one group of samples above the threshold
+
+
+def departure_samples(dt_s: float) -> int:
+    """P, the samples a hit may depart over: ceil(DEPARTURE_S / dt), at least
+    DEPARTURE_MIN_SAMPLES (the 1e-3 absorbs an interval read from rounded times)."""
+    return max(DEPARTURE_MIN_SAMPLES, math.ceil(DEPARTURE_S / dt_s - 1e-3))
 
 
 def glitch_profile(
@@ -133,7 +140,7 @@ def fit_glitch(
     sigma_tau = float(tau * np.sqrt(max(cov[2, 2], 0.0)))
     departure: tuple[float, ...] = ()
     if departure_chi2_per_sample is not None:
-        n_shaped = max(DEPARTURE_MIN_SAMPLES, int(np.ceil(DEPARTURE_S / dt)))
+        n_shaped = departure_samples(dt)
         first = int(np.flatnonzero(after)[0])
         left = (y - model(solution.x))[first : first + n_shaped]
         if float(np.sum((left / sigma_k) ** 2)) > left.size * departure_chi2_per_sample:
@@ -290,105 +297,39 @@ class Glitches(Effect):
             f"sigma) in {names[strongest.detector]}; exponential tails tau = "
             f"{np.median(taus) * 1e3:.0f} ms (median){departures}; localised in time, not "
             "periodic in chi"
+            + (
+                "; "
+                + coincidence_sentence(
+                    coincidences(events, ev.ctx.times_s, ev.ctx.valid), events, names
+                )
+                if len(names) > 1
+                else ""
+            )
         )
 
-
-SEPARATE_CROSSINGS_S = 30.0  # events further apart in time are different crossings
-# a source's fitted tail tau over the time its beam's FWHM takes to pass (a Gaussian
-# crossing of 1 or 2.2 s FWHM fits tau = 0.28 and 0.31 of it); a cosmic ray's tail is its
-# detector's and readout's response, a few samples (TOAST's hits: 0.05 s of 2.2 s)
-SOURCE_TAU_PER_CROSSING = 0.15
-
-
-def event_directions(events, pointings_ecl: np.ndarray, times_s: np.ndarray) -> np.ndarray:
-    """(n_events, 3) ecliptic unit vectors where each event's detector looked at its time."""
-    indices = [
-        min(int(np.searchsorted(times_s, event.time_s - 1e-9)), times_s.size - 1)
-        for event in events
-    ]
-    angles = np.array(
-        [pointings_ecl[e.detector, i, :2] for e, i in zip(events, indices, strict=True)]
-    ).reshape(-1, 2)
-    return unit_vectors(angles[:, 0], angles[:, 1])[0]
-
-
-def crossing_times_s(events, pointings_ecl: np.ndarray, times_s: np.ndarray, fwhm_arcmin):
-    """(n_events,) the time the beam's FWHM takes to pass each event's position: the FWHM
-    over the scan speed of its detector at its time [s]."""
-    out = np.empty(len(events))
-    for j, event in enumerate(events):
-        i = min(int(np.searchsorted(times_s, event.time_s - 1e-9)), times_s.size - 2)
-        step = pointings_ecl[event.detector, i : i + 2, :2]
-        ends = unit_vectors(step[:, 0], step[:, 1])[0]
-        angle_deg = math.degrees(math.acos(min(1.0, float(ends[0] @ ends[1]))))
-        speed_deg_s = angle_deg / (times_s[i + 1] - times_s[i])
-        out[j] = fwhm_arcmin / 60.0 / speed_deg_s if speed_deg_s > 0 else math.inf
-    return out
-
-
-def sky_fixed_groups(
-    events, pointings_ecl: np.ndarray, times_s: np.ndarray, radius_arcmin: float
-) -> list[list[int]]:
-    """Indices of events that recur at one sky position: events as long as a source's
-    crossing (a tail tau of at least SOURCE_TAU_PER_CROSSING times the time the beam's
-    FWHM, ``radius_arcmin``, takes to pass) within ``radius_arcmin`` of each other on the
-    sky (linked transitively), seen either on more than one crossing (times >
-    SEPARATE_CROSSINGS_S apart) or by more than one detector with the same sign and
-    amplitudes within a factor 2 (an intensity seen by each detector at its own pointing).
-    A cosmic ray hits one detector (or the two of a pixel) once, at a random sky position,
-    and lasts its detector's and readout's response; a source missing from the sky map is
-    seen at its position each time a detector crosses it, for a beam's crossing."""
-    crossing = crossing_times_s(events, pointings_ecl, times_s, radius_arcmin)
-    long = [i for i, e in enumerate(events) if e.tau_s >= SOURCE_TAU_PER_CROSSING * crossing[i]]
-    if len(long) < 2:
-        return []
-    return [
-        [long[i] for i in group]
-        for group in _positional_groups(
-            [events[i] for i in long], pointings_ecl, times_s, radius_arcmin
-        )
-    ]
-
-
-def _positional_groups(events, pointings_ecl, times_s, radius_arcmin) -> list[list[int]]:
-    """:func:`sky_fixed_groups` without the duration test."""
-    directions = event_directions(events, pointings_ecl, times_s)
-    cos_radius = math.cos(math.radians(radius_arcmin / 60.0))
-    parent = list(range(len(events)))
-
-    def root(i):
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    close = directions @ directions.T >= cos_radius
-    for i, j in zip(*np.nonzero(np.triu(close, 1)), strict=True):
-        parent[root(int(i))] = root(int(j))
-    groups: dict[int, list[int]] = {}
-    for i in range(len(events)):
-        groups.setdefault(root(i), []).append(i)
-    out = []
-    for members in groups.values():
-        times = np.sort([events[i].time_s for i in members])
-        crossings = times.size > 1 and times[-1] - times[0] > SEPARATE_CROSSINGS_S
-        if crossings or _alike_in_several_detectors([events[i] for i in members]):
-            out.append(sorted(members, key=lambda i: events[i].time_s))
-    return out
-
-
-def _alike_in_several_detectors(events) -> bool:
-    """Two or more detectors, each one's strongest event of the same sign and within a
-    factor 2 of the others'."""
-    strongest: dict[int, float] = {}
-    for event in events:
-        if abs(event.amplitude_k) > abs(strongest.get(event.detector, 0.0)):
-            strongest[event.detector] = event.amplitude_k
-    if len(strongest) < 2:
-        return False
-    values = np.array(list(strongest.values()))
-    same_sign = np.all(values > 0) or np.all(values < 0)
-    return bool(same_sign and np.abs(values).max() <= 2 * np.abs(values).min())
+    def scope(self, ctx, fit=None) -> dict:
+        """Per detector, or, where its events coincide across detectors more than chance
+        (:func:`coincidences`), by coincidence: {"by": "coincidence", "groups": {"t = ..
+        s": the detectors sharing that event}, "observed_pairs", "expected_pairs",
+        "p_value"}."""
+        if fit is None or ctx.n_detectors < 2 or not fit.events:
+            return super().scope(ctx)
+        found = coincidences(fit.events, ctx.times_s, ctx.valid)
+        if not found.significant:
+            return super().scope(ctx)
+        names = ctx.detector_names
+        return {
+            "by": "coincidence",
+            "groups": {
+                f"t = {fit.events[g[0]].time_s:.2f} s": [
+                    names[d] for d in sorted({fit.events[i].detector for i in g})
+                ]
+                for g in found.groups
+            },
+            "observed_pairs": found.observed_pairs,
+            "expected_pairs": found.expected_pairs,
+            "p_value": found.p_value,
+        }
 
 
 def find_transients(
@@ -433,7 +374,7 @@ def find_transients(
         return []
     groups = np.split(hits, np.flatnonzero(np.diff(hits) > 10) + 1)
     sigma_sample = math.sqrt(s_white / scale * fs / 2)
-    n_apart = max(DEPARTURE_MIN_SAMPLES, int(np.ceil(DEPARTURE_S * fs)))
+    n_apart = departure_samples(1.0 / fs)
     events = []
     for group in groups[:1000]:
         candidates, peaks = group, []

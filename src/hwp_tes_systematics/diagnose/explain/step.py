@@ -60,7 +60,7 @@ def explain_effects(
                 "evidence": text,
                 "signature": effect.signature,
                 "look_alikes": ties.get(name, []),
-                "scope": effect.scope(ctx),
+                "scope": effect.scope(ctx, fitted),
             }
         )
     if selection.fluctuation is not None:

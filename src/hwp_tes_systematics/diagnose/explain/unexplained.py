@@ -16,7 +16,7 @@ After the nominal adjustments and the selected effects, the residual r' = record
 * time segments (24 equal ones) whose whitened residual variance exceeds the noise by
   more than 5 sigma (chi^2 per segment against 2 m real dof, the variance the median
   segment's): a stretch where something happened that no effect models;
-* transients that recur at one sky position (:func:`.effects.glitches.sky_fixed_groups`:
+* transients that recur at one sky position (:func:`.effects.event_groups.sky_fixed_groups`:
   within a beam FWHM of each other, over more than one crossing, in any detector): a
   compact source the supplied sky map lacks, reported with its Galactic position, the
   crossings and the peak amplitude (the glitch fit leaves such events in the residual);
@@ -44,7 +44,8 @@ import scipy.fft
 
 from ...simulation import data_model
 from ..effects import format_temperature
-from ..effects.glitches import event_directions, find_transients, sky_fixed_groups
+from ..effects.event_groups import event_directions, sky_fixed_groups
+from ..effects.glitches import find_transients
 from ..fourier import irfft, rfft
 from ..locate import excess_bands, find_lines, line_at, sinusoid_fit, sky_residual
 from ..model import Context

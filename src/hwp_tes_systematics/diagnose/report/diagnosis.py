@@ -307,12 +307,25 @@ def markdown_report(
     return "\n".join(out) + "\n"
 
 
+COINCIDENCES_LISTED = 10  # coincident events named in the scope's sentence
+
+
 def scope_sentence(scope: dict, n_detectors: int) -> str:
     """Which detectors share an effect's parameters (:meth:`.effects.base.Effect.scope`)."""
     if scope["by"] == "detector":
         return f"each of the {n_detectors} detectors its own parameters"
     if scope["by"] == "pair":
         return "a coupling per pair of detectors"
+    if scope["by"] == "coincidence":
+        shown = list(scope["groups"].items())[:COINCIDENCES_LISTED]
+        listed = ", ".join(f"{label} ({', '.join(names)})" for label, names in shown)
+        more = len(scope["groups"]) - len(shown)
+        return (
+            f"events shared across detectors, at one time each: {listed}"
+            + (f" and {more} more" if more > 0 else "")
+            + f" ({scope['observed_pairs']} coincident detector pairs, chance expects "
+            f"{scope['expected_pairs']:.2g}, p = {scope['p_value']:.2g}); the others per detector"
+        )
     if scope["by"] == "all":
         return f"one set of parameters for all {n_detectors} detectors"
     groups = ", ".join(
