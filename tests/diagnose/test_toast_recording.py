@@ -214,6 +214,23 @@ def test_a_readout_gain_drift_beside_the_nonlinearity_is_fitted_after_it(tmp_pat
         assert abs(parameter["value"] - expected) < 3 * parameter["sigma"], parameter
 
 
+SIGMA_19HZ_K = 50e-6 * np.sqrt(19.0)  # the white noise per sample: NET sqrt(f_s)
+
+
+def _direct_hits(draw_seed: int) -> dict:
+    """The testbed's ``cosmic_rays``: 400 hits for TOAST to draw from, C2 30-300 times
+    the white noise per sample, C1 5 % of it, tau 2-20 ms, 4e-3 hits per second, and a
+    wafer noise of 0.3 times the white noise."""
+    rng = np.random.default_rng(draw_seed)
+    c2_k = 30 * SIGMA_19HZ_K * np.exp(rng.uniform(0.0, np.log(10.0), 400))
+    return {
+        "event_rate_hz": 4e-3,
+        "hits": {"c1": 0.05 * c2_k, "c2": c2_k, "tau_ms": rng.uniform(2.0, 20.0, 400)},
+        "wafer_noise_k": [0.0, 0.3 * SIGMA_19HZ_K],
+        "pair_correlation": None,
+    }
+
+
 @pytest.mark.slow
 def test_toasts_cosmic_rays_are_named_glitches(tmp_path, sky_fits):
     """TOAST's InjectCosmicRays on an hour of a pair at 19 Hz: direct hits (C1 + C2
@@ -224,15 +241,8 @@ def test_toasts_cosmic_rays_are_named_glitches(tmp_path, sky_fits):
     faster than any exponential through the first)."""
     from hwp_tes_systematics.diagnose import diagnose
 
-    sigma_k = 50e-6 * np.sqrt(19.0)  # the white noise per sample: NET sqrt(f_s)
-    rng = np.random.default_rng(5)
-    c2_k = 30 * sigma_k * np.exp(rng.uniform(0.0, np.log(10.0), 400))
-    rays = {
-        "event_rate_hz": 4e-3,
-        "hits": {"c1": 0.05 * c2_k, "c2": c2_k, "tau_ms": rng.uniform(2.0, 20.0, 400)},
-        "wafer_noise_k": [0.0, 0.3 * sigma_k],
-        "pair_correlation": None,
-    }
+    sigma_k = SIGMA_19HZ_K
+    rays = _direct_hits(5)
     truth: dict = {}
     path = write_toast_recording(
         tmp_path / "rec", sky_fits, 1.0, 7, a2_k=A2_K, cosmic_rays=rays, truth=truth
@@ -267,16 +277,8 @@ def test_toasts_hits_shared_by_a_pair_are_coincident_glitches(tmp_path, sky_fits
     and the evidence calling them shared."""
     from hwp_tes_systematics.diagnose import diagnose
 
-    sigma_k = 50e-6 * np.sqrt(19.0)
-    rng = np.random.default_rng(9)
-    c2_k = 30 * sigma_k * np.exp(rng.uniform(0.0, np.log(10.0), 400))
-    rays = {
-        "event_rate_hz": 4e-3,
-        "hits": {"c1": 0.05 * c2_k, "c2": c2_k, "tau_ms": rng.uniform(2.0, 20.0, 400)},
-        "wafer_noise_k": [0.0, 0.3 * sigma_k],
-        "pair_correlation": None,
-        "shared": {"by": "all", "scale": [1.0, 0.6]},
-    }
+    sigma_k = SIGMA_19HZ_K
+    rays = _direct_hits(9) | {"shared": {"by": "all", "scale": [1.0, 0.6]}}
     truth: dict = {}
     path = write_toast_recording(
         tmp_path / "rec", sky_fits, 1.0, 11, a2_k=A2_K, cosmic_rays=rays, truth=truth
