@@ -173,7 +173,7 @@ def coincidences(events, times_s: np.ndarray, valid: np.ndarray) -> Coincidences
     return Coincidences(shared, observed, expected, p_value)
 
 
-def coincidence_sentence(found: Coincidences, events, detector_names) -> str:
+def coincidence_sentence(found: Coincidences, events) -> str:
     """The coincidences in words: how many events are shared, by how many detectors,
     against chance."""
     if not found.groups:

@@ -299,9 +299,7 @@ class Glitches(Effect):
             "periodic in chi"
             + (
                 "; "
-                + coincidence_sentence(
-                    coincidences(events, ev.ctx.times_s, ev.ctx.valid), events, names
-                )
+                + coincidence_sentence(coincidences(events, ev.ctx.times_s, ev.ctx.valid), events)
                 if len(names) > 1
                 else ""
             )
