@@ -126,6 +126,7 @@ class Coincidences:
     chance (``expected_pairs``) and the Poisson probability of as many or more."""
 
     groups: list[list[int]]
+    detectors: list[set[int]]  # each group's detectors
     observed_pairs: int
     expected_pairs: float
     p_value: float
@@ -155,11 +156,9 @@ def coincidences(events, times_s: np.ndarray, valid: np.ndarray) -> Coincidences
         current.append(int(i))
     if current:
         groups.append(current)
-    shared = [g for g in groups if len({events[i].detector for i in g}) >= 2]
-    observed = 0
-    for group in shared:
-        k = len({events[i].detector for i in group})
-        observed += k * (k - 1) // 2
+    by_group = [(g, {events[i].detector for i in g}) for g in groups]
+    shared = [(g, d) for g, d in by_group if len(d) >= 2]
+    observed = sum(len(d) * (len(d) - 1) // 2 for _, d in shared)
     counts = np.bincount([e.detector for e in events], minlength=valid.shape[0])
     hit = np.flatnonzero(counts)
     window = 2 * COINCIDENCE_SAMPLES + 1
@@ -170,16 +169,16 @@ def coincidences(events, times_s: np.ndarray, valid: np.ndarray) -> Coincidences
             if both:
                 expected += counts[i] * counts[j] * window / both
     p_value = float(scipy.stats.poisson.sf(observed - 1, expected)) if observed else 1.0
-    return Coincidences(shared, observed, expected, p_value)
+    return Coincidences([g for g, _ in shared], [d for _, d in shared], observed, expected, p_value)
 
 
-def coincidence_sentence(found: Coincidences, events) -> str:
+def coincidence_sentence(found: Coincidences) -> str:
     """The coincidences in words: how many events are shared, by how many detectors,
     against chance."""
     if not found.groups:
         return "no event coincides in time with one in another detector"
     n_shared = sum(len(g) for g in found.groups)
-    widest = max(len({events[i].detector for i in g}) for g in found.groups)
+    widest = max(len(d) for d in found.detectors)
     chance = (
         f"{found.observed_pairs} detector pairs coincide within {COINCIDENCE_SAMPLES} "
         f"sample, chance expects {found.expected_pairs:.2g} (p = {found.p_value:.2g})"

@@ -298,8 +298,7 @@ class Glitches(Effect):
             f"{np.median(taus) * 1e3:.0f} ms (median){departures}; localised in time, not "
             "periodic in chi"
             + (
-                "; "
-                + coincidence_sentence(coincidences(events, ev.ctx.times_s, ev.ctx.valid), events)
+                "; " + coincidence_sentence(coincidences(events, ev.ctx.times_s, ev.ctx.valid))
                 if len(names) > 1
                 else ""
             )
@@ -319,10 +318,8 @@ class Glitches(Effect):
         return {
             "by": "coincidence",
             "groups": {
-                f"t = {fit.events[g[0]].time_s:.2f} s": [
-                    names[d] for d in sorted({fit.events[i].detector for i in g})
-                ]
-                for g in found.groups
+                f"t = {fit.events[g[0]].time_s:.2f} s": [names[d] for d in sorted(detectors)]
+                for g, detectors in zip(found.groups, found.detectors, strict=True)
             },
             "observed_pairs": found.observed_pairs,
             "expected_pairs": found.expected_pairs,
