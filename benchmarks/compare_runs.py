@@ -8,7 +8,10 @@ or in ``results/``). Prints a Markdown table: the likelihood model and whether i
 describes the data (``consistency``, with the failing bins), sigma_r, the systematic's
 own power in both delta r conventions (the 68 %-point shift, the paper's, and the
 Fisher peak shift) with their error (bootstrap over seeds) and the seeds' scatter, the paper's estimator where its mean
-crosses the budget, and where the information on r and the bias come from.
+crosses the budget, and where the information on r and the bias come from. ``--parts``
+adds a second table: the systematic's power k [K^2] through the no-systematics weights
+and its two main parts (the fixed template's and the noise term's), the common offset's
+requirement from its own power with k_mu / k_sigma, and the fixed instruments' median.
 """
 
 from __future__ import annotations
@@ -53,10 +56,27 @@ def row(name: str, result: dict) -> str:
     )
 
 
+def parts_row(name: str, result: dict) -> str:
+    """k and its parts, the common offset, the fixed instruments (``--parts``)."""
+    own = result["systematic_only"]
+    split = own["template_split"]["k_per_k2"]
+    common = result["common_offset"]
+    return (
+        f"| {name} | {own['k_per_k2']:.3g} | {split['fixed_x_fixed']:.3g} | "
+        f"{split['noise_h_x_noise_h']:.3g} | "
+        f"{common['requirement_mu_quadratic_only_per_k']:.2g} | {common['k_over_k_random']:.2g} | "
+        f"{result['fixed_instruments']['requirement_median_per_k']:.2g} |"
+    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("runs", nargs="+", help="NAME=PATH")
+    parser.add_argument("--parts", action="store_true", help="the table of k's parts too")
     arguments = parser.parse_args()
+    results = [
+        (item.partition("=")[0], load(Path(item.partition("=")[2]))) for item in arguments.runs
+    ]
     print(
         "| reading | likelihood model | notch divisor | baselines [s] | nside | "
         "model describes the data (failing ell bins) | sigma_r | sigma_g1 < [1/K], 68 % "
@@ -64,9 +84,16 @@ def main() -> None:
         "estimator, budget crossing [1/K] | information from ell 2-4 | bias from ell 21-80 |"
     )
     print("|---|---|---|---|---|---|---|---|---|---|---|---|")
-    for item in arguments.runs:
-        name, _, path = item.partition("=")
-        print(row(name, load(Path(path))))
+    for name, result in results:
+        print(row(name, result))
+    if arguments.parts:
+        print(
+            "\n| reading | k [K^2] | fixed x fixed | noise term x noise term | common offset: mu_g1 bound "
+            "[1/K], own power | k_mu / k_sigma | fixed instruments, median [1/K] |"
+        )
+        print("|---|---|---|---|---|---|---|")
+        for name, result in results:
+            print(parts_row(name, result))
 
 
 if __name__ == "__main__":

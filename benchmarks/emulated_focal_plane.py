@@ -70,8 +70,12 @@ def read(item: str, parser, emulated: bool) -> tuple[int, dict]:
 
 
 def described(data: dict) -> str:
-    """The run's sentence (``headline.run``), or its settings in a file made before it."""
-    return data["headline"].get("run") or json.dumps(data["settings"])
+    """The run's sentence (``headline.run``), or its settings in a file made before it,
+    after its detectors' positions (``instrument.detector_positions``)."""
+    positions = data["settings"].get("detector_positions", "boresight")
+    return f"detectors at the {positions.replace('_', '-')} positions; " + (
+        data["headline"].get("run") or json.dumps(data["settings"])
+    )
 
 
 def comparison(value, error, truth, truth_error) -> str:
@@ -104,7 +108,8 @@ def main() -> None:
         for n, data in emulations:
             value, error = reader(data)
             emulated = data["settings"]["emulated_pairs_per_channel"]
-            line = f"    emulated {emulated} from N = {n}: {value:.3g}"
+            where = data["settings"].get("detector_positions", "boresight").replace("_", " ")
+            line = f"    emulated {emulated} from N = {n} ({where}): {value:.3g}"
             line += f" +- {error:.2g}" if error else ""
             if run and emulated == run[0]:
                 line += f" ({comparison(value, error, truth, truth_error)})"

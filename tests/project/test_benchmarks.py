@@ -644,9 +644,11 @@ def test_emulated_focal_plane_compares_each_emulation_with_the_run_it_emulates(r
     assert lines[first + 1] == "    run, N = 8: 0.00135 +- 5.5e-05"
     # the N = 1 run against N = 8's: 0.747e-3 / 1.350e-3 and -0.603e-3 / hypot(0.10, 0.06)e-3
     assert lines[first + 2].startswith(
-        "    emulated 8 from N = 1: 0.000747 +- 0.0001 (ratio 0.553, -5."
+        "    emulated 8 from N = 1 (field of view): 0.000747 +- 0.0001 (ratio 0.553, -5."
     )
-    assert lines[first + 3] == "    emulated all from N = 8: 0.00135 +- 5.5e-05"
+    assert lines[first + 3] == "    emulated all from N = 8 (field of view): 0.00135 +- 5.5e-05"
+    # each reading says where its detectors point
+    assert lines[0].startswith("emulated from N = 1: detectors at the field-of-view positions;")
     refused = subprocess.run(
         [*script, "--emulated", f"8={paths['run8']}"],
         check=False,

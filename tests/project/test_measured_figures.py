@@ -317,33 +317,53 @@ def test_the_results_page_readings_are_their_runs_requirement_json():
 
 
 def test_the_readme_quotes_the_emulated_focal_planes_answer():
-    """The README's focal-plane answer (random sigma_g1, its error, the Fisher and the
-    paper's readings, the common |mu_g1| from its own power) is the committed emulation of
-    every pair from the one-year answer (docs/focal_plane/emulated/ey1all/), a run whose
-    checks pass and whose seeds emulate every pair of the one-year answer's configuration."""
+    """The README's focal-plane answer (random sigma_g1, its error, the Fisher reading, the
+    common |mu_g1| from its own power and with its linear term, the paper's estimator) is
+    the committed emulation of every pair from the year at two pairs in the field-of-view
+    layout (docs/focal_plane/emulated/ey2all/), a run whose checks pass; the readings from
+    one pair beside it are ey1fovall/ (field of view) and ey1all/ (boresight)."""
     readme = " ".join((REPO / "README.md").read_text().split())
     found = re.search(
         rf"\*\*For LiteBIRD's focal plane: sigma_g1 < {NUMBER} \+- {NUMBER} K\^-1\*\* for a g1 "
-        rf"drawn per detector \(Fisher {NUMBER}, the paper's estimator {NUMBER}\) and "
-        rf"\*\*\|mu_g1\| < {NUMBER} K\^-1\*\*",
+        rf"drawn per detector \(the 68 %-point shift for the systematic's own power, averaged "
+        rf"over g1 draws; Fisher {NUMBER}\) and \*\*\|mu_g1\| < {NUMBER} K\^-1\*\* for one common to "
+        rf"every detector \(Fisher, own power; {NUMBER} with its linear term\)",
         readme,
     )
     assert found, "README: the focal plane's answer is not where it was"
-    result = json.loads((REPO / "docs/focal_plane/emulated/ey1all/requirement.json").read_text())
+    emulated = REPO / "docs/focal_plane/emulated"
+    result = json.loads((emulated / "ey2all/requirement.json").read_text())
     headline = result["headline"]
     assert headline["consistent"] and headline["consistent_held_out"]
     assert headline["r_recovered_consistent"]
-    assert result["settings"]["emulated_pairs_per_channel"] == "all"
-    assert headline["one_year_answer"]["differing_settings"] == ["emulated_pairs_per_channel"]
+    settings = result["settings"]
+    assert settings["emulated_pairs_per_channel"] == "all"
+    assert (settings["pairs_per_channel"], settings["detector_positions"]) == (2, "field_of_view")
     values = quoted(found[0])
     expected = (
         headline["requirement_sigma_g1_per_k"],
         headline["error_per_k"],
         headline["fisher_peak_shift_requirement_sigma_g1_per_k"],
-        headline["paper_estimator_budget_crossing_per_k"],
         result["common_offset"]["requirement_mu_quadratic_only_per_k"],
+        result["common_offset"]["requirement_mu_per_k"],
     )
     for value, quote in zip(expected, values, strict=True):
+        assert matches(value, quote), f"{quote[0]:g} vs {value:.3g}"
+    beside = re.search(
+        rf"from one pair it reads {NUMBER} in that layout, {NUMBER} with every detector on the "
+        rf"boresight",
+        readme,
+    )
+    crossing = re.search(rf"The paper's estimator crosses at {NUMBER}\.", readme)
+    assert beside and crossing, "README: the readings beside the answer are not where they were"
+    expected = [
+        json.loads((emulated / f"{name}/requirement.json").read_text())["headline"][
+            "requirement_sigma_g1_per_k"
+        ]
+        for name in ("ey1fovall", "ey1all")
+    ] + [headline["paper_estimator_budget_crossing_per_k"]]
+    quotes = quoted(beside[0]) + quoted(crossing[0])
+    for value, quote in zip(expected, quotes, strict=True):
         assert matches(value, quote), f"{quote[0]:g} vs {value:.3g}"
 
 
@@ -352,12 +372,12 @@ def test_the_readme_quotes_the_year_at_two_pairs():
     against which the emulation from one pair is measured, is the committed run
     (docs/focal_plane/emulated/y2/), its checks passing."""
     readme = " ".join((REPO / "README.md").read_text().split())
-    found = re.search(rf"the year at 2 pairs \({NUMBER} \+- {NUMBER}, a run\)", readme)
+    found = re.search(rf"in the field-of-view layout \(a run: {NUMBER}\)", readme)
     assert found, "README: the year at two pairs is not where it was"
     result = json.loads((REPO / "docs/focal_plane/emulated/y2/requirement.json").read_text())
     headline = result["headline"]
     assert headline["consistent"] and headline["consistent_held_out"]
     assert result["settings"]["pairs_per_channel"] == 2
-    expected = (headline["requirement_sigma_g1_per_k"], headline["error_per_k"])
+    expected = (headline["requirement_sigma_g1_per_k"],)
     for value, quote in zip(expected, quoted(found[0]), strict=True):
         assert matches(value, quote), f"{quote[0]:g} vs {value:.3g}"
