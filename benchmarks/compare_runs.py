@@ -74,9 +74,8 @@ def main() -> None:
     parser.add_argument("runs", nargs="+", help="NAME=PATH")
     parser.add_argument("--parts", action="store_true", help="the table of k's parts too")
     arguments = parser.parse_args()
-    results = [
-        (item.partition("=")[0], load(Path(item.partition("=")[2]))) for item in arguments.runs
-    ]
+    named = [item.partition("=") for item in arguments.runs]
+    results = [(name, load(Path(path))) for name, _, path in named]
     print(
         "| reading | likelihood model | notch divisor | baselines [s] | nside | "
         "model describes the data (failing ell bins) | sigma_r | sigma_g1 < [1/K], 68 % "

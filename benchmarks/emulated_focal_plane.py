@@ -69,11 +69,16 @@ def read(item: str, parser, emulated: bool) -> tuple[int, dict]:
     return int(n), data
 
 
+def positions(data: dict) -> str:
+    """Where the run's detectors point (``instrument.detector_positions``; files made
+    before the key: the boresight)."""
+    return data["settings"].get("detector_positions", "boresight").replace("_", " ")
+
+
 def described(data: dict) -> str:
     """The run's sentence (``headline.run``), or its settings in a file made before it,
-    after its detectors' positions (``instrument.detector_positions``)."""
-    positions = data["settings"].get("detector_positions", "boresight")
-    return f"detectors at the {positions.replace('_', '-')} positions; " + (
+    after its detectors' positions."""
+    return f"detectors at the {positions(data).replace(' ', '-')} positions; " + (
         data["headline"].get("run") or json.dumps(data["settings"])
     )
 
@@ -108,8 +113,7 @@ def main() -> None:
         for n, data in emulations:
             value, error = reader(data)
             emulated = data["settings"]["emulated_pairs_per_channel"]
-            where = data["settings"].get("detector_positions", "boresight").replace("_", " ")
-            line = f"    emulated {emulated} from N = {n} ({where}): {value:.3g}"
+            line = f"    emulated {emulated} from N = {n} ({positions(data)}): {value:.3g}"
             line += f" +- {error:.2g}" if error else ""
             if run and emulated == run[0]:
                 line += f" ({comparison(value, error, truth, truth_error)})"
