@@ -372,12 +372,12 @@ def test_the_readme_quotes_the_year_at_two_pairs():
     against which the emulation from one pair is measured, is the committed run
     (docs/focal_plane/emulated/y2/), its checks passing."""
     readme = " ".join((REPO / "README.md").read_text().split())
-    found = re.search(rf"in the field-of-view layout \(a run: {NUMBER}\)", readme)
+    found = re.search(rf"in the field-of-view layout \(a run: {NUMBER} \+- {NUMBER}\)", readme)
     assert found, "README: the year at two pairs is not where it was"
     result = json.loads((REPO / "docs/focal_plane/emulated/y2/requirement.json").read_text())
     headline = result["headline"]
     assert headline["consistent"] and headline["consistent_held_out"]
     assert result["settings"]["pairs_per_channel"] == 2
-    expected = (headline["requirement_sigma_g1_per_k"],)
+    expected = (headline["requirement_sigma_g1_per_k"], headline["error_per_k"])
     for value, quote in zip(expected, quoted(found[0]), strict=True):
         assert matches(value, quote), f"{quote[0]:g} vs {value:.3g}"
