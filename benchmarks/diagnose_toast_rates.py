@@ -90,6 +90,18 @@ coincidence, and each hit that two or more detectors see above 10 times the whit
 per sample found as one coincident event; in ``cosmic_rays`` (independent hits) the scope
 by coincidence is a false alarm.
 
+``readout_steps``: steps on TOAST's TOD (signal and noise; TOAST has no step operator:
+the testbed's ``readout_steps``), d -> d + H(t - t_s) (o + s d), in 1 - 3 detectors at
+times drawn over 10 - 90 % of the recording, or, one recording in three, a bias line's
+detectors at one time (a pair's two, 3-6 of 14 detectors); each step an offset, a gain
+or both (a third each), |o| log-uniform in 0.1 - 3 times the white noise per sample and
+|s| A_2 in 0.01 - 0.3 times it (``--step-range``, the two lower ends scaled together), random signs. Expected
+``readout_steps`` first; each step found (a step of its detector within 60 s), its time
+and its injected parts within 3 sigma, by strength (the larger of |o| and |s| A_2 over
+the white noise per sample); the steps found where none was; a step shared by 3-6
+detectors scoped by coincidence (a pair's one shared step is short of 5 sigma: chance
+expects ~1e-3 of it).
+
 Prints one line per recording and, per case, the rates: per recording (every detector's
 parameters within 3 sigma; a parameter without a sigma fails) and per parameter, the
 pulls' standard deviation, and the rates by the effect's strength |truth| / sigma (the
@@ -135,8 +147,9 @@ MISMATCH = {"wafer_drift": (0.0, 0.0), "detector_drift": (1.0, 1.0), "mixed_drif
 EXPECTED_SCOPE = {"wafer_drift": "wafer", "detector_drift": "detector"}
 # TOAST's InjectCosmicRays on a pair or 14 detectors: independent hits, or each wafer's
 # (a pair's) hits shared by its detectors
-OTHER_CASES = ("cosmic_rays", "coincident_rays")
-RAY_CASES = OTHER_CASES
+RAY_CASES = ("cosmic_rays", "coincident_rays")
+# readout steps (the testbed's, on TOAST's TOD): offsets and gains jumping at one time
+OTHER_CASES = (*RAY_CASES, "readout_steps")
 NONLINEARITY_NAMES = ("tes_nonlinearity", "tes_nonlinearity_cubic")
 START = datetime(2032, 1, 1, tzinfo=UTC)
 
@@ -156,6 +169,7 @@ def draw(
     common_range=None,
     net_spread=0.0,
     hit_range=(3.0, 300.0),
+    step_range=(0.1, 3.0),
 ) -> dict:
     """The recording's set-up, nominal errors and injected effect."""
     a2_true = float(rng.uniform(0.1, 0.4))
@@ -208,6 +222,8 @@ def draw(
         if case == "coincident_rays":  # each detector's share of a hit: 0.3 - 1
             n_det = 2 * setup["n_pixels"]
             setup["cosmic_rays"]["shared_scale"] = rng.uniform(0.3, 1.0, n_det).tolist()
+    if case == "readout_steps":
+        setup["readout_steps"] = draw_steps(rng, 2 * setup["n_pixels"], step_range)
     if case in MISMATCH:
         setup["gain_drift_mode"] = "slow_drift"
         setup["gain_drift_mismatch"] = float(rng.uniform(*MISMATCH[case]))
@@ -222,6 +238,39 @@ def draw(
         spread = 1 + net_spread * rng.normal(0.0, 1.0, 2 * setup["n_pixels"])
         setup["net_uk_rts"] = (setup["net_uk_rts"] * np.clip(spread, 0.5, 1.5)).tolist()
     return {"setup": setup, "a2_told_k": float(a2_told), **sky}
+
+
+def draw_steps(rng: np.random.Generator, n_det: int, step_range) -> list[list]:
+    """[detector, time fraction, offset / white noise, s A_2 / white noise] per step: 1-3
+    detectors (one for a pair) at their own times or, one time in three, a bias line's
+    detectors at one time (a pair's two, 3-6 of 14); each an offset, a gain or both."""
+    if rng.random() < 1 / 3:
+        count = 2 if n_det == 2 else int(rng.integers(3, 7))
+        at = float(rng.uniform(0.1, 0.9))
+        chosen = [(int(k), at) for k in rng.choice(n_det, count, False)]
+    else:
+        count = 1 if n_det == 2 else int(rng.integers(1, 4))
+        chosen = [(int(k), float(rng.uniform(0.1, 0.9))) for k in rng.choice(n_det, count, False)]
+    steps = []
+    for detector, at in chosen:
+        part = str(rng.choice(["offset", "gain", "both"]))
+        offset = float(rng.choice([-1, 1])) * log_uniform(rng, step_range)
+        gain = float(rng.choice([-1, 1])) * log_uniform(rng, np.asarray(step_range) * 0.1)
+        steps.append(
+            [detector, at, offset if part != "gain" else 0.0, gain if part != "offset" else 0.0]
+        )
+    return steps
+
+
+def step_injection(setup: dict) -> list[list]:
+    """The testbed's ``readout_steps`` from a drawn set-up: [detector, first sample, o [K],
+    s] (the amplitudes drawn over the white noise per sample)."""
+    sigma = white_noise_k(setup)
+    n = int(setup["hours"] * 3600 * setup["sample_rate_hz"])
+    return [
+        [detector, int(at * n), offset * sigma, gain * sigma / setup["a2_k"]]
+        for detector, at, offset, gain in setup["readout_steps"]
+    ]
 
 
 def detector_nets(setup: dict, n_det: int) -> np.ndarray:
@@ -504,6 +553,60 @@ def score_coincidences(effects, truth: dict, fs: float, sigma: float) -> dict:
     }
 
 
+STEP_WINDOW_S = 60.0  # a found step of the detector this close to an injected one is it
+
+
+def score_steps(result: dict, setup: dict, truth: dict) -> dict:
+    """Readout steps: named (first, alone), each injected step found or not with its
+    strength, the pulls of its time and injected parts, the steps found at none, and the
+    scope by coincidence of a pixel's shared step."""
+    effects = result["effects"]
+    names = [e["name"] for e in effects]
+    record = {"reported": names, "unexplained": len(result["unexplained"])}
+    record["named"] = "readout_steps" in names
+    record["first"] = bool(names) and names[0] == "readout_steps"
+    fs, sigma = setup["sample_rate_hz"], white_noise_k(setup)
+    found: dict[str, dict[int, dict]] = {}  # detector -> step index -> its parameters
+    scope = {"by": "none"}
+    for effect in effects:
+        if effect["name"] == "readout_steps":
+            scope = effect["scope"]
+            for key, p in effect["parameters"].items():
+                index = int(key.split(".")[0][len("step") :])
+                found.setdefault(p["detector"], {}).setdefault(index, {})[p["parameter"]] = p
+    steps, matched = [], set()
+    for name, injected in truth.get("readout_steps", {}).items():
+        for first, offset, gain in injected:
+            strength = max(abs(offset), abs(gain) * setup["a2_k"]) / sigma
+            candidates = [
+                (abs(p["time"]["value"] - first / fs), index, p)
+                for index, p in found.get(name, {}).items()
+                if abs(p["time"]["value"] - first / fs) <= STEP_WINDOW_S
+            ]
+            if not candidates:
+                steps.append([round(strength, 3), False, []])
+                continue
+            _, index, p = min(candidates, key=lambda c: c[0])
+            matched.add((name, index))
+            pulls = [(p["time"]["value"] - first / fs) / p["time"]["sigma"]]
+            for part, value in (("offset", offset), ("gain", gain)):
+                if value != 0.0 or part in p:
+                    entry = p.get(part)
+                    pulls.append((entry["value"] - value) / entry["sigma"] if entry else math.inf)
+            steps.append([round(strength, 3), True, [round(x, 2) for x in pulls]])
+    record["steps"] = steps
+    record["false_steps"] = sum(
+        (name, index) not in matched for name, per in found.items() for index in per
+    )
+    pulls = [x for _, ok, ps in steps if ok for x in ps]
+    record["pulls"] = pulls
+    record["within_3_sigma"] = record["named"] and all(abs(x) < 3 for x in pulls)
+    firsts = [first for per in truth.get("readout_steps", {}).values() for first, *_ in per]
+    record["shared_step"] = max((firsts.count(f) for f in firsts), default=0)  # detectors
+    record["coincidence_scope"] = scope["by"] == "coincidence"
+    return record
+
+
 def score(case: str, result: dict, setup: dict, truth: dict) -> dict:
     effects = result["effects"]
     names = [effect["name"] for effect in effects]
@@ -521,6 +624,8 @@ def score(case: str, result: dict, setup: dict, truth: dict) -> dict:
         return score_common_mode(result, setup, truth)
     if case in RAY_CASES:
         return score_cosmic_rays(result, setup, truth)
+    if case == "readout_steps":
+        return score_steps(result, setup, truth)
     expected = []
     if case in ("nonlinearity", "both"):
         expected.append("nonlinearity")
@@ -575,6 +680,8 @@ def one(case: str, seed: int, folder: Path, ranges: tuple) -> dict:
         }
     if "cosmic_rays" in setup:
         setup["cosmic_rays"] = cosmic_ray_injection(setup)
+    if "readout_steps" in setup:
+        setup["readout_steps"] = step_injection(setup)
     truth: dict = {}
     path = write_toast_recording(
         folder, sky_fits, seed=seed, truth=truth, start=start_time, **setup
@@ -623,6 +730,8 @@ def summary(records: list[dict]) -> list[str]:
         n = len(rows)
         if case in RAY_CASES:
             lines += cosmic_ray_summary(case, rows)
+        elif case == "readout_steps":
+            lines += step_summary(rows)
         elif case in ("clean", "clean_wafers"):
             alarms = sum(r["false_alarm"] for r in rows)
             lines.append(f"{case:13s} {n:3d} recordings: false alarms {alarms}/{n}")
@@ -709,6 +818,44 @@ def cosmic_ray_summary(case: str, rows: list[dict]) -> list[str]:
             f"    glitches scoped by coincidence: {scoped}/{len(coincident)}; hits shared by "
             f"two or more detectors above {SHARED_HIT_SIGMA:g} sigma found as one coincident "
             f"event: {shared_found}/{shared}"
+        ),
+    ]
+
+
+STEP_STRENGTHS = (0.0, 0.1, 0.3, 1.0, math.inf)  # a step's |o| or |s| A_2 / white noise
+
+
+def step_summary(rows: list[dict]) -> list[str]:
+    """Readout steps: ranked first and alone, the steps found by strength, the pulls, the
+    steps found at none, the shared steps scoped by coincidence."""
+    n = len(rows)
+    first = sum(r["first"] for r in rows)
+    alone = sum(r["reported"] == ["readout_steps"] and not r["unexplained"] for r in rows)
+    others = sorted({name for r in rows for name in r["reported"] if name != "readout_steps"})
+    steps = [step for r in rows for step in r["steps"]]
+    bins = []
+    for low, high in itertools.pairwise(STEP_STRENGTHS):
+        inside = [ok for strength, ok, _ in steps if low <= strength < high]
+        bins.append(f"{low:g}-{high:g}: {sum(inside)}/{len(inside)}")
+    pulls = [x for r in rows for x in r["pulls"]]
+    shared = [r for r in rows if r["shared_step"] >= 3]
+    pairs = [r for r in rows if r["shared_step"] == 2]
+    return [
+        (
+            f"readout_steps   {n:3d} recordings: ranked first {first}/{n}, alone (nothing "
+            f"else, nothing unexplained) {alone}/{n}; also named: {', '.join(others) or 'none'}"
+        ),
+        "    steps found by |o| or |s| A_2 / white noise per sample: " + ", ".join(bins),
+        (
+            f"    time and parts within 3 sigma: {sum(abs(x) < 3 for x in pulls)}/{len(pulls)}; "
+            f"steps found at none: {sum(r['false_steps'] for r in rows)} in {n} recordings"
+        ),
+        (
+            f"    a step shared by 3-6 detectors scoped by coincidence: "
+            f"{sum(r['coincidence_scope'] for r in shared)}/{len(shared)}; by a pair (one "
+            f"coincidence, short of 5 sigma): {sum(r['coincidence_scope'] for r in pairs)}/"
+            f"{len(pairs)}; unshared steps scoped by coincidence: "
+            f"{sum(r['coincidence_scope'] for r in rows if r['shared_step'] < 2)}"
         ),
     ]
 
@@ -809,6 +956,13 @@ def main() -> None:
     parser.add_argument(
         "--hit-range", nargs=2, type=float, default=(3.0, 300.0), help="C2 / white noise"
     )
+    parser.add_argument(
+        "--step-range",
+        nargs=2,
+        type=float,
+        default=(0.1, 3.0),
+        help="|o| / white noise (|s| A_2: a tenth of it)",
+    )
     arguments = parser.parse_args()
     if arguments.combine:
         records = [r for path in arguments.combine for r in json.loads(path.read_text())]
@@ -831,6 +985,7 @@ def main() -> None:
                     arguments.common_range,
                     arguments.net_spread,
                     arguments.hit_range,
+                    arguments.step_range,
                 )
                 record = when_memory_allows(case, seed, folder / f"{case}_{seed}", ranges)
                 records.append(record)

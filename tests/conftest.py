@@ -86,7 +86,7 @@ PHYSICS_FILES = {
     "test_diagnose_gaps.py", "test_diagnose_linalg.py", "test_diagnose_noise.py",
     "test_diagnose_nominal.py", "test_diagnose_pairs.py", "test_diagnose_pointing.py",
     "test_diagnose_rolloff.py", "test_diagnose_segments.py", "test_diagnose_sky_sources.py",
-    "test_effect_registry.py", "test_glitch_events.py",
+    "test_effect_registry.py", "test_glitch_events.py", "test_readout_steps.py",
 }  # fmt: skip
 RULE_FILES = {"test_rules_inputs.py", "test_rules_maps.py"}
 WORKFLOW_FILES = {"test_end_to_end.py", "test_profiles.py", "test_slurm.py", "test_install.py"}

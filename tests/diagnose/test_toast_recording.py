@@ -299,6 +299,33 @@ def test_toasts_hits_shared_by_a_pair_are_coincident_glitches(tmp_path, sky_fits
     assert "shared by detectors" in result["effects"][0]["evidence"]
 
 
+@pytest.mark.slow
+def test_steps_on_toasts_tod_are_named_readout_steps(tmp_path, sky_fits):
+    """TOAST's pair for an hour with a step in each detector (the testbed's, on TOAST's
+    signal and noise): an offset of 0.5 times the white noise per sample at 1,000 s in the
+    first, a gain of 0.2 times it over A_2 at 2,500 s in the second. readout_steps alone,
+    each step in its detector with that part, time and value within 3 sigma."""
+    from hwp_tes_systematics.diagnose import diagnose
+
+    sigma_k = SIGMA_19HZ_K
+    steps = [[0, 19_000, 0.5 * sigma_k, 0.0], [1, 47_500, 0.0, 0.2 * sigma_k / A2_K]]
+    truth: dict = {}
+    path = write_toast_recording(
+        tmp_path / "rec", sky_fits, 1.0, 12, a2_k=A2_K, readout_steps=steps, truth=truth
+    )
+    assert sorted(len(v) for v in truth["readout_steps"].values()) == [1, 1]
+    result = diagnose(read_recording(path), sky_map(), A2_K, figures=False).to_dict()
+    assert [e["name"] for e in result["effects"]] == ["readout_steps"], result["effects"]
+    parameters = result["effects"][0]["parameters"].values()
+    names = list(truth["readout_steps"])
+    for (detector, first, offset, gain), name in zip(steps, names, strict=True):
+        mine = {p["parameter"]: p for p in parameters if p["detector"] == name}
+        part, value = ("offset", offset) if offset else ("gain", gain)
+        assert set(mine) == {part, "time"}, mine
+        assert abs(mine[part]["value"] - value) < 3 * mine[part]["sigma"], mine
+        assert abs(mine["time"]["value"] - first / 19.0) < 3 * mine["time"]["sigma"], mine
+
+
 def test_toasts_pair_common_mode_is_not_common(tmp_path, sky_fits):
     """TOAST 3.0.6's InjectCosmicRays with its pair common mode at a correlation of 0.9:
     each detector's "common" part is drawn at its own counter, so the two detectors of a

@@ -50,6 +50,7 @@ def write_toast_recording(
     crosstalk: dict | None = None,
     common_mode: tuple[float, float, str] | None = None,
     cosmic_rays: dict | None = None,
+    readout_steps: list | None = None,
     dipole: bool = True,
     noise: bool = True,
     net_uk_rts: float | list = 50.0,
@@ -91,7 +92,10 @@ def write_toast_recording(
     a focal-plane column or "all", "scale": a factor per detector}: each group's detectors
     take its first detector's hits times their factor, coincident hits);
     ``truth["cosmic_ray_hits"]`` receives each detector's hits as [first sample, samples,
-    peak K]."""
+    peak K]. ``readout_steps``: [(detector index, first sample, offset K, gain), ...], each
+    detector's TOD (signal and noise, after the hits) d -> d + H(t - t_s) (o + s d)
+    (:func:`_readout_steps`; TOAST has no such operator), into
+    ``truth["readout_steps"]`` as {detector: [[first sample, offset, gain], ...]}."""
     import astropy.units as u
     from toast import ops
     from toast.observation import default_values as defaults
@@ -128,6 +132,8 @@ def write_toast_recording(
         ops.SimNoise(realization=seed).apply(data)
     if cosmic_rays is not None:
         _cosmic_rays(data, cosmic_rays, seed, truth)
+    if readout_steps:
+        _readout_steps(data, readout_steps, truth)
     ops.Delete(detdata=[pixels.pixels, weights.weights, pointing.quats]).apply(data)
     if crosstalk:
         _crosstalk(data, crosstalk, Path(folder))
@@ -385,6 +391,28 @@ def _cosmic_rays(data, rays: dict, seed: int, truth: dict | None) -> None:
                 if truth is not None:
                     truth["cosmic_ray_hits"] = found
                 ops.Delete(detdata=[stream]).apply(data)
+
+
+def _readout_steps(data, steps, truth: dict | None) -> None:
+    """Each step (detector index, first sample, offset [K], gain) on the detector's whole
+    TOD from its first sample: d -> d + o + s d (a SQUID's flux jump, a bias step)."""
+    from toast.observation import default_values as defaults
+
+    observation = data.obs[0]
+    names = list(observation.local_detectors)
+    signal = observation.detdata[defaults.det_data]
+    injected: dict[str, list] = {}
+    for detector, first, offset_k, gain in steps:
+        if not (0 <= int(detector) < len(names) and 0 < int(first) < observation.n_local_samples):
+            raise ValueError(
+                f"readout_steps: step ({detector}, {first}) outside {len(names)} detectors "
+                f"and {observation.n_local_samples} samples"
+            )
+        tod = signal[names[int(detector)]]
+        tod[int(first) :] += offset_k + gain * tod[int(first) :]
+        injected.setdefault(names[int(detector)], []).append([int(first), offset_k, gain])
+    if truth is not None:
+        truth["readout_steps"] = injected
 
 
 def _share_hits(data, injected, shared: dict) -> None:

@@ -96,6 +96,7 @@ from .nonlinearity import (
     TesNonlinearityCubic,
 )
 from .pointing import PointingDrift, PointingOffset, PointingOffsetCommon, PointingOffsetPerGroup
+from .steps import ReadoutSteps, StepEvent, find_steps, step_tod
 from .time_constant import (
     DetectorTimeConstant,
     single_pole,
@@ -182,10 +183,13 @@ __all__ = [
     "PointingOffset",
     "PointingOffsetCommon",
     "PointingOffsetPerGroup",
+    "ReadoutSteps",
+    "StepEvent",
     "TesNonlinearity",
     "TesNonlinearityCubic",
     "catalog_table",
     "family_of",
+    "find_steps",
     "find_transients",
     "fit_glitch",
     "format_temperature",
@@ -199,6 +203,7 @@ __all__ = [
     "reported_name",
     "single_pole",
     "single_pole_derivative",
+    "step_tod",
     "unregister",
 ]
 

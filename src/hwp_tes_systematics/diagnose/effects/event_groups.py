@@ -116,6 +116,8 @@ def _alike_in_several_detectors(events) -> bool:
 COINCIDENCE_SAMPLES = 1
 # the chance probability below which the coincidences are more than chance: 5 sigma, one-sided
 COINCIDENCE_P_VALUE = 2.87e-7
+# above it, and below this, the words say "more than chance but short of 5 sigma"
+CHANCE_LIKE_P_VALUE = 1e-3
 
 
 @dataclass(frozen=True)
@@ -130,6 +132,7 @@ class Coincidences:
     observed_pairs: int
     expected_pairs: float
     p_value: float
+    window_samples: int = COINCIDENCE_SAMPLES  # w: events within w samples are linked
 
     @property
     def significant(self) -> bool:
@@ -137,10 +140,13 @@ class Coincidences:
         return self.p_value < COINCIDENCE_P_VALUE
 
 
-def coincidences(events, times_s: np.ndarray, valid: np.ndarray) -> Coincidences:
+def coincidences(
+    events, times_s: np.ndarray, valid: np.ndarray, window_samples: int = COINCIDENCE_SAMPLES
+) -> Coincidences:
     """Coincident events and their chance rate.
 
-    Events in different detectors within w = COINCIDENCE_SAMPLES samples are linked
+    Events in different detectors within w = ``window_samples`` samples (a glitch's first
+    sample: COINCIDENCE_SAMPLES; events timed less well, a wider w) are linked
     (transitively) into groups; a group of k detectors makes k(k-1)/2 detector pairs.
     Independent Poisson hits at n_i and n_j events over the T_ij both detectors keep
     (``valid``, (n_det, n)) coincide by chance n_i n_j (2w + 1) dt / T_ij times (dt / T_ij
@@ -150,7 +156,7 @@ def coincidences(events, times_s: np.ndarray, valid: np.ndarray) -> Coincidences
     order = np.argsort(index, kind="stable")
     groups, current = [], []
     for i in order:
-        if current and index[i] - index[current[-1]] > COINCIDENCE_SAMPLES:
+        if current and index[i] - index[current[-1]] > window_samples:
             groups.append(current)
             current = []
         current.append(int(i))
@@ -161,7 +167,7 @@ def coincidences(events, times_s: np.ndarray, valid: np.ndarray) -> Coincidences
     observed = sum(len(d) * (len(d) - 1) // 2 for _, d in shared)
     counts = np.bincount([e.detector for e in events], minlength=valid.shape[0])
     hit = np.flatnonzero(counts)
-    window = 2 * COINCIDENCE_SAMPLES + 1
+    window = 2 * window_samples + 1
     expected = 0.0
     for a, i in enumerate(hit):
         for j in hit[a + 1 :]:
@@ -169,7 +175,9 @@ def coincidences(events, times_s: np.ndarray, valid: np.ndarray) -> Coincidences
             if both:
                 expected += counts[i] * counts[j] * window / both
     p_value = float(scipy.stats.poisson.sf(observed - 1, expected)) if observed else 1.0
-    return Coincidences([g for g, _ in shared], [d for _, d in shared], observed, expected, p_value)
+    return Coincidences(
+        [g for g, _ in shared], [d for _, d in shared], observed, expected, p_value, window_samples
+    )
 
 
 def coincidence_sentence(found: Coincidences) -> str:
@@ -179,9 +187,10 @@ def coincidence_sentence(found: Coincidences) -> str:
         return "no event coincides in time with one in another detector"
     n_shared = sum(len(g) for g in found.groups)
     widest = max(len(d) for d in found.detectors)
+    samples = "sample" if found.window_samples == 1 else "samples"
     chance = (
-        f"{found.observed_pairs} detector pairs coincide within {COINCIDENCE_SAMPLES} "
-        f"sample, chance expects {found.expected_pairs:.2g} (p = {found.p_value:.2g})"
+        f"{found.observed_pairs} detector pairs coincide within {found.window_samples} "
+        f"{samples}, chance expects {found.expected_pairs:.2g} (p = {found.p_value:.2g})"
     )
     if found.significant:
         return (
@@ -189,5 +198,10 @@ def coincidence_sentence(found: Coincidences) -> str:
             f"events of up to {widest} detectors: {chance}: hits shared by the detectors "
             "(a particle shower, or a hit on the wafer's substrate), not independent per "
             "detector"
+        )
+    if found.p_value < CHANCE_LIKE_P_VALUE:
+        return (
+            f"{len(found.groups)} coincidences, more than chance gives but short of 5 sigma "
+            f"({chance})"
         )
     return f"{len(found.groups)} coincidences, as many as chance gives ({chance})"

@@ -212,6 +212,22 @@ class Glitches(Effect):
             departure_chi2_per_sample=ln_n,
         )
 
+    def find(self, problem, k: int, r_f: np.ndarray, bank=None, gram=None) -> list:
+        """The events in detector k's residual ``r_f``: :meth:`detect` with the problem's
+        noise, threshold and ln N_eff (a hit is short: the linear templates ``bank`` are
+        not needed)."""
+        return self.detect(
+            r_f,
+            problem.s_nom[k],
+            problem.valid[k],
+            problem.ctx.times_s,
+            problem.scale[k],
+            k,
+            threshold_sigma=problem.glitch_threshold_sigma,
+            ln_n=problem.ln_n_eff,
+            workers=problem.workers,
+        )
+
     @staticmethod
     def detector_events(ctx, events) -> list:
         """The events that are detector events: those recurring at one sky position
@@ -224,9 +240,9 @@ class Glitches(Effect):
         return [e for i, e in enumerate(events) if i not in on_sky]
 
     @staticmethod
-    def events_tod(times_s, n_detectors, events) -> np.ndarray:
+    def events_tod(ctx, events) -> np.ndarray:
         """The events' TOD, (n_det, n): :func:`glitch_tod`."""
-        return glitch_tod(times_s, n_detectors, events)
+        return glitch_tod(ctx.times_s, ctx.n_detectors, events)
 
     def reported_parameters(self, fit, detector_names, sampling_rate_hz, units) -> dict:
         """Per event i: "glitch<i>.amplitude|time|tau[<detector>]" -> {value, sigma, unit,

@@ -12,7 +12,7 @@ import math
 import numpy as np
 import scipy.optimize
 
-from ..effects import SELECTION_THRESHOLD, GlitchEvent
+from ..effects import SELECTION_THRESHOLD
 from ..fourier import irfft, rfft
 from ..linalg import cross, realify, solve_normal
 from .results import EffectFit, FitResult
@@ -124,20 +124,11 @@ def fit_nonlinear(problem, effect, k, y, bank, gram, w, start):
     return theta, math.sqrt(max(cov[0, 0], 0.0)), a, cov[1:, 1:]
 
 
-def detect_events(problem, effect, k: int, r_f: np.ndarray, s: np.ndarray) -> list:
-    """The events of ``effect`` (glitches) in the residual r_f (rfft) of detector k, kept
-    when their own significance pays their BIC penalty (``effect.detect`` with ln N_eff)."""
-    return effect.detect(
-        r_f,
-        s,
-        problem.valid[k],
-        problem.ctx.times_s,
-        problem.scale[k],
-        k,
-        threshold_sigma=problem.glitch_threshold_sigma,
-        ln_n=problem.ln_n_eff,
-        workers=problem.workers,
-    )
+def detect_events(problem, effect, k: int, r_f: np.ndarray, bank, gram) -> list:
+    """The events of ``effect`` (glitches, readout steps) in the residual r_f (rfft) of
+    detector k, kept when their own significance pays their BIC penalty (``effect.find``;
+    ``bank`` and ``gram`` the linear templates fitted beside them and their Gram matrix)."""
+    return effect.find(problem, k, r_f, bank=bank, gram=gram)
 
 
 # relative gain drifts, d_obs = [1 + delta(t)] d, that may act before the nonlinearity
@@ -159,7 +150,7 @@ def fit_iterative(problem, selected, initial_extra=None, gain_after=False) -> Fi
     linear = [n for n in selected if n in problem.slices]
     rows = problem.rows(linear)
     nonlinear = problem.nonlinear_of(selected)
-    events_effect = problem.events_of(selected)
+    events_effects = problem.events_of(selected)
     composed = problem.composed(selected)
     nl_rows = np.zeros(0, dtype=int)
     gain_rows = np.zeros(0, dtype=int)  # a relative gain drift's rows (gain_after)
@@ -174,8 +165,16 @@ def fit_iterative(problem, selected, initial_extra=None, gain_after=False) -> Fi
             elif gain_after and name in READOUT_GAINS:
                 gain_rows = np.concatenate([gain_rows, np.arange(position, position + width)])
             position += width
+    # the events' rfft per detector, all events effects summed, and each effect's events
     events_f = [np.zeros(problem.freqs.size, complex) for _ in range(n_det)]
-    events: list[GlitchEvent] = []
+    events: dict[str, list] = {effect.name: [] for effect in events_effects}
+    # each events effect's rfft per detector (with one effect: the sum itself, no copy)
+    each_events_f = {
+        effect.name: events_f
+        if len(events_effects) == 1
+        else [np.zeros(problem.freqs.size, complex) for _ in range(n_det)]
+        for effect in events_effects
+    }
     theta = [None] * n_det  # the nonlinear effect's parameter per detector
     theta_sigma = [0.0] * n_det
     values = [np.zeros(rows.size) for _ in range(n_det)]
@@ -200,7 +199,7 @@ def fit_iterative(problem, selected, initial_extra=None, gain_after=False) -> Fi
     if composed and initial_extra is not None:
         for k in range(n_det):
             rebuild(k, initial_extra[k])
-    passes = COMPOSED_PASSES if composed else BACKFIT_PASSES if events_effect is not None else 1
+    passes = COMPOSED_PASSES if composed else BACKFIT_PASSES if events_effects else 1
     previous_chi2 = math.inf
     lowest, kept = math.inf, None  # the composed passes' lowest chi^2 and its state
     for _ in range(passes):
@@ -260,34 +259,36 @@ def fit_iterative(problem, selected, initial_extra=None, gain_after=False) -> Fi
                 # the bank its fit used: the nonlinearity's rows as they were then
                 since = values[k][nl_rows] @ (used_nl[k] - banks[k][nl_rows])
                 models[k] = values[k] @ banks[k] + since + nonlinear_parts[k] + events_f[k]
-        if events_effect is not None:
-            events = []
-            for k in range(n_det):
-                events += detect_events(
-                    problem,
-                    events_effect,
-                    k,
-                    problem.residual_f[k] - models[k] + events_f[k],
-                    problem.s_nom[k],
-                )
-            events = events_effect.detector_events(ctx, events)
-            found = problem.masked_rfft(events_effect.events_tod(ctx.times_s, n_det, events))
-            for k in range(n_det):
-                models[k] = models[k] - events_f[k] + found[k]
-                events_f[k] = found[k]
-        if not (updated or events_effect is not None):
+        if events_effects:  # each sought in the residual without its own events
+            for effect in events_effects:
+                own = each_events_f[effect.name]
+                found = []
+                for k in range(n_det):
+                    r_f = problem.residual_f[k] - models[k] + own[k]
+                    gram = problem.gram_nom[k][np.ix_(rows, rows)]
+                    found += detect_events(problem, effect, k, r_f, banks[k], gram)
+                events[effect.name] = effect.detector_events(ctx, found)
+                now = problem.masked_rfft(effect.events_tod(ctx, events[effect.name]))
+                for k in range(n_det):
+                    models[k] = models[k] - own[k] + now[k]
+                    own[k] = now[k]
+            if len(events_effects) > 1:
+                for k in range(n_det):
+                    events_f[k] = sum(each_events_f[e.name][k] for e in events_effects)
+        if not (updated or events_effects):
             break
         total = sum(problem.chi2_of(k, models[k]) for k in range(n_det))
         if composed and total < lowest:  # the lowest pass's state, kept
             lowest = total
             kept = [
-                list(x) if isinstance(x, list) else x
+                list(x) if isinstance(x, list) else dict(x) if isinstance(x, dict) else x
                 for x in (values, covariances, shared, models, used_nl)
                 + (nonlinear_parts, theta, theta_sigma, events, events_f)
-            ]
+            ] + [{name: list(parts) for name, parts in each_events_f.items()}]
         elif composed and total > lowest + CHI2_RISE:  # walking away from it: back
             (values, covariances, shared, models, used_nl) = kept[:5]
-            (nonlinear_parts, theta, theta_sigma, events, events_f) = kept[5:]
+            (nonlinear_parts, theta, theta_sigma, events, events_f) = kept[5:10]
+            each_events_f = kept[10]
             break
         # while the nonlinearity's templates still move, chi^2 does not tell: it is
         # blind to the scale of d against g1 (g1 (1 + e)^2 d^2 with the gain taking
@@ -308,14 +309,16 @@ def fit_iterative(problem, selected, initial_extra=None, gain_after=False) -> Fi
             sigmas={parameter: np.array(theta_sigma)},
         )
         parts[nonlinear.name] = nonlinear_parts
-    if events_effect is not None:
-        fits[events_effect.name] = EffectFit(events_effect.name, events=events)
-        parts[events_effect.name] = events_f
+    for effect in events_effects:
+        fits[effect.name] = EffectFit(effect.name, events=events[effect.name])
+        parts[effect.name] = list(each_events_f[effect.name])
     return FitResult(
         selected=selected,
         chi2=float(chi2s.sum()),
         chi2_per_detector=chi2s,
-        n_params=problem.count_parameters(selected, sum(e.n_parameters for e in events)),
+        n_params=problem.count_parameters(
+            selected, {name: sum(e.n_parameters for e in found) for name, found in events.items()}
+        ),
         prior_penalty=problem.prior_penalty(selected),
         effects=fits,
         model_f=models,

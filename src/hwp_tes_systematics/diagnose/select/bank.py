@@ -225,24 +225,23 @@ class FitProblem:
             raise ValueError(f"{[e.name for e in found]}: one nonlinear effect at a time")
         return found[0] if found else None
 
-    def events_of(self, selected) -> Effect | None:
-        """The events effect among ``selected`` (glitches), if any."""
-        found = [self.effects[n] for n in selected if self.effects[n].kind == "events"]
-        return found[0] if found else None
+    def events_of(self, selected) -> list[Effect]:
+        """The events effects among ``selected`` (glitches, readout steps), in its order."""
+        return [self.effects[n] for n in selected if self.effects[n].kind == "events"]
 
     def chi2_of(self, k: int, model_f) -> float:
         """Whittle chi^2 of detector k with the problem's noise: sum_f 2 |R_f - M_f|^2 / S_f."""
         diff = self.residual_f[k] - model_f
         return 2 * float((diff.real**2 + diff.imag**2) @ self.w_nom[k])
 
-    def count_parameters(self, selected, event_parameters: int) -> int:
+    def count_parameters(self, selected, event_parameters: dict[str, int]) -> int:
         """The parameters of ``selected``: each effect's per detector or per group, and
-        ``event_parameters`` (the events' own, :attr:`.GlitchEvent.n_parameters` summed)."""
+        each events effect's ``event_parameters`` (its events' ``n_parameters`` summed)."""
         total = 0
         for name in selected:
             effect = self.effects[name]
             if effect.kind == "events":
-                total += event_parameters
+                total += event_parameters.get(name, 0)
             elif effect.shared:
                 total += len(self.units[name]) * len(effect.shared_groups(self.ctx))
             else:
@@ -400,7 +399,7 @@ class FitProblem:
             selected=selected,
             chi2=float(np.sum(chi2s)),
             chi2_per_detector=np.array(chi2s),
-            n_params=self.count_parameters(selected, 0),
+            n_params=self.count_parameters(selected, {}),
             prior_penalty=self.prior_penalty(selected),
             effects=self.with_shared(
                 self.linear_effect_fits(selected, values, covariances), shared

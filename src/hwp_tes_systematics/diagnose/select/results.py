@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..effects import GlitchEvent
+from ..effects import GlitchEvent, StepEvent
 
 
 @dataclass
@@ -16,7 +16,7 @@ class EffectFit:
     name: str
     values: dict[str, np.ndarray] = field(default_factory=dict)  # parameter -> (n_det,)
     sigmas: dict[str, np.ndarray] = field(default_factory=dict)
-    events: list[GlitchEvent] = field(default_factory=list)
+    events: list[GlitchEvent | StepEvent] = field(default_factory=list)
     # a shared effect (``Effect.shared``): its common parameters (per group, {label:
     # {parameter: value}}, for one shared by group, ``Effect.group_by``), and the chi^2 that
     # sharing them costs against a separate fit per detector, for sharing_dof fewer parameters

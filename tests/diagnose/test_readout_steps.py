@@ -1,0 +1,142 @@
+"""Readout steps (:mod:`hwp_tes_systematics.diagnose.effects.steps`): the scan equals the
+exact fit of each part, an offset step and a gain step are found with the right part and
+values within 3 sigma, their times' errors cover the truth, pure noise gives none, and in
+a simulated pair the diagnosis names the step and nothing else."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from hwp_tes_systematics.diagnose.effects.steps import (
+    carrier,
+    find_steps,
+    step_scan,
+    step_tod,
+)
+from hwp_tes_systematics.diagnose.fourier import rfft
+from hwp_tes_systematics.diagnose.linalg import cross
+
+FS_HZ = 19.0
+N = 19_000  # 1,000 s
+F_HWP_HZ = 46 / 60
+A2_K = 0.2
+WHITE_K = 2e-4  # white noise per sample
+FKNEE_HZ = 0.05
+
+
+def _case(seed: int):
+    """A carrier (the 2f HWPSS), weights w = 1/S (white + 1/f, DC and Nyquist left out) and
+    a noise rfft drawn from S."""
+    times_s = np.arange(N) / FS_HZ
+    signal = A2_K * np.cos(4 * np.pi * F_HWP_HZ * times_s)
+    freqs = np.fft.rfftfreq(N, 1 / FS_HZ)
+    psd = N * WHITE_K**2 * (1 + (FKNEE_HZ / np.maximum(freqs, 1e-12)) ** 1.5)
+    w = np.zeros(freqs.size)
+    w[1:-1] = 1 / psd[1:-1]
+    rng = np.random.default_rng(seed)
+    noise_f = np.sqrt(psd / 2) * (rng.normal(size=freqs.size) + 1j * rng.normal(size=freqs.size))
+    return times_s, signal, w, noise_f
+
+
+def test_the_scan_equals_each_parts_exact_fit():
+    """<T, R>^2 / <T, T> from cumulative sums equals the Fourier-domain fit of each
+    template (the gain's against the carrier, its mean taken off), to 1e-3."""
+    _, signal, w, noise_f = _case(1)
+    valid = np.ones(N, bool)
+    c = carrier(signal, 0.5 * F_HWP_HZ, FS_HZ)
+    freqs = np.fft.rfftfreq(N, 1 / FS_HZ)
+    w_c = float(np.median(w[np.abs(freqs - 2 * F_HWP_HZ) < 0.1 * F_HWP_HZ]))
+    scans = step_scan(noise_f, w, valid, c, w_c)
+    c_f = rfft(c)
+    for index in (500, 7000, 15000):
+        step = np.zeros(N)
+        step[index:] = 1.0
+        offset_f, gain_f = rfft(step), rfft(step * c)
+        b = cross(offset_f[None], noise_f, w)[0]
+        assert scans["offset"][index] == pytest.approx(
+            b**2 / cross(offset_f[None], offset_f, w)[0], rel=1e-3
+        )
+        # the gain template projected off the carrier (the nominal 2f amplitude)
+        projection = cross(c_f[None], gain_f, w)[0] / cross(c_f[None], c_f, w)[0]
+        projected = gain_f - projection * c_f
+        b = cross(projected[None], noise_f, w)[0]
+        exact = b**2 / cross(projected[None], projected, w)[0]
+        assert scans["gain"][index] == pytest.approx(exact, rel=0.05, abs=0.05)
+
+
+@pytest.mark.parametrize("seed", range(1, 9))
+def test_pure_noise_has_no_step(seed):
+    times_s, signal, w, noise_f = _case(seed)
+    found = find_steps(noise_f, w, np.ones(N, bool), signal, times_s, 0, F_HWP_HZ, math.log(2 * N))
+    assert found == []
+
+
+@pytest.mark.parametrize("seed", range(1, 7))
+@pytest.mark.parametrize("part", ["offset", "gain"])
+def test_a_step_is_found_with_its_part_values_and_time(seed, part):
+    """A 14-sigma offset (300 uK) or 20-sigma gain (4e-4 of A_2) step at a random time: one step,
+    that part alone, its value within 3 sigma, its time within 3 of its error, which is
+    wider than half a sample and than the span within 1 of the peak would say."""
+    times_s, signal, w, noise_f = _case(seed)
+    rng = np.random.default_rng(100 + seed)
+    first = int(rng.uniform(0.2, 0.8) * N)
+    truth = {"offset": 3e-4, "gain": 0.0} if part == "offset" else {"offset": 0.0, "gain": 4e-4}
+    step = np.zeros(N)
+    step[first:] = 1.0
+    recorded_f = noise_f + rfft(step * (truth["offset"] + truth["gain"] * signal))
+    (event,) = find_steps(
+        recorded_f, w, np.ones(N, bool), signal, times_s, 0, F_HWP_HZ, math.log(2 * N)
+    )
+    assert event.parts == (part,)
+    value, sigma = (
+        (event.offset_k, event.sigma_offset_k)
+        if part == "offset"
+        else (event.gain, event.sigma_gain)
+    )
+    assert abs(value - truth[part]) < 3 * sigma
+    assert abs(event.time_s - times_s[first]) < 3 * event.sigma_time_s
+    assert event.n_parameters == 3  # the part and its time (counted twice)
+
+
+def test_steps_add_to_the_signal_they_scale():
+    """step_tod: H(t - t_s) [o + s d] in the detector that stepped, zero elsewhere."""
+    from hwp_tes_systematics.diagnose.effects.steps import StepEvent
+
+    times_s = np.arange(10) / FS_HZ
+    signal = np.vstack([np.arange(10.0), np.ones(10)])
+    tod = step_tod(times_s, signal, [StepEvent(0, times_s[4], 0.5, 0.1)])
+    assert np.allclose(tod[0], np.where(np.arange(10) >= 4, 0.5 + 0.1 * np.arange(10), 0.0))
+    assert np.all(tod[1] == 0)
+
+
+@pytest.mark.slow
+def test_a_pairs_steps_are_named_with_their_values(tmp_path):
+    """A 1-h M1-140 pair: an offset step (100 uK) in one detector and a gain step (2e-4)
+    in the other, written to HDF5 and read back; the diagnosis, told nothing, names
+    readout_steps alone, each detector's step with its part within 3 sigma."""
+    from hwp_tes_systematics.diagnose.recording import read_recording, write_recording
+    from hwp_tes_systematics.diagnose.testbed import recorded, run
+
+    recording, _ = recorded(tmp_path, [], noise_seed=301, hours=1.0)
+    first = int(np.searchsorted(recording.times_s, 1700.0))
+    recording.tod[0, first:] += 1e-4
+    recording.tod[1, 2 * first :] *= 1 + 2e-4
+    write_recording(tmp_path / "steps.h5", recording)
+    result = run(read_recording(tmp_path / "steps.h5"), figures=False)
+    assert result.effect_names == ["readout_steps"], result.effect_names
+    parameters = result["effects"][0]["parameters"]
+    names = recording.detector_names
+    offset = next(v for v in parameters.values() if v["parameter"] == "offset")
+    gain = next(v for v in parameters.values() if v["parameter"] == "gain")
+    assert offset["detector"] == names[0] and abs(offset["value"] - 1e-4) < 3 * offset["sigma"]
+    assert gain["detector"] == names[1] and abs(gain["value"] - 2e-4) < 3 * gain["sigma"]
+    times = {v["detector"]: v for v in parameters.values() if v["parameter"] == "time"}
+    for name, truth_s in (
+        (names[0], recording.times_s[first]),
+        (names[1], recording.times_s[2 * first]),
+    ):
+        assert abs(times[name]["value"] - truth_s) < 3 * times[name]["sigma"]
+    assert result["unexplained"] == []
