@@ -101,6 +101,21 @@ def test_a_step_is_found_with_its_part_values_and_time(seed, part):
     assert event.n_parameters == 3  # the part and its time (counted twice)
 
 
+@pytest.mark.parametrize("seed", range(1, 4))
+@pytest.mark.parametrize("part", ["offset", "gain"])
+def test_a_smooth_change_is_not_a_step(seed, part):
+    """A sinusoidal modulation of period 900 s (an offset of 300 uK, or 2 % of the 2f
+    amplitude): the scan's candidates fit no better than a change over three minutes,
+    and no step is kept."""
+    times_s, signal, w, noise_f = _case(seed)
+    wave = np.sin(2 * np.pi * times_s / 900.0)
+    change = 3e-4 * wave if part == "offset" else 0.02 * wave * signal
+    found = find_steps(
+        noise_f + rfft(change), w, np.ones(N, bool), signal, times_s, 0, F_HWP_HZ, math.log(2 * N)
+    )
+    assert found == []
+
+
 def test_steps_add_to_the_signal_they_scale():
     """step_tod: H(t - t_s) [o + s d] in the detector that stepped, zero elsewhere."""
     from hwp_tes_systematics.diagnose.effects.steps import StepEvent

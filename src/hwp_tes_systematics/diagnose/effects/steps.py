@@ -43,6 +43,14 @@ from .event_groups import coincidence_sentence, coincidences
 
 EDGE_S = 60.0  # no step is sought within this of a recording's ends (an edge is an offset)
 MAX_STEPS = 4  # steps sought per detector
+MAX_TRIES = 8  # candidates tried per detector (a candidate that is not sharp is skipped)
+# a step must fit better than any linear change over RAMP_S centred within RAMP_S of it,
+# by ln N (what one more parameter costs): a readout step is one sample sharp, a drift or
+# a modulation smooth over minutes. On simulated 20-min detectors: offset steps of 5-25
+# sigma beat the ramp by 20-100, gain steps of 5-15 sigma by 2-23, a 900-s modulation of
+# the offset (3e-4 K) by -6 to 12, of the 2f amplitude (2 %) by less than -19,000
+RAMP_S = 180.0
+RAMP_CENTRES = 9  # the ramp's centres tried, evenly over +- RAMP_S
 # the step time's error: the span within TIME_LEVEL of the scan's peak, over its root
 # (the span within 1 gives rms pulls of 8 and 12 on simulated steps) ...
 TIME_LEVEL = 16.0
@@ -174,25 +182,10 @@ def fit_step(
     for i in range(max(1, index - REFINE_SAMPLES), min(n - 1, index + REFINE_SAMPLES + 1)):
         if not valid[i]:
             continue
-        step = np.zeros(n)
-        step[i:] = 1.0
-        shapes = {"offset": step, "gain": step * signal_k}
-        templates = rfft(np.stack([shapes[part] for part in parts]) * valid)
-        gram = cross(templates, templates, w)
-        rhs = cross(templates, r_f, w)
-        projection = None
-        if bank is not None:
-            bank_t = cross(bank.rows, templates, w)  # <B, T>
-            projection = bank.gram_inverse @ bank_t  # G^+ <B, T>
-            gram = gram - bank_t.T @ projection
-            rhs = rhs - projection.T @ bank_r
-        values, covariance = solve_normal(gram, rhs)
-        delta_chi2 = float(values @ rhs)
-        if best is None or delta_chi2 > best[0]:
-            best = (delta_chi2, i, values, covariance, templates, projection)
-    delta_chi2, i, values, covariance, templates, projection = best
-    if projection is not None:  # the step's change to the joint model: T' values
-        templates = templates - projection.T @ bank.rows
+        fitted = fit_edge(r_f, w, valid, signal_k, edge_shape(n, i), parts, bank, bank_r)
+        if best is None or fitted[0] > best[0]:
+            best = (*fitted, i)
+    delta_chi2, values, covariance, change_f, i = best
     sigmas = np.sqrt(np.clip(np.diag(covariance), 0.0, None))
     fitted = dict(zip(parts, zip(values, sigmas, strict=True), strict=True))
     offset, sigma_offset = fitted.get("offset", (0.0, 0.0))
@@ -207,7 +200,49 @@ def fit_step(
         significance=math.sqrt(max(delta_chi2, 0.0)),
         parts=tuple(parts),
     )
-    return event, values @ templates
+    return event, change_f
+
+
+def best_ramp(r_f, w, valid, signal_k, index, width, parts, bank) -> float:
+    """The largest delta chi^2 of a linear change of ``parts`` over ``width`` samples,
+    centred at RAMP_CENTRES points within ``width`` of ``index`` (:func:`fit_edge`)."""
+    n = valid.size
+    centres = np.linspace(index - width, index + width, RAMP_CENTRES).astype(int)
+    return max(
+        fit_edge(r_f, w, valid, signal_k, edge_shape(n, int(c), width), parts, bank)[0]
+        for c in np.clip(centres, 0, n - 1)
+    )
+
+
+def edge_shape(n: int, index: int, width_samples: float = 0.0) -> np.ndarray:
+    """H(t - t_index) (``width_samples`` 0), or a linear ramp from 0 to 1 over
+    ``width_samples`` centred on it: a step, or the smooth change it is tested against."""
+    if width_samples <= 0:
+        shape = np.zeros(n)
+        shape[index:] = 1.0
+        return shape
+    return np.clip((np.arange(n) - index) / width_samples + 0.5, 0.0, 1.0)
+
+
+def fit_edge(r_f, w, valid, signal_k, shape, parts, bank: Bank | None, bank_r=None):
+    """The Whittle fit of ``parts`` with the edge ``shape`` (offset: shape; gain: shape d),
+    jointly with ``bank``: (delta chi^2, values, covariance, the rfft of its change to the
+    joint model)."""
+    shapes = {"offset": shape, "gain": shape * signal_k}
+    templates = rfft(np.stack([shapes[part] for part in parts]) * valid)
+    gram = cross(templates, templates, w)
+    rhs = cross(templates, r_f, w)
+    if bank is not None:  # projected off the bank: the Schur complement
+        bank_r = cross(bank.rows, r_f, w) if bank_r is None else bank_r
+        bank_t = cross(bank.rows, templates, w)  # <B, T>
+        projection = bank.gram_inverse @ bank_t  # G^+ <B, T>
+        gram = gram - bank_t.T @ projection
+        rhs = rhs - projection.T @ bank_r
+    values, covariance = solve_normal(gram, rhs)
+    change_f = values @ templates
+    if bank is not None:  # the bank's coefficients move by -G^+ <B, T> values
+        change_f = change_f - (projection @ values) @ bank.rows
+    return float(values @ rhs), values, covariance, change_f
 
 
 def time_sigma_s(scan: np.ndarray, index: int, sampling_rate_hz: float) -> float:
@@ -239,8 +274,9 @@ def find_steps(
     """The steps in one detector's residual (rfft ``r_f``, weights ``w`` = v / S_f on the
     fitted modes): the scan's best, its parts (offset, gain or both) those whose delta
     chi^2 pays most beyond the BIC (ln N per part, TIME_PARAMETERS ln N for its time),
-    fitted exactly (jointly
-    with ``bank``), while that pays; at most MAX_STEPS, none within EDGE_S of the ends."""
+    fitted exactly (jointly with ``bank``), while that pays, and kept when it fits better
+    than a linear change over RAMP_S near it by ln N (:func:`best_ramp`; else those
+    samples are skipped); at most MAX_STEPS, none within EDGE_S of the ends."""
     n = valid.size
     fs = 1.0 / (times_s[1] - times_s[0])
     carrier_k = carrier(signal_k, 0.5 * f_hwp_hz, fs)
@@ -257,7 +293,9 @@ def find_steps(
         return []
     residual = r_f.copy()
     events = []
-    for _ in range(MAX_STEPS):
+    for _ in range(MAX_TRIES):
+        if len(events) == MAX_STEPS:
+            break
         scans = step_scan(residual, w, valid, carrier_k, w_carrier)
         scans = {part: np.where(allowed, scan, 0.0) for part, scan in scans.items()}
         best = None  # (delta BIC, parts, index, their scan)
@@ -275,6 +313,13 @@ def find_steps(
         )
         if event.significance**2 < event.n_parameters * ln_n:
             break
+        first = int(np.searchsorted(times_s, event.time_s - 1e-9))
+        width = int(RAMP_S * fs)
+        if best_ramp(residual, w, valid, signal_k, first, width, parts, bank) > (
+            event.significance**2 - ln_n
+        ):  # not sharp: a change spread over minutes fits as well (a drift, a modulation)
+            allowed[max(0, first - width) : first + width] = False
+            continue
         # the cusp's own scale: C / (delta chi^2 lost per sample moved), white noise
         rate = (event.offset_k**2 + event.gain**2 * np.mean(carrier_k**2)) * white_weight
         sigma_t = max(
