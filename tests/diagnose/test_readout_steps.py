@@ -91,6 +91,9 @@ def test_a_step_is_found_with_its_part_values_and_time(seed, part):
         recorded_f, w, np.ones(N, bool), signal, times_s, 0, F_HWP_HZ, math.log(2 * N)
     )
     assert event.parts == (part,)
+    # an offset's sharpness is measured (white noise above the knee); a gain step's
+    # information above 1 / (3 min) is E ~ 24 at 20 sigma, not always enough to say
+    assert event.sharp or part == "gain"
     value, sigma = (
         (event.offset_k, event.sigma_offset_k)
         if part == "offset"
@@ -105,15 +108,18 @@ def test_a_step_is_found_with_its_part_values_and_time(seed, part):
 @pytest.mark.parametrize("part", ["offset", "gain"])
 def test_a_smooth_change_is_not_a_step(seed, part):
     """A sinusoidal modulation of period 900 s (an offset of 300 uK, or 2 % of the 2f
-    amplitude): the scan's candidates fit no better than a change over three minutes,
-    and no step is kept."""
+    amplitude): no candidate is a sharp step; the 2f modulation's are all dropped (a
+    change over three minutes fits far better), an offset's at most kept as not told
+    apart from one."""
     times_s, signal, w, noise_f = _case(seed)
     wave = np.sin(2 * np.pi * times_s / 900.0)
     change = 3e-4 * wave if part == "offset" else 0.02 * wave * signal
     found = find_steps(
         noise_f + rfft(change), w, np.ones(N, bool), signal, times_s, 0, F_HWP_HZ, math.log(2 * N)
     )
-    assert found == []
+    assert not any(step.sharp for step in found), found
+    if part == "gain":
+        assert found == []
 
 
 def test_steps_add_to_the_signal_they_scale():

@@ -43,14 +43,17 @@ from .event_groups import coincidence_sentence, coincidences
 
 EDGE_S = 60.0  # no step is sought within this of a recording's ends (an edge is an offset)
 MAX_STEPS = 4  # steps sought per detector
-MAX_TRIES = 8  # candidates tried per detector (a candidate that is not sharp is skipped)
-# a step must fit better than any linear change over RAMP_S centred within RAMP_S of it,
-# by ln N (what one more parameter costs): a readout step is one sample sharp, a drift or
-# a modulation smooth over minutes. On simulated 20-min detectors: offset steps of 5-25
-# sigma beat the ramp by 20-100, gain steps of 5-15 sigma by 2-23, a 900-s modulation of
-# the offset (3e-4 K) by -6 to 12, of the 2f amplitude (2 %) by less than -19,000
+MAX_TRIES = 8  # candidates tried per detector (a smooth candidate is skipped)
+# a step is compared with the linear changes over RAMP_S centred within RAMP_S of it: a
+# readout step is one sample sharp, a drift or a modulation smooth over minutes. On
+# simulated 20-min detectors: offset steps of 5-25 sigma beat the ramp by 20-100, gain
+# steps of 5-15 sigma by 2-23, a 900-s modulation of the offset (3e-4 K) by -6 to 12, of
+# the 2f amplitude (2 %) by less than -19,000
 RAMP_S = 180.0
 RAMP_CENTRES = 9  # the ramp's centres tried, evenly over +- RAMP_S
+# the verdict on D (:func:`sharpness`): smooth below -this x 2 sqrt(E) (the candidate is
+# dropped), sharp above +this x 2 sqrt(E), else a step not told apart from a ramp
+SHARPNESS_SIGMAS = 1.0
 # the step time's error: the span within TIME_LEVEL of the scan's peak, over its root
 # (the span within 1 gives rms pulls of 8 and 12 on simulated steps) ...
 TIME_LEVEL = 16.0
@@ -86,6 +89,7 @@ class StepEvent:
     significance: float = 0.0  # sqrt(delta chi^2) of the step against none
     sigma_time_s: float = 0.0  # where delta chi^2 stays within 1 of its peak
     parts: tuple[str, ...] = ("offset", "gain")  # the parts fitted (the others are 0)
+    sharp: bool = True  # False: not told apart from a change over RAMP_S (:func:`sharpness`)
 
     @property
     def n_parameters(self) -> int:
@@ -203,15 +207,24 @@ def fit_step(
     return event, change_f
 
 
-def best_ramp(r_f, w, valid, signal_k, index, width, parts, bank) -> float:
-    """The largest delta chi^2 of a linear change of ``parts`` over ``width`` samples,
-    centred at RAMP_CENTRES points within ``width`` of ``index`` (:func:`fit_edge`)."""
+def sharpness(r_f, w, valid, signal_k, index, width, parts, values, bank) -> tuple[float, float]:
+    """(D, E) of the step at ``index`` of fitted ``values``: D its delta chi^2 less that of
+    the best linear change of ``parts`` over ``width`` samples centred at RAMP_CENTRES
+    points within ``width`` of it, E = ||values (T_step - T_ramp)||^2 at its own centre
+    (the step's information above 1 / width). A step gives D ~ +E +- 2 sqrt(E), a smooth
+    change D ~ -E +- 2 sqrt(E)."""
     n = valid.size
-    centres = np.linspace(index - width, index + width, RAMP_CENTRES).astype(int)
-    return max(
+    step = fit_edge(r_f, w, valid, signal_k, edge_shape(n, index), parts, bank)[0]
+    centres = np.clip(np.linspace(index - width, index + width, RAMP_CENTRES).astype(int), 0, n - 1)
+    ramp = max(
         fit_edge(r_f, w, valid, signal_k, edge_shape(n, int(c), width), parts, bank)[0]
-        for c in np.clip(centres, 0, n - 1)
+        for c in centres
     )
+    difference = edge_shape(n, index) - edge_shape(n, index, width)
+    shapes = {"offset": difference, "gain": difference * signal_k}
+    templates = rfft(np.stack([shapes[part] for part in parts]) * valid)
+    change_f = np.asarray(values) @ templates
+    return step - ramp, float(cross(change_f[None], change_f, w)[0])
 
 
 def edge_shape(n: int, index: int, width_samples: float = 0.0) -> np.ndarray:
@@ -274,9 +287,10 @@ def find_steps(
     """The steps in one detector's residual (rfft ``r_f``, weights ``w`` = v / S_f on the
     fitted modes): the scan's best, its parts (offset, gain or both) those whose delta
     chi^2 pays most beyond the BIC (ln N per part, TIME_PARAMETERS ln N for its time),
-    fitted exactly (jointly with ``bank``), while that pays, and kept when it fits better
-    than a linear change over RAMP_S near it by ln N (:func:`best_ramp`; else those
-    samples are skipped); at most MAX_STEPS, none within EDGE_S of the ends."""
+    fitted exactly (jointly with ``bank``), while that pays; dropped when a linear change
+    over RAMP_S near it fits clearly better (:func:`sharpness`; those samples are then
+    skipped), marked not sharp when neither is clearly better; at most MAX_STEPS, none
+    within EDGE_S of the ends."""
     n = valid.size
     fs = 1.0 / (times_s[1] - times_s[0])
     carrier_k = carrier(signal_k, 0.5 * f_hwp_hz, fs)
@@ -315,18 +329,19 @@ def find_steps(
             break
         first = int(np.searchsorted(times_s, event.time_s - 1e-9))
         width = int(RAMP_S * fs)
-        if best_ramp(residual, w, valid, signal_k, first, width, parts, bank) > (
-            event.significance**2 - ln_n
-        ):  # not sharp: a change spread over minutes fits as well (a drift, a modulation)
+        values = [event.offset_k if p == "offset" else event.gain for p in parts]
+        d, e = sharpness(residual, w, valid, signal_k, first, width, parts, values, bank)
+        if d < -SHARPNESS_SIGMAS * 2 * math.sqrt(e):  # smooth: a drift, a modulation
             allowed[max(0, first - width) : first + width] = False
             continue
+        sharp = d > SHARPNESS_SIGMAS * 2 * math.sqrt(e)  # else not told apart from a ramp
         # the cusp's own scale: C / (delta chi^2 lost per sample moved), white noise
         rate = (event.offset_k**2 + event.gain**2 * np.mean(carrier_k**2)) * white_weight
         sigma_t = max(
             time_sigma_s(np.where(allowed, scan, -np.inf), index, fs),
             TIME_CUSP_SCALE / max(rate, 1e-300) / fs,
         )
-        events.append(StepEvent(**{**event.__dict__, "sigma_time_s": sigma_t}))
+        events.append(StepEvent(**{**event.__dict__, "sigma_time_s": sigma_t, "sharp": sharp}))
         residual = residual - model_f
     return events
 
