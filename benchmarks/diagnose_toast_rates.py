@@ -96,7 +96,8 @@ times drawn over 10 - 90 % of the recording, or, one recording in three, a bias 
 detectors at one time (a pair's two, 3-6 of 14 detectors); each step an offset, a gain
 or both (a third each), |o| log-uniform in 0.1 - 3 times the white noise per sample and
 |s| A_2 in 0.01 - 0.3 times it (``--step-range``, the two lower ends scaled together), random signs. Expected
-``readout_steps`` first; each step found (a step of its detector within 60 s), its time
+``readout_steps`` first; each step found (a step of its detector within 60 s, or 3 of
+its time's error where that is wider: a weak gain step's time is known to minutes), its time
 and its injected parts within 3 sigma, by strength (the larger of |o| and |s| A_2 over
 the white noise per sample); the steps found where none was; a step shared by 3-6
 detectors scoped by coincidence (a pair's one shared step is short of 5 sigma: chance
@@ -578,10 +579,11 @@ def score_steps(result: dict, setup: dict, truth: dict) -> dict:
     for name, injected in truth.get("readout_steps", {}).items():
         for first, offset, gain in injected:
             strength = max(abs(offset), abs(gain) * setup["a2_k"]) / sigma
-            candidates = [
+            candidates = [  # within the window, or 3 of its time's error if wider
                 (abs(p["time"]["value"] - first / fs), index, p)
                 for index, p in found.get(name, {}).items()
-                if abs(p["time"]["value"] - first / fs) <= STEP_WINDOW_S
+                if abs(p["time"]["value"] - first / fs)
+                <= max(STEP_WINDOW_S, 3 * p["time"]["sigma"])
             ]
             if not candidates:
                 steps.append([round(strength, 3), False, []])

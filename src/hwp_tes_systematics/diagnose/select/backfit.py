@@ -188,6 +188,7 @@ def fit_iterative(problem, selected, initial_extra=None, gain_after=False) -> Fi
     used_nl = [banks[k][nl_rows] for k in range(n_det)]
     nonlinear_parts = [0.0] * n_det
     first_pass_inflation = np.ones(n_det)  # the nonlinearity's variance inflation, pass 1
+    grams = [None] * n_det  # each detector's Gram matrix of its last linear solve
 
     def rebuild(k, extra):
         """The nonlinearity's template rows of detector k built on d_nom + ``extra``."""
@@ -211,6 +212,7 @@ def fit_iterative(problem, selected, initial_extra=None, gain_after=False) -> Fi
             if recomposed[k]:  # else the precomputed block is exact
                 gram[nl_rows] = cross(bank[nl_rows], bank, w)
                 gram[:, nl_rows] = gram[nl_rows].T
+            grams[k] = gram
             y = problem.residual_f[k] - events_f[k]
             if nonlinear is not None:
                 theta[k], theta_sigma[k], a, cov = fit_nonlinear(
@@ -270,11 +272,30 @@ def fit_iterative(problem, selected, initial_extra=None, gain_after=False) -> Fi
                 events[effect.name] = effect.detector_events(ctx, found)
                 now = problem.masked_rfft(effect.events_tod(ctx, events[effect.name]))
                 for k in range(n_det):
-                    models[k] = models[k] - own[k] + now[k]
+                    # the linear values given the new events (a step is fitted jointly
+                    # with the linear templates and moves their values: the Schur
+                    # complement); without it the model would hold the step alone
+                    moved = 0.0
+                    if rows.size and grams[k] is not None:
+                        # the bank its solve used: the nonlinearity's rows as they were
+                        bank = banks[k]
+                        if nl_rows.size:
+                            bank = bank.copy()
+                            bank[nl_rows] = used_nl[k]
+                        change = cross(bank, own[k] - now[k], problem.w_nom[k])
+                        move = solve_normal(grams[k], change)[0]
+                        values[k] = values[k] + move
+                        moved = move @ bank
+                    models[k] = models[k] - own[k] + now[k] + moved
                     own[k] = now[k]
             if len(events_effects) > 1:
                 for k in range(n_det):
                     events_f[k] = sum(each_events_f[e.name][k] for e in events_effects)
+            if shared:  # the moves were each detector's: shared again
+                values, covariances, shared = problem.share(linear, values, covariances)
+                for k in range(n_det):
+                    since = values[k][nl_rows] @ (used_nl[k] - banks[k][nl_rows])
+                    models[k] = values[k] @ banks[k] + since + nonlinear_parts[k] + events_f[k]
         if not (updated or events_effects):
             break
         total = sum(problem.chi2_of(k, models[k]) for k in range(n_det))

@@ -151,12 +151,15 @@ class FitProblem:
                 float(cross(self.residual_f[k][None], self.residual_f[k], self.w_nom[k])[0])
             )
         self._cache: dict[tuple, FitResult] = {}
+        # what an effect derives from the weights once, for every fit (a step search's norms)
+        self.derived: dict[tuple, object] = {}
 
     def with_noise(self, nominal_noise) -> FitProblem:
         """The same problem (template bank, residual) with other noise weights, sharing the bank."""
         other = copy.copy(self)
         other._set_noise(nominal_noise)
         other._cache = {}  # the fits depend on the weights
+        other.derived = {}
         return other
 
     # ------------------------------------------------------------------ helpers

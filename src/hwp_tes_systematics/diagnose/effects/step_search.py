@@ -1,0 +1,330 @@
+"""The search for readout steps in one detector's residual: the scan's best candidates
+(:mod:`.step_scan`), each tested for sharpness, fitted exactly (both parts with the mask,
+jointly with the linear templates fitted beside them) and kept while its delta chi^2 pays
+the BIC (ln N per part, TIME_PARAMETERS ln N for its time: a change point's location);
+the search repeats on the residual without it. The time's error is from where the scan
+stays within TIME_LEVEL of its peak (:func:`time_sigma_s`). :mod:`.steps` is the catalog
+effect.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..fourier import rfft
+from ..linalg import cross, solve_normal
+from .step_scan import (
+    PARTS,
+    RAMP_S,
+    carrier,
+    edge_shape,
+    offset_norms,
+    ramp_offset_terms,
+    scan_parts,
+    sharpness,
+)
+
+EDGE_S = 60.0  # no step is sought within this of a recording's ends (an edge is an offset)
+MAX_STEPS = 4  # steps sought per detector
+MAX_TRIES = 8  # candidates tried per detector (a smooth candidate is skipped)
+# the search in a detector stops at this many smooth candidates: its residual's largest
+# changes are then another effect's (a drift, a modulation), fitted before any step
+MAX_SMOOTH = 3
+# the verdict on D (:func:`sharpness`): smooth below -this x 2 sqrt(E) (the candidate is
+# dropped), sharp above +this x 2 sqrt(E), else a step not told apart from a ramp
+SHARPNESS_SIGMAS = 1.0
+# the step time's error: the span within TIME_LEVEL of the scan's peak, over its root
+# (the span within 1 gives rms pulls of 8 and 12 on simulated steps) ...
+TIME_LEVEL = 16.0
+# and at least TIME_CUSP_SCALE over the delta chi^2 a step loses per sample it is moved
+# (o^2 + s^2 <c^2>) / sigma^2 in white noise: the argmax of a random walk with that drift
+# has a heavy-tailed error, 68 % within 3 and 99 % within 19-25 of this unit. The larger
+# of the two, on 570 simulated offset and gain steps (5-50 sigma, knees 20 and 100 mHz):
+# 68 % of the times within 0.5 of it, 2 % beyond 3 (heavy tails, not a Gaussian error)
+TIME_CUSP_SCALE = 6.0
+REFINE_SAMPLES = 1  # the exact fit tries the scan's time and this many samples each side
+# the BIC's count for a step's time: a change point's location costs more than a regular
+# parameter (the largest delta chi^2 of an offset step over a noise-only scan: 99 % below
+# 17-23 for 20 min to 1 h at 19-31 Hz, reaching 2 ln N = 21-25; 3 ln N for a step of one
+# part keeps a 64-detector wafer's chance of a false step near 1 %)
+TIME_PARAMETERS = 2
+
+
+@dataclass(frozen=True)
+class StepEvent:
+    """A step in detector ``detector`` at ``time_s`` (its first sample after the step):
+    offset jump ``offset_k`` [K] and relative gain jump ``gain``."""
+
+    detector: int
+    time_s: float
+    offset_k: float
+    gain: float
+    sigma_offset_k: float = 0.0
+    sigma_gain: float = 0.0
+    significance: float = 0.0  # sqrt(delta chi^2) of the step against none
+    sigma_time_s: float = 0.0  # where delta chi^2 stays within 1 of its peak
+    parts: tuple[str, ...] = ("offset", "gain")  # the parts fitted (the others are 0)
+    sharp: bool = True  # False: not told apart from a change over RAMP_S (:func:`sharpness`)
+
+    @property
+    def n_parameters(self) -> int:
+        """Its time (TIME_PARAMETERS) and each part fitted: the BIC's count."""
+        return TIME_PARAMETERS + len(self.parts)
+
+
+def step_tod(times_s: np.ndarray, signal: np.ndarray, events) -> np.ndarray:
+    """sum of the steps' H(t - t_s) [o + s d(t)], (n_det, n), with d = ``signal`` (n_det, n)."""
+    out = np.zeros_like(signal, dtype=float)
+    for event in events:
+        first = int(np.searchsorted(times_s, event.time_s - 1e-9))
+        out[event.detector, first:] += event.offset_k + event.gain * signal[event.detector, first:]
+    return out
+
+
+@dataclass(frozen=True)
+class Bank:
+    """The linear templates fitted beside the steps, for one detector: their rfft rows
+    (n_rows, nf) and the pseudo-inverse of their Gram matrix."""
+
+    rows: np.ndarray
+    gram_inverse: np.ndarray
+
+    @classmethod
+    def of(cls, rows: np.ndarray | None, gram: np.ndarray | None) -> Bank | None:
+        if rows is None or gram is None or rows.shape[0] == 0:
+            return None
+        return cls(rows, solve_normal(gram, np.zeros(gram.shape[0]))[1])
+
+
+def fit_step(
+    r_f: np.ndarray,
+    w: np.ndarray,
+    valid: np.ndarray,
+    signal_k: np.ndarray,
+    times_s: np.ndarray,
+    index: int,
+    detector: int,
+    bank: Bank | None = None,
+    parts: tuple[str, ...] = PARTS,
+) -> tuple[StepEvent, np.ndarray]:
+    """The exact Whittle fit of the step's ``parts`` (o, s or both) at sample ``index`` (and the
+    REFINE_SAMPLES around it, the best kept), jointly with the ``bank`` of linear templates
+    fitted beside it (the step's templates projected off them: T' = T - B G^+ <B, T>, the
+    Schur complement): the event and the rfft of the change the step makes to the joint
+    model (T' times its values)."""
+    n = valid.size
+    positions = [
+        i
+        for i in range(max(1, index - REFINE_SAMPLES), min(n - 1, index + REFINE_SAMPLES + 1))
+        if valid[i]
+    ] or [index]
+    # every position's templates in one transform, and their products with the bank once
+    rows = []
+    for i in positions:
+        shape = edge_shape(n, i)
+        rows += [shape if part == "offset" else shape * signal_k for part in parts]
+    templates = rfft(np.stack(rows) * valid)
+    bank_r = cross(bank.rows, r_f, w) if bank is not None else None
+    bank_t = cross(bank.rows, templates, w) if bank is not None else None
+    best = None
+    k = len(parts)
+    for j, i in enumerate(positions):
+        own = slice(j * k, (j + 1) * k)
+        fitted = fit_templates(
+            templates[own], r_f, w, bank, bank_r, None if bank_t is None else bank_t[:, own]
+        )
+        if best is None or fitted[0] > best[0]:
+            best = (*fitted, i)
+    delta_chi2, values, covariance, change_f, i = best
+    sigmas = np.sqrt(np.clip(np.diag(covariance), 0.0, None))
+    fitted = dict(zip(parts, zip(values, sigmas, strict=True), strict=True))
+    offset, sigma_offset = fitted.get("offset", (0.0, 0.0))
+    gain, sigma_gain = fitted.get("gain", (0.0, 0.0))
+    event = StepEvent(
+        detector=detector,
+        time_s=float(times_s[i]),
+        offset_k=float(offset),
+        gain=float(gain),
+        sigma_offset_k=float(sigma_offset),
+        sigma_gain=float(sigma_gain),
+        significance=math.sqrt(max(delta_chi2, 0.0)),
+        parts=tuple(parts),
+    )
+    return event, change_f
+
+
+def fit_edge(r_f, w, valid, signal_k, shape, parts, bank: Bank | None, bank_r=None):
+    """The Whittle fit of ``parts`` with the edge ``shape`` (offset: shape; gain: shape d),
+    jointly with ``bank``: :func:`fit_templates`."""
+    shapes = {"offset": shape, "gain": shape * signal_k}
+    templates = rfft(np.stack([shapes[part] for part in parts]) * valid)
+    return fit_templates(templates, r_f, w, bank, bank_r)
+
+
+def fit_templates(templates, r_f, w, bank: Bank | None, bank_r=None, bank_t=None):
+    """The Whittle fit of ``templates`` (rfft rows) jointly with ``bank`` (``bank_r`` =
+    <B, R> and ``bank_t`` = <B, T> if known): (delta chi^2, values, covariance, the rfft
+    of its change to the joint model)."""
+    gram = cross(templates, templates, w)
+    rhs = cross(templates, r_f, w)
+    if bank is not None:  # projected off the bank: the Schur complement
+        bank_r = cross(bank.rows, r_f, w) if bank_r is None else bank_r
+        bank_t = cross(bank.rows, templates, w) if bank_t is None else bank_t  # <B, T>
+        projection = bank.gram_inverse @ bank_t  # G^+ <B, T>
+        gram = gram - bank_t.T @ projection
+        rhs = rhs - projection.T @ bank_r
+    values, covariance = solve_normal(gram, rhs)
+    change_f = values @ templates
+    if bank is not None:  # the bank's coefficients move by -G^+ <B, T> values
+        change_f = change_f - (projection @ values) @ bank.rows
+    return float(values @ rhs), values, covariance, change_f
+
+
+def time_sigma_s(scan: np.ndarray, index: int, sampling_rate_hz: float) -> float:
+    """The step time's error: half the span around the peak at ``index`` where the scan's
+    delta chi^2 stays within TIME_LEVEL of it, over sqrt(TIME_LEVEL) (at least half a
+    sample). A change point's likelihood is a noisy cusp, not a parabola: the span within
+    1 of the peak is far too narrow (:data:`TIME_CUSP_SCALE` for the calibration)."""
+    inside = scan >= scan[index] - TIME_LEVEL
+    lo = index
+    while lo > 0 and inside[lo - 1]:
+        lo -= 1
+    hi = index
+    while hi < scan.size - 1 and inside[hi + 1]:
+        hi += 1
+    return max(0.5, 0.5 * (hi - lo) / math.sqrt(TIME_LEVEL)) / sampling_rate_hz
+
+
+@dataclass(frozen=True)
+class StepSearch:
+    """What a detector's search needs that depends on its weights and signal only, not
+    on the residual: computed once per detector and noise model (:meth:`of`)."""
+
+    w: np.ndarray
+    valid: np.ndarray
+    signal_k: np.ndarray
+    times_s: np.ndarray
+    carrier_k: np.ndarray  # the signal above f_HWP / 2
+    w_carrier: float  # the weight at 2 f_HWP
+    white_weight: float  # 1 / sigma^2 per sample of the white noise
+    edge: int  # samples left out at each end (EDGE_S)
+    half: int  # the ramps' half width [samples] (RAMP_S / 2)
+    offset_norm: np.ndarray  # :func:`offset_norms`
+    offset_terms: tuple[float, float]  # :func:`ramp_offset_terms`
+
+    @classmethod
+    def of(cls, w, valid, signal_k, times_s, f_hwp_hz: float) -> StepSearch:
+        n = valid.size
+        fs = 1.0 / (times_s[1] - times_s[0])
+        freqs = np.fft.rfftfreq(n, 1.0 / fs)
+        near = np.abs(freqs - 2 * f_hwp_hz) < 0.1 * f_hwp_hz
+        half = max(1, int(0.5 * RAMP_S * fs))
+        return cls(
+            w=w,
+            valid=valid,
+            signal_k=signal_k,
+            times_s=times_s,
+            carrier_k=carrier(signal_k, 0.5 * f_hwp_hz, fs),
+            w_carrier=float(np.median(w[near])) if near.any() else float(np.median(w[w > 0])),
+            # E|R_f|^2 = n sigma^2 in the white noise
+            white_weight=n * float(np.median(w[freqs > 0.25 * freqs[-1]])),
+            edge=int(EDGE_S * fs),
+            half=half,
+            offset_norm=offset_norms(w, n),
+            offset_terms=ramp_offset_terms(w, n, n // 2, half),
+        )
+
+
+def choose_parts(scans: dict[str, np.ndarray], ln_n: float) -> tuple:
+    """(delta BIC, parts, sample, their scan) of the best candidate: the part whose scan
+    pays most beyond its BIC (TIME_PARAMETERS + 1 ln N) at its peak, and the other part
+    beside it where it pays its ln N at that sample; where neither part alone pays, both
+    at the peak of their sum. The second part is tested at the first's time, not at the
+    peak of the sum: over a weak step's time error the sum's peak would pick the other
+    part's largest noise (4 sigma offsets beside gain steps on TOAST's 1/f noise)."""
+    singles = []
+    for part in PARTS:
+        index = int(np.argmax(scans[part]))
+        singles.append((scans[part][index] - (TIME_PARAMETERS + 1) * ln_n, (part,), index))
+    delta_bic, parts, index = max(singles, key=lambda c: c[0])
+    if delta_bic >= 0:
+        (other,) = (part for part in PARTS if part not in parts)
+        if scans[other][index] > ln_n:
+            return delta_bic + scans[other][index] - ln_n, PARTS, index, sum(scans.values())
+        return delta_bic, parts, index, scans[parts[0]]
+    both = sum(scans.values())
+    index = int(np.argmax(both))
+    return both[index] - (TIME_PARAMETERS + 2) * ln_n, PARTS, index, both
+
+
+def find_steps(
+    r_f: np.ndarray,
+    w: np.ndarray,
+    valid: np.ndarray,
+    signal_k: np.ndarray,
+    times_s: np.ndarray,
+    detector: int,
+    f_hwp_hz: float,
+    ln_n: float,
+    bank: Bank | None = None,
+    search: StepSearch | None = None,
+) -> list[StepEvent]:
+    """The steps in one detector's residual (rfft ``r_f``, weights ``w`` = v / S_f on the
+    fitted modes; ``search`` what depends on them, if known): the scan's best, its parts
+    (offset, gain or both) those whose delta chi^2 pays most beyond the BIC (ln N per part,
+    TIME_PARAMETERS ln N for its time); dropped when a linear change over RAMP_S near it
+    fits clearly better (:func:`sharpness`; those samples are then skipped), else fitted
+    exactly (jointly with ``bank``) and kept while that pays, marked not sharp when
+    neither is clearly better; at most MAX_STEPS, none within EDGE_S of the ends."""
+    if search is None:
+        search = StepSearch.of(w, valid, signal_k, times_s, f_hwp_hz)
+    n = valid.size
+    fs = 1.0 / (times_s[1] - times_s[0])
+    edge, half = search.edge, search.half
+    if n - 2 * edge < 4 * half:  # too short to tell a step from a change over RAMP_S
+        return []
+    allowed = valid.copy()
+    allowed[:edge] = False
+    allowed[n - edge :] = False
+    if not allowed.any():
+        return []
+    residual = r_f.copy()
+    events = []
+    smooth = 0  # candidates found smooth
+    for _ in range(MAX_TRIES):
+        if len(events) == MAX_STEPS:
+            break
+        parts_scan = scan_parts(
+            residual, w, valid, search.carrier_k, search.w_carrier, search.offset_norm
+        )
+        scans = {part: np.where(allowed, parts_scan.chi2(part), 0.0) for part in PARTS}
+        delta_bic, parts, index, scan = choose_parts(scans, ln_n)
+        if delta_bic < 0:
+            break
+        d, e = sharpness(parts_scan, index, half, parts, (edge, n - edge), search.offset_terms)
+        if d < -SHARPNESS_SIGMAS * 2 * math.sqrt(e):  # smooth: a drift, a modulation
+            smooth += 1
+            if smooth == MAX_SMOOTH:
+                break
+            allowed[max(0, index - 2 * half) : index + 2 * half] = False
+            continue
+        event, model_f = fit_step(
+            residual, w, valid, signal_k, times_s, index, detector, bank, parts
+        )
+        if event.significance**2 < event.n_parameters * ln_n:
+            break
+        sharp = d > SHARPNESS_SIGMAS * 2 * math.sqrt(e)  # else not told apart from a ramp
+        # the cusp's own scale: C / (delta chi^2 lost per sample moved), white noise
+        rate = (
+            event.offset_k**2 + event.gain**2 * np.mean(search.carrier_k**2)
+        ) * search.white_weight
+        sigma_t = max(
+            time_sigma_s(np.where(allowed, scan, -np.inf), index, fs),
+            TIME_CUSP_SCALE / max(rate, 1e-300) / fs,
+        )
+        events.append(StepEvent(**{**event.__dict__, "sigma_time_s": sigma_t, "sharp": sharp}))
+        residual = residual - model_f
+    return events
