@@ -217,3 +217,16 @@ def test_the_evidence_says_which_steps_are_not_told_apart_from_a_ramp():
     assert "not told apart" not in said and "A at t = 100.0" in said
     said = ReadoutSteps().evidence(ev, SimpleNamespace(events=[sharp, unresolved]))
     assert said.count("not told apart") == 2 and "1 of them" in said
+
+
+@pytest.mark.parametrize("seed", range(1, 4))
+def test_a_step_is_sharp_with_flags_far_from_it(seed):
+    """Flagged samples (2 %, 400 s away) leave a 14-sigma offset step found and sharp."""
+    times_s, signal, w, noise_f = _case(seed)
+    valid = np.ones(N, bool)
+    valid[13_000:13_380] = False
+    first = 5_400
+    noise_f[0] = 0.0  # the DC mode is not fitted (w = 0 there)
+    tod = (np.fft.irfft(noise_f, n=N) + 3e-4 * edge_shape(N, first)) * valid
+    found = find_steps(rfft(tod), w, valid, signal, times_s, 0, F_HWP_HZ, math.log(2 * N))
+    assert len(found) == 1 and found[0].sharp and found[0].parts == ("offset",)

@@ -304,7 +304,21 @@ def find_steps(
         delta_bic, parts, index, scan = choose_parts(scans, ln_n)
         if delta_bic < 0:
             break
-        d, e = sharpness(parts_scan, index, half, parts, (edge, n - edge), search.offset_terms)
+        # the sharpness from a scan without the mask, as its norms are: the masked
+        # projections beside them misjudge a step by hundreds where flags lie far away
+        whole = (
+            parts_scan
+            if valid.all()
+            else scan_parts(
+                residual,
+                w,
+                np.ones(n, bool),
+                search.carrier_k,
+                search.w_carrier,
+                search.offset_norm,
+            )
+        )
+        d, e = sharpness(whole, index, half, parts, (edge, n - edge), search.offset_terms)
         if d < -SHARPNESS_SIGMAS * 2 * math.sqrt(e):  # smooth: a drift, a modulation
             smooth += 1
             if smooth == MAX_SMOOTH:
