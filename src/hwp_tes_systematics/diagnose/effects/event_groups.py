@@ -205,3 +205,19 @@ def coincidence_sentence(found: Coincidences) -> str:
             f"({chance})"
         )
     return f"{len(found.groups)} coincidences, as many as chance gives ({chance})"
+
+
+def coincidence_scope(found: Coincidences, events, detector_names) -> dict:
+    """The scope of events that coincide across detectors more than chance: {"by":
+    "coincidence", "groups": {"t = .. s": the detectors sharing that event},
+    "observed_pairs", "expected_pairs", "p_value"} (``found``: :func:`coincidences`)."""
+    return {
+        "by": "coincidence",
+        "groups": {
+            f"t = {events[g[0]].time_s:.2f} s": [detector_names[d] for d in sorted(detectors)]
+            for g, detectors in zip(found.groups, found.detectors, strict=True)
+        },
+        "observed_pairs": found.observed_pairs,
+        "expected_pairs": found.expected_pairs,
+        "p_value": found.p_value,
+    }

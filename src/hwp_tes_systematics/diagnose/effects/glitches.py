@@ -14,7 +14,7 @@ import scipy.optimize
 
 from ..fourier import irfft
 from .base import Effect, format_temperature, register
-from .event_groups import coincidence_sentence, coincidences, sky_fixed_groups
+from .event_groups import coincidence_scope, coincidence_sentence, coincidences, sky_fixed_groups
 
 
 @dataclass(frozen=True)
@@ -330,17 +330,7 @@ class Glitches(Effect):
         found = coincidences(fit.events, ctx.times_s, ctx.valid)
         if not found.significant:
             return super().scope(ctx)
-        names = ctx.detector_names
-        return {
-            "by": "coincidence",
-            "groups": {
-                f"t = {fit.events[g[0]].time_s:.2f} s": [names[d] for d in sorted(detectors)]
-                for g, detectors in zip(found.groups, found.detectors, strict=True)
-            },
-            "observed_pairs": found.observed_pairs,
-            "expected_pairs": found.expected_pairs,
-            "p_value": found.p_value,
-        }
+        return coincidence_scope(found, fit.events, ctx.detector_names)
 
 
 def find_transients(

@@ -19,7 +19,7 @@ from typing import ClassVar
 import numpy as np
 
 from .base import Effect, format_temperature, register
-from .event_groups import coincidence_sentence, coincidences
+from .event_groups import coincidence_scope, coincidence_sentence, coincidences
 from .step_scan import RAMP_S
 from .step_search import Bank, StepEvent, StepSearch, find_steps, step_tod
 
@@ -166,17 +166,7 @@ class ReadoutSteps(Effect):
         found = step_coincidences(fit.events, ctx)
         if not found.significant:
             return super().scope(ctx)
-        names = ctx.detector_names
-        return {
-            "by": "coincidence",
-            "groups": {
-                f"t = {fit.events[g[0]].time_s:.2f} s": [names[d] for d in sorted(detectors)]
-                for g, detectors in zip(found.groups, found.detectors, strict=True)
-            },
-            "observed_pairs": found.observed_pairs,
-            "expected_pairs": found.expected_pairs,
-            "p_value": found.p_value,
-        }
+        return coincidence_scope(found, fit.events, ctx.detector_names)
 
 
 def step_coincidences(events, ctx):
