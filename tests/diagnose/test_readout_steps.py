@@ -230,3 +230,15 @@ def test_a_step_is_sharp_with_flags_far_from_it(seed):
     tod = (np.fft.irfft(noise_f, n=N) + 3e-4 * edge_shape(N, first)) * valid
     found = find_steps(rfft(tod), w, valid, signal, times_s, 0, F_HWP_HZ, math.log(2 * N))
     assert len(found) == 1 and found[0].sharp and found[0].parts == ("offset",)
+
+
+def test_a_level_that_comes_back_is_not_two_steps():
+    """A 14-sigma offset that returns 60 s later (a transient) gives no step; one that
+    stays gives one."""
+    times_s, signal, w, noise_f = _case(5)
+    valid = np.ones(N, bool)
+    box = edge_shape(N, 8_000) - edge_shape(N, 8_000 + int(60 * FS_HZ))
+    for change, expected in ((box, 0), (edge_shape(N, 8_000), 1)):
+        r_f = noise_f + rfft(3e-4 * change)
+        found = find_steps(r_f, w, valid, signal, times_s, 0, F_HWP_HZ, math.log(2 * N))
+        assert len(found) == expected, found

@@ -51,6 +51,10 @@ REFINE_SAMPLES = 1  # the exact fit tries the scan's time and this many samples 
 # 17-23 for 20 min to 1 h at 19-31 Hz, reaching 2 ln N = 21-25; 3 ln N for a step of one
 # part keeps a 64-detector wafer's chance of a false step near 1 %)
 TIME_PARAMETERS = 2
+# steps of a detector within RAMP_S of each other whose net change is below this fraction
+# of the largest come back: a transient (a compact source crossed in 7 s is fitted by
+# steps of +0.65 and -0.76 mK), not steps (:func:`without_returns`)
+RETURN_FRACTION = 0.25
 
 
 @dataclass(frozen=True)
@@ -341,4 +345,38 @@ def find_steps(
         )
         events.append(StepEvent(**{**event.__dict__, "sigma_time_s": sigma_t, "sharp": sharp}))
         residual = residual - model_f
-    return events
+    return without_returns(events)
+
+
+def without_returns(events: list[StepEvent]) -> list[StepEvent]:
+    """``events`` less each cluster of a detector's steps (each within RAMP_S of the
+    next) whose net change comes back: each part's sum within 3 sigma of 0 or within
+    RETURN_FRACTION of its largest step. A step stays; a level that comes back is a
+    transient (a source crossed, a glitch's shape), not steps."""
+    dropped: set[int] = set()
+    order = sorted(range(len(events)), key=lambda k: (events[k].detector, events[k].time_s))
+    cluster: list[int] = []
+    for k in [*order, None]:
+        if cluster and (
+            k is None
+            or events[k].detector != events[cluster[-1]].detector
+            or events[k].time_s - events[cluster[-1]].time_s > RAMP_S
+        ):
+            if len(cluster) > 1 and _comes_back([events[c] for c in cluster]):
+                dropped |= set(cluster)
+            cluster = []
+        if k is not None:
+            cluster.append(k)
+    return [event for k, event in enumerate(events) if k not in dropped]
+
+
+def _comes_back(steps: list[StepEvent]) -> bool:
+    """Each part's net change within 3 sigma of 0 or RETURN_FRACTION of its largest step."""
+    for values, sigmas in (
+        ([e.offset_k for e in steps], [e.sigma_offset_k for e in steps]),
+        ([e.gain for e in steps], [e.sigma_gain for e in steps]),
+    ):
+        net, sigma = abs(sum(values)), math.sqrt(sum(x**2 for x in sigmas))
+        if net > max(3 * sigma, RETURN_FRACTION * max(abs(x) for x in values)):
+            return False
+    return True
