@@ -63,7 +63,7 @@ class ReadoutSteps(Effect):
         search = problem.derived.get((self.name, k))
         if search is None:  # once per detector and noise model
             search = StepSearch.of(
-                problem.w_nom[k], problem.valid[k], ctx.d_nom[k], ctx.times_s, _f_hwp_hz(ctx)
+                problem.w_nom[k], problem.valid[k], ctx.d_nom[k], ctx.times_s, ctx.f_hwp_hz
             )
             problem.derived[(self.name, k)] = search
         return find_steps(
@@ -175,9 +175,3 @@ def step_coincidences(events, ctx):
     widest_s = max(e.sigma_time_s for e in events)
     window = max(1, math.ceil(3 * math.sqrt(2) * widest_s * ctx.sampling_rate_hz))
     return coincidences(events, ctx.times_s, ctx.valid, window)
-
-
-def _f_hwp_hz(ctx) -> float:
-    """The HWP's rotation frequency from its angle: d chi / dt / 2 pi."""
-    chi = np.unwrap(ctx.hwp_angle_rad)
-    return float(abs(chi[-1] - chi[0]) / (ctx.times_s[-1] - ctx.times_s[0]) / (2 * math.pi))
