@@ -19,7 +19,7 @@ from hwp_tes_systematics.diagnose.effects.step_scan import (
     sharpness,
     step_scan,
 )
-from hwp_tes_systematics.diagnose.effects.step_search import fit_edge
+from hwp_tes_systematics.diagnose.effects.step_search import StepSearch, fit_templates
 from hwp_tes_systematics.diagnose.effects.steps import find_steps, step_tod
 from hwp_tes_systematics.diagnose.fourier import rfft
 from hwp_tes_systematics.diagnose.linalg import cross
@@ -30,6 +30,17 @@ F_HWP_HZ = 46 / 60
 A2_K = 0.2
 WHITE_K = 2e-4  # white noise per sample
 FKNEE_HZ = 0.05
+
+
+def _search(w, valid, signal, times_s) -> StepSearch:
+    return StepSearch.of(w, valid, signal, times_s, F_HWP_HZ)
+
+
+def _fit_edge(r_f, w, valid, signal, shape, parts) -> float:
+    """delta chi^2 of the exact Whittle fit of ``parts`` with the edge ``shape`` (offset:
+    shape; gain: shape d)."""
+    shapes = {"offset": shape, "gain": shape * signal}
+    return fit_templates(rfft(np.stack([shapes[part] for part in parts]) * valid), r_f, w, None)[0]
 
 
 def _case(seed: int):
@@ -88,11 +99,10 @@ def test_the_sharpness_from_running_means_equals_the_exact_fits(part):
     w_c = float(np.median(w[np.abs(freqs - 2 * F_HWP_HZ) < 0.1 * F_HWP_HZ]))
     scan = scan_parts(r_f, w, valid, c, w_c)
     d, e = sharpness(scan, first, half, (part,), (0, N), ramp_offset_terms(w, N, N // 2, half))
-    exact_step = fit_edge(r_f, w, valid, signal, step, (part,), None)[0]
+    exact_step = _fit_edge(r_f, w, valid, signal, step, (part,))
     centres = np.linspace(first - 2 * half, first + 2 * half, RAMP_CENTRES).astype(int)
     exact_ramp = max(
-        fit_edge(r_f, w, valid, signal, edge_shape(N, c, 2 * half), (part,), None)[0]
-        for c in centres
+        _fit_edge(r_f, w, valid, signal, edge_shape(N, c, 2 * half), (part,)) for c in centres
     )
     value = scan.value(part, first)
     difference = step - edge_shape(N, first, 2 * half)
@@ -107,7 +117,7 @@ def test_the_sharpness_from_running_means_equals_the_exact_fits(part):
 @pytest.mark.parametrize("seed", range(1, 9))
 def test_pure_noise_has_no_step(seed):
     times_s, signal, w, noise_f = _case(seed)
-    found = find_steps(noise_f, w, np.ones(N, bool), signal, times_s, 0, F_HWP_HZ, math.log(2 * N))
+    found = find_steps(noise_f, _search(w, np.ones(N, bool), signal, times_s), 0, math.log(2 * N))
     assert found == []
 
 
@@ -125,7 +135,7 @@ def test_a_step_is_found_with_its_part_values_and_time(seed, part):
     step[first:] = 1.0
     recorded_f = noise_f + rfft(step * (truth["offset"] + truth["gain"] * signal))
     (event,) = find_steps(
-        recorded_f, w, np.ones(N, bool), signal, times_s, 0, F_HWP_HZ, math.log(2 * N)
+        recorded_f, _search(w, np.ones(N, bool), signal, times_s), 0, math.log(2 * N)
     )
     assert event.parts == (part,)
     # an offset's sharpness is measured (white noise above the knee); a gain step's
@@ -152,7 +162,7 @@ def test_a_smooth_change_is_not_a_step(seed, part):
     wave = np.sin(2 * np.pi * times_s / 900.0)
     change = 3e-4 * wave if part == "offset" else 0.02 * wave * signal
     found = find_steps(
-        noise_f + rfft(change), w, np.ones(N, bool), signal, times_s, 0, F_HWP_HZ, math.log(2 * N)
+        noise_f + rfft(change), _search(w, np.ones(N, bool), signal, times_s), 0, math.log(2 * N)
     )
     assert not any(step.sharp for step in found), found
     if part == "gain":
@@ -228,7 +238,7 @@ def test_a_step_is_sharp_with_flags_far_from_it(seed):
     first = 5_400
     noise_f[0] = 0.0  # the DC mode is not fitted (w = 0 there)
     tod = (np.fft.irfft(noise_f, n=N) + 3e-4 * edge_shape(N, first)) * valid
-    found = find_steps(rfft(tod), w, valid, signal, times_s, 0, F_HWP_HZ, math.log(2 * N))
+    found = find_steps(rfft(tod), _search(w, valid, signal, times_s), 0, math.log(2 * N))
     assert len(found) == 1 and found[0].sharp and found[0].parts == ("offset",)
 
 
@@ -240,5 +250,5 @@ def test_a_level_that_comes_back_is_not_two_steps():
     box = edge_shape(N, 8_000) - edge_shape(N, 8_000 + int(60 * FS_HZ))
     for change, expected in ((box, 0), (edge_shape(N, 8_000), 1)):
         r_f = noise_f + rfft(3e-4 * change)
-        found = find_steps(r_f, w, valid, signal, times_s, 0, F_HWP_HZ, math.log(2 * N))
+        found = find_steps(r_f, _search(w, valid, signal, times_s), 0, math.log(2 * N))
         assert len(found) == expected, found

@@ -160,14 +160,6 @@ def fit_step(
     return event, change_f
 
 
-def fit_edge(r_f, w, valid, signal_k, shape, parts, bank: Bank | None, bank_r=None):
-    """The Whittle fit of ``parts`` with the edge ``shape`` (offset: shape; gain: shape d),
-    jointly with ``bank``: :func:`fit_templates`."""
-    shapes = {"offset": shape, "gain": shape * signal_k}
-    templates = rfft(np.stack([shapes[part] for part in parts]) * valid)
-    return fit_templates(templates, r_f, w, bank, bank_r)
-
-
 def fit_templates(templates, r_f, w, bank: Bank | None, bank_r=None, bank_t=None):
     """The Whittle fit of ``templates`` (rfft rows) jointly with ``bank`` (``bank_r`` =
     <B, R> and ``bank_t`` = <B, T> if known): (delta chi^2, values, covariance, the rfft
@@ -266,25 +258,19 @@ def choose_parts(scans: dict[str, np.ndarray], ln_n: float) -> tuple:
 
 def find_steps(
     r_f: np.ndarray,
-    w: np.ndarray,
-    valid: np.ndarray,
-    signal_k: np.ndarray,
-    times_s: np.ndarray,
+    search: StepSearch,
     detector: int,
-    f_hwp_hz: float,
     ln_n: float,
     bank: Bank | None = None,
-    search: StepSearch | None = None,
 ) -> list[StepEvent]:
-    """The steps in one detector's residual (rfft ``r_f``, weights ``w`` = v / S_f on the
-    fitted modes; ``search`` what depends on them, if known): the scan's best, its parts
+    """The steps in one detector's residual (rfft ``r_f``; ``search`` its weights
+    w = v / S_f on the fitted modes, signal and what depends on them): the scan's best, its parts
     (offset, gain or both) those whose delta chi^2 pays most beyond the BIC (ln N per part,
     TIME_PARAMETERS ln N for its time); dropped when a linear change over RAMP_S near it
     fits clearly better (:func:`sharpness`; those samples are then skipped), else fitted
     exactly (jointly with ``bank``) and kept while that pays, marked not sharp when
     neither is clearly better; at most MAX_STEPS, none within EDGE_S of the ends."""
-    if search is None:
-        search = StepSearch.of(w, valid, signal_k, times_s, f_hwp_hz)
+    w, valid, times_s = search.w, search.valid, search.times_s
     n = valid.size
     fs = 1.0 / (times_s[1] - times_s[0])
     edge, half = search.edge, search.half
@@ -330,7 +316,7 @@ def find_steps(
             allowed[max(0, index - 2 * half) : index + 2 * half] = False
             continue
         event, model_f = fit_step(
-            residual, w, valid, signal_k, times_s, index, detector, bank, parts
+            residual, w, valid, search.signal_k, times_s, index, detector, bank, parts
         )
         if event.significance**2 < event.n_parameters * ln_n:
             break

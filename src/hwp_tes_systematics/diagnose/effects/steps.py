@@ -66,18 +66,7 @@ class ReadoutSteps(Effect):
                 problem.w_nom[k], problem.valid[k], ctx.d_nom[k], ctx.times_s, ctx.f_hwp_hz
             )
             problem.derived[(self.name, k)] = search
-        return find_steps(
-            r_f,
-            search.w,
-            search.valid,
-            search.signal_k,
-            search.times_s,
-            k,
-            f_hwp_hz=math.nan,  # in ``search``
-            ln_n=problem.ln_n_eff,
-            bank=Bank.of(bank, gram),
-            search=search,
-        )
+        return find_steps(r_f, search, k, problem.ln_n_eff, bank=Bank.of(bank, gram))
 
     @staticmethod
     def detector_events(ctx, events) -> list:
