@@ -55,34 +55,95 @@ def _box_norms(kernel: np.ndarray, lengths: np.ndarray) -> np.ndarray:
 
 
 @dataclass(frozen=True)
-class StepScan:
-    """Each part's projection <T, R> and norm <T, T> for a step at every sample t_s
-    (module docstring), with the pieces a ramp's are built from."""
+class ScanNorms:
+    """What a scan needs that depends on the weights, the mask and the carrier only, not
+    on the residual (:meth:`of`): computed once per detector and noise model."""
 
-    offset: np.ndarray  # <T_o, R>
+    valid: np.ndarray
+    carrier_k: np.ndarray
+    w_carrier: float
     offset_norm: np.ndarray  # <T_o, T_o>, the mask ignored
-    gain: np.ndarray  # <T_g', R>, T_g' = T_g projected off the carrier
     gain_norm: np.ndarray  # <T_g', T_g'>
     carrier_power: np.ndarray  # c^2 v per sample
     power_after: np.ndarray  # P(t_s) = sum_{t >= t_s} c^2 v
-    w_carrier: float
+    fraction: np.ndarray  # P / P_0
+    inverse_norms: dict  # part -> 1 / <T, T>, 0 where the norm vanishes
+
+    @classmethod
+    def of(cls, w, valid, carrier_k, w_carrier: float, offset_norm=None) -> ScanNorms:
+        n = valid.size
+        offset_norm = offset_norms(w, n) if offset_norm is None else offset_norm
+        carrier_power = carrier_k**2 * valid
+        power_after = np.cumsum(carrier_power[::-1])[::-1]
+        fraction = power_after / max(power_after[0], 1e-300)
+        # both parts projected off the carrier itself (the nominal 2f amplitude takes the
+        # step's mean): T_g - (P / P_0) c
+        gain_norm = n * w_carrier * power_after * (1.0 - fraction)
+        return cls(
+            valid=valid,
+            carrier_k=carrier_k,
+            w_carrier=w_carrier,
+            offset_norm=offset_norm,
+            gain_norm=gain_norm,
+            carrier_power=carrier_power,
+            power_after=power_after,
+            fraction=fraction,
+            inverse_norms={"offset": _inverse(offset_norm), "gain": _inverse(gain_norm)},
+        )
+
+
+def _inverse(norm: np.ndarray) -> np.ndarray:
+    """1 / norm where it is above 1e-12 of its largest, else 0."""
+    good = norm > 1e-12 * max(norm.max(), 1e-300)
+    out = np.zeros(norm.size)
+    out[good] = 1.0 / norm[good]
+    return out
+
+
+@dataclass(frozen=True)
+class StepScan:
+    """Each part's projection <T, R> for a step at every sample t_s (module docstring),
+    with the norms (:class:`ScanNorms`) its delta chi^2 and a ramp's are built from."""
+
+    offset: np.ndarray  # <T_o, R>
+    gain: np.ndarray  # <T_g', R>, T_g' = T_g projected off the carrier
+    norms: ScanNorms
+
+    @property
+    def offset_norm(self) -> np.ndarray:
+        return self.norms.offset_norm
+
+    @property
+    def gain_norm(self) -> np.ndarray:
+        return self.norms.gain_norm
+
+    @property
+    def carrier_power(self) -> np.ndarray:
+        return self.norms.carrier_power
+
+    @property
+    def power_after(self) -> np.ndarray:
+        return self.norms.power_after
+
+    @property
+    def w_carrier(self) -> float:
+        return self.norms.w_carrier
+
+    def projection(self, part: str) -> np.ndarray:
+        return self.offset if part == "offset" else self.gain
 
     def value(self, part: str, index: int) -> float:
         """The part's value fitted alone at ``index``: <T, R> / <T, T>."""
-        projection, norm = (
-            (self.offset, self.offset_norm) if part == "offset" else (self.gain, self.gain_norm)
-        )
-        return float(projection[index] / norm[index]) if norm[index] > 0 else 0.0
+        return float(self.projection(part)[index] * self.norms.inverse_norms[part][index])
 
     def chi2(self, part: str) -> np.ndarray:
         """delta chi^2 = <T, R>^2 / <T, T> of ``part`` alone at every sample."""
-        projection, norm = (
-            (self.offset, self.offset_norm) if part == "offset" else (self.gain, self.gain_norm)
-        )
-        good = norm > 1e-12 * max(norm.max(), 1e-300)
-        out = np.zeros(norm.size)
-        out[good] = projection[good] ** 2 / norm[good]
-        return out
+        projection = self.projection(part)
+        return projection * projection * self.norms.inverse_norms[part]
+
+    def chi2_at(self, part: str, index: int) -> float:
+        """delta chi^2 of ``part`` alone at ``index``."""
+        return float(self.projection(part)[index] ** 2 * self.norms.inverse_norms[part][index])
 
 
 def offset_norms(w: np.ndarray, n: int) -> np.ndarray:
@@ -98,27 +159,22 @@ def scan_parts(
     w_carrier: float,
     offset_norm: np.ndarray | None = None,
 ) -> StepScan:
-    """The :class:`StepScan` of residual ``r_f``: cumulative sums (module docstring);
-    ``offset_norm`` (:func:`offset_norms`) depends on the weights only."""
-    n = valid.size
-    weighted = irfft(w * r_f, n=n) * valid
-    after = np.cumsum(weighted[::-1])[::-1]  # sum_{t >= t_s}
-    offset_norm = offset_norms(w, n) if offset_norm is None else offset_norm
-    # both parts projected off the carrier itself (the nominal 2f amplitude takes the
-    # step's mean): T_g - (P / P_0) c
-    gain_after = np.cumsum((carrier_k * weighted)[::-1])[::-1]
-    carrier_power = carrier_k**2 * valid
-    power_after = np.cumsum(carrier_power[::-1])[::-1]
-    fraction = power_after / max(power_after[0], 1e-300)
-    return StepScan(
-        offset=n * after,
-        offset_norm=offset_norm,
-        gain=n * (gain_after - fraction * gain_after[0]),
-        gain_norm=n * w_carrier * power_after * (1.0 - fraction),
-        carrier_power=carrier_power,
-        power_after=power_after,
-        w_carrier=w_carrier,
-    )
+    """The :class:`StepScan` of residual ``r_f`` (:func:`scan_weighted`)."""
+    norms = ScanNorms.of(w, valid, carrier_k, w_carrier, offset_norm)
+    return scan_weighted(irfft(w * r_f, n=valid.size), norms)
+
+
+def scan_weighted(weighted: np.ndarray, norms: ScanNorms) -> StepScan:
+    """The :class:`StepScan` of the weighted residual W R = irfft(w R_f): cumulative sums
+    over t >= t_s of W R v and of c W R v (module docstring)."""
+    n = weighted.size
+    masked = weighted * norms.valid
+    after = np.cumsum(masked[::-1])[::-1]  # sum_{t >= t_s}
+    gain_after = np.cumsum((norms.carrier_k * masked)[::-1])[::-1]
+    gain_after -= norms.fraction * gain_after[0]
+    after *= n
+    gain_after *= n
+    return StepScan(offset=after, gain=gain_after, norms=norms)
 
 
 def step_scan(
@@ -168,21 +224,23 @@ def sharpness(scan: StepScan, index: int, half: int, parts, span, offset_terms) 
     lo_all = np.clip(centres - half, span[0], max(span[0], span[1] - width))
     rise = np.arange(1, width) / width  # the ramp inside its width
     ramps = np.zeros(lo_all.size)
+    # the running means need the window the ramps span only
+    first, last = int(lo_all.min()) + 1, int(lo_all.max()) + width + 1
+    lo_local = lo_all + 1 - first
     for part in parts:
-        projection = scan.offset if part == "offset" else scan.gain
-        running = np.concatenate([[0.0], np.cumsum(projection)])
-        ramp_projection = (running[lo_all + width + 1] - running[lo_all + 1]) / width
+        running = np.concatenate([[0.0], np.cumsum(scan.projection(part)[first:last])])
+        ramp_projection = (running[lo_local + width] - running[lo_local]) / width
         if part == "offset":
             ramp_norm = scan.offset_norm[lo_all + width] + offset_terms[0]
         else:
-            power = np.concatenate([[0.0], np.cumsum(scan.power_after)])
-            mean_power = (power[lo_all + width + 1] - power[lo_all + 1]) / width
+            power = np.concatenate([[0.0], np.cumsum(scan.power_after[first:last])])
+            mean_power = (power[lo_local + width] - power[lo_local]) / width
             inside = np.array([rise**2 @ scan.carrier_power[lo + 1 : lo + width] for lo in lo_all])
             squared = scan.power_after[lo_all + width] + inside
             ramp_norm = n * scan.w_carrier * (squared - mean_power**2 / p0)
         good = ramp_norm > 0
         ramps[good] += ramp_projection[good] ** 2 / ramp_norm[good]
-    step = sum(scan.chi2(part)[index] for part in parts)
+    step = sum(scan.chi2_at(part, index) for part in parts)
     information = 0.0
     for part in parts:
         value = scan.value(part, index)

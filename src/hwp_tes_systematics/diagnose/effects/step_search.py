@@ -9,21 +9,24 @@ effect.
 
 from __future__ import annotations
 
+import functools
+import itertools
 import math
 from dataclasses import dataclass
 
 import numpy as np
 
-from ..fourier import rfft
+from ..fourier import irfft, rfft
 from ..linalg import cross, solve_normal
 from .step_scan import (
     PARTS,
     RAMP_S,
+    ScanNorms,
     carrier,
     edge_shape,
     offset_norms,
     ramp_offset_terms,
-    scan_parts,
+    scan_weighted,
     sharpness,
 )
 
@@ -125,12 +128,11 @@ def fit_step(
         for i in range(max(1, index - REFINE_SAMPLES), min(n - 1, index + REFINE_SAMPLES + 1))
         if valid[i]
     ] or [index]
-    # every position's templates in one transform, and their products with the bank once
-    rows = []
-    for i in positions:
-        shape = edge_shape(n, i)
-        rows += [shape if part == "offset" else shape * signal_k for part in parts]
-    templates = rfft(np.stack(rows) * valid)
+    # every position's templates from one transform per part, and their products with
+    # the bank once
+    templates = edge_templates(
+        n, positions, [valid if part == "offset" else signal_k * valid for part in parts]
+    )
     bank_r = cross(bank.rows, r_f, w) if bank is not None else None
     bank_t = cross(bank.rows, templates, w) if bank is not None else None
     best = None
@@ -158,6 +160,29 @@ def fit_step(
         parts=tuple(parts),
     )
     return event, change_f
+
+
+def edge_templates(n: int, positions: list[int], shapes: list[np.ndarray]) -> np.ndarray:
+    """The rfft of H(t - i) x for each i of ``positions`` (ascending) and each x of
+    ``shapes``, rows ordered position by position: one transform per x at the first
+    position, then T_{i'}(f) = T_i(f) - sum_{i <= t < i'} x_t exp(-2 pi i f t / n)."""
+    first = positions[0]
+    current = rfft(np.stack([edge_shape(n, first) * x for x in shapes]))
+    rows = [current]
+    frequencies = np.arange(n // 2 + 1)
+    for previous, position in itertools.pairwise(positions):
+        for t in range(previous, position):
+            if any(x[t] != 0.0 for x in shapes):
+                phase = _roots_of_unity(n)[frequencies * t % n]
+                current = current - np.stack([x[t] * phase for x in shapes])
+        rows.append(current)
+    return np.concatenate(rows)
+
+
+@functools.lru_cache(maxsize=2)
+def _roots_of_unity(n: int) -> np.ndarray:
+    """exp(-2 pi i k / n), k = 0 .. n - 1."""
+    return np.exp(-2j * np.pi * np.arange(n) / n)
 
 
 def fit_templates(templates, r_f, w, bank: Bank | None, bank_r=None, bank_t=None):
@@ -208,7 +233,8 @@ class StepSearch:
     white_weight: float  # 1 / sigma^2 per sample of the white noise
     edge: int  # samples left out at each end (EDGE_S)
     half: int  # the ramps' half width [samples] (RAMP_S / 2)
-    offset_norm: np.ndarray  # :func:`offset_norms`
+    norms: ScanNorms  # the scan's, with the mask
+    norms_unmasked: ScanNorms  # without it (the same where every sample is valid)
     offset_terms: tuple[float, float]  # :func:`ramp_offset_terms`
 
     @classmethod
@@ -218,18 +244,24 @@ class StepSearch:
         freqs = np.fft.rfftfreq(n, 1.0 / fs)
         near = np.abs(freqs - 2 * f_hwp_hz) < 0.1 * f_hwp_hz
         half = max(1, int(0.5 * RAMP_S * fs))
+        carrier_k = carrier(signal_k, 0.5 * f_hwp_hz, fs)
+        w_carrier = float(np.median(w[near])) if near.any() else float(np.median(w[w > 0]))
+        norms = ScanNorms.of(w, valid, carrier_k, w_carrier, offset_norms(w, n))
         return cls(
             w=w,
             valid=valid,
             signal_k=signal_k,
             times_s=times_s,
-            carrier_k=carrier(signal_k, 0.5 * f_hwp_hz, fs),
-            w_carrier=float(np.median(w[near])) if near.any() else float(np.median(w[w > 0])),
+            carrier_k=carrier_k,
+            w_carrier=w_carrier,
             # E|R_f|^2 = n sigma^2 in the white noise
             white_weight=n * float(np.median(w[freqs > 0.25 * freqs[-1]])),
             edge=int(EDGE_S * fs),
             half=half,
-            offset_norm=offset_norms(w, n),
+            norms=norms,
+            norms_unmasked=norms
+            if valid.all()
+            else ScanNorms.of(w, np.ones(n, bool), carrier_k, w_carrier, norms.offset_norm),
             offset_terms=ramp_offset_terms(w, n, n // 2, half),
         )
 
@@ -287,27 +319,15 @@ def find_steps(
     for _ in range(MAX_TRIES):
         if len(events) == MAX_STEPS:
             break
-        parts_scan = scan_parts(
-            residual, w, valid, search.carrier_k, search.w_carrier, search.offset_norm
-        )
-        scans = {part: np.where(allowed, parts_scan.chi2(part), 0.0) for part in PARTS}
+        weighted = irfft(w * residual, n=n)
+        parts_scan = scan_weighted(weighted, search.norms)
+        scans = {part: parts_scan.chi2(part) * allowed for part in PARTS}
         delta_bic, parts, index, scan = choose_parts(scans, ln_n)
         if delta_bic < 0:
             break
         # the sharpness from a scan without the mask, as its norms are: the masked
         # projections beside them misjudge a step by hundreds where flags lie far away
-        whole = (
-            parts_scan
-            if valid.all()
-            else scan_parts(
-                residual,
-                w,
-                np.ones(n, bool),
-                search.carrier_k,
-                search.w_carrier,
-                search.offset_norm,
-            )
-        )
+        whole = parts_scan if valid.all() else scan_weighted(weighted, search.norms_unmasked)
         d, e = sharpness(whole, index, half, parts, (edge, n - edge), search.offset_terms)
         if d < -SHARPNESS_SIGMAS * 2 * math.sqrt(e):  # smooth: a drift, a modulation
             smooth += 1

@@ -276,16 +276,17 @@ def fit_iterative(problem, selected, initial_extra=None, gain_after=False) -> Fi
                     # with the linear templates and moves their values: the Schur
                     # complement); without it the model would hold the step alone
                     moved = 0.0
-                    if rows.size and grams[k] is not None:
-                        # the bank its solve used: the nonlinearity's rows as they were
-                        bank = banks[k]
-                        if nl_rows.size:
-                            bank = bank.copy()
-                            bank[nl_rows] = used_nl[k]
-                        change = cross(bank, own[k] - now[k], problem.w_nom[k])
+                    difference = own[k] - now[k]
+                    if rows.size and grams[k] is not None and difference.any():
+                        change = cross(banks[k], difference, problem.w_nom[k])
+                        moved_nl = 0.0
+                        if nl_rows.size:  # the bank its solve used: those rows as they were
+                            change[nl_rows] = cross(used_nl[k], difference, problem.w_nom[k])
                         move = solve_normal(grams[k], change)[0]
+                        if nl_rows.size:
+                            moved_nl = move[nl_rows] @ (used_nl[k] - banks[k][nl_rows])
                         values[k] = values[k] + move
-                        moved = move @ bank
+                        moved = move @ banks[k] + moved_nl
                     models[k] = models[k] - own[k] + now[k] + moved
                     own[k] = now[k]
             if len(events_effects) > 1:
