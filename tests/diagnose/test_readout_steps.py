@@ -19,7 +19,11 @@ from hwp_tes_systematics.diagnose.effects.step_scan import (
     sharpness,
     step_scan,
 )
-from hwp_tes_systematics.diagnose.effects.step_search import StepSearch, fit_templates
+from hwp_tes_systematics.diagnose.effects.step_search import (
+    StepSearch,
+    edge_templates,
+    fit_templates,
+)
 from hwp_tes_systematics.diagnose.effects.steps import find_steps, step_tod
 from hwp_tes_systematics.diagnose.fourier import rfft
 from hwp_tes_systematics.diagnose.linalg import cross
@@ -252,3 +256,17 @@ def test_a_level_that_comes_back_is_not_two_steps():
         r_f = noise_f + rfft(3e-4 * change)
         found = find_steps(r_f, _search(w, valid, signal, times_s), 0, math.log(2 * N))
         assert len(found) == expected, found
+
+
+def test_edge_templates_equal_the_transform_of_each_position():
+    """The exact fit's templates from one transform per part and phase updates equal the
+    transform of H(t - i) x at each position, with flagged samples between positions."""
+    rng = np.random.default_rng(3)
+    n = 4_001
+    valid = rng.random(n) > 0.2
+    valid[1_000:1_003] = False  # positions 999 and 1003 are consecutive valid samples
+    shapes = [valid * 1.0, rng.standard_normal(n) * valid]
+    positions = [998, 999, 1_003]
+    expected = rfft(np.stack([edge_shape(n, i) * x for i in positions for x in shapes]))
+    got = edge_templates(n, positions, shapes)
+    assert np.allclose(got, expected, rtol=0, atol=1e-9 * np.abs(expected).max())
