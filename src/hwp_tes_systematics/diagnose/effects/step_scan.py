@@ -109,26 +109,6 @@ class StepScan:
     gain: np.ndarray  # <T_g', R>, T_g' = T_g projected off the carrier
     norms: ScanNorms
 
-    @property
-    def offset_norm(self) -> np.ndarray:
-        return self.norms.offset_norm
-
-    @property
-    def gain_norm(self) -> np.ndarray:
-        return self.norms.gain_norm
-
-    @property
-    def carrier_power(self) -> np.ndarray:
-        return self.norms.carrier_power
-
-    @property
-    def power_after(self) -> np.ndarray:
-        return self.norms.power_after
-
-    @property
-    def w_carrier(self) -> float:
-        return self.norms.w_carrier
-
     def projection(self, part: str) -> np.ndarray:
         return self.offset if part == "offset" else self.gain
 
@@ -217,8 +197,9 @@ def sharpness(scan: StepScan, index: int, half: int, parts, span, offset_terms) 
     beside the step are left out: smooth over the recording, or lines, they hardly reach
     above 1 / width, where the two shapes differ."""
     n = scan.offset.size
+    norms = scan.norms
     width = 2 * half
-    p0 = max(scan.power_after[0], 1e-300)
+    p0 = max(norms.power_after[0], 1e-300)
     centres = np.linspace(index - width, index + width, RAMP_CENTRES).astype(int)
     # each ramp's last sample before it, the ramp inside the span
     lo_all = np.clip(centres - half, span[0], max(span[0], span[1] - width))
@@ -231,13 +212,13 @@ def sharpness(scan: StepScan, index: int, half: int, parts, span, offset_terms) 
         running = np.concatenate([[0.0], np.cumsum(scan.projection(part)[first:last])])
         ramp_projection = (running[lo_local + width] - running[lo_local]) / width
         if part == "offset":
-            ramp_norm = scan.offset_norm[lo_all + width] + offset_terms[0]
+            ramp_norm = norms.offset_norm[lo_all + width] + offset_terms[0]
         else:
-            power = np.concatenate([[0.0], np.cumsum(scan.power_after[first:last])])
+            power = np.concatenate([[0.0], np.cumsum(norms.power_after[first:last])])
             mean_power = (power[lo_local + width] - power[lo_local]) / width
-            inside = np.array([rise**2 @ scan.carrier_power[lo + 1 : lo + width] for lo in lo_all])
-            squared = scan.power_after[lo_all + width] + inside
-            ramp_norm = n * scan.w_carrier * (squared - mean_power**2 / p0)
+            inside = np.array([rise**2 @ norms.carrier_power[lo + 1 : lo + width] for lo in lo_all])
+            squared = norms.power_after[lo_all + width] + inside
+            ramp_norm = n * norms.w_carrier * (squared - mean_power**2 / p0)
         good = ramp_norm > 0
         ramps[good] += ramp_projection[good] ** 2 / ramp_norm[good]
     step = sum(scan.chi2_at(part, index) for part in parts)
@@ -249,9 +230,9 @@ def sharpness(scan: StepScan, index: int, half: int, parts, span, offset_terms) 
             continue
         lo = min(max(index - half, 0), n - 1 - width)
         difference = np.where(np.arange(lo + 1, lo + width) >= index, 1.0, 0.0) - rise
-        local = scan.carrier_power[lo + 1 : lo + width]
+        local = norms.carrier_power[lo + 1 : lo + width]
         spread = difference**2 @ local - (difference @ local) ** 2 / p0
-        information += value**2 * n * scan.w_carrier * spread
+        information += value**2 * n * norms.w_carrier * spread
     return step - float(ramps.max()), information
 
 
