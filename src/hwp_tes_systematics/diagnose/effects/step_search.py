@@ -228,8 +228,6 @@ class StepSearch:
     valid: np.ndarray
     signal_k: np.ndarray
     times_s: np.ndarray
-    carrier_k: np.ndarray  # the signal above f_HWP / 2
-    w_carrier: float  # the weight at 2 f_HWP
     white_weight: float  # 1 / sigma^2 per sample of the white noise
     edge: int  # samples left out at each end (EDGE_S)
     half: int  # the ramps' half width [samples] (RAMP_S / 2)
@@ -252,8 +250,6 @@ class StepSearch:
             valid=valid,
             signal_k=signal_k,
             times_s=times_s,
-            carrier_k=carrier_k,
-            w_carrier=w_carrier,
             # E|R_f|^2 = n sigma^2 in the white noise
             white_weight=n * float(np.median(w[freqs > 0.25 * freqs[-1]])),
             edge=int(EDGE_S * fs),
@@ -343,7 +339,7 @@ def find_steps(
         sharp = d > SHARPNESS_SIGMAS * 2 * math.sqrt(e)  # else not told apart from a ramp
         # the cusp's own scale: C / (delta chi^2 lost per sample moved), white noise
         rate = (
-            event.offset_k**2 + event.gain**2 * np.mean(search.carrier_k**2)
+            event.offset_k**2 + event.gain**2 * np.mean(search.norms.carrier_k**2)
         ) * search.white_weight
         sigma_t = max(
             time_sigma_s(np.where(allowed, scan, -np.inf), index, fs),
