@@ -202,6 +202,10 @@ def test_a_pairs_steps_are_named_with_their_values(tmp_path):
     write_recording(tmp_path / "steps.h5", recording)
     result = run(read_recording(tmp_path / "steps.h5"), figures=False)
     assert result.effect_names == ["readout_steps"], result.effect_names
+    # sought only under the noise refitted on the first pass's residual: not among the
+    # first step's candidates, added in the second pass
+    assert "readout_steps" not in result["steps"][0]["candidates"]
+    assert [s["added"] for s in result["steps"] if s["added"]] == ["readout_steps"]
     parameters = result["effects"][0]["parameters"]
     names = recording.detector_names
     offset = next(v for v in parameters.values() if v["parameter"] == "offset")

@@ -94,6 +94,10 @@ class Effect:
     # (:func:`..select.step.select_effects`): "excess" (excess power in the sidebands of the
     # HWPSS, a random process) or "rolloff" (the noise rolling off, a pole); else None
     noise_signature: ClassVar[str | None] = None
+    # True: offered only once the noise is refitted on the residual of the first selection
+    # pass (:func:`..select.step.select_effects`): a search for events finds false ones
+    # where the first noise, fitted before any effect was removed, misses power
+    after_noise_refit: ClassVar[bool] = False
 
     @classmethod
     def instances(cls) -> tuple[Effect, ...]:

@@ -44,6 +44,7 @@ class ReadoutSteps(Effect):
     main_parameters = ("offset", "gain")
     kind = "events"
     stage = "events"
+    after_noise_refit: ClassVar[bool] = True
     signature = (
         "the offset and the 2f HWPSS amplitude jumping at one time and staying there, "
         "in one detector or in the detectors of one bias line at once"

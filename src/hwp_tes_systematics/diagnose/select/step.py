@@ -47,7 +47,9 @@ def select_effects(
     residual of the best fit and, if it moved by more than NOISE_REFIT_CHANGE where the
     effects are, or a gain fluctuation (:mod:`.fluctuations`, an excess noise in the 2f
     sidebands) is taken into it, the selection runs again with the new weights, starting
-    from the effects found. Then the fluctuation and the noise's roll-off are fitted
+    from the effects found. An effect marked ``after_noise_refit`` (an event search, which
+    finds false events where the first noise misses power) is offered in that second pass
+    only, which then always runs. Then the fluctuation and the noise's roll-off are fitted
     again beside the final effects, and the pairs' crosstalk on the final residual
     (:mod:`..effects.crosstalk`). Updates ``fit.adjusted.noise``."""
     ctx, adjusted, nominal = fit.context, fit.adjusted, fit.nominal
@@ -63,41 +65,56 @@ def select_effects(
         nominal=NOMINAL,
         residual_f=fit.residual_f,
     )
-    for attempt in range(2):
-        if attempt:  # same templates and residual, new noise weights
-            problem = problem.with_noise(noise_models)
-        progress(
-            "selecting effects (pass %d%s)", attempt + 1, ", noise refitted" if attempt else ""
-        )
-        steps = stepwise(
+    # effects sought only under the refitted noise: offered from the second pass, which
+    # then always runs (on the first pass's weights if the noise did not move)
+    held_out = [n for n, e in problem.effects.items() if e.after_noise_refit]
+    noise_changed = False
+
+    def select(candidates, initial):
+        result = stepwise(
             problem,
             delta_bic_threshold=delta_bic_threshold,
             max_effects=max_effects,
-            initial=previous,
+            candidates=candidates,
+            initial=initial,
         )
+        history.extend(result.steps)
+        return result
+
+    for attempt in range(2):
+        if attempt and noise_changed:  # same templates and residual, new noise weights
+            problem = problem.with_noise(noise_models)
+        note = ", noise refitted" if noise_changed else ", the held-out effects offered"
+        progress("selecting effects (pass %d%s)", attempt + 1, note if attempt else "")
+        if not attempt:
+            steps = select([n for n in problem.effects if n not in held_out], previous)
+        elif noise_changed:
+            steps = select(list(problem.effects), previous)
+        else:  # the same weights: pass 1's candidates fail again unless a held-out one enters
+            steps = select(held_out, previous)
+            if set(steps.final.selected) != set(previous):
+                steps = select(list(problem.effects), steps.final.selected)
         final = problem.fit(steps.final.selected, keep_model=True)
-        history += steps.steps
         log.debug("selected: %s", ", ".join(final.selected) or "nothing")
         if attempt == 1:
             break
+        previous = final.selected  # checked first in pass 2, then extended
         remaining_f = problem.residual_f - np.array(final.model_f)
         fluctuation = noise_effect("excess").fit_noise(
             ctx, remaining_f, noise_models, problem.modes, problem.ln_n_eff, also_from=nominal
         )
         if fluctuation.delta_bic < delta_bic_threshold:
-            noise_models = fluctuation.noise
+            noise_models, noise_changed = fluctuation.noise, True
             adjusted.noise = fluctuation.base_noise
-            previous = final.selected  # checked again with the new weights, then extended
             continue
         fluctuation = None
-        if not final.selected:
+        if final.selected:
+            refit, covariances, change = refit_noise(ctx, remaining_f, noise_models)
+            if change >= NOISE_REFIT_CHANGE:
+                noise_models, noise_changed = refit, True
+                adjusted.noise, adjusted.noise_covariance = refit, covariances
+        if not (noise_changed or held_out):
             break
-        refit, covariances, change = refit_noise(ctx, remaining_f, noise_models)
-        if change < NOISE_REFIT_CHANGE:
-            break
-        noise_models = refit
-        adjusted.noise, adjusted.noise_covariance = refit, covariances
-        previous = final.selected  # checked first with the new weights, then extended
     remaining_f = problem.residual_f - np.array(final.model_f)  # of the final fit
 
     def fluctuation_beside(noise):  # with the detectors' coherence where it is taken
