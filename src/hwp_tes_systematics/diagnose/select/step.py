@@ -49,7 +49,8 @@ def select_effects(
     sidebands) is taken into it, the selection runs again with the new weights, starting
     from the effects found. An effect marked ``after_noise_refit`` (an event search, which
     finds false events where the first noise misses power) is offered in that second pass
-    only, which then always runs. Then the fluctuation and the noise's roll-off are fitted
+    only, which then always runs; if it enters, the noise is refitted once more and a
+    third pass checks the selection (what the first pass's effects took of it). Then the fluctuation and the noise's roll-off are fitted
     again beside the final effects, and the pairs' crosstalk on the final residual
     (:mod:`..effects.crosstalk`). Updates ``fit.adjusted.noise``."""
     ctx, adjusted, nominal = fit.context, fit.adjusted, fit.nominal
@@ -66,9 +67,10 @@ def select_effects(
         residual_f=fit.residual_f,
     )
     # effects sought only under the refitted noise: offered from the second pass, which
-    # then always runs (on the first pass's weights if the noise did not move)
+    # then always runs (on the first pass's weights if the noise did not move); when one
+    # enters, the noise is refitted without it in the residual and a third pass checks
     held_out = [n for n, e in problem.effects.items() if e.after_noise_refit]
-    noise_changed = False
+    noise_changed = False  # by the last pass's refit
 
     def select(candidates, initial):
         result = stepwise(
@@ -81,8 +83,8 @@ def select_effects(
         history.extend(result.steps)
         return result
 
-    for attempt in range(2):
-        if attempt and noise_changed:  # same templates and residual, new noise weights
+    for attempt in range(3):
+        if noise_changed:  # same templates and residual, new noise weights
             problem = problem.with_noise(noise_models)
         note = ", noise refitted" if noise_changed else ", the held-out effects offered"
         progress("selecting effects (pass %d%s)", attempt + 1, note if attempt else "")
@@ -96,24 +98,27 @@ def select_effects(
                 steps = select(list(problem.effects), steps.final.selected)
         final = problem.fit(steps.final.selected, keep_model=True)
         log.debug("selected: %s", ", ".join(final.selected) or "nothing")
-        if attempt == 1:
+        late = any(n in final.selected for n in held_out)
+        if attempt == 2 or (attempt == 1 and (not late or fluctuation is not None)):
             break
-        previous = final.selected  # checked first in pass 2, then extended
+        previous = final.selected  # checked first in the next pass, then extended
         remaining_f = problem.residual_f - np.array(final.model_f)
-        fluctuation = noise_effect("excess").fit_noise(
-            ctx, remaining_f, noise_models, problem.modes, problem.ln_n_eff, also_from=nominal
-        )
-        if fluctuation.delta_bic < delta_bic_threshold:
-            noise_models, noise_changed = fluctuation.noise, True
-            adjusted.noise = fluctuation.base_noise
-            continue
-        fluctuation = None
+        noise_changed = False
+        if not attempt:
+            fluctuation = noise_effect("excess").fit_noise(
+                ctx, remaining_f, noise_models, problem.modes, problem.ln_n_eff, also_from=nominal
+            )
+            if fluctuation.delta_bic < delta_bic_threshold:
+                noise_models, noise_changed = fluctuation.noise, True
+                adjusted.noise = fluctuation.base_noise
+                continue
+            fluctuation = None
         if final.selected:
             refit, covariances, change = refit_noise(ctx, remaining_f, noise_models)
             if change >= NOISE_REFIT_CHANGE:
                 noise_models, noise_changed = refit, True
                 adjusted.noise, adjusted.noise_covariance = refit, covariances
-        if not (noise_changed or held_out):
+        if not noise_changed and (attempt or not held_out):
             break
     remaining_f = problem.residual_f - np.array(final.model_f)  # of the final fit
 

@@ -168,8 +168,10 @@ def select_templates(problem, names, threshold, max_effects, steps: list, initia
         templates += (best,)
         current = trials[best]
         templates, current = _backward(problem, templates, current, threshold, removed_sets, steps)
-    templates, current = _swap_look_alikes(problem, names, templates, current, steps)
-    templates = _one_family_for_a_line(problem, templates, current, threshold, steps)
+    swapped, current = _swap_look_alikes(problem, names, templates, current, steps)
+    if swapped != templates:  # what the newcomer explains may make another redundant
+        swapped, current = _backward(problem, swapped, current, threshold, removed_sets, steps)
+    templates = _one_family_for_a_line(problem, swapped, current, threshold, steps)
     return _without_unphysical(problem, templates, steps)
 
 
@@ -209,6 +211,13 @@ def _first_unphysical(problem, templates, fit) -> tuple[str, str] | None:
 
 def _swappable(effect) -> bool:
     return effect.kind == "linear" and effect.stage == "signal"
+
+
+def _can_replace(effect) -> bool:
+    """An unselected effect tried in a selected one's place: a linear signal effect, or
+    one offered only once the noise is refitted (``Effect.after_noise_refit``: a readout
+    step), which the selection's first choices were made without."""
+    return _swappable(effect) or effect.after_noise_refit
 
 
 def _swap_look_alikes(problem, names, templates, current, steps):
@@ -253,7 +262,7 @@ def _swap_trials(problem, names, templates, current, seen=frozenset()):
     for out in [n for n in templates if _swappable(problem.effects[n])]:
         kept = tuple(t for t in templates if t != out)
         for candidate in names:
-            if candidate in templates or not _swappable(problem.effects[candidate]):
+            if candidate in templates or not _can_replace(problem.effects[candidate]):
                 continue
             if frozenset(kept + (candidate,)) in seen:
                 continue
