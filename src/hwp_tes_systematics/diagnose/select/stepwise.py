@@ -226,8 +226,10 @@ def _swap_look_alikes(problem, names, templates, current, steps):
     Forward selection never revisits a choice: the effect taken first (with the noise
     weights of that moment) stays even when a look-alike fits better once the noise is
     refitted or the other effects are in, e.g. an HWP temperature drift taken before a
-    gain drift whose dipole drift shows only with the refitted 1/f noise. Tried for the
-    linear signal effects (cheap fits); each swap is a step naming what it replaced.
+    gain drift whose dipole drift shows only with the refitted 1/f noise, or a gain drift
+    taken for a gain step before steps were offered. Tried for the linear signal effects
+    (cheap fits) and, in their place, the effects offered after the noise refit; each
+    swap is a step naming what it replaced (a backward step follows in select_templates).
     """
     ln_n = problem.ln_n_eff
     seen = {frozenset(templates)}
