@@ -48,11 +48,12 @@ def select_effects(
     effects are, or a gain fluctuation (:mod:`.fluctuations`, an excess noise in the 2f
     sidebands) is taken into it, the selection runs again with the new weights, starting
     from the effects found. An effect marked ``after_noise_refit`` (an event search, which
-    finds false events where the first noise misses power) is offered in that second pass
-    only, which then always runs; if it enters, the noise is refitted once more and a
-    third pass checks the selection (what the first pass's effects took of it). Then the fluctuation and the noise's roll-off are fitted
-    again beside the final effects, and the pairs' crosstalk on the final residual
-    (:mod:`..effects.crosstalk`). Updates ``fit.adjusted.noise``."""
+    finds false events where the first noise misses power) is offered from that second
+    pass, which then always runs; if it enters, the noise is refitted once more and a
+    third pass checks the selection (what the first pass's effects took of it). Then the
+    fluctuation and the noise's roll-off are fitted again beside the final effects, and
+    the pairs' crosstalk on the final residual (:mod:`..effects.crosstalk`). Updates
+    ``fit.adjusted.noise``."""
     ctx, adjusted, nominal = fit.context, fit.adjusted, fit.nominal
     noise_models = fit.noise_models
     previous = ()
