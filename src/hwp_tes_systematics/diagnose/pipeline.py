@@ -125,7 +125,7 @@ def diagnose(
     requirement_check = bound_g1(effects, selection, requirement_given or load_requirement())
     progress("looking for unexplained structure")
     unexplained = find_unexplained(
-        fit.context, selection.residual_after, selection.noise_models, selection.steps, workers
+        fit.context, selection.residual_after, selection.noise_models, selection.history, workers
     )
     for entry in effects:
         left_at_its_signature(entry, unexplained)

@@ -87,18 +87,27 @@ def _line_time_range(residual, ctx: Context, k: int, freq_hz: float, noise: Nois
     return float(t0), float(t1), amplitudes
 
 
-def _rejected(selection) -> dict:
-    """Catalog effects tried at the last selection step and not selected: {name: Delta BIC}."""
-    for step in reversed(selection.steps):
-        if step.added is None and step.removed is None and step.candidates:
-            return {n: float(c["delta_bic"]) for n, c in step.candidates.items()}
-    return {}
+def _rejected(history) -> dict:
+    """Catalog effects tried at the last selection step and not selected: {name: Delta BIC}.
+
+    A pass that offers only the held-out effects on unchanged weights ends on a step that
+    tried those alone; the earlier final steps from the same fit (the same chi^2 before
+    them) add what they tried."""
+    final_steps = [s for s in history if s.added is None and s.removed is None and s.candidates]
+    tried: dict[str, float] = {}
+    for step in reversed(final_steps):
+        if not math.isclose(step.chi2_before, final_steps[-1].chi2_before, rel_tol=1e-12):
+            break
+        for name, candidate in step.candidates.items():
+            tried.setdefault(name, float(candidate["delta_bic"]))
+    return tried
 
 
-def _unphysical(selection) -> dict:
-    """Effects the selection refused for their unphysical parameters: {name: why}."""
+def _unphysical(history) -> dict:
+    """Effects the selection refused for their unphysical parameters: {name: why} (the
+    latest refusal)."""
     found = {}
-    for step in selection.steps:
+    for step in history:
         for name, candidate in (step.candidates or {}).items():
             if isinstance(candidate, dict) and candidate.get("unphysical"):
                 found[name] = candidate["unphysical"]
@@ -109,13 +118,14 @@ def find_unexplained(
     ctx: Context,
     residual_after: np.ndarray,
     noise_models: list[NoiseModel],
-    selection,
+    history: list,
     workers: int = 1,
 ) -> list[dict]:
-    """Significant structure left after the best fit (module docstring), strongest first."""
+    """Significant structure left after the best fit (module docstring), strongest first.
+    ``history`` holds every step of every selection pass (:class:`..select.step.Selection`)."""
     n, fs = ctx.n_samples, ctx.sampling_rate_hz
-    tried = _rejected(selection)
-    unphysical = _unphysical(selection)
+    tried = _rejected(history)
+    unphysical = _unphysical(history)
     tried_text = (
         ", ".join(
             f"{name} (Delta BIC {value:+.0f}"
