@@ -103,6 +103,13 @@ the white noise per sample); the steps found where none was; a step shared by 3-
 detectors scoped by coincidence (a pair's one shared step is short of 5 sigma: chance
 expects ~1e-3 of it).
 
+``bias_line_steps``: one step shared by a bias line of 14 detectors (7 pixels), 3-6 of
+them at one time, as a change of the line's bias would make: the part (offset, gain or
+both) and the signs drawn once for the line, the line's |o| and |s| A_2 log-uniform in
+0.5 - 3 times the white noise per sample (``--bias-line-range``), each detector's times
+1 + 0.2 N(0, 1) (its own responsivity). Scored as ``readout_steps``; expected besides:
+the step scoped by coincidence, every detector of the line in the coincident event.
+
 Prints one line per recording and, per case, the rates: per recording (every detector's
 parameters within 3 sigma; a parameter without a sigma fails) and per parameter, the
 pulls' standard deviation, and the rates by the effect's strength |truth| / sigma (the
@@ -150,7 +157,9 @@ EXPECTED_SCOPE = {"wafer_drift": "wafer", "detector_drift": "detector"}
 # (a pair's) hits shared by its detectors
 RAY_CASES = ("cosmic_rays", "coincident_rays")
 # readout steps (the testbed's, on TOAST's TOD): offsets and gains jumping at one time
-OTHER_CASES = (*RAY_CASES, "readout_steps")
+# and one bias line's step, strong enough in every detector of the line to be seen
+STEP_CASES = ("readout_steps", "bias_line_steps")
+OTHER_CASES = (*RAY_CASES, *STEP_CASES)
 NONLINEARITY_NAMES = ("tes_nonlinearity", "tes_nonlinearity_cubic")
 START = datetime(2032, 1, 1, tzinfo=UTC)
 
@@ -171,6 +180,7 @@ def draw(
     net_spread=0.0,
     hit_range=(3.0, 300.0),
     step_range=(0.1, 3.0),
+    bias_line_range=(0.5, 3.0),
 ) -> dict:
     """The recording's set-up, nominal errors and injected effect."""
     a2_true = float(rng.uniform(0.1, 0.4))
@@ -225,6 +235,9 @@ def draw(
             setup["cosmic_rays"]["shared_scale"] = rng.uniform(0.3, 1.0, n_det).tolist()
     if case == "readout_steps":
         setup["readout_steps"] = draw_steps(rng, 2 * setup["n_pixels"], step_range)
+    if case == "bias_line_steps":
+        setup["n_pixels"] = 7
+        setup["readout_steps"] = draw_bias_line_step(rng, 14, bias_line_range)
     if case in MISMATCH:
         setup["gain_drift_mode"] = "slow_drift"
         setup["gain_drift_mismatch"] = float(rng.uniform(*MISMATCH[case]))
@@ -259,6 +272,33 @@ def draw_steps(rng: np.random.Generator, n_det: int, step_range) -> list[list]:
         gain = float(rng.choice([-1, 1])) * log_uniform(rng, np.asarray(step_range) * 0.1)
         steps.append(
             [detector, at, offset if part != "gain" else 0.0, gain if part != "offset" else 0.0]
+        )
+    return steps
+
+
+BIAS_LINE_SCATTER = 0.2  # the rms of a line's detectors' step about the line's
+
+
+def draw_bias_line_step(rng: np.random.Generator, n_det: int, strength_range) -> list[list]:
+    """[detector, time fraction, offset / white noise, s A_2 / white noise] for 3-6 of
+    ``n_det`` detectors stepping at one time: the part and the signs drawn once, the
+    line's |o| and |s| A_2 log-uniform over ``strength_range`` times the white noise,
+    each detector's 1 + BIAS_LINE_SCATTER N(0, 1) times the line's (floored at 0.3)."""
+    chosen = rng.choice(n_det, int(rng.integers(3, 7)), replace=False)
+    at = float(rng.uniform(0.1, 0.9))
+    part = str(rng.choice(["offset", "gain", "both"]))
+    offset = float(rng.choice([-1, 1])) * log_uniform(rng, strength_range)
+    gain = float(rng.choice([-1, 1])) * log_uniform(rng, strength_range)
+    steps = []
+    for detector in chosen:
+        own = max(0.3, 1.0 + BIAS_LINE_SCATTER * float(rng.normal()))
+        steps.append(
+            [
+                int(detector),
+                at,
+                own * offset if part != "gain" else 0.0,
+                own * gain if part != "offset" else 0.0,
+            ]
         )
     return steps
 
@@ -606,6 +646,15 @@ def score_steps(result: dict, setup: dict, truth: dict) -> dict:
     firsts = [first for per in truth.get("readout_steps", {}).values() for first, *_ in per]
     record["shared_step"] = max((firsts.count(f) for f in firsts), default=0)  # detectors
     record["coincidence_scope"] = scope["by"] == "coincidence"
+    if record["shared_step"] >= 2:  # the detectors of the step most of them share
+        line_first = max(firsts, key=firsts.count)
+        line = {
+            name
+            for name, per in truth["readout_steps"].items()
+            if any(first == line_first for first, *_ in per)
+        }
+        groups = scope.get("groups", {}).values() if record["coincidence_scope"] else []
+        record["line_in_one_event"] = any(line <= set(members) for members in groups)
     return record
 
 
@@ -626,7 +675,7 @@ def score(case: str, result: dict, setup: dict, truth: dict) -> dict:
         return score_common_mode(result, setup, truth)
     if case in RAY_CASES:
         return score_cosmic_rays(result, setup, truth)
-    if case == "readout_steps":
+    if case in STEP_CASES:
         return score_steps(result, setup, truth)
     expected = []
     if case in ("nonlinearity", "both"):
@@ -732,8 +781,8 @@ def summary(records: list[dict]) -> list[str]:
         n = len(rows)
         if case in RAY_CASES:
             lines += cosmic_ray_summary(case, rows)
-        elif case == "readout_steps":
-            lines += step_summary(rows)
+        elif case in STEP_CASES:
+            lines += step_summary(case, rows)
         elif case in ("clean", "clean_wafers"):
             alarms = sum(r["false_alarm"] for r in rows)
             lines.append(f"{case:13s} {n:3d} recordings: false alarms {alarms}/{n}")
@@ -827,7 +876,7 @@ def cosmic_ray_summary(case: str, rows: list[dict]) -> list[str]:
 STEP_STRENGTHS = (0.0, 0.1, 0.3, 1.0, math.inf)  # a step's |o| or |s| A_2 / white noise
 
 
-def step_summary(rows: list[dict]) -> list[str]:
+def step_summary(case: str, rows: list[dict]) -> list[str]:
     """Readout steps: ranked first and alone, the steps found by strength, the pulls, the
     steps found at none, the shared steps scoped by coincidence."""
     n = len(rows)
@@ -841,10 +890,11 @@ def step_summary(rows: list[dict]) -> list[str]:
         bins.append(f"{low:g}-{high:g}: {sum(inside)}/{len(inside)}")
     pulls = [x for r in rows for x in r["pulls"]]
     shared = [r for r in rows if r["shared_step"] >= 3]
+    in_one = sum(r.get("line_in_one_event", False) for r in shared)
     pairs = [r for r in rows if r["shared_step"] == 2]
     return [
         (
-            f"readout_steps   {n:3d} recordings: ranked first {first}/{n}, alone (nothing "
+            f"{case:15s} {n:3d} recordings: ranked first {first}/{n}, alone (nothing "
             f"else, nothing unexplained) {alone}/{n}; also named: {', '.join(others) or 'none'}"
         ),
         "    steps found by |o| or |s| A_2 / white noise per sample: " + ", ".join(bins),
@@ -859,6 +909,7 @@ def step_summary(rows: list[dict]) -> list[str]:
             f"{len(pairs)}; unshared steps scoped by coincidence: "
             f"{sum(r['coincidence_scope'] for r in rows if r['shared_step'] < 2)}"
         ),
+        f"    every detector of the shared step in one coincident event: {in_one}/{len(shared)}",
     ]
 
 
@@ -965,6 +1016,13 @@ def main() -> None:
         default=(0.1, 3.0),
         help="|o| / white noise (|s| A_2: a tenth of it)",
     )
+    parser.add_argument(
+        "--bias-line-range",
+        nargs=2,
+        type=float,
+        default=(0.5, 3.0),
+        help="a bias line's |o| and |s| A_2 / white noise",
+    )
     arguments = parser.parse_args()
     if arguments.combine:
         records = [r for path in arguments.combine for r in json.loads(path.read_text())]
@@ -988,6 +1046,7 @@ def main() -> None:
                     arguments.net_spread,
                     arguments.hit_range,
                     arguments.step_range,
+                    arguments.bias_line_range,
                 )
                 record = when_memory_allows(case, seed, folder / f"{case}_{seed}", ranges)
                 records.append(record)

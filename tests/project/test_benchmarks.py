@@ -714,3 +714,49 @@ def test_toast_rates_truths_of_a_common_noise_and_crosstalk(benchmarks):
     strengths = rates.expected_strengths(record)
     modes = (9.5 - 1.0) * 3600
     assert strengths == {"a-b": pytest.approx(0.05 * 40 / 60 * np.sqrt(2 * modes))}
+
+
+def test_toast_rates_bias_line_step_is_shared_and_scored_as_one_event(benchmarks):
+    """A bias line's step (benchmarks/diagnose_toast_rates.py): 3-6 of 14 detectors at one
+    time, one part and one sign for the line; scored found in every detector and the line in
+    one coincident event only where a coincidence group holds every detector of the line."""
+    import diagnose_toast_rates as rates
+
+    for seed in range(20):
+        steps = rates.draw_bias_line_step(np.random.default_rng(seed), 14, (0.5, 3.0))
+        assert 3 <= len(steps) <= 6
+        assert len({d for d, *_ in steps}) == len(steps)
+        assert len({at for _, at, *_ in steps}) == 1
+        for part in (2, 3):  # each part zero everywhere or one sign everywhere
+            signs = {np.sign(step[part]) for step in steps}
+            assert signs in ({0.0}, {1.0}, {-1.0})
+    setup = {"sample_rate_hz": 10.0, "net_uk_rts": 50.0, "a2_k": 0.2}
+    sigma = rates.white_noise_k(setup)
+    truth = {"readout_steps": {n: [[1000, 3 * sigma, 0.0]] for n in ("a", "b", "c")}}
+
+    def found(names, groups):
+        parameters = {}
+        for k, name in enumerate(names):
+            parameters[f"step{k}.time"] = {
+                "detector": name,
+                "parameter": "time",
+                "value": 100.2,
+                "sigma": 0.1,
+            }
+            parameters[f"step{k}.offset"] = {
+                "detector": name,
+                "parameter": "offset",
+                "value": 3 * sigma,
+                "sigma": sigma,
+            }
+        scope = {"by": "coincidence", "groups": groups} if groups else {"by": "detector"}
+        effect = {"name": "readout_steps", "parameters": parameters, "scope": scope}
+        return {"effects": [effect], "unexplained": []}
+
+    whole = rates.score_steps(found("abc", {"t = 100.2 s": ["a", "b", "c"]}), setup, truth)
+    assert whole["shared_step"] == 3 and whole["line_in_one_event"]
+    assert [ok for _, ok, _ in whole["steps"]] == [True] * 3 and whole["within_3_sigma"]
+    part = rates.score_steps(found("ab", {"t = 100.2 s": ["a", "b"]}), setup, truth)
+    assert not part["line_in_one_event"] and [ok for _, ok, _ in part["steps"]].count(False) == 1
+    apart = rates.score_steps(found("abc", {}), setup, truth)
+    assert not apart["coincidence_scope"] and not apart["line_in_one_event"]
