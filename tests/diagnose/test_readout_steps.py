@@ -274,3 +274,75 @@ def test_edge_templates_equal_the_transform_of_each_position():
     expected = rfft(np.stack([edge_shape(n, i) * x for i in positions for x in shapes]))
     got = edge_templates(n, positions, shapes)
     assert np.allclose(got, expected, rtol=0, atol=1e-9 * np.abs(expected).max())
+
+
+def _bias_line(seed: int, weak_k: float):
+    """Five detectors of one bias line's residuals (rfft): 14-sigma offset steps in 0-2 at
+    one time, a step of ``weak_k`` in 3 at that time, none in 4; a fake problem with their
+    weights for :meth:`ReadoutSteps.complete_events`."""
+    from types import SimpleNamespace
+
+    times_s, signal, w, _ = _case(seed)
+    first = 9_000
+    residuals = []
+    for k, offset in enumerate((3e-4, 3e-4, 3e-4, weak_k, 0.0)):
+        noise_f = _case(100 * seed + k)[3]
+        residuals.append(noise_f + rfft(offset * edge_shape(N, first)))
+    valid = np.ones((5, N), bool)
+    ctx = SimpleNamespace(
+        n_detectors=5,
+        times_s=times_s,
+        d_nom=np.tile(signal, (5, 1)),
+        valid=valid,
+        sampling_rate_hz=FS_HZ,
+        f_hwp_hz=F_HWP_HZ,
+        detector_names=list("ABCDE"),
+    )
+    problem = SimpleNamespace(
+        ctx=ctx, valid=valid, w_nom=[w] * 5, derived={}, ln_n_eff=math.log(2 * N), workers=1
+    )
+    return problem, residuals, times_s[first]
+
+
+@pytest.mark.parametrize("seed", range(1, 5))
+def test_a_bias_lines_weak_detector_is_found_at_the_lines_time(seed):
+    """Three detectors step together by 14 sigma (beyond chance), a fourth by a fifth of it
+    (delta chi^2 ~ 25 at the known time, where it pays ln N = 10.5; a search over every
+    time asks 3 ln N and beats a noise peak of ~20): each search alone misses the fourth,
+    the line's time finds it
+    with its offset within 3 sigma and its time not counted; the fifth, which did not step,
+    gets nothing."""
+    from types import SimpleNamespace
+
+    from hwp_tes_systematics.diagnose.effects.steps import ReadoutSteps
+
+    effect = ReadoutSteps()
+    weak_k = 3e-4 * math.sqrt(25 / 14**2)
+    problem, residuals, time_s = _bias_line(seed, weak_k)
+    found = [e for k in range(5) for e in effect.find(problem, k, residuals[k])]
+    assert sorted({e.detector for e in found}) == [0, 1, 2]
+    completed = effect.complete_events(problem, found, lambda k: (residuals[k], None, None))
+    (added,) = completed[len(found) :]
+    assert added.detector == 3 and added.shared_time and added.parts == ("offset",)
+    assert added.n_parameters == 1 and abs(added.time_s - time_s) < 1.5 / FS_HZ
+    assert abs(added.offset_k - weak_k) < 3 * added.sigma_offset_k
+    scope = effect.scope(problem.ctx, SimpleNamespace(events=completed))
+    assert scope["by"] == "coincidence"
+    assert list(scope["groups"].values()) == [["A", "B", "C", "D"]]
+    said = effect.evidence(SimpleNamespace(ctx=problem.ctx), SimpleNamespace(events=completed))
+    assert "D at t" in said and "(at its line's time)" in said and "1 of them found at" in said
+
+
+def test_two_detectors_stepping_together_are_not_a_line():
+    """Two detectors stepping at one time in 1,000 s coincide by chance with p ~ 6e-4,
+    short of the 5 sigma a line asks: no other detector is fitted at their time, and a
+    weak step there (as the line's fourth detector above) stays unfound."""
+    from hwp_tes_systematics.diagnose.effects.steps import ReadoutSteps
+
+    effect = ReadoutSteps()
+    problem, residuals, _ = _bias_line(8, 3e-4 * math.sqrt(25 / 14**2))
+    residuals[2] = _case(802)[3]  # no step
+    found = [e for k in range(5) for e in effect.find(problem, k, residuals[k])]
+    assert sorted(e.detector for e in found) == [0, 1]
+    completed = effect.complete_events(problem, found, lambda k: (residuals[k], None, None))
+    assert completed == found

@@ -192,6 +192,13 @@ class Effect:
     # them per segment instead of averaging them: :mod:`..segments`)
     events: ClassVar[bool] = False
 
+    def complete_events(self, problem, events: list, residual_of) -> list:
+        """An events effect's events of every detector (``find``'s, each in its own
+        residual) completed by what the detectors share (readout steps at a bias line's
+        time); ``residual_of(k)`` gives detector k's (rfft, bank, gram) as ``find`` took
+        them. As found by default."""
+        return events
+
     def unphysical(self, fit) -> str | None:
         """Why the fitted values (:class:`.select.EffectFit`) are outside ``physical_bounds``,
         or None: the selection does not take an effect whose parameters are unphysical."""

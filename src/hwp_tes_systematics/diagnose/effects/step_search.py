@@ -3,8 +3,9 @@
 jointly with the linear templates fitted beside them) and kept while its delta chi^2 pays
 the BIC (ln N per part, TIME_PARAMETERS ln N for its time: a change point's location);
 the search repeats on the residual without it. The time's error is from where the scan
-stays within TIME_LEVEL of its peak (:func:`time_sigma_s`). :mod:`.steps` is the catalog
-effect.
+stays within TIME_LEVEL of its peak (:func:`time_sigma_s`). Where detectors step together
+beyond chance (a bias line), the others are fitted at that time and kept where the step's
+parts alone pay (:func:`steps_at_shared_time`). :mod:`.steps` is the catalog effect.
 """
 
 from __future__ import annotations
@@ -75,11 +76,14 @@ class StepEvent:
     sigma_time_s: float = 0.0  # where delta chi^2 stays within 1 of its peak
     parts: tuple[str, ...] = ("offset", "gain")  # the parts fitted (the others are 0)
     sharp: bool = True  # False: not told apart from a change over RAMP_S (:func:`sharpness`)
+    # its time is the bias line's, found in other detectors (:func:`steps_at_shared_time`)
+    shared_time: bool = False
 
     @property
     def n_parameters(self) -> int:
-        """Its time (TIME_PARAMETERS) and each part fitted: the BIC's count."""
-        return TIME_PARAMETERS + len(self.parts)
+        """Its time (TIME_PARAMETERS, none when shared) and each part fitted: the BIC's
+        count."""
+        return (0 if self.shared_time else TIME_PARAMETERS) + len(self.parts)
 
 
 def step_tod(times_s: np.ndarray, signal: np.ndarray, events) -> np.ndarray:
@@ -116,17 +120,16 @@ def fit_step(
     detector: int,
     bank: Bank | None = None,
     parts: tuple[str, ...] = PARTS,
+    refine: int = REFINE_SAMPLES,
 ) -> tuple[StepEvent, np.ndarray]:
     """The exact Whittle fit of the step's ``parts`` (o, s or both) at sample ``index`` (and the
-    REFINE_SAMPLES around it, the best kept), jointly with the ``bank`` of linear templates
+    ``refine`` samples around it, the best kept), jointly with the ``bank`` of linear templates
     fitted beside it (the step's templates projected off them: T' = T - B G^+ <B, T>, the
     Schur complement): the event and the rfft of the change the step makes to the joint
     model (T' times its values)."""
     n = valid.size
     positions = [
-        i
-        for i in range(max(1, index - REFINE_SAMPLES), min(n - 1, index + REFINE_SAMPLES + 1))
-        if valid[i]
+        i for i in range(max(1, index - refine), min(n - 1, index + refine + 1)) if valid[i]
     ] or [index]
     # every position's templates from one transform per part, and their products with
     # the bank once
@@ -382,3 +385,39 @@ def _comes_back(steps: list[StepEvent]) -> bool:
         if net > max(3 * sigma, RETURN_FRACTION * max(abs(x) for x in values)):
             return False
     return True
+
+
+def steps_at_shared_time(
+    residual_f: np.ndarray,
+    search: StepSearch,
+    detector: int,
+    line: StepEvent,
+    ln_n: float,
+    bank: Bank | None = None,
+) -> StepEvent | None:
+    """A step in detector ``detector`` at the time of ``line`` (the strongest step of a
+    group of detectors stepping together beyond chance: a bias line), with its parts:
+    fitted exactly at that sample (:func:`fit_step`) in the residual without the
+    detector's own steps, kept where its delta chi^2 pays ln N per part, its time not
+    counted (it is the line's, with the line's error). None where it does not pay, or the
+    time is flagged or within EDGE_S of the ends in this detector."""
+    index = int(np.searchsorted(search.times_s, line.time_s - 1e-9))
+    n = search.valid.size
+    if not (search.edge <= index < n - search.edge) or not search.valid[index]:
+        return None
+    event, _ = fit_step(
+        residual_f,
+        search.w,
+        search.valid,
+        search.signal_k,
+        search.times_s,
+        index,
+        detector,
+        bank,
+        line.parts,
+        refine=0,
+    )
+    if event.significance**2 < len(line.parts) * ln_n:
+        return None
+    shared = {"sigma_time_s": line.sigma_time_s, "sharp": line.sharp, "shared_time": True}
+    return StepEvent(**{**event.__dict__, **shared})

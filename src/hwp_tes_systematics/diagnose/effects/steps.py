@@ -18,10 +18,18 @@ from typing import ClassVar
 
 import numpy as np
 
+from ..fourier import rfft
 from .base import Effect, format_temperature, register
 from .event_groups import coincidence_scope, coincidence_sentence, coincidences
 from .step_scan import RAMP_S
-from .step_search import Bank, StepEvent, StepSearch, find_steps, step_tod
+from .step_search import (
+    Bank,
+    StepEvent,
+    StepSearch,
+    find_steps,
+    step_tod,
+    steps_at_shared_time,
+)
 
 __all__ = ["ReadoutSteps", "StepEvent", "find_steps", "step_coincidences", "step_tod"]
 
@@ -34,7 +42,9 @@ class ReadoutSteps(Effect):
     gain moves the responsivity (s), seen as a jump of the 2f HWPSS amplitude by s A_2.
     Found by a scan of the residual over the step's time (both parts, noise-weighted),
     fitted exactly at the best time, its parts (offset, gain or both) those the BIC
-    prefers, kept while each pays ln N per part and 2 ln N for its time.
+    prefers, kept while each pays ln N per part and 2 ln N for its time. Where detectors
+    step together beyond chance (a bias line), every other detector is fitted at that
+    time, and keeps a step where its parts alone pay.
     """
 
     name = "readout_steps"
@@ -60,14 +70,52 @@ class ReadoutSteps(Effect):
         """The steps in detector k's residual ``r_f`` (:func:`find_steps` with the
         problem's weights and ln N_eff), fitted jointly with the linear templates ``bank``
         (rfft rows) of Gram matrix ``gram``."""
-        ctx = problem.ctx
+        search = self._search(problem, k)
+        return find_steps(r_f, search, k, problem.ln_n_eff, bank=Bank.of(bank, gram))
+
+    def _search(self, problem, k: int) -> StepSearch:
+        """Detector k's :class:`.step_search.StepSearch`, once per detector and noise model."""
         search = problem.derived.get((self.name, k))
-        if search is None:  # once per detector and noise model
+        if search is None:
+            ctx = problem.ctx
             search = StepSearch.of(
                 problem.w_nom[k], problem.valid[k], ctx.d_nom[k], ctx.times_s, ctx.f_hwp_hz
             )
             problem.derived[(self.name, k)] = search
-        return find_steps(r_f, search, k, problem.ln_n_eff, bank=Bank.of(bank, gram))
+        return search
+
+    def complete_events(self, problem, events, residual_of) -> list:
+        """``events`` (every detector's, as :meth:`find` gave them) and the steps at a bias
+        line's time in its other detectors: where steps coincide beyond chance
+        (:func:`step_coincidences`), each detector outside a group is fitted at the time
+        of the group's strongest step (:func:`.step_search.steps_at_shared_time`), its
+        residual ``residual_of(k)`` = (rfft as :meth:`find` takes it, bank, gram) less its
+        own steps. A step too weak to be found at an unknown time is found at a known one."""
+        ctx = problem.ctx
+        if ctx.n_detectors < 3 or len(events) < 2:
+            return events
+        found = step_coincidences(events, ctx)
+        if not found.significant:
+            return events
+        added = []
+        for group, detectors in zip(found.groups, found.detectors, strict=True):
+            line = max((events[i] for i in group), key=lambda e: e.significance)
+            for k in range(ctx.n_detectors):
+                if k in detectors:
+                    continue
+                r_f, bank, gram = residual_of(k)
+                own = [
+                    StepEvent(**{**e.__dict__, "detector": 0}) for e in events if e.detector == k
+                ]
+                if own:  # the detector's own steps, as its search subtracted them
+                    tod = step_tod(ctx.times_s, ctx.d_nom[k : k + 1], own)[0]
+                    r_f = r_f - rfft(tod * problem.valid[k], workers=problem.workers)
+                event = steps_at_shared_time(
+                    r_f, self._search(problem, k), k, line, problem.ln_n_eff, Bank.of(bank, gram)
+                )
+                if event is not None:
+                    added.append(event)
+        return events + added
 
     @staticmethod
     def detector_events(ctx, events) -> list:
@@ -124,17 +172,25 @@ class ReadoutSteps(Effect):
             if "gain" in e.parts and e.sigma_gain > 0:
                 said.append(f"gain {e.gain:+.2e} ({abs(e.gain) / e.sigma_gain:.0f} sigma)")
             unresolved = "" if e.sharp else f" (not told apart from a change over {RAMP_S:.0f} s)"
+            timed = " (at its line's time)" if e.shared_time else ""
             return (
-                f"{names[e.detector]} at t = {e.time_s:.1f} +- {e.sigma_time_s:.1g} s: "
+                f"{names[e.detector]} at t = {e.time_s:.1f} +- {e.sigma_time_s:.1g} s{timed}: "
                 + ", ".join(said)
                 + unresolved
             )
 
         listed = "; ".join(described(e) for e in sorted(events, key=lambda e: -e.significance)[:5])
         smooth = sum(not e.sharp for e in events)
+        at_line = sum(e.shared_time for e in events)
         return (
             f"{len(events)} step(s), the strongest {strongest.significance:.0f} sigma: {listed}; "
             "each stays after its time (no decay)"
+            + (
+                f"; {at_line} of them found at the time of a step the other detectors of a "
+                "line share (fitted there, too weak to be found at an unknown time)"
+                if at_line
+                else ""
+            )
             + (
                 f"; {smooth} of them not told apart from a smooth change over {RAMP_S:.0f} s "
                 "(a drift's or a modulation's edge fits them as well)"

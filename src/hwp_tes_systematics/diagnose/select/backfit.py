@@ -265,10 +265,14 @@ def fit_iterative(problem, selected, initial_extra=None, gain_after=False) -> Fi
             for effect in events_effects:
                 own = each_events_f[effect.name]
                 found = []
-                for k in range(n_det):
+
+                def residual_of(k, own=own, models=models):  # without these events
                     r_f = problem.residual_f[k] - models[k] + own[k]
-                    gram = problem.gram_nom[k][np.ix_(rows, rows)]
-                    found += detect_events(problem, effect, k, r_f, banks[k], gram)
+                    return r_f, banks[k], problem.gram_nom[k][np.ix_(rows, rows)]
+
+                for k in range(n_det):
+                    found += detect_events(problem, effect, k, *residual_of(k))
+                found = effect.complete_events(problem, found, residual_of)
                 events[effect.name] = effect.detector_events(ctx, found)
                 now = problem.masked_rfft(effect.events_tod(ctx, events[effect.name]))
                 for k in range(n_det):
