@@ -114,6 +114,17 @@ def _unphysical(history) -> dict:
     return found
 
 
+def _tried_text(tried: dict, unphysical: dict) -> str:
+    """The effects tried, in words: "name (Delta BIC +x[, rejected: ...])", ..."""
+    said = []
+    for name, value in sorted(tried.items()):
+        why = (
+            f", rejected: outside physical bounds, {unphysical[name]}" if name in unphysical else ""
+        )
+        said.append(f"{name} (Delta BIC {value:+.0f}{why})")
+    return ", ".join(said) or "none left to try"
+
+
 def find_unexplained(
     ctx: Context,
     residual_after: np.ndarray,
@@ -125,20 +136,7 @@ def find_unexplained(
     ``history`` holds every step of every selection pass (:class:`..select.step.Selection`)."""
     n, fs = ctx.n_samples, ctx.sampling_rate_hz
     tried = _rejected(history)
-    unphysical = _unphysical(history)
-    tried_text = (
-        ", ".join(
-            f"{name} (Delta BIC {value:+.0f}"
-            + (
-                f", rejected: outside physical bounds, {unphysical[name]}"
-                if name in unphysical
-                else ""
-            )
-            + ")"
-            for name, value in sorted(tried.items())
-        )
-        or "none left to try"
-    )
+    tried_text = _tried_text(tried, _unphysical(history))
     nominal_signal = ctx.sky + ctx.dipole
     entries: dict[tuple, dict] = {}
     resolution = fs / n
