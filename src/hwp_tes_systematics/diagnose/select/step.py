@@ -50,7 +50,11 @@ def select_effects(
     from the effects found. An effect marked ``after_noise_refit`` (an event search, which
     finds false events where the first noise misses power) is offered from that second
     pass, which then always runs; if it enters, the noise is refitted once more and a
-    third pass checks the selection (what the first pass's effects took of it). Then the
+    third pass checks the selection (what the first pass's effects took of it). When a
+    gain fluctuation would be taken after the first pass, the held-out effects are first
+    offered under the noise refitted without it (a gain step's power in the 2f sidebands
+    passes for a fluctuation's), and the fluctuation is fitted again on the residual
+    without what entered. Then the
     fluctuation and the noise's roll-off are fitted again beside the final effects, and
     the pairs' crosstalk on the final residual (:mod:`..effects.crosstalk`). Updates
     ``fit.adjusted.noise``."""
@@ -73,9 +77,9 @@ def select_effects(
     held_out = [n for n, e in problem.effects.items() if e.after_noise_refit]
     noise_changed = False  # by the last pass's refit
 
-    def select(candidates, initial):
+    def select(candidates, initial, on=None):
         result = stepwise(
-            problem,
+            on or problem,
             delta_bic_threshold=delta_bic_threshold,
             max_effects=max_effects,
             candidates=candidates,
@@ -83,6 +87,11 @@ def select_effects(
         )
         history.extend(result.steps)
         return result
+
+    def fitted_fluctuation(remaining_f, noise):  # (the modes do not depend on the weights)
+        return noise_effect("excess").fit_noise(
+            ctx, remaining_f, noise, problem.modes, problem.ln_n_eff, also_from=nominal
+        )
 
     for attempt in range(3):
         if noise_changed:  # same templates and residual, new noise weights
@@ -106,9 +115,23 @@ def select_effects(
         remaining_f = problem.residual_f - np.array(final.model_f)
         noise_changed = False
         if not attempt:
-            fluctuation = noise_effect("excess").fit_noise(
-                ctx, remaining_f, noise_models, problem.modes, problem.ln_n_eff, also_from=nominal
-            )
+            fluctuation = fitted_fluctuation(remaining_f, noise_models)
+            if fluctuation.delta_bic < delta_bic_threshold and held_out:
+                # a step's power in the 2f sidebands passes for a gain fluctuation's (a bias
+                # line's gain step, the rest of a slow modulation fitted to it): the held-out
+                # effects are first offered under the noise refitted without a fluctuation
+                refit, covariances, _ = refit_noise(ctx, remaining_f, noise_models)
+                trial = problem.with_noise(refit)
+                progress("selecting effects (the held-out effects, before a gain fluctuation)")
+                steps = select(held_out, previous, on=trial)
+                if set(steps.final.selected) != set(previous):  # one entered: all again
+                    steps = select(list(problem.effects), steps.final.selected, on=trial)
+                    problem, noise_models = trial, refit
+                    adjusted.noise, adjusted.noise_covariance = refit, covariances
+                    final = problem.fit(steps.final.selected, keep_model=True)
+                    previous = final.selected
+                    remaining_f = problem.residual_f - np.array(final.model_f)
+                    fluctuation = fitted_fluctuation(remaining_f, noise_models)
             if fluctuation.delta_bic < delta_bic_threshold:
                 noise_models, noise_changed = fluctuation.noise, True
                 adjusted.noise = fluctuation.base_noise
