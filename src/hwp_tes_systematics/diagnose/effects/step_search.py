@@ -4,8 +4,8 @@ jointly with the linear templates fitted beside them) and kept while its delta c
 the BIC (ln N per part, TIME_PARAMETERS ln N for its time: a change point's location);
 the search repeats on the residual without it. The time's error is from where the scan
 stays within TIME_LEVEL of its peak (:func:`time_sigma_s`). Where detectors step together
-beyond chance (a bias line), the others are fitted at that time and kept where the step's
-parts alone pay (:func:`steps_at_shared_time`). :mod:`.steps` is the catalog effect.
+beyond chance (a bias line), :mod:`.step_lines` puts them at one time and fits the
+others there. :mod:`.steps` is the catalog effect.
 """
 
 from __future__ import annotations
@@ -76,8 +76,10 @@ class StepEvent:
     sigma_time_s: float = 0.0  # where delta chi^2 stays within 1 of its peak
     parts: tuple[str, ...] = ("offset", "gain")  # the parts fitted (the others are 0)
     sharp: bool = True  # False: not told apart from a change over RAMP_S (:func:`sharpness`)
-    # its time is the bias line's, found in other detectors (:func:`steps_at_shared_time`)
+    # its time is its bias line's, counted in the line's strongest step (.step_lines)
     shared_time: bool = False
+    # found only at its line's time, too weak at an unknown one (.step_lines)
+    completed: bool = False
 
     @property
     def n_parameters(self) -> int:
@@ -131,23 +133,10 @@ def fit_step(
     positions = [
         i for i in range(max(1, index - refine), min(n - 1, index + refine + 1)) if valid[i]
     ] or [index]
-    # every position's templates from one transform per part, and their products with
-    # the bank once
-    templates = edge_templates(
-        n, positions, [valid if part == "offset" else signal_k * valid for part in parts]
-    )
-    bank_r = cross(bank.rows, r_f, w) if bank is not None else None
-    bank_t = cross(bank.rows, templates, w) if bank is not None else None
-    best = None
-    k = len(parts)
-    for j, i in enumerate(positions):
-        own = slice(j * k, (j + 1) * k)
-        fitted = fit_templates(
-            templates[own], r_f, w, bank, bank_r, None if bank_t is None else bank_t[:, own]
-        )
-        if best is None or fitted[0] > best[0]:
-            best = (*fitted, i)
-    delta_chi2, values, covariance, change_f, i = best
+    fits = position_fits(r_f, w, valid, signal_k, positions, bank, parts)
+    j = max(range(len(positions)), key=lambda j: fits[j][0])
+    delta_chi2, values, covariance, change_f = fits[j]
+    i = positions[j]
     sigmas = np.sqrt(np.clip(np.diag(covariance), 0.0, None))
     fitted = dict(zip(parts, zip(values, sigmas, strict=True), strict=True))
     offset, sigma_offset = fitted.get("offset", (0.0, 0.0))
@@ -163,6 +152,35 @@ def fit_step(
         parts=tuple(parts),
     )
     return event, change_f
+
+
+def position_fits(
+    r_f: np.ndarray,
+    w: np.ndarray,
+    valid: np.ndarray,
+    signal_k: np.ndarray,
+    positions: list[int],
+    bank: Bank | None,
+    parts: tuple[str, ...],
+) -> list[tuple]:
+    """:func:`fit_templates` of the step's ``parts`` at each of ``positions`` (ascending):
+    (delta chi^2, values, covariance, change rfft) per position, the templates from one
+    transform per part (:func:`edge_templates`) and their products with the bank once."""
+    templates = edge_templates(
+        valid.size, positions, [valid if part == "offset" else signal_k * valid for part in parts]
+    )
+    bank_r = cross(bank.rows, r_f, w) if bank is not None else None
+    bank_t = cross(bank.rows, templates, w) if bank is not None else None
+    k = len(parts)
+    fits = []
+    for j in range(len(positions)):
+        own = slice(j * k, (j + 1) * k)
+        fits.append(
+            fit_templates(
+                templates[own], r_f, w, bank, bank_r, None if bank_t is None else bank_t[:, own]
+            )
+        )
+    return fits
 
 
 def edge_templates(n: int, positions: list[int], shapes: list[np.ndarray]) -> np.ndarray:
@@ -237,6 +255,12 @@ class StepSearch:
     norms: ScanNorms  # the scan's, with the mask
     norms_unmasked: ScanNorms  # without it (the same where every sample is valid)
     offset_terms: tuple[float, float]  # :func:`ramp_offset_terms`
+
+    def rate(self, event: StepEvent) -> float:
+        """The delta chi^2 ``event`` loses per sample it is moved, in white noise:
+        (o^2 + s^2 <c^2>) / sigma^2."""
+        carrier_power = float(np.mean(self.norms.carrier_k**2))
+        return (event.offset_k**2 + event.gain**2 * carrier_power) * self.white_weight
 
     @classmethod
     def of(cls, w, valid, signal_k, times_s, f_hwp_hz: float) -> StepSearch:
@@ -341,12 +365,9 @@ def find_steps(
             break
         sharp = d > SHARPNESS_SIGMAS * 2 * math.sqrt(e)  # else not told apart from a ramp
         # the cusp's own scale: C / (delta chi^2 lost per sample moved), white noise
-        rate = (
-            event.offset_k**2 + event.gain**2 * np.mean(search.norms.carrier_k**2)
-        ) * search.white_weight
         sigma_t = max(
             time_sigma_s(np.where(allowed, scan, -np.inf), index, fs),
-            TIME_CUSP_SCALE / max(rate, 1e-300) / fs,
+            TIME_CUSP_SCALE / max(search.rate(event), 1e-300) / fs,
         )
         events.append(StepEvent(**{**event.__dict__, "sigma_time_s": sigma_t, "sharp": sharp}))
         residual = residual - model_f
@@ -385,39 +406,3 @@ def _comes_back(steps: list[StepEvent]) -> bool:
         if net > max(3 * sigma, RETURN_FRACTION * max(abs(x) for x in values)):
             return False
     return True
-
-
-def steps_at_shared_time(
-    residual_f: np.ndarray,
-    search: StepSearch,
-    detector: int,
-    line: StepEvent,
-    ln_n: float,
-    bank: Bank | None = None,
-) -> StepEvent | None:
-    """A step in detector ``detector`` at the time of ``line`` (the strongest step of a
-    group of detectors stepping together beyond chance: a bias line), with its parts:
-    fitted exactly at that sample (:func:`fit_step`) in the residual without the
-    detector's own steps, kept where its delta chi^2 pays ln N per part, its time not
-    counted (it is the line's, with the line's error). None where it does not pay, or the
-    time is flagged or within EDGE_S of the ends in this detector."""
-    index = int(np.searchsorted(search.times_s, line.time_s - 1e-9))
-    n = search.valid.size
-    if not (search.edge <= index < n - search.edge) or not search.valid[index]:
-        return None
-    event, _ = fit_step(
-        residual_f,
-        search.w,
-        search.valid,
-        search.signal_k,
-        search.times_s,
-        index,
-        detector,
-        bank,
-        line.parts,
-        refine=0,
-    )
-    if event.significance**2 < len(line.parts) * ln_n:
-        return None
-    shared = {"sigma_time_s": line.sigma_time_s, "sharp": line.sharp, "shared_time": True}
-    return StepEvent(**{**event.__dict__, **shared})

@@ -8,7 +8,7 @@ o the offset jump [K], s the relative gain jump (dimensionless), d the detector'
 (the nominal TOD d_nom: HWPSS, sky, dipole). The gain part is a jump of the 2f HWPSS
 amplitude by s A_2 at t_s; the offset part a step in the low frequencies. The scan and
 the sharpness test are in :mod:`.step_scan`, the exact fit and the search in
-:mod:`.step_search`.
+:mod:`.step_search`, a bias line's one time in :mod:`.step_lines`.
 """
 
 from __future__ import annotations
@@ -21,15 +21,9 @@ import numpy as np
 from ..fourier import rfft
 from .base import Effect, format_temperature, register
 from .event_groups import coincidence_scope, coincidence_sentence, coincidences
+from .step_lines import line_time, steps_at_shared_time
 from .step_scan import RAMP_S
-from .step_search import (
-    Bank,
-    StepEvent,
-    StepSearch,
-    find_steps,
-    step_tod,
-    steps_at_shared_time,
-)
+from .step_search import Bank, StepEvent, StepSearch, find_steps, step_tod
 
 __all__ = ["ReadoutSteps", "StepEvent", "find_steps", "step_coincidences", "step_tod"]
 
@@ -87,8 +81,9 @@ class ReadoutSteps(Effect):
     def complete_events(self, problem, events, residual_of) -> list:
         """``events`` (every detector's, as :meth:`find` gave them) and the steps at a bias
         line's time in its other detectors: where steps coincide beyond chance
-        (:func:`step_coincidences`), each detector outside a group is fitted at the time
-        of the group's strongest step (:func:`.step_search.steps_at_shared_time`), its
+        (:func:`step_coincidences`), the group's steps are put at the line's one time
+        (:func:`.step_lines.line_time`) and each detector outside it is fitted at that
+        time (:func:`.step_lines.steps_at_shared_time`), its
         residual ``residual_of(k)`` = (rfft as :meth:`find` takes it, bank, gram) less its
         own steps. A step too weak to be found at an unknown time is found at a known one."""
         ctx = problem.ctx
@@ -97,21 +92,40 @@ class ReadoutSteps(Effect):
         found = step_coincidences(events, ctx)
         if not found.significant:
             return events
-        added = []
+        events, added = list(events), []
+
+        def without_own(k, but=None):  # detector k's residual less its steps but ``but``
+            r_f, bank, gram = residual_of(k)
+            own = [
+                StepEvent(**{**e.__dict__, "detector": 0})
+                for e in events
+                if e.detector == k and e is not but
+            ]
+            if own:  # the detector's own steps, as its search subtracted them
+                tod = step_tod(ctx.times_s, ctx.d_nom[k : k + 1], own)[0]
+                r_f = r_f - rfft(tod * problem.valid[k], workers=problem.workers)
+            return r_f, Bank.of(bank, gram)
+
         for group, detectors in zip(found.groups, found.detectors, strict=True):
-            line = max((events[i] for i in group), key=lambda e: e.significance)
+            members = []  # the line's steps, to be put at its one time (:func:`line_time`)
+            for i in group:
+                k = events[i].detector
+                members.append(
+                    (events[i], *without_own(k, but=events[i]), self._search(problem, k))
+                )
+            line_events = line_time(
+                [(event, r_f, search, bank) for event, r_f, bank, search in members],
+                ctx.sampling_rate_hz,
+            )
+            for i, event in zip(group, line_events, strict=True):
+                events[i] = event
+            line = max(line_events, key=lambda e: e.significance)
             for k in range(ctx.n_detectors):
                 if k in detectors:
                     continue
-                r_f, bank, gram = residual_of(k)
-                own = [
-                    StepEvent(**{**e.__dict__, "detector": 0}) for e in events if e.detector == k
-                ]
-                if own:  # the detector's own steps, as its search subtracted them
-                    tod = step_tod(ctx.times_s, ctx.d_nom[k : k + 1], own)[0]
-                    r_f = r_f - rfft(tod * problem.valid[k], workers=problem.workers)
+                r_f, bank = without_own(k)
                 event = steps_at_shared_time(
-                    r_f, self._search(problem, k), k, line, problem.ln_n_eff, Bank.of(bank, gram)
+                    r_f, self._search(problem, k), k, line, problem.ln_n_eff, bank
                 )
                 if event is not None:
                     added.append(event)
@@ -181,7 +195,7 @@ class ReadoutSteps(Effect):
 
         listed = "; ".join(described(e) for e in sorted(events, key=lambda e: -e.significance)[:5])
         smooth = sum(not e.sharp for e in events)
-        at_line = sum(e.shared_time for e in events)
+        at_line = sum(e.completed for e in events)
         return (
             f"{len(events)} step(s), the strongest {strongest.significance:.0f} sigma: {listed}; "
             "each stays after its time (no decay)"
