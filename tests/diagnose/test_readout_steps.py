@@ -221,6 +221,29 @@ def test_a_pairs_steps_are_named_with_their_values(tmp_path):
     assert result["unexplained"] == []
 
 
+@pytest.mark.slow
+def test_a_gain_step_is_relative_to_the_signal_before_it(tmp_path):
+    """A 2 % gain step 600 s into a 1-h pair: the adjusted A_2, fitted to the whole
+    recording, holds 0.83 of it, so a gain read against it is off by s f_after = 1.7 %
+    of s (25 of its errors); referred to the 2f amplitude before the step it is within 3
+    sigma of 0.02."""
+    from hwp_tes_systematics.diagnose.recording import read_recording, write_recording
+    from hwp_tes_systematics.diagnose.simulate import simulate_recording
+    from hwp_tes_systematics.diagnose.testbed import A2_K, CHANNEL, MASTER_SEED, run, sky_map
+
+    recording = simulate_recording(CHANNEL, 1.0, MASTER_SEED, 303, sky_map(), A2_K)
+    first = int(np.searchsorted(recording.times_s, recording.times_s[0] + 600.0))
+    recording.tod[0, first:] *= 1.02
+    write_recording(tmp_path / "gain_step.h5", recording)
+    result = run(read_recording(tmp_path / "gain_step.h5"), figures=False)
+    assert result.effect_names == ["readout_steps"], result.effect_names
+    parameters = result["effects"][0]["parameters"]
+    (gain,) = [v for v in parameters.values() if v["parameter"] == "gain"]
+    assert gain["detector"] == recording.detector_names[0]
+    assert abs(gain["value"] - 0.02) < 3 * gain["sigma"], gain
+    assert 0.02 * 0.0083 > 5 * gain["sigma"]  # the bias corrected is one it could see
+
+
 def test_the_evidence_says_which_steps_are_not_told_apart_from_a_ramp():
     """A step marked not sharp is said to be one a smooth change over RAMP_S fits as well;
     a sharp one is not."""

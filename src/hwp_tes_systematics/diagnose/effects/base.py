@@ -208,6 +208,12 @@ class Effect:
                 return f"|{parameter}| = {values.max():.3g} > {bound:g}"
         return None
 
+    def before_events(self, fit, ctx: Context, a2_before_k: np.ndarray):
+        """``fit`` with its relative parts referred to the signal before the effect's events,
+        whose 2f HWPSS amplitude is ``a2_before_k`` per detector (the adjusted nominal A_2
+        was fitted to a recording that holds the events); unchanged by default."""
+        return fit
+
     def reported_parameters(self, fit, detector_names, sampling_rate_hz, units) -> dict:
         """The report's parameters of a fit (:class:`.select.EffectFit`): "<parameter>[<detector>]"
         -> {value, sigma, unit, detector, parameter}, and a shared effect's common ones as

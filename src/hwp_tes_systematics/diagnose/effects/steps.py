@@ -13,6 +13,7 @@ the sharpness test are in :mod:`.step_scan`, the exact fit and the search in
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import ClassVar
 
@@ -139,6 +140,24 @@ class ReadoutSteps(Effect):
     def events_tod(ctx, events) -> np.ndarray:
         """The steps' TOD on the nominal signal, (n_det, n): :func:`step_tod`."""
         return step_tod(ctx.times_s, ctx.d_nom, events)
+
+    def before_events(self, fit, ctx, a2_before_k):
+        """The gain jumps relative to the signal before the steps: the template s d_nom has
+        the adjusted A_2, which holds part of the steps (A_2 (1 + s f_after) for one step
+        a fraction f_after from the end), so s = s_fit A_2,adjusted / A_2,before, the value
+        and its error."""
+        scale = np.asarray(ctx.a2_k, dtype=float) / np.asarray(a2_before_k, dtype=float)
+        events = [
+            StepEvent(
+                **{
+                    **e.__dict__,
+                    "gain": e.gain * scale[e.detector],
+                    "sigma_gain": e.sigma_gain * scale[e.detector],
+                }
+            )
+            for e in fit.events
+        ]
+        return dataclasses.replace(fit, events=events)
 
     def reported_parameters(self, fit, detector_names, sampling_rate_hz, units) -> dict:
         """Per step i: "step<i>.offset|gain|time[<detector>]" (the parts it was fitted

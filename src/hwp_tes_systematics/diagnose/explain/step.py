@@ -3,7 +3,10 @@ look-alikes."""
 
 from __future__ import annotations
 
+import numpy as np
+
 from ..effects import CATALOG, family_of, noise_effect, prior_penalty_of, reported_name
+from ..nominal.adjustments import NOMINAL
 from ..nominal.step import NominalFit
 from ..select.step import Selection
 from .evidence import Evidence
@@ -25,8 +28,10 @@ def explain_effects(
     }
     found = {family_of(n) for n in steps.ranked}
     effects_out = []
+    corrections = final.effects[NOMINAL.name].values  # the 2f amplitude before any event
+    a2_before_k = np.hypot(ctx.a2_k + corrections["a2_cos"], corrections["a2_sin"])
     for name in steps.ranked:
-        fitted = final.effects[name]
+        fitted = CATALOG[name].before_events(final.effects[name], ctx, a2_before_k)
         evidence = Evidence(ctx, selection.partial[name], noise_models, ctx.a2_k, workers)
         text = CATALOG[name].evidence(evidence, fitted) + _gain_order(final, name)
         if ties.get(name):
