@@ -974,6 +974,20 @@ def _range(values: list[float]) -> str:
     return f"{min(values):.1f}-{max(values):.1f} ({len(values)})" if values else "none"
 
 
+# the drawn amplitudes' ranges: flag -> (default bounds, what they bound)
+RANGE_OPTIONS = {
+    "--g1-range": ((2e-3, 3e-2), "|g1| [1/K]"),
+    "--drift-range": ((3e-3, 3e-2), "GainDrifter's linear sigma"),
+    "--slow-range": ((1e-2, 5e-2), "slow_drift's sigma"),
+    "--crosstalk-range": ((1e-2, 5e-2), "|c_ij|"),
+    "--thermal-range": ((1e-5, 1e-4), "common stream's K"),
+    "--common-range": ((0.1, 0.5), "NET_c / NET"),
+    "--hit-range": ((3.0, 300.0), "C2 / white noise"),
+    "--step-range": ((0.1, 3.0), "|o| / white noise (|s| A_2: a tenth of it)"),
+    "--bias-line-range": ((0.5, 3.0), "a bias line's |o| and |s| A_2 / white noise"),
+}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -989,39 +1003,10 @@ def main() -> None:
     )
     parser.add_argument("--out", type=Path)
     parser.add_argument("--combine", nargs="+", type=Path, metavar="JSON")
-    parser.add_argument("--g1-range", nargs=2, type=float, default=(2e-3, 3e-2), help="1/K")
-    parser.add_argument("--drift-range", nargs=2, type=float, default=(3e-3, 3e-2))
-    parser.add_argument(
-        "--slow-range", nargs=2, type=float, default=(1e-2, 5e-2), help="slow_drift's sigma"
-    )
-    parser.add_argument(
-        "--crosstalk-range", nargs=2, type=float, default=(1e-2, 5e-2), help="|c_ij|"
-    )
-    parser.add_argument(
-        "--thermal-range", nargs=2, type=float, default=(1e-5, 1e-4), help="common stream's K"
-    )
-    parser.add_argument(
-        "--common-range", nargs=2, type=float, default=(0.1, 0.5), help="NET_c / NET"
-    )
+    for flag, (default, meaning) in RANGE_OPTIONS.items():
+        parser.add_argument(flag, nargs=2, type=float, default=default, help=meaning)
     parser.add_argument(
         "--net-spread", type=float, default=0.0, help="relative spread of the detectors' NETs"
-    )
-    parser.add_argument(
-        "--hit-range", nargs=2, type=float, default=(3.0, 300.0), help="C2 / white noise"
-    )
-    parser.add_argument(
-        "--step-range",
-        nargs=2,
-        type=float,
-        default=(0.1, 3.0),
-        help="|o| / white noise (|s| A_2: a tenth of it)",
-    )
-    parser.add_argument(
-        "--bias-line-range",
-        nargs=2,
-        type=float,
-        default=(0.5, 3.0),
-        help="a bias line's |o| and |s| A_2 / white noise",
     )
     arguments = parser.parse_args()
     if arguments.combine:
