@@ -111,13 +111,9 @@ class ReadoutSteps(Effect):
             members = []  # the line's steps, to be put at its one time (:func:`line_time`)
             for i in group:
                 k = events[i].detector
-                members.append(
-                    (events[i], *without_own(k, but=events[i]), self._search(problem, k))
-                )
-            line_events = line_time(
-                [(event, r_f, search, bank) for event, r_f, bank, search in members],
-                ctx.sampling_rate_hz,
-            )
+                r_f, bank = without_own(k, but=events[i])
+                members.append((events[i], r_f, self._search(problem, k), bank))
+            line_events = line_time(members, ctx.sampling_rate_hz)
             for i, event in zip(group, line_events, strict=True):
                 events[i] = event
             line = max(line_events, key=lambda e: e.significance)
