@@ -58,7 +58,7 @@ def steps_at_shared_time(
     return StepEvent(**{**event.__dict__, **shared})
 
 
-# samples each side of a bias line's steps searched for the line's one time
+# samples each side of a bias line's strongest step searched for the line's one time
 LINE_WINDOW = 8
 
 
@@ -67,18 +67,18 @@ def line_time(members: list[tuple], fs: float) -> list[StepEvent]:
     it and without the detector's other steps, :class:`StepSearch`, :class:`Bank` or None)
     per detector of a group stepping together. The line's sample is where the members'
     delta chi^2, summed over detectors, peaks (each refitted at every sample within
-    LINE_WINDOW of their times, :func:`position_fits`); each member is refitted there and
-    keeps its own time where its delta chi^2 there falls more than TIME_LEVEL short of its
-    own best. The line's time error: :func:`time_sigma_s` on the summed profile, at least
+    LINE_WINDOW of the strongest step, :func:`position_fits`); each member is refitted
+    there and keeps its own time where its delta chi^2 there falls more than TIME_LEVEL
+    short of its own best. The line's time error: :func:`time_sigma_s` on the summed profile, at least
     TIME_CUSP_SCALE over the members' summed rate. The time is counted once, in the
     strongest member; the others have ``shared_time``. Fewer than two joining: unchanged."""
     events = [event for event, *_ in members]
     times_s = members[0][2].times_s
-    indices = [int(np.searchsorted(times_s, e.time_s - 1e-9)) for e in events]
+    # around the strongest step: a member farther than LINE_WINDOW keeps its own time
+    strongest_s = max(events, key=lambda e: e.significance).time_s
+    centre = int(np.searchsorted(times_s, strongest_s - 1e-9))
     edge, n = members[0][2].edge, times_s.size
-    window = range(
-        max(edge, min(indices) - LINE_WINDOW), min(n - edge, max(indices) + LINE_WINDOW + 1)
-    )
+    window = range(max(edge, centre - LINE_WINDOW), min(n - edge, centre + LINE_WINDOW + 1))
     positions = [i for i in window if all(search.valid[i] for _, _, search, _ in members)]
     if not positions:
         return events
@@ -92,7 +92,10 @@ def line_time(members: list[tuple], fs: float) -> list[StepEvent]:
         ]
     )
     j = int(np.argmax(profiles.sum(axis=0)))
-    joining = [m for m in range(len(members)) if profiles[m, j] >= profiles[m].max() - TIME_LEVEL]
+    own_best = np.array(
+        [max(e.significance**2, row.max()) for e, row in zip(events, profiles, strict=True)]
+    )
+    joining = [m for m in range(len(members)) if profiles[m, j] >= own_best[m] - TIME_LEVEL]
     if len(joining) < 2:
         return events
     retimed = list(events)
