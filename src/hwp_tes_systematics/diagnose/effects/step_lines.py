@@ -15,6 +15,7 @@ from .step_search import (
     Bank,
     StepEvent,
     StepSearch,
+    event_of,
     fit_step,
     position_fits,
     time_sigma_s,
@@ -67,7 +68,7 @@ def line_time(members: list[tuple], fs: float) -> list[StepEvent]:
     it and without the detector's other steps, :class:`StepSearch`, :class:`Bank` or None)
     per detector of a group stepping together. The line's sample is where the members'
     delta chi^2, summed over detectors, peaks (each refitted at every sample within
-    LINE_WINDOW of the strongest step, :func:`position_fits`); each member is refitted
+    LINE_WINDOW of the strongest step, :func:`position_fits`); each member takes its fit
     there and keeps its own time where its delta chi^2 there falls more than TIME_LEVEL
     short of its own best. The line's time error: :func:`time_sigma_s` on the summed profile, at least
     TIME_CUSP_SCALE over the members' summed rate. The time is counted once, in the
@@ -82,15 +83,11 @@ def line_time(members: list[tuple], fs: float) -> list[StepEvent]:
     positions = [i for i in window if all(search.valid[i] for _, _, search, _ in members)]
     if not positions:
         return events
-    profiles = np.array(
-        [
-            [
-                fit[0]
-                for fit in position_fits(r_f, s.w, s.valid, s.signal_k, positions, bank, e.parts)
-            ]
-            for e, r_f, s, bank in members
-        ]
-    )
+    fits = [
+        position_fits(r_f, s.w, s.valid, s.signal_k, positions, bank, e.parts)
+        for e, r_f, s, bank in members
+    ]
+    profiles = np.array([[fit[0] for fit in member_fits] for member_fits in fits])
     j = int(np.argmax(profiles.sum(axis=0)))
     own_best = np.array(
         [max(e.significance**2, row.max()) for e, row in zip(events, profiles, strict=True)]
@@ -99,21 +96,11 @@ def line_time(members: list[tuple], fs: float) -> list[StepEvent]:
     if len(joining) < 2:
         return events
     retimed = list(events)
-    for m in joining:
-        event, r_f, search, bank = members[m]
-        fitted, _ = fit_step(
-            r_f,
-            search.w,
-            search.valid,
-            search.signal_k,
-            times_s,
-            positions[j],
-            event.detector,
-            bank,
-            event.parts,
-            refine=0,
+    for m in joining:  # each joining member's fit at the line's sample
+        fitted = event_of(
+            fits[m][j], float(times_s[positions[j]]), events[m].detector, events[m].parts
         )
-        retimed[m] = StepEvent(**{**fitted.__dict__, "sharp": event.sharp})
+        retimed[m] = StepEvent(**{**fitted.__dict__, "sharp": events[m].sharp})
     rate = sum(members[m][2].rate(retimed[m]) for m in joining)
     summed = profiles[joining].sum(axis=0)
     sigma_t = max(time_sigma_s(summed, j, fs), TIME_CUSP_SCALE / max(rate, 1e-300) / fs)

@@ -135,15 +135,22 @@ def fit_step(
     ] or [index]
     fits = position_fits(r_f, w, valid, signal_k, positions, bank, parts)
     j = max(range(len(positions)), key=lambda j: fits[j][0])
-    delta_chi2, values, covariance, change_f = fits[j]
-    i = positions[j]
+    event = event_of(fits[j], float(times_s[positions[j]]), detector, parts)
+    change_f = fits[j][3]
+    return event, change_f
+
+
+def event_of(fit: tuple, time_s: float, detector: int, parts: tuple[str, ...]) -> StepEvent:
+    """The :class:`StepEvent` of one of :func:`position_fits`' fits (delta chi^2, values,
+    covariance, change rfft) at ``time_s``: each part's value with the root of its variance."""
+    delta_chi2, values, covariance, _ = fit
     sigmas = np.sqrt(np.clip(np.diag(covariance), 0.0, None))
     fitted = dict(zip(parts, zip(values, sigmas, strict=True), strict=True))
     offset, sigma_offset = fitted.get("offset", (0.0, 0.0))
     gain, sigma_gain = fitted.get("gain", (0.0, 0.0))
-    event = StepEvent(
+    return StepEvent(
         detector=detector,
-        time_s=float(times_s[i]),
+        time_s=time_s,
         offset_k=float(offset),
         gain=float(gain),
         sigma_offset_k=float(sigma_offset),
@@ -151,7 +158,6 @@ def fit_step(
         significance=math.sqrt(max(delta_chi2, 0.0)),
         parts=tuple(parts),
     )
-    return event, change_f
 
 
 def position_fits(
