@@ -7,7 +7,9 @@ Writes one TOAST observation (``toast_testbed.write_toast_recording``: a hexagon
 ``--pixels`` pixels, two detectors each, split in ``--wafers`` wafers; the HWPSS at
 ``--a2`` K_CMB and a TES nonlinearity ``--g1`` [1/K] in every detector; TOAST's 1/f noise;
 with ``--drift-sigma`` TOAST's slow gain drift beside it, common to each wafer with a
-part per detector) and the sky it scans, then runs the command in a child process with
+part per detector; with ``--line-step-detectors N`` a bias line's step, an offset
+``--line-step-offset-k`` in the first N detectors at ``--line-step-at`` of the recording)
+and the sky it scans, then runs the command in a child process with
 ``--memory-gb`` (a recording whose diagnosis would not fit is diagnosed in segments). Prints the
 detectors, samples, wall time, the child's peak resident memory, the segments and the
 effects reported. Targets (the wafer diagnosis issue): 64 detectors for 6 hours at 31 Hz
@@ -52,6 +54,18 @@ def main() -> None:
     parser.add_argument(
         "--drift-mismatch", type=float, default=0.5, help="the drift's part per detector"
     )
+    parser.add_argument(
+        "--line-step-detectors",
+        type=int,
+        default=0,
+        help="a bias line's step in the first N detectors (0: none)",
+    )
+    parser.add_argument(
+        "--line-step-offset-k", type=float, default=5e-4, help="the line's offset step [K]"
+    )
+    parser.add_argument(
+        "--line-step-at", type=float, default=0.4, help="its time, a fraction of the recording"
+    )
     parser.add_argument("--memory-gb", type=float, default=16.0)
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--keep", help="write the recording and the report here (kept)")
@@ -68,6 +82,12 @@ def main() -> None:
         folder = Path(arguments.keep or scratch)
         folder.mkdir(parents=True, exist_ok=True)
         sky_fits = folder / "sky.fits"
+        n_samples = round(arguments.hours * 3600 * arguments.rate)
+        line_first = round(arguments.line_step_at * n_samples)
+        steps = [
+            (detector, line_first, arguments.line_step_offset_k, 0.0)
+            for detector in range(arguments.line_step_detectors)
+        ]
         hp.write_map(sky_fits, sky.cmb_map(64, 191, 0.0, 1, 0, 30.8), dtype=np.float64)
         started = time.perf_counter()
         path = write_toast_recording(
@@ -84,9 +104,9 @@ def main() -> None:
             gain_drift_sigma=arguments.drift_sigma,
             gain_drift_mode="slow_drift",
             gain_drift_mismatch=arguments.drift_mismatch,
+            readout_steps=steps or None,
         )
         n_det = 2 * min(arguments.pixels, arguments.use_pixels or arguments.pixels)
-        n_samples = round(arguments.hours * 3600 * arguments.rate)
         print(
             f"TOAST recording: {n_det} detectors x {arguments.hours:g} h at {arguments.rate:g} Hz "
             f"({n_det * n_samples:.3g} detector-samples), written in "
@@ -124,6 +144,25 @@ def main() -> None:
             f"{len(segments) if segments else 'no'} segments; effects {names}"
         )
         print("\n".join(summary(result, arguments.g1)))
+        if steps:
+            print(steps_summary(result, line_first / arguments.rate, len(steps)))
+
+
+def steps_summary(result: dict, line_time_s: float, n_line: int) -> str:
+    """The readout steps reported against a line's step in the first ``n_line`` detectors at
+    ``line_time_s``: how many of its detectors have a step within 60 s, their time pulls,
+    and the steps reported elsewhere."""
+    steps = next((e for e in result["effects"] if e["name"] == "readout_steps"), None)
+    if steps is None:
+        return f"readout_steps not reported (a line of {n_line} detectors at {line_time_s:.0f} s)"
+    times = [p for p in steps["parameters"].values() if p["parameter"] == "time"]
+    near = [p for p in times if abs(p["value"] - line_time_s) <= 60.0]
+    pulls = [(p["value"] - line_time_s) / p["sigma"] for p in near if p.get("sigma")]
+    return (
+        f"readout_steps: {len({p['detector'] for p in near})} of the line's {n_line} detectors "
+        f"stepped within 60 s of {line_time_s:.0f} s (time pulls "
+        f"{', '.join(f'{x:+.1f}' for x in pulls)}), {len(times) - len(near)} steps elsewhere"
+    )
 
 
 def summary(result: dict, g1_per_k: float) -> list[str]:
