@@ -127,6 +127,24 @@ def test_parameters_combine_as_the_inverse_variance_mean_and_events_stay_per_seg
     json.dumps(combined)  # what diagnosis.json holds
 
 
+def test_an_effects_scope_is_kept_where_the_segments_agree_and_given_per_segment_where_not():
+    wafers = {"by": "wafer", "groups": {"W0": ["d0"], "W1": ["d1"]}}
+    results = [segment_result(-3.0e-3, 1e-4), segment_result(-3.1e-3, 1e-4)]
+    for result in results:
+        result["effects"][0] |= {"scope": wafers, "members": ["tes_nonlinearity"]}
+    combined = combine_segments(results, [(0, 10), (10, 20)], 1.0, REQUIREMENT)
+    assert combined["effects"][0]["scope"] == wafers
+    assert combined["effects"][0]["members"] == ["tes_nonlinearity"]
+    results[1]["effects"][0]["scope"] = {"by": "detector", "groups": {}}
+    combined = combine_segments(results, [(0, 10), (10, 20)], 1.0, REQUIREMENT)
+    assert "scope" not in combined["effects"][0]
+    assert combined["effects"][0]["scope_per_segment"] == {
+        0: wafers,
+        1: {"by": "detector", "groups": {}},
+    }
+    json.dumps(combined)
+
+
 def test_a_parameter_that_changes_between_segments_is_marked():
     results = [segment_result(-3.0e-3, 1e-5), segment_result(-4.0e-3, 1e-5)]
     combined = combine_segments(results, [(0, 10), (10, 20)], 1.0, REQUIREMENT)

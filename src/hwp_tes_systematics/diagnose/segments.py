@@ -206,6 +206,21 @@ def _event_parameters(found: list[tuple[int, dict]], starts_s: list[float]) -> d
     return out
 
 
+def _combined_scope(found: list[tuple[int, dict]]) -> dict:
+    """The segments' scopes (and a family's ``members``) of an effect: ``scope`` where every
+    segment that selected it gives the same, else ``scope_per_segment`` {segment: scope}."""
+    out = {}
+    members = sorted({m for _, effect in found for m in effect.get("members", [])})
+    if members:
+        out["members"] = members
+    scopes = {index: effect["scope"] for index, effect in found if "scope" in effect}
+    if not scopes:
+        return out
+    if len(scopes) == len(found) and all(s == scopes[found[0][0]] for s in scopes.values()):
+        return out | {"scope": scopes[found[0][0]]}
+    return out | {"scope_per_segment": scopes}
+
+
 def _combined_effect(name: str, found: list[tuple[int, dict]], starts_s, n_segments) -> dict:
     best_index, best = max(found, key=lambda item: item[1]["delta_chi2"])
     indices = [index for index, _ in found]
@@ -235,6 +250,7 @@ def _combined_effect(name: str, found: list[tuple[int, dict]], starts_s, n_segme
         )
     return {
         **{key: best[key] for key in ("name", "title", "signature", "main_parameters")},
+        **_combined_scope(found),
         "parameters": parameters,
         "delta_chi2": float(sum(effect["delta_chi2"] for _, effect in found)),
         "delta_bic": float(sum(effect["delta_bic"] for _, effect in found)),

@@ -218,6 +218,9 @@ def markdown_report(
         ]
         if "scope" in effect:
             out += [f"*Scope*: {scope_sentence(effect['scope'], len(rec['detectors']))}.", ""]
+        for index, scope in effect.get("scope_per_segment", {}).items():
+            sentence = scope_sentence(scope, len(rec["detectors"]))
+            out += [f"*Scope in segment {index}*: {sentence}.", ""]
         out += parameter_table(effect["parameters"]) + [""]
         if check and check["effect"] == effect["name"]:
             out += [f"*Against the requirement*: {check['sentence']}", ""]
