@@ -13,6 +13,7 @@ import pytest
 from hwp_tes_systematics.diagnose import RecordingError, read_recording
 from hwp_tes_systematics.diagnose.bound.requirement_check import load_requirement
 from hwp_tes_systematics.diagnose.recording_checks import diagnosis_memory_bytes
+from hwp_tes_systematics.diagnose.report.diagnosis import scope_lines
 from hwp_tes_systematics.diagnose.segments import (
     VARIES_P,
     combine_segments,
@@ -142,7 +143,9 @@ def test_an_effects_scope_is_kept_where_the_segments_agree_and_given_per_segment
         0: wafers,
         1: {"by": "detector", "groups": {}},
     }
-    json.dumps(combined)
+    lines = scope_lines(json.loads(json.dumps(combined["effects"][0])), 2)  # as read back
+    assert lines[0].startswith("*Scope in segment 0*: one set of parameters per wafer")
+    assert lines[2].startswith("*Scope in segment 1*: each of the 2 detectors")
 
 
 def test_a_parameter_that_changes_between_segments_is_marked():

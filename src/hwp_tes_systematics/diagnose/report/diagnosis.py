@@ -216,11 +216,7 @@ def markdown_report(
             f"*Evidence*: {effect['evidence']}.",
             "",
         ]
-        if "scope" in effect:
-            out += [f"*Scope*: {scope_sentence(effect['scope'], len(rec['detectors']))}.", ""]
-        for index, scope in effect.get("scope_per_segment", {}).items():
-            sentence = scope_sentence(scope, len(rec["detectors"]))
-            out += [f"*Scope in segment {index}*: {sentence}.", ""]
+        out += scope_lines(effect, len(rec["detectors"]))
         out += parameter_table(effect["parameters"]) + [""]
         if check and check["effect"] == effect["name"]:
             out += [f"*Against the requirement*: {check['sentence']}", ""]
@@ -311,6 +307,17 @@ def markdown_report(
 
 
 COINCIDENCES_LISTED = 10  # coincident events named in the scope's sentence
+
+
+def scope_lines(effect: dict, n_detectors: int) -> list[str]:
+    """The report's scope lines of an effect: its ``scope``, or one per segment
+    (``scope_per_segment``, a recording diagnosed in segments whose scopes differ)."""
+    out = []
+    if "scope" in effect:
+        out += [f"*Scope*: {scope_sentence(effect['scope'], n_detectors)}.", ""]
+    for index, scope in effect.get("scope_per_segment", {}).items():
+        out += [f"*Scope in segment {index}*: {scope_sentence(scope, n_detectors)}.", ""]
+    return out
 
 
 def scope_sentence(scope: dict, n_detectors: int) -> str:
