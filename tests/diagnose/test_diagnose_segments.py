@@ -12,6 +12,8 @@ import pytest
 
 from hwp_tes_systematics.diagnose import RecordingError, read_recording
 from hwp_tes_systematics.diagnose.bound.requirement_check import load_requirement
+from hwp_tes_systematics.diagnose.effects.event_groups import Coincidences, coincidence_scope
+from hwp_tes_systematics.diagnose.effects.step_search import StepEvent
 from hwp_tes_systematics.diagnose.recording_checks import diagnosis_memory_bytes
 from hwp_tes_systematics.diagnose.report.diagnosis import scope_lines
 from hwp_tes_systematics.diagnose.segments import (
@@ -146,6 +148,20 @@ def test_an_effects_scope_is_kept_where_the_segments_agree_and_given_per_segment
     lines = scope_lines(json.loads(json.dumps(combined["effects"][0])), 2)  # as read back
     assert lines[0].startswith("*Scope in segment 0*: one set of parameters per wafer")
     assert lines[2].startswith("*Scope in segment 1*: each of the 2 detectors")
+
+
+def test_a_coincidence_scope_given_per_segment_counts_its_times_from_the_recordings_start():
+    found = Coincidences([[0, 1]], [{0, 1}], 1, 1e-3, 1e-3)
+    events = [StepEvent(0, 100.0, 1e-4, 0.0), StepEvent(1, 100.0, 1e-4, 0.0)]
+    scope = coincidence_scope(found, events, ["d0", "d1"])
+    assert scope["groups"] == {"t = 100.00 s": ["d0", "d1"]}  # from the segment's start
+    results = [segment_result(-3.0e-3, 1e-4), segment_result(-3.1e-3, 1e-4)]
+    results[0]["effects"][0]["scope"] = {"by": "detector", "groups": {}}
+    results[1]["effects"][0]["scope"] = scope
+    combined = combine_segments(results, [(0, 3600), (3600, 7200)], 1.0, REQUIREMENT)
+    second = combined["effects"][0]["scope_per_segment"][1]
+    assert second["groups"] == {"t = 3700.00 s": ["d0", "d1"]}
+    assert second["times_s"] == [3700.0]
 
 
 def test_a_parameter_that_changes_between_segments_is_marked():

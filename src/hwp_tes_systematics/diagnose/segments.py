@@ -50,6 +50,7 @@ from .bound.requirement_check import (
     load_requirement,
 )
 from .effects import CATALOG, family_of
+from .effects.event_groups import coincidence_groups
 from .model import load_sky
 from .pipeline import diagnose
 from .recording import read_recording
@@ -206,14 +207,29 @@ def _event_parameters(found: list[tuple[int, dict]], starts_s: list[float]) -> d
     return out
 
 
-def _combined_scope(found: list[tuple[int, dict]]) -> dict:
+def _from_recording_start(scope: dict, start_s: float) -> dict:
+    """A segment's ``scope`` with its events' times (a coincidence scope's) counted from
+    the recording's start, as the combined report's event parameters are."""
+    if "times_s" not in scope:
+        return scope
+    times_s = [t + start_s for t in scope["times_s"]]
+    groups = coincidence_groups(times_s, scope["groups"].values())
+    return {**scope, "groups": groups, "times_s": times_s}
+
+
+def _combined_scope(found: list[tuple[int, dict]], starts_s) -> dict:
     """The segments' scopes (and a family's ``members``) of an effect: ``scope`` where every
-    segment that selected it gives the same, else ``scope_per_segment`` {segment: scope}."""
+    segment that selected it gives the same, else ``scope_per_segment`` {segment: scope},
+    event times from the recording's start."""
     out = {}
     members = sorted({m for _, effect in found for m in effect.get("members", [])})
     if members:
         out["members"] = members
-    scopes = {index: effect["scope"] for index, effect in found if "scope" in effect}
+    scopes = {
+        index: _from_recording_start(effect["scope"], starts_s[index])
+        for index, effect in found
+        if "scope" in effect
+    }
     if not scopes:
         return out
     if len(scopes) == len(found) and all(s == scopes[found[0][0]] for s in scopes.values()):
@@ -250,7 +266,7 @@ def _combined_effect(name: str, found: list[tuple[int, dict]], starts_s, n_segme
         )
     return {
         **{key: best[key] for key in ("name", "title", "signature", "main_parameters")},
-        **_combined_scope(found),
+        **_combined_scope(found, starts_s),
         "parameters": parameters,
         "delta_chi2": float(sum(effect["delta_chi2"] for _, effect in found)),
         "delta_bic": float(sum(effect["delta_bic"] for _, effect in found)),

@@ -207,16 +207,24 @@ def coincidence_sentence(found: Coincidences) -> str:
     return f"{len(found.groups)} coincidences, as many as chance gives ({chance})"
 
 
+def coincidence_groups(times_s, names) -> dict:
+    """{"t = .. s": the detectors sharing the event at that time}: a coincidence scope's
+    groups, labelled by their events' times [s]."""
+    return {f"t = {t:.2f} s": list(n) for t, n in zip(times_s, names, strict=True)}
+
+
 def coincidence_scope(found: Coincidences, events, detector_names) -> dict:
     """The scope of events that coincide across detectors more than chance: {"by":
-    "coincidence", "groups": {"t = .. s": the detectors sharing that event},
-    "observed_pairs", "expected_pairs", "p_value"} (``found``: :func:`coincidences`)."""
+    "coincidence", "groups": {"t = .. s": the detectors sharing that event}, "times_s":
+    the events' times [s] in the groups' order, "observed_pairs", "expected_pairs",
+    "p_value"} (``found``: :func:`coincidences`)."""
+    times_s = [events[g[0]].time_s for g in found.groups]
     return {
         "by": "coincidence",
-        "groups": {
-            f"t = {events[g[0]].time_s:.2f} s": [detector_names[d] for d in sorted(detectors)]
-            for g, detectors in zip(found.groups, found.detectors, strict=True)
-        },
+        "groups": coincidence_groups(
+            times_s, [[detector_names[d] for d in sorted(ds)] for ds in found.detectors]
+        ),
+        "times_s": times_s,
         "observed_pairs": found.observed_pairs,
         "expected_pairs": found.expected_pairs,
         "p_value": found.p_value,
