@@ -18,8 +18,10 @@ from hwp_tes_systematics.diagnose.effects.step_scan import (
     scan_parts,
     sharpness,
     step_scan,
+    trend,
 )
 from hwp_tes_systematics.diagnose.effects.step_search import (
+    Bank,
     StepSearch,
     edge_templates,
     fit_templates,
@@ -34,17 +36,26 @@ F_HWP_HZ = 46 / 60
 A2_K = 0.2
 WHITE_K = 2e-4  # white noise per sample
 FKNEE_HZ = 0.05
+# a 300 uK offset step's significance in _case's noise, beside the linear trend (14 for
+# the periodic residual's fit alone, which counts the jump back at the end)
+STEP_SIGMAS = 9.8
 
 
 def _search(w, valid, signal, times_s) -> StepSearch:
     return StepSearch.of(w, valid, signal, times_s, F_HWP_HZ)
 
 
+def _trend_bank(w, valid) -> Bank:
+    """The recording's linear trend alone, what the offset is fitted beside."""
+    return Bank.of(None, None, rfft(trend(valid.size) * valid), w)
+
+
 def _fit_edge(r_f, w, valid, signal, shape, parts) -> float:
     """delta chi^2 of the exact Whittle fit of ``parts`` with the edge ``shape`` (offset:
-    shape; gain: shape d)."""
+    shape; gain: shape d), beside the linear trend."""
     shapes = {"offset": shape, "gain": shape * signal}
-    return fit_templates(rfft(np.stack([shapes[part] for part in parts]) * valid), r_f, w, None)[0]
+    templates = rfft(np.stack([shapes[part] for part in parts]) * valid)
+    return fit_templates(templates, r_f, w, _trend_bank(w, valid))[0]
 
 
 def _case(seed: int):
@@ -63,7 +74,8 @@ def _case(seed: int):
 
 def test_the_scan_equals_each_parts_exact_fit():
     """<T, R>^2 / <T, T> from cumulative sums equals the Fourier-domain fit of each
-    template (the gain's against the carrier, its mean taken off), to 1e-3."""
+    template (the offset's beside the linear trend, the gain's against the carrier, its
+    mean taken off), to 1e-3."""
     _, signal, w, noise_f = _case(1)
     valid = np.ones(N, bool)
     c = carrier(signal, 0.5 * F_HWP_HZ, FS_HZ)
@@ -75,10 +87,8 @@ def test_the_scan_equals_each_parts_exact_fit():
         step = np.zeros(N)
         step[index:] = 1.0
         offset_f, gain_f = rfft(step), rfft(step * c)
-        b = cross(offset_f[None], noise_f, w)[0]
-        assert scans["offset"][index] == pytest.approx(
-            b**2 / cross(offset_f[None], offset_f, w)[0], rel=1e-3
-        )
+        exact = fit_templates(offset_f[None], noise_f, w, _trend_bank(w, valid))[0]
+        assert scans["offset"][index] == pytest.approx(exact, rel=1e-3)
         # the gain template projected off the carrier (the nominal 2f amplitude)
         projection = cross(c_f[None], gain_f, w)[0] / cross(c_f[None], c_f, w)[0]
         projected = gain_f - projection * c_f
@@ -118,6 +128,35 @@ def test_the_sharpness_from_running_means_equals_the_exact_fits(part):
     assert d > 2 * np.sqrt(e)  # and it is sharp
 
 
+def test_an_offset_steps_significance_is_one_sigma_per_sigma_on_noise_that_does_not_wrap():
+    """1/f noise recorded for 1,000 s out of a 4,000 s stream does not come back to where it
+    started, as the Whittle likelihood's periodic residual would: fitted alone, an offset
+    step's z = <T, R> / sqrt(<T, T>) at a fixed time spreads over more than 1.4 sigma;
+    beside the linear trend (the scan's), over 1 within 15 % (100 draws, 3 times)."""
+    _, _, w, _ = _case(1)
+    freqs = np.fft.rfftfreq(4 * N, 1 / FS_HZ)
+    psd = 4 * N * WHITE_K**2 * (1 + (FKNEE_HZ / np.maximum(freqs, 1e-12)) ** 1.5)
+    psd[0] = 0.0
+    rng = np.random.default_rng(5)
+    valid = np.ones(N, bool)
+    c = np.zeros(N)  # no carrier: the offset alone
+    alone, beside = [], []
+    for _ in range(100):
+        stream_f = np.sqrt(psd / 2) * (
+            rng.normal(size=freqs.size) + 1j * rng.normal(size=freqs.size)
+        )
+        r_f = rfft(np.fft.irfft(stream_f, n=4 * N)[:N])
+        scan = scan_parts(r_f, w, valid, c, 1.0)
+        for index in (3000, 9500, 16000):
+            step_f = rfft(edge_shape(N, index))
+            alone.append(
+                cross(step_f[None], r_f, w)[0] / math.sqrt(cross(step_f[None], step_f, w)[0])
+            )
+            beside.append(scan.offset[index] * math.sqrt(scan.norms.inverse_norms["offset"][index]))
+    assert np.std(alone) > 1.4
+    assert np.std(beside) == pytest.approx(1.0, abs=0.15)
+
+
 @pytest.mark.parametrize("seed", range(1, 9))
 def test_pure_noise_has_no_step(seed):
     times_s, signal, w, noise_f = _case(seed)
@@ -128,7 +167,7 @@ def test_pure_noise_has_no_step(seed):
 @pytest.mark.parametrize("seed", range(1, 7))
 @pytest.mark.parametrize("part", ["offset", "gain"])
 def test_a_step_is_found_with_its_part_values_and_time(seed, part):
-    """A 14-sigma offset (300 uK) or 20-sigma gain (4e-4 of A_2) step at a random time: one step,
+    """A 10-sigma offset (300 uK) or 20-sigma gain (4e-4 of A_2) step at a random time: one step,
     that part alone, its value within 3 sigma, its time within 3 of its error, which is
     wider than half a sample and than the span within 1 of the peak would say."""
     times_s, signal, w, noise_f = _case(seed)
@@ -186,7 +225,7 @@ def test_steps_add_to_the_signal_they_scale():
 
 @pytest.mark.slow
 def test_a_pairs_steps_are_named_with_their_values(tmp_path):
-    """A 1-h M1-140 pair: an offset step (100 uK) in one detector and a gain step (2e-4)
+    """A 1-h M1-140 pair: an offset step (150 uK, 8 sigma) in one detector and a gain step (2e-4)
     in the other, written to HDF5 and read back; the diagnosis, told nothing, names
     readout_steps alone, each detector's step with its part within 3 sigma and its time
     within 3 of its error (which 98 % of simulated steps are: noise seed 301 puts this
@@ -197,7 +236,7 @@ def test_a_pairs_steps_are_named_with_their_values(tmp_path):
 
     recording = simulate_recording(CHANNEL, 1.0, MASTER_SEED, 302, sky_map(), A2_K)
     first = int(np.searchsorted(recording.times_s, 1700.0))
-    recording.tod[0, first:] += 1e-4
+    recording.tod[0, first:] += 1.5e-4
     recording.tod[1, 2 * first :] *= 1 + 2e-4
     write_recording(tmp_path / "steps.h5", recording)
     result = run(read_recording(tmp_path / "steps.h5"), figures=False)
@@ -210,7 +249,7 @@ def test_a_pairs_steps_are_named_with_their_values(tmp_path):
     names = recording.detector_names
     offset = next(v for v in parameters.values() if v["parameter"] == "offset")
     gain = next(v for v in parameters.values() if v["parameter"] == "gain")
-    assert offset["detector"] == names[0] and abs(offset["value"] - 1e-4) < 3 * offset["sigma"]
+    assert offset["detector"] == names[0] and abs(offset["value"] - 1.5e-4) < 3 * offset["sigma"]
     assert gain["detector"] == names[1] and abs(gain["value"] - 2e-4) < 3 * gain["sigma"]
     times = {v["detector"]: v for v in parameters.values() if v["parameter"] == "time"}
     for name, truth_s in (
@@ -262,7 +301,7 @@ def test_the_evidence_says_which_steps_are_not_told_apart_from_a_ramp():
 
 @pytest.mark.parametrize("seed", range(1, 4))
 def test_a_step_is_sharp_with_flags_far_from_it(seed):
-    """Flagged samples (2 %, 400 s away) leave a 14-sigma offset step found and sharp."""
+    """Flagged samples (2 %, 400 s away) leave a 10-sigma offset step found and sharp."""
     times_s, signal, w, noise_f = _case(seed)
     valid = np.ones(N, bool)
     valid[13_000:13_380] = False
@@ -274,7 +313,7 @@ def test_a_step_is_sharp_with_flags_far_from_it(seed):
 
 
 def test_a_level_that_comes_back_is_not_two_steps():
-    """A 14-sigma offset that returns 60 s later (a transient) gives no step; one that
+    """A 10-sigma offset that returns 60 s later (a transient) gives no step; one that
     stays gives one."""
     times_s, signal, w, noise_f = _case(5)
     valid = np.ones(N, bool)
@@ -300,7 +339,7 @@ def test_edge_templates_equal_the_transform_of_each_position():
 
 
 def _bias_line(seed: int, weak_k: float):
-    """Five detectors of one bias line's residuals (rfft): 14-sigma offset steps in 0-2 at
+    """Five detectors of one bias line's residuals (rfft): 10-sigma offset steps in 0-2 at
     one time, a step of ``weak_k`` in 3 at that time, none in 4; a fake problem with their
     weights for :meth:`ReadoutSteps.complete_events`."""
     from types import SimpleNamespace
@@ -329,7 +368,7 @@ def _bias_line(seed: int, weak_k: float):
 
 @pytest.mark.parametrize("seed", range(1, 5))
 def test_a_bias_lines_weak_detector_is_found_at_the_lines_time(seed):
-    """Three detectors step together by 14 sigma (beyond chance), a fourth by a fifth of it
+    """Three detectors step together by 10 sigma (beyond chance), a fourth by half of it
     (delta chi^2 ~ 25 at the known time, where it pays ln N = 10.5; a search over every
     time asks 3 ln N and beats a noise peak of ~20): each search alone misses the fourth,
     the line's time finds it
@@ -340,7 +379,7 @@ def test_a_bias_lines_weak_detector_is_found_at_the_lines_time(seed):
     from hwp_tes_systematics.diagnose.effects.steps import ReadoutSteps
 
     effect = ReadoutSteps()
-    weak_k = 3e-4 * math.sqrt(25 / 14**2)
+    weak_k = 3e-4 * math.sqrt(25 / STEP_SIGMAS**2)
     problem, residuals, time_s = _bias_line(seed, weak_k)
     found = [e for k in range(5) for e in effect.find(problem, k, residuals[k])]
     assert sorted({e.detector for e in found}) == [0, 1, 2]
@@ -359,11 +398,11 @@ def test_a_bias_lines_weak_detector_is_found_at_the_lines_time(seed):
 def test_two_detectors_stepping_together_are_not_a_line():
     """Two detectors stepping at one time in 1,000 s coincide by chance with p ~ 6e-4,
     short of the 5 sigma a line asks: no other detector is fitted at their time, and a
-    weak step there (as the line's fourth detector above) stays unfound."""
+    weak step there (4 sigma: a line's time would find it) stays unfound."""
     from hwp_tes_systematics.diagnose.effects.steps import ReadoutSteps
 
     effect = ReadoutSteps()
-    problem, residuals, _ = _bias_line(8, 3e-4 * math.sqrt(25 / 14**2))
+    problem, residuals, _ = _bias_line(8, 3e-4 * 4 / STEP_SIGMAS)
     residuals[2] = _case(802)[3]  # no step
     found = [e for k in range(5) for e in effect.find(problem, k, residuals[k])]
     assert sorted(e.detector for e in found) == [0, 1]

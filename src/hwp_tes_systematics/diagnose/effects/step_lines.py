@@ -48,7 +48,7 @@ def steps_at_shared_time(
         search.times_s,
         index,
         detector,
-        bank,
+        search.bank() if bank is None else bank,
         line.parts,
         refine=0,
     )
@@ -84,7 +84,9 @@ def line_time(members: list[tuple], fs: float) -> list[StepEvent]:
     if not positions:
         return events
     fits = [
-        position_fits(r_f, s.w, s.valid, s.signal_k, positions, bank, e.parts)
+        position_fits(
+            r_f, s.w, s.valid, s.signal_k, positions, s.bank() if bank is None else bank, e.parts
+        )
         for e, r_f, s, bank in members
     ]
     profiles = np.array([[fit[0] for fit in member_fits] for member_fits in fits])

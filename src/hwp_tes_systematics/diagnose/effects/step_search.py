@@ -99,17 +99,34 @@ def step_tod(times_s: np.ndarray, signal: np.ndarray, events) -> np.ndarray:
 
 @dataclass(frozen=True)
 class Bank:
-    """The linear templates fitted beside the steps, for one detector: their rfft rows
-    (n_rows, nf) and the pseudo-inverse of their Gram matrix."""
+    """The linear templates fitted beside the steps, for one detector: the selection's
+    rfft rows (n_rows, nf; None for none), the recording's linear trend after them (its
+    rfft, :func:`.step_scan.trend`), and the pseudo-inverse of their Gram matrix."""
 
-    rows: np.ndarray
+    rows: np.ndarray | None
+    trend_f: np.ndarray
     gram_inverse: np.ndarray
 
     @classmethod
-    def of(cls, rows: np.ndarray | None, gram: np.ndarray | None) -> Bank | None:
+    def of(cls, rows, gram, trend_f: np.ndarray, w: np.ndarray) -> Bank:
+        """The bank of ``rows`` (Gram matrix ``gram``; None or no rows: the trend alone)
+        and the trend ``trend_f``, weights ``w``."""
+        trend_trend = cross(trend_f[None], trend_f, w)
         if rows is None or gram is None or rows.shape[0] == 0:
-            return None
-        return cls(rows, solve_normal(gram, np.zeros(gram.shape[0]))[1])
+            return cls(None, trend_f, solve_normal(trend_trend[None], np.zeros(1))[1])
+        rows_trend = cross(rows, trend_f, w)
+        full = np.block([[gram, rows_trend[:, None]], [rows_trend[None], trend_trend[None]]])
+        return cls(rows, trend_f, solve_normal(full, np.zeros(full.shape[0]))[1])
+
+    def products(self, x: np.ndarray, w: np.ndarray) -> np.ndarray:
+        """<B, x> for each template B of the bank (the trend last), x (nf,) or (k, nf)."""
+        trend = cross(self.trend_f[None], x, w)
+        return trend if self.rows is None else np.concatenate([cross(self.rows, x, w), trend])
+
+    def combination(self, coefficients: np.ndarray) -> np.ndarray:
+        """sum_B c_B B (rfft), the trend's coefficient last."""
+        out = coefficients[-1] * self.trend_f
+        return out if self.rows is None else out + coefficients[:-1] @ self.rows
 
 
 def fit_step(
@@ -175,8 +192,8 @@ def position_fits(
     templates = edge_templates(
         valid.size, positions, [valid if part == "offset" else signal_k * valid for part in parts]
     )
-    bank_r = cross(bank.rows, r_f, w) if bank is not None else None
-    bank_t = cross(bank.rows, templates, w) if bank is not None else None
+    bank_r = bank.products(r_f, w) if bank is not None else None
+    bank_t = bank.products(templates, w) if bank is not None else None
     k = len(parts)
     fits = []
     for j in range(len(positions)):
@@ -219,15 +236,15 @@ def fit_templates(templates, r_f, w, bank: Bank | None, bank_r=None, bank_t=None
     gram = cross(templates, templates, w)
     rhs = cross(templates, r_f, w)
     if bank is not None:  # projected off the bank: the Schur complement
-        bank_r = cross(bank.rows, r_f, w) if bank_r is None else bank_r
-        bank_t = cross(bank.rows, templates, w) if bank_t is None else bank_t  # <B, T>
+        bank_r = bank.products(r_f, w) if bank_r is None else bank_r
+        bank_t = bank.products(templates, w) if bank_t is None else bank_t  # <B, T>
         projection = bank.gram_inverse @ bank_t  # G^+ <B, T>
         gram = gram - bank_t.T @ projection
         rhs = rhs - projection.T @ bank_r
     values, covariance = solve_normal(gram, rhs)
     change_f = values @ templates
     if bank is not None:  # the bank's coefficients move by -G^+ <B, T> values
-        change_f = change_f - (projection @ values) @ bank.rows
+        change_f = change_f - bank.combination(projection @ values)
     return float(values @ rhs), values, covariance, change_f
 
 
@@ -277,7 +294,8 @@ class StepSearch:
         half = max(1, int(0.5 * RAMP_S * fs))
         carrier_k = carrier(signal_k, 0.5 * f_hwp_hz, fs)
         w_carrier = float(np.median(w[near])) if near.any() else float(np.median(w[w > 0]))
-        norms = ScanNorms.of(w, valid, carrier_k, w_carrier, offset_norms(w, n))
+        unprojected = offset_norms(w, n)
+        norms = ScanNorms.of(w, valid, carrier_k, w_carrier, unprojected)
         return cls(
             w=w,
             valid=valid,
@@ -290,9 +308,14 @@ class StepSearch:
             norms=norms,
             norms_unmasked=norms
             if valid.all()
-            else ScanNorms.of(w, np.ones(n, bool), carrier_k, w_carrier, norms.offset_norm),
+            else ScanNorms.of(w, np.ones(n, bool), carrier_k, w_carrier, unprojected),
             offset_terms=ramp_offset_terms(w, n, n // 2, half),
         )
+
+    def bank(self, rows: np.ndarray | None = None, gram: np.ndarray | None = None) -> Bank:
+        """The :class:`Bank` of the linear templates ``rows`` (rfft, Gram matrix ``gram``)
+        fitted beside the steps, with the recording's trend."""
+        return Bank.of(rows, gram, self.norms.trend_f, self.w)
 
 
 def choose_parts(scans: dict[str, np.ndarray], ln_n: float) -> tuple:
@@ -335,6 +358,7 @@ def find_steps(
     n = valid.size
     fs = 1.0 / (times_s[1] - times_s[0])
     edge, half = search.edge, search.half
+    bank = search.bank() if bank is None else bank
     if n - 2 * edge < 4 * half:  # too short to tell a step from a change over RAMP_S
         return []
     allowed = valid.copy()

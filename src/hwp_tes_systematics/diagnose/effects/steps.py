@@ -24,7 +24,7 @@ from .base import Effect, format_temperature, register
 from .event_groups import coincidence_scope, coincidence_sentence, coincidences
 from .step_lines import line_time, steps_at_shared_time
 from .step_scan import RAMP_S
-from .step_search import Bank, StepEvent, StepSearch, find_steps, step_tod
+from .step_search import StepEvent, StepSearch, find_steps, step_tod
 
 __all__ = ["ReadoutSteps", "StepEvent", "find_steps", "step_coincidences", "step_tod"]
 
@@ -66,7 +66,7 @@ class ReadoutSteps(Effect):
         problem's weights and ln N_eff), fitted jointly with the linear templates ``bank``
         (rfft rows) of Gram matrix ``gram``."""
         search = self._search(problem, k)
-        return find_steps(r_f, search, k, problem.ln_n_eff, bank=Bank.of(bank, gram))
+        return find_steps(r_f, search, k, problem.ln_n_eff, bank=search.bank(bank, gram))
 
     def _search(self, problem, k: int) -> StepSearch:
         """Detector k's :class:`.step_search.StepSearch`, once per detector and noise model."""
@@ -105,7 +105,7 @@ class ReadoutSteps(Effect):
             if own:  # the detector's own steps, as its search subtracted them
                 tod = step_tod(ctx.times_s, ctx.d_nom[k : k + 1], own)[0]
                 r_f = r_f - rfft(tod * problem.valid[k], workers=problem.workers)
-            return r_f, Bank.of(bank, gram)
+            return r_f, self._search(problem, k).bank(bank, gram)
 
         for group, detectors in zip(found.groups, found.detectors, strict=True):
             members = []  # the line's steps, to be put at its one time (:func:`line_time`)
