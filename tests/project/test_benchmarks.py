@@ -760,3 +760,26 @@ def test_toast_rates_bias_line_step_is_shared_and_scored_as_one_event(benchmarks
     assert not part["line_in_one_event"] and [ok for _, ok, _ in part["steps"]].count(False) == 1
     apart = rates.score_steps(found("abc", {}), setup, truth)
     assert not apart["coincidence_scope"] and not apart["line_in_one_event"]
+
+
+def test_step_calibration_draws_noise_that_does_not_wrap_and_scores_the_steps(
+    benchmarks, monkeypatch, capsys
+):
+    """benchmarks/step_calibration.py: the recorded noise is cut from a longer stream (its
+    end differs from its start far more than a periodic draw's), and a short run prints the
+    z spreads and each part's steps."""
+    import step_calibration as calibration
+
+    def end_less_start(stream_factor):  # the means of the last and first 200 samples
+        monkeypatch.setattr(calibration, "STREAM_FACTOR", stream_factor)
+        rng = np.random.default_rng(1)
+        draws = [calibration.recorded_noise(rng, 4000, 0.1) for _ in range(50)]
+        return np.median([abs(d[-200:].mean() - d[:200].mean()) for d in draws])
+
+    assert end_less_start(4) > 2.5 * end_less_start(1)  # 1: a periodic draw
+    monkeypatch.setattr(calibration, "STREAM_FACTOR", 4)
+    monkeypatch.setattr(sys, "argv", ["x", "--draws", "4", "--seconds", "400", "--knees", "0.1"])
+    calibration.main()
+    printed = capsys.readouterr().out.splitlines()
+    assert printed[0].startswith("noise alone, offset z alone: sd")
+    assert printed[2].startswith("offset steps: found") and printed[3].startswith("gain steps")

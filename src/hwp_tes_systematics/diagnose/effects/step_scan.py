@@ -23,9 +23,9 @@ The offset's templates are fitted beside the recording's linear trend R (:func:`
 T_o' = T_o - (<T_o, R> / <R, R>) R. The Whittle likelihood takes the residual as periodic,
 so a step at t_s is also a jump back at the recording's end; 1/f noise does not come back
 to where it started (its end and start differ as two points far apart do), and without R
-every step's fit would take that difference as information: on TOAST's 1/f noise a step's
-delta chi^2 at a random time had a spread of 1.7-2 sigma, not 1, and its sigma was
-about sqrt(2) too small.
+every step's fit would take that difference as information: on TOAST's 1/f noise an
+offset step's z at a random time had a spread of 1.7-2, not 1, and its error was up to
+sqrt(2) too small (``benchmarks/step_calibration.py``).
 """
 
 from __future__ import annotations
