@@ -395,6 +395,45 @@ def test_a_bias_lines_weak_detector_is_found_at_the_lines_time(seed):
     assert "D at t" in said and "(at its line's time)" in said and "1 of them found at" in said
 
 
+def test_a_bias_lines_steps_all_take_the_parts_any_of_them_shows():
+    """Three detectors step together in offset (10 sigma) and gain (4e-4 of A_2), but the
+    third's offset is 2 sigma and its own fit at the step (as its search would give it)
+    has the gain alone: at the line's time every member takes both parts, the third's
+    offset within 3 sigma of the truth."""
+    from hwp_tes_systematics.diagnose.effects.step_search import fit_step
+    from hwp_tes_systematics.diagnose.effects.steps import ReadoutSteps
+
+    effect = ReadoutSteps()
+    problem, residuals, time_s = _bias_line(3, 0.0)
+    _, signal, _, _ = _case(3)
+    first = round(time_s * FS_HZ)
+    offsets = (3e-4, 3e-4, 3e-4 * 2 / STEP_SIGMAS)
+    found = []
+    for k, offset in enumerate(offsets):
+        residuals[k] = _case(300 + k)[3] + rfft(edge_shape(N, first) * (offset + 4e-4 * signal))
+        search = effect._search(problem, k)
+        parts = ("gain",) if k == 2 else ("offset", "gain")
+        event, _ = fit_step(
+            residuals[k],
+            search.w,
+            search.valid,
+            signal,
+            search.times_s,
+            first,
+            k,
+            search.bank(),
+            parts,
+            0,
+        )
+        found.append(event)
+    completed = effect.complete_events(problem, found, lambda k: (residuals[k], None, None))
+    line = {e.detector: e for e in completed if e.detector < 3}
+    assert all(e.parts == ("offset", "gain") for e in line.values())
+    assert all(abs(e.time_s - time_s) < 3 * e.sigma_time_s for e in line.values())
+    assert abs(line[2].offset_k - offsets[2]) < 3 * line[2].sigma_offset_k
+    assert abs(line[2].gain - 4e-4) < 3 * line[2].sigma_gain
+
+
 def test_two_detectors_stepping_together_are_not_a_line():
     """Two detectors stepping at one time in 1,000 s coincide by chance with p ~ 6e-4,
     short of the 5 sigma a line asks: no other detector is fitted at their time, and a

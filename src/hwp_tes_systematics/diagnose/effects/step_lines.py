@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .step_scan import PARTS
 from .step_search import (
     TIME_CUSP_SCALE,
     TIME_LEVEL,
@@ -68,9 +69,11 @@ def line_time(members: list[tuple], fs: float) -> list[StepEvent]:
     it and without the detector's other steps, :class:`StepSearch`, :class:`Bank` or None)
     per detector of a group stepping together. The line's sample is where the members'
     delta chi^2, summed over detectors, peaks (each refitted at every sample within
-    LINE_WINDOW of the strongest step, :func:`position_fits`); each member takes its fit
-    there and keeps its own time where its delta chi^2 there falls more than TIME_LEVEL
-    short of its own best. The line's time error: :func:`time_sigma_s` on the summed profile, at least
+    LINE_WINDOW of the strongest step, :func:`position_fits`), each with the line's parts
+    (those of any member: one bias step moves the same things in all its detectors, and a
+    part too weak to pay in one detector is still there); each member takes its fit there
+    and keeps its own time where its delta chi^2 there falls more than TIME_LEVEL short of
+    its own best. The line's time error: :func:`time_sigma_s` on the summed profile, at least
     TIME_CUSP_SCALE over the members' summed rate. The time is counted once, in the
     strongest member; the others have ``shared_time``. Fewer than two joining: unchanged."""
     events = [event for event, *_ in members]
@@ -83,11 +86,12 @@ def line_time(members: list[tuple], fs: float) -> list[StepEvent]:
     positions = [i for i in window if all(search.valid[i] for _, _, search, _ in members)]
     if not positions:
         return events
+    parts = tuple(part for part in PARTS if any(part in e.parts for e in events))
     fits = [
         position_fits(
-            r_f, s.w, s.valid, s.signal_k, positions, s.bank() if bank is None else bank, e.parts
+            r_f, s.w, s.valid, s.signal_k, positions, s.bank() if bank is None else bank, parts
         )
-        for e, r_f, s, bank in members
+        for _, r_f, s, bank in members
     ]
     profiles = np.array([[fit[0] for fit in member_fits] for member_fits in fits])
     j = int(np.argmax(profiles.sum(axis=0)))
@@ -99,9 +103,7 @@ def line_time(members: list[tuple], fs: float) -> list[StepEvent]:
         return events
     retimed = list(events)
     for m in joining:  # each joining member's fit at the line's sample
-        fitted = event_of(
-            fits[m][j], float(times_s[positions[j]]), events[m].detector, events[m].parts
-        )
+        fitted = event_of(fits[m][j], float(times_s[positions[j]]), events[m].detector, parts)
         retimed[m] = StepEvent(**{**fitted.__dict__, "sharp": events[m].sharp})
     rate = sum(members[m][2].rate(retimed[m]) for m in joining)
     summed = profiles[joining].sum(axis=0)
