@@ -358,7 +358,6 @@ def find_steps(
     n = valid.size
     fs = 1.0 / (times_s[1] - times_s[0])
     edge, half = search.edge, search.half
-    bank = search.bank() if bank is None else bank
     if n - 2 * edge < 4 * half:  # too short to tell a step from a change over RAMP_S
         return []
     allowed = valid.copy()
@@ -366,6 +365,7 @@ def find_steps(
     allowed[n - edge :] = False
     if not allowed.any():
         return []
+    bank = search.bank() if bank is None else bank
     residual = r_f.copy()
     events = []
     smooth = 0  # candidates found smooth
