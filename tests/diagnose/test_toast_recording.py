@@ -302,13 +302,13 @@ def test_toasts_hits_shared_by_a_pair_are_coincident_glitches(tmp_path, sky_fits
 @pytest.mark.slow
 def test_steps_on_toasts_tod_are_named_readout_steps(tmp_path, sky_fits):
     """TOAST's pair for an hour with a step in each detector (the testbed's, on TOAST's
-    signal and noise): an offset of 0.5 times the white noise per sample at 1,000 s in the
+    signal and noise): an offset of 0.7 times the white noise per sample at 1,000 s in the
     first, a gain of 0.2 times it over A_2 at 2,500 s in the second. readout_steps alone,
     each step in its detector with that part, time and value within 3 sigma."""
     from hwp_tes_systematics.diagnose import diagnose
 
     sigma_k = SIGMA_19HZ_K
-    steps = [[0, 19_000, 0.5 * sigma_k, 0.0], [1, 47_500, 0.0, 0.2 * sigma_k / A2_K]]
+    steps = [[0, 19_000, 0.7 * sigma_k, 0.0], [1, 47_500, 0.0, 0.2 * sigma_k / A2_K]]
     truth: dict = {}
     path = write_toast_recording(
         tmp_path / "rec", sky_fits, 1.0, 12, a2_k=A2_K, readout_steps=steps, truth=truth
