@@ -91,7 +91,14 @@ class ScanNorms:
         weighted_trend = irfft(w * trend_f, n=n)
         trend_after = n * np.cumsum((weighted_trend * valid)[::-1])[::-1]
         trend_norm = n * float(trend_v @ weighted_trend)
-        offset_norm = offset_norm - trend_after**2 / trend_norm
+        # the norm's part, as <T_o, T_o> with the mask ignored: masked parts beside an
+        # unmasked norm cancel it near gaps, and the scan took noise for steps of 1e4
+        after_unmasked, norm_unmasked = trend_after, trend_norm
+        if not valid.all():
+            unmasked = irfft(w * rfft(trend(n)), n=n)
+            after_unmasked = n * np.cumsum(unmasked[::-1])[::-1]
+            norm_unmasked = n * float(trend(n) @ unmasked)
+        offset_norm = offset_norm - after_unmasked**2 / norm_unmasked
         carrier_power = carrier_k**2 * valid
         power_after = np.cumsum(carrier_power[::-1])[::-1]
         fraction = power_after / max(power_after[0], 1e-300)
