@@ -302,8 +302,8 @@ def test_the_evidence_says_which_steps_are_not_told_apart_from_a_ramp():
 @pytest.mark.parametrize("seed", range(1, 4))
 def test_a_gap_leaves_the_scan_of_noise_below_a_steps_price(seed):
     """Noise with 2 % of its samples flagged: the offset scan's largest delta chi^2 stays
-    below the 3 ln N a step pays (the trend's part of the norm taken with the mask
-    ignored, as the norm is; taken with the mask it reached 38-89 here)."""
+    below the 3 ln N a step pays (with flags the scan is the periodic one; the trend's
+    masked part beside the norm, whose mask is ignored, made it 38-89 here)."""
     _, _, w, noise_f = _case(seed)
     valid = np.ones(N, bool)
     valid[13_000:13_380] = False

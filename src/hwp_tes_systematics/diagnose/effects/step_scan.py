@@ -25,7 +25,9 @@ so a step at t_s is also a jump back at the recording's end; 1/f noise does not 
 to where it started (its end and start differ as two points far apart do), and without R
 every step's fit would take that difference as information: on TOAST's 1/f noise an
 offset step's z at a random time had a spread of 1.7-2, not 1, and its error was up to
-sqrt(2) too small (``benchmarks/step_calibration.py``).
+sqrt(2) too small (``benchmarks/step_calibration.py``). With flagged samples the scan is
+the periodic one (its norm ignores the mask, and the trend's masked part beside it
+misplaced the scan's peak); the exact fit that decides takes the trend either way.
 """
 
 from __future__ import annotations
@@ -91,14 +93,12 @@ class ScanNorms:
         weighted_trend = irfft(w * trend_f, n=n)
         trend_after = n * np.cumsum((weighted_trend * valid)[::-1])[::-1]
         trend_norm = n * float(trend_v @ weighted_trend)
-        # the norm's part, as <T_o, T_o> with the mask ignored: masked parts beside an
-        # unmasked norm cancel it near gaps, and the scan took noise for steps of 1e4
-        after_unmasked, norm_unmasked = trend_after, trend_norm
-        if not valid.all():
-            unmasked = irfft(w * rfft(trend(n)), n=n)
-            after_unmasked = n * np.cumsum(unmasked[::-1])[::-1]
-            norm_unmasked = n * float(trend(n) @ unmasked)
-        offset_norm = offset_norm - after_unmasked**2 / norm_unmasked
+        if valid.all():
+            offset_norm = offset_norm - trend_after**2 / trend_norm
+        else:  # with flags the scan is the periodic one (module docstring); the exact fits
+            # still take the trend. Masked parts beside the norm, whose mask is ignored,
+            # cancel it near a gap: the scan took noise for steps of delta chi^2 1e4
+            trend_after = np.zeros(n)
         carrier_power = carrier_k**2 * valid
         power_after = np.cumsum(carrier_power[::-1])[::-1]
         fraction = power_after / max(power_after[0], 1e-300)
