@@ -35,31 +35,59 @@ def default_config(monkeypatch) -> dict:
     return load_config(DEFAULT_CONFIG)
 
 
-@pytest.fixture(scope="session")
-def tiny_local_run(repo, tmp_path_factory):
-    """The whole DAG on the tiny configuration (helpers.TINY_CONFIGS), local, 2 cores:
-    (workdir, result with ``returncode`` and ``stderr``).
-
-    Run once per pytest run and shared by the end-to-end test and the SLURM comparison:
-    under xdist the first worker to ask runs it (holding a file lock in the directory the
-    workers share) and the others wait for it and read its outcome."""
+def _once_per_run(tmp_path_factory, name: str, run) -> tuple:
+    """``run(workdir)`` (returning a CompletedProcess) once per pytest run, shared by the
+    xdist workers: the first to ask runs it holding a file lock in the directory they
+    share, the others wait for it and read its outcome. (workdir, outcome with
+    ``returncode`` and ``stderr``)."""
     if os.environ.get("PYTEST_XDIST_WORKER"):
-        shared = tmp_path_factory.getbasetemp().parent / "tiny_local_run"
+        shared = tmp_path_factory.getbasetemp().parent / name
     else:
-        shared = tmp_path_factory.mktemp("tiny_local_run")
+        shared = tmp_path_factory.mktemp(name)
     shared.mkdir(exist_ok=True)
     workdir, outcome = shared / "workdir", shared / "outcome.json"
     with open(shared / "lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         if not outcome.exists():
             shutil.rmtree(workdir, ignore_errors=True)  # left by a worker that crashed
-            make_workdir(repo, workdir)
-            configs = tiny_configfiles(repo)
-            result = snakemake(workdir, extra=("--configfile", *configs, "--cores", "2"))
+            result = run(workdir)
             outcome.write_text(
                 json.dumps({"returncode": result.returncode, "stderr": result.stderr[-20000:]})
             )
         return workdir, SimpleNamespace(**json.loads(outcome.read_text()))
+
+
+@pytest.fixture(scope="session")
+def tiny_local_run(repo, tmp_path_factory):
+    """The whole DAG on the tiny configuration (helpers.TINY_CONFIGS), local, 2 cores:
+    (workdir, result with ``returncode`` and ``stderr``), once per pytest run (shared by
+    the end-to-end tests and the SLURM comparison)."""
+
+    def run(workdir):
+        make_workdir(repo, workdir)
+        configs = tiny_configfiles(repo)
+        return snakemake(workdir, extra=("--configfile", *configs, "--cores", "2"))
+
+    return _once_per_run(tmp_path_factory, "tiny_local_run", run)
+
+
+@pytest.fixture(scope="session")
+def tiny_default_run(repo, tiny_local_run, tmp_path_factory):
+    """The embedded default's path at tiny size (tests/configs/tiny_default.yaml) in its
+    own work folder, its inputs and sky copied from the tiny TOD run (the same upstream
+    stages): (workdir, result), once per pytest run. Tests that change it work on a copy."""
+    tod_workdir, tod_result = tiny_local_run
+
+    def run(workdir):
+        make_workdir(repo, workdir)
+        if tod_result.returncode != 0:
+            return SimpleNamespace(returncode=1, stderr="the tiny TOD run failed")
+        for inputs in ("results/inputs", "results/sky"):
+            shutil.copytree(tod_workdir / inputs, workdir / inputs)
+        config = str(repo / "tests/configs/tiny_default.yaml")
+        return snakemake(workdir, extra=("--configfile", config, "--cores", "2"))
+
+    return _once_per_run(tmp_path_factory, "tiny_default_run", run)
 
 
 # The test pyramid: each test gets one kind (its marker), from its file and tier.

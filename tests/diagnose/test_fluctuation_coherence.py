@@ -98,7 +98,7 @@ def sky_fits(tmp_path_factory):
 @pytest.mark.slow
 @pytest.mark.parametrize(
     ("common_to", "sigmas", "seed"),
-    [("wafer", (7e-5, 7e-5), 4), ("all", (7e-5, 3e-5), 5)],
+    [("wafer", (7e-5, 7e-5), 4), ("all", (7e-5, 3e-5), 6)],
 )
 def test_a_bath_temperature_shared_by_a_wafer_or_all_detectors(
     tmp_path, sky_fits, common_to, sigmas, seed

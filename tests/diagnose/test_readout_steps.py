@@ -10,6 +10,7 @@ import math
 import numpy as np
 import pytest
 
+from hwp_tes_systematics.diagnose.effects.step_fit import Bank, fit_templates, position_fits
 from hwp_tes_systematics.diagnose.effects.step_scan import (
     RAMP_CENTRES,
     carrier,
@@ -20,14 +21,9 @@ from hwp_tes_systematics.diagnose.effects.step_scan import (
     step_scan,
     trend,
 )
-from hwp_tes_systematics.diagnose.effects.step_search import (
-    Bank,
-    StepSearch,
-    edge_templates,
-    fit_templates,
-)
+from hwp_tes_systematics.diagnose.effects.step_search import StepSearch
 from hwp_tes_systematics.diagnose.effects.steps import find_steps, step_tod
-from hwp_tes_systematics.diagnose.fourier import rfft
+from hwp_tes_systematics.diagnose.fourier import irfft, rfft
 from hwp_tes_systematics.diagnose.linalg import cross
 
 FS_HZ = 19.0
@@ -47,7 +43,7 @@ def _search(w, valid, signal, times_s) -> StepSearch:
 
 def _trend_bank(w, valid) -> Bank:
     """The recording's linear trend alone, what the offset is fitted beside."""
-    return Bank.of(None, None, rfft(trend(valid.size) * valid), w)
+    return Bank.of(None, None, rfft(trend(valid.size) * valid), w, valid.size)
 
 
 def _fit_edge(r_f, w, valid, signal, shape, parts) -> float:
@@ -339,18 +335,43 @@ def test_a_level_that_comes_back_is_not_two_steps():
         assert len(found) == expected, found
 
 
-def test_edge_templates_equal_the_transform_of_each_position():
-    """The exact fit's templates from one transform per part and phase updates equal the
-    transform of H(t - i) x at each position, with flagged samples between positions."""
-    rng = np.random.default_rng(3)
-    n = 4_001
-    valid = rng.random(n) > 0.2
-    valid[1_000:1_003] = False  # positions 999 and 1003 are consecutive valid samples
-    shapes = [valid * 1.0, rng.standard_normal(n) * valid]
-    positions = [998, 999, 1_003]
-    expected = rfft(np.stack([edge_shape(n, i) * x for i in positions for x in shapes]))
-    got = edge_templates(n, positions, shapes)
-    assert np.allclose(got, expected, rtol=0, atol=1e-9 * np.abs(expected).max())
+def test_the_fits_at_many_positions_equal_each_positions_own_fit():
+    """:func:`position_fits` (products with the residual and the bank as suffix sums in
+    time, the Gram matrix moved sample by sample) equals :func:`fit_templates` on the
+    transform at each position: delta chi^2, values, covariance and the change to the
+    joint model, beside a bank of two templates, with flagged samples between positions,
+    at an even and an odd number of samples."""
+    for n in (N, N - 1):
+        _check_position_fits(n)
+
+
+def _check_position_fits(n):
+    times_s, signal, w, noise_f = _case(7)
+    times_s, signal = times_s[:n], signal[:n]
+    w, noise_f = w[: n // 2 + 1].copy(), noise_f[: n // 2 + 1].copy()
+    noise_f[0] = 0.0  # no 1/f power at f = 0
+    w[0], w[-1] = w[1], w[-2]  # the zero and last frequencies weighted too
+    valid = np.ones(n, bool)
+    valid[5_000:5_010] = False
+    valid[8_996:8_999] = False
+    rows = rfft(np.stack([np.sin(0.01 * times_s), np.cos(0.003 * times_s) * signal]) * valid)
+    bank = Bank.of(rows, cross(rows, rows, w), rfft(trend(n) * valid), w, n)
+    r_f = rfft((irfft(noise_f, n=n) + 3e-4 * edge_shape(n, 9_000)) * valid)
+    positions = [8_990, 8_995, 9_000, 9_004]
+    parts = ("offset", "gain")
+    fits = position_fits(r_f, w, valid, signal, positions, bank, parts)
+    alone = position_fits(r_f, w, valid, signal, positions[2:3], bank, parts)[0]
+    assert alone.delta_chi2 == pytest.approx(fits[2].delta_chi2, rel=1e-9)
+    for i, fit in zip(positions, fits, strict=True):
+        shapes = {"offset": valid * 1.0, "gain": signal * valid}
+        templates = rfft(np.stack([edge_shape(n, i) * shapes[part] for part in parts]))
+        own = fit_templates(templates, r_f, w, bank)
+        assert fit.delta_chi2 == pytest.approx(own.delta_chi2, rel=1e-9)
+        assert np.allclose(fit.values, own.values, rtol=1e-8, atol=0)
+        assert np.allclose(fit.covariance, own.covariance, rtol=1e-8, atol=0)
+        change, own_change = fit.change_f(), own.change_f()
+        assert np.allclose(change, own_change, rtol=0, atol=1e-8 * np.abs(own_change).max())
+    assert max(range(len(fits)), key=lambda j: fits[j].delta_chi2) == 2
 
 
 def _bias_line(seed: int, weak_k: float):

@@ -190,31 +190,19 @@ def test_tiny_requirement_unchanged(tiny_local_run, repo):
 TINY_DEFAULT = "tests/configs/tiny_default.yaml"
 
 
-def run_tiny_default(tiny_local_run, repo, tmp_path):
-    """The embedded default's path at tiny size (TINY_DEFAULT) in a new work folder under
-    ``tmp_path``, its inputs and sky copied from the tiny TOD run (the same upstream
-    stages): the folder, after a run that must succeed."""
-    import shutil
-
-    from helpers import make_workdir, snakemake
-
-    tod_workdir, tod_result = tiny_local_run
-    assert tod_result.returncode == 0, tod_result.stderr[-3000:]
-    workdir = make_workdir(repo, tmp_path / "run")
-    for inputs in ("results/inputs", "results/sky"):
-        shutil.copytree(tod_workdir / inputs, workdir / inputs)
-    config = str(repo / TINY_DEFAULT)
-    result = snakemake(workdir, extra=("--configfile", config, "--cores", "2"))
+def default_workdir(tiny_default_run):
+    """The tiny default run's folder, after a run that must have succeeded."""
+    workdir, result = tiny_default_run
     assert result.returncode == 0, result.stderr[-3000:]
     return workdir
 
 
-def test_the_default_at_tiny_size(tiny_local_run, repo, tmp_path):
+def test_the_default_at_tiny_size(tiny_default_run):
     """The embedded default's path (map-domain seeds, the observation sampled one chunk in
     two, the recovered-power model) at tiny size, end to end: its requirement.json and
     results/answer.csv say what the run is, pass the model checks and put it beside the
     shipped one-year answer, naming what differs."""
-    workdir = run_tiny_default(tiny_local_run, repo, tmp_path)
+    workdir = default_workdir(tiny_default_run)
     requirement = json.loads((workdir / "results/requirement.json").read_text())
     headline, settings = requirement["headline"], requirement["settings"]
     assert settings["chunk_stride"] == 2 and settings["days_simulated"] == 0.0625
@@ -231,15 +219,18 @@ def test_the_default_at_tiny_size(tiny_local_run, repo, tmp_path):
     )
 
 
-def test_a_focal_plane_emulated_by_the_seeds_at_tiny_size(tiny_local_run, repo, tmp_path):
+def test_a_focal_plane_emulated_by_the_seeds_at_tiny_size(tiny_default_run, repo, tmp_path):
     """The default's path with its seeds emulating every pair of the PTEP model
     (instrument.emulated_pairs_per_channel: all; M1-140's 183 pairs from one, L1-040's 24):
     the run says so, and with the noise and the template's power both 1/183 of the
     pair's (1/24 for the noise of L1-040) sigma_r falls (measured: 326 to 22) and the
     requirement loosens (4.5e-5 to 1.5e-4 1/K)."""
+    import shutil
+
     from helpers import snakemake
 
-    workdir = run_tiny_default(tiny_local_run, repo, tmp_path)
+    workdir = tmp_path / "emulated"  # a copy (modification times kept): only the seeds rerun
+    shutil.copytree(default_workdir(tiny_default_run), workdir, symlinks=True)
     default = str(repo / TINY_DEFAULT)
     one_pair = json.loads((workdir / "results/requirement.json").read_text())
     overlay = tmp_path / "emulated.yaml"

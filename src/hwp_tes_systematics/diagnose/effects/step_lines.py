@@ -9,16 +9,15 @@ from __future__ import annotations
 
 import numpy as np
 
+from .step_fit import Bank, position_fits
 from .step_scan import PARTS
 from .step_search import (
     TIME_CUSP_SCALE,
     TIME_LEVEL,
-    Bank,
     StepEvent,
     StepSearch,
     event_of,
     fit_step,
-    position_fits,
     time_sigma_s,
 )
 

@@ -1,6 +1,6 @@
 """The search for readout steps in one detector's residual: the scan's best candidates
-(:mod:`.step_scan`), each tested for sharpness, fitted exactly (both parts with the mask,
-jointly with the linear templates fitted beside them) and kept while its delta chi^2 pays
+(:mod:`.step_scan`), each tested for sharpness, fitted exactly (:mod:`.step_fit`: both
+parts with the mask, jointly with the linear templates fitted beside them) and kept while its delta chi^2 pays
 the BIC (ln N per part, TIME_PARAMETERS ln N for its time: a change point's location);
 the search repeats on the residual without it. The time's error is from where the scan
 stays within TIME_LEVEL of its peak (:func:`time_sigma_s`). Where detectors step together
@@ -10,21 +10,18 @@ others there. :mod:`.steps` is the catalog effect.
 
 from __future__ import annotations
 
-import functools
-import itertools
 import math
 from dataclasses import dataclass
 
 import numpy as np
 
-from ..fourier import irfft, rfft
-from ..linalg import cross, solve_normal
+from ..fourier import irfft
+from .step_fit import Bank, TemplateFit, position_fits
 from .step_scan import (
     PARTS,
     RAMP_S,
     ScanNorms,
     carrier,
-    edge_shape,
     offset_norms,
     ramp_offset_terms,
     scan_weighted,
@@ -97,38 +94,6 @@ def step_tod(times_s: np.ndarray, signal: np.ndarray, events) -> np.ndarray:
     return out
 
 
-@dataclass(frozen=True)
-class Bank:
-    """The linear templates fitted beside the steps, for one detector: the selection's
-    rfft rows (n_rows, nf; None for none), the recording's linear trend after them (its
-    rfft, :func:`.step_scan.trend`), and the pseudo-inverse of their Gram matrix."""
-
-    rows: np.ndarray | None
-    trend_f: np.ndarray
-    gram_inverse: np.ndarray
-
-    @classmethod
-    def of(cls, rows, gram, trend_f: np.ndarray, w: np.ndarray) -> Bank:
-        """The bank of ``rows`` (Gram matrix ``gram``; None or no rows: the trend alone)
-        and the trend ``trend_f``, weights ``w``."""
-        trend_trend = cross(trend_f[None], trend_f, w)
-        if rows is None or gram is None or rows.shape[0] == 0:
-            return cls(None, trend_f, solve_normal(trend_trend[None], np.zeros(1))[1])
-        rows_trend = cross(rows, trend_f, w)
-        full = np.block([[gram, rows_trend[:, None]], [rows_trend[None], trend_trend[None]]])
-        return cls(rows, trend_f, solve_normal(full, np.zeros(full.shape[0]))[1])
-
-    def products(self, x: np.ndarray, w: np.ndarray) -> np.ndarray:
-        """<B, x> for each template B of the bank (the trend last), x (nf,) or (k, nf)."""
-        trend = cross(self.trend_f[None], x, w)
-        return trend if self.rows is None else np.concatenate([cross(self.rows, x, w), trend])
-
-    def combination(self, coefficients: np.ndarray) -> np.ndarray:
-        """sum_B c_B B (rfft), the trend's coefficient last."""
-        out = coefficients[-1] * self.trend_f
-        return out if self.rows is None else out + coefficients[:-1] @ self.rows
-
-
 def fit_step(
     r_f: np.ndarray,
     w: np.ndarray,
@@ -151,18 +116,16 @@ def fit_step(
         i for i in range(max(1, index - refine), min(n - 1, index + refine + 1)) if valid[i]
     ] or [index]
     fits = position_fits(r_f, w, valid, signal_k, positions, bank, parts)
-    j = max(range(len(positions)), key=lambda j: fits[j][0])
+    j = max(range(len(positions)), key=lambda j: fits[j].delta_chi2)
     event = event_of(fits[j], float(times_s[positions[j]]), detector, parts)
-    change_f = fits[j][3]
-    return event, change_f
+    return event, fits[j].change_f()
 
 
-def event_of(fit: tuple, time_s: float, detector: int, parts: tuple[str, ...]) -> StepEvent:
-    """The :class:`StepEvent` of one of :func:`position_fits`' fits (delta chi^2, values,
-    covariance, change rfft) at ``time_s``: each part's value with the root of its variance."""
-    delta_chi2, values, covariance, _ = fit
-    sigmas = np.sqrt(np.clip(np.diag(covariance), 0.0, None))
-    fitted = dict(zip(parts, zip(values, sigmas, strict=True), strict=True))
+def event_of(fit: TemplateFit, time_s: float, detector: int, parts: tuple[str, ...]) -> StepEvent:
+    """The :class:`StepEvent` of one of :func:`position_fits`' fits at ``time_s``: each
+    part's value with the root of its variance."""
+    sigmas = np.sqrt(np.clip(np.diag(fit.covariance), 0.0, None))
+    fitted = dict(zip(parts, zip(fit.values, sigmas, strict=True), strict=True))
     offset, sigma_offset = fitted.get("offset", (0.0, 0.0))
     gain, sigma_gain = fitted.get("gain", (0.0, 0.0))
     return StepEvent(
@@ -172,80 +135,9 @@ def event_of(fit: tuple, time_s: float, detector: int, parts: tuple[str, ...]) -
         gain=float(gain),
         sigma_offset_k=float(sigma_offset),
         sigma_gain=float(sigma_gain),
-        significance=math.sqrt(max(delta_chi2, 0.0)),
+        significance=math.sqrt(max(fit.delta_chi2, 0.0)),
         parts=tuple(parts),
     )
-
-
-def position_fits(
-    r_f: np.ndarray,
-    w: np.ndarray,
-    valid: np.ndarray,
-    signal_k: np.ndarray,
-    positions: list[int],
-    bank: Bank | None,
-    parts: tuple[str, ...],
-) -> list[tuple]:
-    """:func:`fit_templates` of the step's ``parts`` at each of ``positions`` (ascending):
-    (delta chi^2, values, covariance, change rfft) per position, the templates from one
-    transform per part (:func:`edge_templates`) and their products with the bank once."""
-    templates = edge_templates(
-        valid.size, positions, [valid if part == "offset" else signal_k * valid for part in parts]
-    )
-    bank_r = bank.products(r_f, w) if bank is not None else None
-    bank_t = bank.products(templates, w) if bank is not None else None
-    k = len(parts)
-    fits = []
-    for j in range(len(positions)):
-        own = slice(j * k, (j + 1) * k)
-        fits.append(
-            fit_templates(
-                templates[own], r_f, w, bank, bank_r, None if bank_t is None else bank_t[:, own]
-            )
-        )
-    return fits
-
-
-def edge_templates(n: int, positions: list[int], shapes: list[np.ndarray]) -> np.ndarray:
-    """The rfft of H(t - i) x for each i of ``positions`` (ascending) and each x of
-    ``shapes``, rows ordered position by position: one transform per x at the first
-    position, then T_{i'}(f) = T_i(f) - sum_{i <= t < i'} x_t exp(-2 pi i f t / n)."""
-    first = positions[0]
-    current = rfft(np.stack([edge_shape(n, first) * x for x in shapes]))
-    rows = [current]
-    frequencies = np.arange(n // 2 + 1)
-    for previous, position in itertools.pairwise(positions):
-        for t in range(previous, position):
-            if any(x[t] != 0.0 for x in shapes):
-                phase = _roots_of_unity(n)[frequencies * t % n]
-                current = current - np.stack([x[t] * phase for x in shapes])
-        rows.append(current)
-    return np.concatenate(rows)
-
-
-@functools.lru_cache(maxsize=2)
-def _roots_of_unity(n: int) -> np.ndarray:
-    """exp(-2 pi i k / n), k = 0 .. n - 1."""
-    return np.exp(-2j * np.pi * np.arange(n) / n)
-
-
-def fit_templates(templates, r_f, w, bank: Bank | None, bank_r=None, bank_t=None):
-    """The Whittle fit of ``templates`` (rfft rows) jointly with ``bank`` (``bank_r`` =
-    <B, R> and ``bank_t`` = <B, T> if known): (delta chi^2, values, covariance, the rfft
-    of its change to the joint model)."""
-    gram = cross(templates, templates, w)
-    rhs = cross(templates, r_f, w)
-    if bank is not None:  # projected off the bank: the Schur complement
-        bank_r = bank.products(r_f, w) if bank_r is None else bank_r
-        bank_t = bank.products(templates, w) if bank_t is None else bank_t  # <B, T>
-        projection = bank.gram_inverse @ bank_t  # G^+ <B, T>
-        gram = gram - bank_t.T @ projection
-        rhs = rhs - projection.T @ bank_r
-    values, covariance = solve_normal(gram, rhs)
-    change_f = values @ templates
-    if bank is not None:  # the bank's coefficients move by -G^+ <B, T> values
-        change_f = change_f - bank.combination(projection @ values)
-    return float(values @ rhs), values, covariance, change_f
 
 
 def time_sigma_s(scan: np.ndarray, index: int, sampling_rate_hz: float) -> float:
@@ -315,7 +207,7 @@ class StepSearch:
     def bank(self, rows: np.ndarray | None = None, gram: np.ndarray | None = None) -> Bank:
         """The :class:`Bank` of the linear templates ``rows`` (rfft, Gram matrix ``gram``)
         fitted beside the steps, with the recording's trend."""
-        return Bank.of(rows, gram, self.norms.trend_f, self.w)
+        return Bank.of(rows, gram, self.norms.trend_f, self.w, self.valid.size)
 
 
 def choose_parts(scans: dict[str, np.ndarray], ln_n: float) -> tuple:

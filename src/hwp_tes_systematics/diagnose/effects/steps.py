@@ -7,8 +7,8 @@ at t_s (the first sample after it):
 o the offset jump [K], s the relative gain jump (dimensionless), d the detector's signal
 (the nominal TOD d_nom: HWPSS, sky, dipole). The gain part is a jump of the 2f HWPSS
 amplitude by s A_2 at t_s; the offset part a step in the low frequencies. The scan and
-the sharpness test are in :mod:`.step_scan`, the exact fit and the search in
-:mod:`.step_search`, a bias line's one time in :mod:`.step_lines`.
+the sharpness test are in :mod:`.step_scan`, the exact fit in :mod:`.step_fit`, the
+search in :mod:`.step_search`, a bias line's one time in :mod:`.step_lines`.
 """
 
 from __future__ import annotations
