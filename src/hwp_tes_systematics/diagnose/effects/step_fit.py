@@ -137,7 +137,7 @@ def position_fits(
         at = {
             t: (at_r[m], None if at_bank is None else at_bank[:, m]) for m, t in enumerate(left_out)
         }
-        kernel = weighted_tod(np.ones(w.size), w, n)
+        kernel = _kernel(w, n)
     fits = []
     for j, i in enumerate(positions):
         for t in left_out if j else ():
@@ -151,6 +151,22 @@ def position_fits(
             _solved(functools.partial(_edge_rows, shapes, i), gram, rhs, bank, bank_r, bank_t)
         )
     return fits
+
+
+_KERNELS: list[tuple[np.ndarray, int, np.ndarray]] = []  # (w, n, kernel), the latest few
+
+
+def _kernel(w: np.ndarray, n: int) -> np.ndarray:
+    """k = K e_0 (:func:`weighted_tod` of a unit impulse), kept for the last few weight
+    arrays seen (each detector's search reuses its own; an array is matched by identity,
+    and the cache holds it, so its identity is not reused)."""
+    for cached_w, cached_n, kernel in _KERNELS:
+        if cached_w is w and cached_n == n:
+            return kernel
+    kernel = weighted_tod(np.ones(w.size), w, n)
+    _KERNELS.insert(0, (w, n, kernel))
+    del _KERNELS[8:]
+    return kernel
 
 
 def _edge_rows(shapes: np.ndarray, i: int) -> np.ndarray:
