@@ -148,7 +148,14 @@ def position_fits(
                     bank_t = bank_t - np.outer(at[t][1], x_t)
                 gram = _gram_without(gram, shapes, t, kernel)
         fits.append(
-            _solved(functools.partial(_edge_rows, shapes, i), gram, rhs, bank, bank_r, bank_t)
+            _solved(
+                functools.partial(_rows_moved, rows, shapes, positions[0], i),
+                gram,
+                rhs,
+                bank,
+                bank_r,
+                bank_t,
+            )
         )
     return fits
 
@@ -167,6 +174,18 @@ def _kernel(w: np.ndarray, n: int) -> np.ndarray:
     _KERNELS.insert(0, (w, n, kernel))
     del _KERNELS[8:]
     return kernel
+
+
+def _rows_moved(rows: np.ndarray, shapes: np.ndarray, first: int, i: int) -> np.ndarray:
+    """The templates at position i from those at ``first`` (``rows``): T_i = T_first -
+    sum_{first <= t < i} x_t exp(-2 pi i f t / n), no transform."""
+    n = shapes.shape[-1]
+    frequencies = np.arange(rows.shape[-1])
+    moved = rows
+    for t in range(first, i):
+        if shapes[:, t].any():
+            moved = moved - np.outer(shapes[:, t], _roots_of_unity(n)[frequencies * t % n].conj())
+    return moved
 
 
 def _edge_rows(shapes: np.ndarray, i: int) -> np.ndarray:
