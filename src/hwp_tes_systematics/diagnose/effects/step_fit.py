@@ -1,8 +1,8 @@
 """The exact Whittle fit of a step's templates (H(t - i) x, x the valid samples for an
 offset, the nominal signal for a gain) jointly with the linear templates fitted beside it
 (a :class:`Bank`): at one position from the transforms (:func:`fit_templates`), at many
-from sums in time (:func:`position_fits`), the change to the joint model made only for
-the position kept. :mod:`.step_search` searches with it.
+from one transform per part, its inner products moved from one sample to the next
+(:func:`position_fits`), the change to the joint model made only for the position kept. :mod:`.step_search` searches with it.
 """
 
 from __future__ import annotations
@@ -46,16 +46,19 @@ class Bank:
     def products(self, x: np.ndarray) -> np.ndarray:
         """<B, x> for each template B of the bank (the trend last), x (nf,) or (k, nf):
         (n_templates,) or (n_templates, k), the weights applied to x (the smaller side)."""
-        templates = [self.trend_f[None]] if self.rows is None else [self.rows, self.trend_f[None]]
         if x.ndim == 1:
-            return np.concatenate([cross(b, x, self.w) for b in templates])
-        return np.concatenate([cross(x, b, self.w).T for b in templates])
+            return np.concatenate([cross(b, x, self.w) for b in self._blocks])
+        return np.concatenate([cross(x, b, self.w).T for b in self._blocks])
 
     def weighted_at(self, phases: np.ndarray) -> np.ndarray:
         """(K B)_t (:func:`weighted_at`) for each template B (the trend last) at the samples
         of ``phases`` (:func:`weighted_phases`): (n_templates, n_samples)."""
-        templates = [self.trend_f[None]] if self.rows is None else [self.rows, self.trend_f[None]]
-        return np.concatenate([weighted_at(b, phases) for b in templates])
+        return np.concatenate([weighted_at(b, phases) for b in self._blocks])
+
+    @property
+    def _blocks(self) -> list[np.ndarray]:
+        """The rows and the trend (n_rows, nf) and (1, nf), without copying them together."""
+        return [self.trend_f[None]] if self.rows is None else [self.rows, self.trend_f[None]]
 
     def combination(self, coefficients: np.ndarray) -> np.ndarray:
         """sum_B c_B B (rfft), the trend's coefficient last."""
@@ -120,7 +123,8 @@ def position_fits(
     T_i = rfft(H(t - i) x) at the first position, then, leaving out each sample t before
     the next (T -> T - x_t rfft(e_t)), <T, Y> -> <T, Y> - x_t (K y)_t for the residual and
     each bank template (:func:`weighted_at`) and the Gram matrix by :func:`_gram_without`.
-    The templates are transformed again only for the fit whose change is asked for."""
+    The templates at a later position (:func:`_rows_moved`) are made only for the fit
+    whose change is asked for."""
     n = valid.size
     shapes = np.stack([valid * 1.0 if part == "offset" else signal_k * valid for part in parts])
     rows = _edge_rows(shapes, positions[0])

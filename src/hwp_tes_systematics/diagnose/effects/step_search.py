@@ -1,11 +1,11 @@
 """The search for readout steps in one detector's residual: the scan's best candidates
 (:mod:`.step_scan`), each tested for sharpness, fitted exactly (:mod:`.step_fit`: both
-parts with the mask, jointly with the linear templates fitted beside them) and kept while its delta chi^2 pays
-the BIC (ln N per part, TIME_PARAMETERS ln N for its time: a change point's location);
-the search repeats on the residual without it. The time's error is from where the scan
-stays within TIME_LEVEL of its peak (:func:`time_sigma_s`). Where detectors step together
-beyond chance (a bias line), :mod:`.step_lines` puts them at one time and fits the
-others there. :mod:`.steps` is the catalog effect.
+parts with the mask, jointly with the linear templates fitted beside them) and kept while
+its delta chi^2 pays the BIC (ln N per part, TIME_PARAMETERS ln N for its time: a change
+point's location); the search repeats on the residual without it. The time's error is
+from where the scan stays within TIME_LEVEL of its peak (:func:`time_sigma_s`). Where
+detectors step together beyond chance (a bias line), :mod:`.step_lines` puts them at one
+time and fits the others there. :mod:`.steps` is the catalog effect.
 """
 
 from __future__ import annotations
