@@ -15,7 +15,7 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
-from helpers import make_workdir, snakemake, tiny_configfiles
+from helpers import TINY_DEFAULT, make_workdir, snakemake, tiny_configfiles
 
 from hwp_tes_systematics.config import load_config
 
@@ -73,7 +73,7 @@ def tiny_local_run(repo, tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def tiny_default_run(repo, tiny_local_run, tmp_path_factory):
-    """The embedded default's path at tiny size (tests/configs/tiny_default.yaml) in its
+    """The embedded default's path at tiny size (helpers.TINY_DEFAULT) in its
     own work folder, its inputs and sky copied from the tiny TOD run (the same upstream
     stages): (workdir, result), once per pytest run. Tests that change it work on a copy."""
     tod_workdir, tod_result = tiny_local_run
@@ -84,7 +84,7 @@ def tiny_default_run(repo, tiny_local_run, tmp_path_factory):
             return SimpleNamespace(returncode=1, stderr="the tiny TOD run failed")
         for inputs in ("results/inputs", "results/sky"):
             shutil.copytree(tod_workdir / inputs, workdir / inputs)
-        config = str(repo / "tests/configs/tiny_default.yaml")
+        config = str(repo / TINY_DEFAULT)
         return snakemake(workdir, extra=("--configfile", config, "--cores", "2"))
 
     return _once_per_run(tmp_path_factory, "tiny_default_run", run)

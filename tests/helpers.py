@@ -7,6 +7,7 @@ import sys
 
 # the tests' workflow runs: the one-day machinery (config/one_day.yaml) at tiny size
 TINY_CONFIGS = ("config/one_day.yaml", "tests/configs/tiny.yaml")
+TINY_DEFAULT = "tests/configs/tiny_default.yaml"  # the embedded default's path at tiny size
 
 
 def tiny_configfiles(repo) -> list[str]:

@@ -336,8 +336,8 @@ def test_a_level_that_comes_back_is_not_two_steps():
 
 
 def test_the_fits_at_many_positions_equal_each_positions_own_fit():
-    """:func:`position_fits` (products with the residual and the bank as suffix sums in
-    time, the Gram matrix moved sample by sample) equals :func:`fit_templates` on the
+    """:func:`position_fits` (its inner products and Gram matrix moved sample by sample
+    from one transform per part) equals :func:`fit_templates` on the
     transform at each position: delta chi^2, values, covariance and the change to the
     joint model, beside a bank of two templates, with flagged samples between positions,
     at an even and an odd number of samples."""

@@ -187,9 +187,6 @@ def test_tiny_requirement_unchanged(tiny_local_run, repo):
     assert not moved, moved
 
 
-TINY_DEFAULT = "tests/configs/tiny_default.yaml"
-
-
 def default_workdir(tiny_default_run):
     """The tiny default run's folder, after a run that must have succeeded."""
     workdir, result = tiny_default_run
@@ -227,7 +224,7 @@ def test_a_focal_plane_emulated_by_the_seeds_at_tiny_size(tiny_default_run, repo
     requirement loosens (4.5e-5 to 1.5e-4 1/K)."""
     import shutil
 
-    from helpers import snakemake
+    from helpers import TINY_DEFAULT, snakemake
 
     workdir = tmp_path / "emulated"  # a copy (modification times kept): only the seeds rerun
     shutil.copytree(default_workdir(tiny_default_run), workdir, symlinks=True)

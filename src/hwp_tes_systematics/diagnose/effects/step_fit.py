@@ -2,7 +2,8 @@
 offset, the nominal signal for a gain) jointly with the linear templates fitted beside it
 (a :class:`Bank`): at one position from the transforms (:func:`fit_templates`), at many
 from one transform per part, its inner products moved from one sample to the next
-(:func:`position_fits`), the change to the joint model made only for the position kept. :mod:`.step_search` searches with it.
+(:func:`position_fits`), the change to the joint model made only for the position kept.
+:mod:`.step_search` searches with it.
 """
 
 from __future__ import annotations
@@ -133,24 +134,21 @@ def position_fits(
     if bank is not None:
         bank_r, bank_t = bank.products(r_f), bank.products(rows)  # (n_bank,), (n_bank, k)
     left_out = [t for t in range(positions[0], positions[-1]) if shapes[:, t].any()]
-    if left_out:
+    if left_out:  # (K y)_t at the samples left out, for the residual and the bank
         phases = weighted_phases(w, n, range(left_out[0], left_out[-1] + 1))
         phases = phases[[t - left_out[0] for t in left_out]]
         at_r = weighted_at(r_f[None], phases)[0]
         at_bank = None if bank is None else bank.weighted_at(phases)
-        at = {
-            t: (at_r[m], None if at_bank is None else at_bank[:, m]) for m, t in enumerate(left_out)
-        }
         kernel = _kernel(w, n)
-    fits = []
-    for j, i in enumerate(positions):
-        for t in left_out if j else ():
-            if positions[j - 1] <= t < i:
-                x_t = shapes[:, t]
-                rhs = rhs - x_t * at[t][0]
-                if bank is not None:
-                    bank_t = bank_t - np.outer(at[t][1], x_t)
-                gram = _gram_without(gram, shapes, t, kernel)
+    fits, m = [], 0  # m: the samples left out so far
+    for i in positions:
+        while m < len(left_out) and left_out[m] < i:
+            x_t = shapes[:, left_out[m]]
+            rhs = rhs - x_t * at_r[m]
+            if bank is not None:
+                bank_t = bank_t - np.outer(at_bank[:, m], x_t)
+            gram = _gram_without(gram, shapes, left_out[m], kernel)
+            m += 1
         fits.append(
             _solved(
                 functools.partial(_rows_moved, rows, shapes, positions[0], i),
