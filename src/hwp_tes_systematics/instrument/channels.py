@@ -73,20 +73,37 @@ def open_imo(imo_location: str | None = None):
     return lbs.Imo(flatfile_location=location)
 
 
+def ptep_imo_location() -> Path:
+    """litebird_sim's PTEP flat file (``lbs.PTEP_IMO_LOCATION``), found without importing
+    litebird_sim (a few seconds, paid by every Snakemake job that only checks names)."""
+    import importlib.util
+
+    spec = importlib.util.find_spec("litebird_sim")
+    if spec is None or not spec.submodule_search_locations:
+        raise InstrumentModelError("litebird_sim is not installed: no PTEP instrument model")
+    return Path(spec.submodule_search_locations[0]) / "default_imo" / "schema.json.gz"
+
+
 @lru_cache(maxsize=4)
 def channel_names_by_telescope(
     imo_location: str | None = None, release: str = "vPTEP"
 ) -> dict[str, list[str]]:
-    """Channel names of each telescope in instrument-model order."""
-    import litebird_sim as lbs
+    """Channel names of each telescope in instrument-model order: the ``channel_names``
+    of each telescope's ``instrument_info`` (what ``lbs.InstrumentInfo.from_imo`` reads),
+    through libinsdb, the instrument database litebird_sim's ``Imo`` wraps."""
+    from libinsdb import LocalInsDb
 
-    imo = open_imo(imo_location)
+    location = ptep_imo_location() if imo_location is None else imo_location
+    if not Path(location).exists():
+        raise InstrumentModelError(
+            f"instrument.imo_location = {str(location)!r}: no such file or directory "
+            "(expected a litebird_sim IMo flat-file folder or schema.json[.gz])"
+        )
+    database = LocalInsDb(storage_path=str(location))
     names = {}
     for telescope in TELESCOPES:
-        info = lbs.InstrumentInfo.from_imo(
-            imo, f"/releases/{release}/satellite/{telescope}/instrument_info"
-        )
-        names[telescope] = list(info.channel_names)
+        info = database.query(f"/releases/{release}/satellite/{telescope}/instrument_info")
+        names[telescope] = list(info.metadata.get("channel_names", []))
     return names
 
 

@@ -38,6 +38,18 @@ class Selection:
     swap_margins: dict
 
 
+def _takes_fluctuation(trial, selected, fitted_fluctuation, noise, threshold) -> bool:
+    """Do the effects ``selected`` (the first pass's and the held-out ones that entered
+    under the noise without a fluctuation) take the fluctuation's power? The fluctuation
+    fitted on the residual without them (``noise`` the noise without it) no longer passes.
+    Where it still passes, the held-out effects entered on the power the fluctuation
+    explains (a common gain fluctuation is a string of coincident gain steps to a step
+    search run under a noise without its sidebands)."""
+    fit = trial.fit(selected, keep_model=True)
+    remaining_f = trial.residual_f - np.array(fit.model_f)
+    return fitted_fluctuation(remaining_f, noise).delta_bic >= threshold
+
+
 def select_effects(
     fit: NominalFit, delta_bic_threshold: float, max_effects: int, workers: int, progress
 ) -> Selection:
@@ -53,8 +65,10 @@ def select_effects(
     third pass checks the selection (what the first pass's effects took of it). When a
     gain fluctuation would be taken after the first pass, the held-out effects are first
     offered under the noise refitted without it (a gain step's power in the 2f sidebands
-    passes for a fluctuation's), and the fluctuation is fitted again on the residual
-    without what entered. Then the
+    passes for a fluctuation's); where the fluctuation fitted on the residual without
+    what entered no longer passes, all effects are selected again under that noise and
+    the fluctuation is fitted again on that residual, else the held-out effects wait
+    for the second pass. Then the
     fluctuation and the noise's roll-off are fitted again beside the final effects, and
     the pairs' crosstalk on the final residual (:mod:`..effects.crosstalk`). Updates
     ``fit.adjusted.noise``."""
@@ -124,7 +138,9 @@ def select_effects(
                 trial = problem.with_noise(refit)
                 progress("selecting effects (the held-out effects, before a gain fluctuation)")
                 steps = select(held_out, previous, on=trial)
-                if set(steps.final.selected) != set(previous):  # one entered: all again
+                if set(steps.final.selected) != set(previous) and _takes_fluctuation(
+                    trial, steps.final.selected, fitted_fluctuation, refit, delta_bic_threshold
+                ):  # one entered and took the fluctuation's power: all again
                     steps = select(list(problem.effects), steps.final.selected, on=trial)
                     problem, noise_models = trial, refit
                     adjusted.noise, adjusted.noise_covariance = refit, covariances
