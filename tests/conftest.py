@@ -132,8 +132,23 @@ def kind_of_test(path: Path, slow: bool) -> str:
     return "workflow" if slow else "unit"
 
 
+# run first: a test that mostly waits (the SLURM run, a chain of one-CPU jobs), so that
+# the other worker's tests fill its waits instead of following it
+RUN_FIRST = ("test_slurm.py",)
+
+
 @pytest.hookimpl(tryfirst=True)  # before -m selects on the markers
 def pytest_collection_modifyitems(config, items):
+    """Each test's kind marker (:func:`kind_of_test`); the order: RUN_FIRST, then the slow
+    tests, then the fast ones (under xdist the short ones at the end even out the
+    workers' ends), each group in file order."""
     for item in items:
         kind = kind_of_test(Path(str(item.path)), item.get_closest_marker("slow") is not None)
         item.add_marker(getattr(pytest.mark, kind))
+    items[:] = sorted(
+        items,
+        key=lambda item: (
+            Path(str(item.path)).name not in RUN_FIRST,
+            item.get_closest_marker("slow") is None,
+        ),
+    )
