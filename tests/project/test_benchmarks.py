@@ -510,6 +510,31 @@ def test_fixed_pass_profile_prints_each_stage_beside_its_floor_and_another_check
     assert f"2f removal + notch {18 * n_fft / n_inner:.1f}" in done.stdout
 
 
+def test_step_fit_cost_times_each_position_count_beside_another_checkout(repo):
+    """benchmarks/step_fit_cost.py on six minutes of a detector, the reference being this
+    checkout's package in a second process: a line per position count with both times and
+    the same first delta chi^2 in both (the same fit of the same draw)."""
+    import subprocess
+
+    done = subprocess.run(
+        [
+            sys.executable,
+            str(repo / "benchmarks" / "step_fit_cost.py"),
+            *("--hours", "0.1", "--repeats", "1", "--flagged", "10"),
+            *("--reference-src", str(repo / "src")),
+        ],
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=300,
+    )
+    rows = [line.split() for line in done.stdout.splitlines()[2:]]
+    assert [int(row[0]) for row in rows] == [1, 3, 17], done.stdout
+    for _, ms, delta, reference_ms, _, reference_delta in rows:
+        assert float(ms) > 0 and float(reference_ms) > 0
+        assert float(delta) == float(reference_delta) > 0
+
+
 @pytest.mark.slow
 def test_focal_plane_cost_covers_the_ptep_focal_plane(repo):
     """benchmarks/focal_plane_cost.py: a row per channel, 4,508 detectors in all, the
