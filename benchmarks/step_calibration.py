@@ -1,15 +1,19 @@
 """Are a readout step's significance, values and time errors what they say? Simulated steps.
 
     python benchmarks/step_calibration.py --draws 300 --out step_calibration.json
+    python benchmarks/step_calibration.py --draws 300 --gap-fraction 0.02   # with a gap
 
 Each draw: one detector's 1/f + white noise (white 2e-4 K per sample at 19 Hz, knee
 ``--knees`` [Hz], slope 1.5, the weights its PSD) recorded for ``--seconds`` out of a
 stream four times as long, so that, as in a real recording, the noise does not come back
-at the end to where it started (a periodic draw would); a 2f HWPSS carrier of 0.2 K. Then:
+at the end to where it started (a periodic draw would); a 2f HWPSS carrier of 0.2 K; with
+``--gap-fraction`` that fraction of the samples flagged in one gap starting a third of the
+way through (the residual zero there, as the diagnosis's is). Then:
 
-- **noise alone**: the offset step's z = <T, R> / sqrt(<T, T>) at 3 fixed times, fitted
-  alone in the periodic residual and beside the linear trend (the scan's): a calibrated
-  z has a spread of 1;
+- **noise alone**: the offset step's z = <T, R> / sqrt(<T, T>) at 3 fixed times (a sixth,
+  half and five sixths of the way through: before and after a gap), fitted alone in the
+  periodic residual and beside the scan's nuisance templates (the linear trend, and the
+  gap offset with a gap): a calibrated z has a spread of 1;
 - **a step**: an offset or a gain step (half each) of 5-50 sigma (log-uniform) at a random
   time, searched for (:func:`find_steps`, ln N of the recording): found or not, its part,
   the pull of its value and of its time (over its error), and its sharpness verdict.
@@ -65,14 +69,21 @@ def weights(n: int, fknee_hz: float) -> np.ndarray:
     return w
 
 
-def noise_z(rng, n: int, fknee_hz: float, carrier_k) -> tuple[list, list]:
+def gap_mask(n: int, fraction: float) -> np.ndarray:
+    """The valid samples: one gap of ``fraction`` of them starting at n / 3."""
+    valid = np.ones(n, bool)
+    valid[n // 3 : n // 3 + int(fraction * n)] = False
+    return valid
+
+
+def noise_z(rng, n: int, fknee_hz: float, carrier_k, valid) -> tuple[list, list]:
     """The offset's z at 3 fixed times on noise alone: (fitted alone, beside the trend)."""
     w = weights(n, fknee_hz)
-    r_f = rfft(recorded_noise(rng, n, fknee_hz))
-    scan = scan_parts(r_f, w, np.ones(n, bool), carrier_k, 1.0)
+    r_f = rfft(recorded_noise(rng, n, fknee_hz) * valid)
+    scan = scan_parts(r_f, w, valid, carrier_k, 1.0)
     alone, beside = [], []
     for index in (n // 6, n // 2, 5 * n // 6):
-        step_f = rfft(edge_shape(n, index))
+        step_f = rfft(edge_shape(n, index) * valid)
         norm = cross(step_f[None], step_f, w)[0]
         alone.append(float(cross(step_f[None], r_f, w)[0] / math.sqrt(norm)))
         inverse = scan.norms.inverse_norms["offset"][index]
@@ -85,11 +96,13 @@ def one_step(rng, n: int, fknee_hz: float, search: StepSearch, signal) -> dict:
     part = str(rng.choice(["offset", "gain"]))
     sigmas = float(np.exp(rng.uniform(math.log(5), math.log(50))))
     first = int(rng.uniform(0.15, 0.85) * n)
+    while not search.valid[first]:  # a step's first sample is a recorded one
+        first = int(rng.uniform(0.15, 0.85) * n)
     norms = search.norms
     unit = math.sqrt(norms.inverse_norms[part][first])  # the part's sigma per unit value
     value = float(rng.choice([-1, 1])) * sigmas * unit
     shape = edge_shape(n, first) * (1.0 if part == "offset" else signal)
-    r_f = rfft(recorded_noise(rng, n, fknee_hz) + value * shape)
+    r_f = rfft((recorded_noise(rng, n, fknee_hz) + value * shape) * search.valid)
     found = find_steps(r_f, search, 0, math.log(2 * n))
     record = {"part": part, "sigmas": sigmas, "knee_hz": fknee_hz, "found": len(found)}
     if found:
@@ -137,22 +150,28 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=1200.0, help="recording length [s]")
     parser.add_argument("--knees", nargs="+", type=float, default=[0.02, 0.1], help="[Hz]")
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument(
+        "--gap-fraction", type=float, default=0.0, help="samples flagged in one gap (0-0.5)"
+    )
     parser.add_argument("--out", type=Path)
     arguments = parser.parse_args()
     n = int(arguments.seconds * FS_HZ)
+    if not 0 <= arguments.gap_fraction <= 0.5:
+        parser.error(f"--gap-fraction {arguments.gap_fraction}: expected 0 to 0.5")
+    valid = gap_mask(n, arguments.gap_fraction)
     times_s = np.arange(n) / FS_HZ
     signal = A2_K * np.cos(4 * np.pi * F_HWP_HZ * times_s)
     start = time.monotonic()
-    noise: dict[str, list] = {"alone": [], "beside the trend": []}
+    noise: dict[str, list] = {"alone": [], "beside the nuisance templates": []}
     steps = []
     for index, knee in enumerate(arguments.knees):
         rng = np.random.default_rng([arguments.seed, index])
         w = weights(n, knee)
-        search = StepSearch.of(w, np.ones(n, bool), signal, times_s, F_HWP_HZ)
+        search = StepSearch.of(w, valid, signal, times_s, F_HWP_HZ)
         for draw in range(arguments.draws):
-            alone, beside = noise_z(rng, n, knee, search.norms.carrier_k)
+            alone, beside = noise_z(rng, n, knee, search.norms.carrier_k, valid)
             noise["alone"] += alone
-            noise["beside the trend"] += beside
+            noise["beside the nuisance templates"] += beside
             steps.append(one_step(rng, n, knee, search, signal))
             if (draw + 1) % 50 == 0:
                 print(f"knee {knee} Hz: {draw + 1} draws", file=sys.stderr, flush=True)

@@ -15,6 +15,8 @@ from hwp_tes_systematics.diagnose.effects.step_scan import (
     RAMP_CENTRES,
     carrier,
     edge_shape,
+    masked_offset_norms,
+    offset_norms,
     ramp_offset_terms,
     scan_parts,
     sharpness,
@@ -42,8 +44,13 @@ def _search(w, valid, signal, times_s) -> StepSearch:
 
 
 def _trend_bank(w, valid) -> Bank:
-    """The recording's linear trend alone, what the offset is fitted beside."""
-    return Bank.of(None, None, rfft(trend(valid.size) * valid), w, valid.size)
+    """What the offset is fitted beside: the recording's linear trend, and where samples
+    are flagged the gap offset (the valid samples' constant)."""
+    rows = gram = None
+    if not valid.all():
+        rows = rfft(valid * 1.0)[None]
+        gram = cross(rows, rows, w)
+    return Bank.of(rows, gram, rfft(trend(valid.size) * valid), w, valid.size)
 
 
 def _fit_edge(r_f, w, valid, signal, shape, parts) -> float:
@@ -93,6 +100,47 @@ def test_the_scan_equals_each_parts_exact_fit():
         assert scans["gain"][index] == pytest.approx(exact, rel=0.05, abs=0.05)
 
 
+def test_the_masked_offset_norm_is_the_steps_whittle_norm():
+    """<H v, H v> at every t_s by the correlation over 2n samples equals n T^T K T with K
+    the circulant of k = irfft(w), at an even and an odd length, with gaps at the start,
+    inside and at the end; with no sample flagged it is the unmasked norm."""
+    rng = np.random.default_rng(3)
+    for n in (400, 401):
+        freqs = np.fft.rfftfreq(n, 1 / FS_HZ)
+        w = 1 / (1 + (FKNEE_HZ / np.maximum(freqs, freqs[1])) ** 1.5) * rng.uniform(0.5, 1.5)
+        kernel = irfft(w, n=n)
+        circulant = kernel[(np.arange(n)[:, None] - np.arange(n)[None, :]) % n]
+        valid = rng.uniform(size=n) > 0.1
+        valid[:7] = valid[150:190] = valid[-5:] = False
+        exact = [
+            n * (edge_shape(n, t) * valid) @ circulant @ (edge_shape(n, t) * valid)
+            for t in range(n)
+        ]
+        assert np.allclose(
+            masked_offset_norms(w, valid), exact, rtol=1e-10, atol=1e-12 * max(exact)
+        )
+        everything = np.ones(n, bool)
+        assert np.allclose(masked_offset_norms(w, everything), offset_norms(w, n), rtol=1e-9)
+
+
+def test_with_flags_the_offset_scan_equals_its_exact_fit_beside_the_trend():
+    """With 2 % of the samples flagged (one gap, scattered samples), the offset scan's
+    delta chi^2 equals the exact fit of H v beside the masked linear trend and the gap
+    offset, before, inside and just after the gap and far from it, to 1e-6."""
+    _, _, w, noise_f = _case(2)
+    rng = np.random.default_rng(8)
+    valid = rng.uniform(size=N) > 0.01
+    valid[13_000:13_190] = False
+    noise_f[0] = 0.0
+    r_f = rfft((np.fft.irfft(noise_f, n=N) + 3e-4 * edge_shape(N, 9_000)) * valid)
+    scan = scan_parts(r_f, w, valid, np.zeros(N), 1.0)
+    for index in (500, 9_000, 12_990, 13_100, 13_190, 13_200, 17_000):
+        exact = fit_templates(
+            rfft(edge_shape(N, index) * valid)[None], r_f, w, _trend_bank(w, valid)
+        )
+        assert scan.chi2("offset")[index] == pytest.approx(exact.delta_chi2, rel=1e-6)
+
+
 @pytest.mark.parametrize("part", ["offset", "gain"])
 def test_the_sharpness_from_running_means_equals_the_exact_fits(part):
     """D (the step's delta chi^2 less the best ramp's over 3 min) and E (the step's
@@ -124,33 +172,46 @@ def test_the_sharpness_from_running_means_equals_the_exact_fits(part):
     assert d > 2 * np.sqrt(e)  # and it is sharp
 
 
-def test_an_offset_steps_significance_is_one_sigma_per_sigma_on_noise_that_does_not_wrap():
+@pytest.mark.parametrize("flagged", [False, True])
+def test_an_offset_steps_significance_is_one_sigma_per_sigma_on_noise_that_does_not_wrap(
+    flagged,
+):
     """1/f noise recorded for 1,000 s out of a 4,000 s stream does not come back to where it
     started, as the Whittle likelihood's periodic residual would: fitted alone, an offset
     step's z = <T, R> / sqrt(<T, T>) at a fixed time spreads over more than 1.4 sigma;
-    beside the linear trend (the scan's), over 1 within 15 % (100 draws, 3 times)."""
+    beside the linear trend (the scan's), over 1 within 15 % (100 draws, 3 times), with
+    every sample valid or with 2 % flagged (a gap between the first two times: the gap
+    offset fitted too; beside the trend alone the first time's z spreads over 2)."""
     _, _, w, _ = _case(1)
     freqs = np.fft.rfftfreq(4 * N, 1 / FS_HZ)
     psd = 4 * N * WHITE_K**2 * (1 + (FKNEE_HZ / np.maximum(freqs, 1e-12)) ** 1.5)
     psd[0] = 0.0
     rng = np.random.default_rng(5)
     valid = np.ones(N, bool)
+    if flagged:
+        valid[9_000:9_380] = False
     c = np.zeros(N)  # no carrier: the offset alone
-    alone, beside = [], []
+    trend_alone = Bank.of(None, None, rfft(trend(N) * valid), w, N)
+    alone, beside, before_gap = [], [], []
     for _ in range(100):
         stream_f = np.sqrt(psd / 2) * (
             rng.normal(size=freqs.size) + 1j * rng.normal(size=freqs.size)
         )
-        r_f = rfft(np.fft.irfft(stream_f, n=4 * N)[:N])
+        r_f = rfft(np.fft.irfft(stream_f, n=4 * N)[:N] * valid)
         scan = scan_parts(r_f, w, valid, c, 1.0)
         for index in (3000, 9500, 16000):
-            step_f = rfft(edge_shape(N, index))
+            step_f = rfft(edge_shape(N, index) * valid)
             alone.append(
                 cross(step_f[None], r_f, w)[0] / math.sqrt(cross(step_f[None], step_f, w)[0])
             )
             beside.append(scan.offset[index] * math.sqrt(scan.norms.inverse_norms["offset"][index]))
+        if flagged:
+            fit = fit_templates(rfft(edge_shape(N, 3000) * valid)[None], r_f, w, trend_alone)
+            before_gap.append(fit.values[0] / math.sqrt(fit.covariance[0, 0]))
     assert np.std(alone) > 1.4
     assert np.std(beside) == pytest.approx(1.0, abs=0.15)
+    if flagged:
+        assert np.std(before_gap) > 2.0
 
 
 @pytest.mark.parametrize("seed", range(1, 9))
@@ -298,8 +359,8 @@ def test_the_evidence_says_which_steps_are_not_told_apart_from_a_ramp():
 @pytest.mark.parametrize("seed", range(1, 4))
 def test_a_gap_leaves_the_scan_of_noise_below_a_steps_price(seed):
     """Noise with 2 % of its samples flagged: the offset scan's largest delta chi^2 stays
-    below the 3 ln N a step pays (with flags the scan is the periodic one; the trend's
-    masked part beside the norm, whose mask is ignored, made it 38-89 here)."""
+    below the 3 ln N a step pays (the trend's masked part beside a norm that ignored the
+    mask made it 38-89 here)."""
     _, _, w, noise_f = _case(seed)
     valid = np.ones(N, bool)
     valid[13_000:13_380] = False

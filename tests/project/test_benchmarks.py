@@ -792,7 +792,7 @@ def test_step_calibration_draws_noise_that_does_not_wrap_and_scores_the_steps(
 ):
     """benchmarks/step_calibration.py: the recorded noise is cut from a longer stream (its
     end differs from its start far more than a periodic draw's), and a short run prints the
-    z spreads and each part's steps."""
+    z spreads and each part's steps, without and with a gap."""
     import step_calibration as calibration
 
     def end_less_start(stream_factor):  # the means of the last and first 200 samples
@@ -808,3 +808,10 @@ def test_step_calibration_draws_noise_that_does_not_wrap_and_scores_the_steps(
     printed = capsys.readouterr().out.splitlines()
     assert printed[0].startswith("noise alone, offset z alone: sd")
     assert printed[2].startswith("offset steps: found") and printed[3].startswith("gain steps")
+    # with a gap: the steps drawn on recorded samples, the z beside the gap offset too
+    valid = calibration.gap_mask(1200, 0.05)
+    assert (~valid).sum() == 60 and not valid[400] and valid[399] and valid[460]
+    monkeypatch.setattr(sys, "argv", [*sys.argv, "--gap-fraction", "0.05"])
+    calibration.main()
+    printed = capsys.readouterr().out.splitlines()
+    assert printed[1].startswith("noise alone, offset z beside the nuisance templates: sd")

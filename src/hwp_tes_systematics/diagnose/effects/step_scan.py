@@ -11,7 +11,7 @@ above f_HWP / 2, the carrier) to the residual R, each alone:
 
 with <a, b> = sum_f 2 Re(a_f* b_f) w_f (:mod:`..linalg`). <T, R> = n sum_t T(t) (W R)(t)
 (W R = irfft(w R_f)), a cumulative sum over t >= t_s; <T_o, T_o> = n [L k_0 + 2 sum_{l<L}
-(L - l) k_l] (k = irfft(w), L = n - t_s, the mask ignored); <T_g, T_g> ~ n w_c P (1 - P /
+(L - l) k_l] (k = irfft(w), L = n - t_s) where every sample is valid; <T_g, T_g> ~ n w_c P (1 - P /
 P_0), P = sum_{t>=t_s} c(t)^2 (w_c the weight at 2 f_HWP, where c lives; the factor: the
 step's mean taken by the nominal 2f amplitude).
 
@@ -20,14 +20,18 @@ running means of the scan's and its norms the step's plus a part local to W
 (:func:`sharpness`).
 
 The offset's templates are fitted beside the recording's linear trend R (:func:`trend`):
-T_o' = T_o - (<T_o, R> / <R, R>) R. The Whittle likelihood takes the residual as periodic,
+T_o' = T_o - a^T G^-1 N, N the nuisance templates (R, and v where samples are flagged),
+a = <T_o, N>, G = <N, N>. The Whittle likelihood takes the residual as periodic,
 so a step at t_s is also a jump back at the recording's end; 1/f noise does not come back
 to where it started (its end and start differ as two points far apart do), and without R
 every step's fit would take that difference as information: on TOAST's 1/f noise an
 offset step's z at a random time had a spread of 1.7-2, not 1, and its error was up to
-sqrt(2) too small (``benchmarks/step_calibration.py``). With flagged samples the scan is
-the periodic one (its norm ignores the mask, and the trend's masked part beside it
-misplaced the scan's peak); the exact fit that decides takes the trend either way.
+sqrt(2) too small (``benchmarks/step_calibration.py``). With flagged samples the offset's
+templates are also fitted beside the gap offset v (the nominal model's constant on the
+valid samples, :mod:`..select.bank`): the zero-filled gap is a box as deep as the noise's
+level there, which a step before the gap (H v holds the box) would otherwise take, its z
+spreading over 2 sigma and more; and <T_o, T_o> holds the mask
+(:func:`masked_offset_norms`) as the projections do.
 """
 
 from __future__ import annotations
@@ -72,33 +76,35 @@ class ScanNorms:
     valid: np.ndarray
     carrier_k: np.ndarray
     w_carrier: float
-    offset_norm: np.ndarray  # <T_o', T_o'>: the mask ignored in <T_o, T_o>
+    offset_norm: np.ndarray  # <T_o', T_o'>
     gain_norm: np.ndarray  # <T_g', T_g'>
     carrier_power: np.ndarray  # c^2 v per sample
     power_after: np.ndarray  # P(t_s) = sum_{t >= t_s} c^2 v
     fraction: np.ndarray  # P / P_0
     inverse_norms: dict  # part -> 1 / <T, T>, 0 where the norm vanishes
-    trend: np.ndarray  # R v, the linear trend on the valid samples
-    trend_f: np.ndarray  # its rfft
-    trend_after: np.ndarray  # <T_o, R> at every t_s
-    trend_norm: float  # <R, R>
+    trend_f: np.ndarray  # the rfft of R v, the linear trend on the valid samples
+    nuisance: np.ndarray  # N (m, n): R v, and v where samples are flagged
+    nuisance_after: np.ndarray  # a = <T_o, N> (m, n) at every t_s
+    nuisance_inverse: np.ndarray  # G^-1 (m, m)
 
     @classmethod
     def of(cls, w, valid, carrier_k, w_carrier: float, offset_norm=None) -> ScanNorms:
-        """``offset_norm``: <T_o, T_o> at every t_s (:func:`offset_norms`) if known."""
+        """``offset_norm``: <T_o, T_o> at every t_s with the mask ``valid``
+        (:func:`offset_norms` where every sample is valid, else
+        :func:`masked_offset_norms`) if known."""
         n = valid.size
-        offset_norm = offset_norms(w, n) if offset_norm is None else offset_norm
+        if offset_norm is None:
+            offset_norm = offset_norms(w, n) if valid.all() else masked_offset_norms(w, valid)
         trend_v = trend(n) * valid
         trend_f = rfft(trend_v)
-        weighted_trend = irfft(w * trend_f, n=n)
-        trend_after = n * np.cumsum((weighted_trend * valid)[::-1])[::-1]
-        trend_norm = n * float(trend_v @ weighted_trend)
-        if valid.all():
-            offset_norm = offset_norm - trend_after**2 / trend_norm
-        else:  # with flags the scan is the periodic one (module docstring); the exact fits
-            # still take the trend. Masked parts beside the norm, whose mask is ignored,
-            # cancel it near a gap: the scan took noise for steps of delta chi^2 1e4
-            trend_after = np.zeros(n)
+        nuisance = np.stack([trend_v] if valid.all() else [trend_v, valid * 1.0])
+        weighted = irfft(w * rfft(nuisance, axis=-1), n=n, axis=-1)  # K N
+        # a = <T_o, N> = n sum_{t >= t_s} v (K N), G = <N, N>
+        nuisance_after = n * np.cumsum((weighted * valid)[:, ::-1], axis=-1)[:, ::-1]
+        inverse = np.linalg.pinv(n * (nuisance @ weighted.T), hermitian=True)
+        offset_norm = offset_norm - np.einsum(
+            "it,ij,jt->t", nuisance_after, inverse, nuisance_after
+        )
         carrier_power = carrier_k**2 * valid
         power_after = np.cumsum(carrier_power[::-1])[::-1]
         fraction = power_after / max(power_after[0], 1e-300)
@@ -115,10 +121,10 @@ class ScanNorms:
             power_after=power_after,
             fraction=fraction,
             inverse_norms={"offset": _inverse(offset_norm), "gain": _inverse(gain_norm)},
-            trend=trend_v,
             trend_f=trend_f,
-            trend_after=trend_after,
-            trend_norm=trend_norm,
+            nuisance=nuisance,
+            nuisance_after=nuisance_after,
+            nuisance_inverse=inverse,
         )
 
 
@@ -163,8 +169,25 @@ class StepScan:
 
 
 def offset_norms(w: np.ndarray, n: int) -> np.ndarray:
-    """<H(t - t_s), H(t - t_s)> at every t_s, the mask ignored (:func:`_box_norms`)."""
+    """<H(t - t_s), H(t - t_s)> at every t_s, every sample valid (:func:`_box_norms`)."""
     return n * _box_norms(irfft(w, n=n), n - np.arange(n))
+
+
+def masked_offset_norms(w: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """<H(t - t_s) v, H(t - t_s) v> at every t_s, v the valid samples:
+    n sum_{i >= t_s} v_i (k_0 v_i + 2 c_i), c_i = sum_{l >= 1} k_l v_{i + l} (v zero after
+    the end; the box's lags are below n, where the circular kernel k = irfft(w) is
+    k_{|i - j|}). c is a correlation, one transform pair over 2n samples (no wrap)."""
+    n = valid.size
+    kernel = irfft(w, n=n)
+    v = valid.astype(float)
+    size = 2 * n
+    lagged = np.zeros(size)
+    lagged[1:n] = kernel[1:]
+    padded = np.zeros(size)
+    padded[:n] = v
+    c = irfft(rfft(padded) * np.conj(rfft(lagged)), n=size)[:n]
+    return n * np.cumsum((v * (kernel[0] * v + 2.0 * c))[::-1])[::-1]
 
 
 def scan_parts(
@@ -189,8 +212,8 @@ def scan_weighted(weighted: np.ndarray, norms: ScanNorms) -> StepScan:
     gain_after = np.cumsum((norms.carrier_k * masked)[::-1])[::-1]
     gain_after -= norms.fraction * gain_after[0]
     after *= n
-    # projected off the trend: <T_o', R_res> = <T_o, R_res> - <T_o, R> <R, R_res> / <R, R>
-    after -= norms.trend_after * (n * float(norms.trend @ weighted) / norms.trend_norm)
+    # projected off the nuisance templates: <T_o', R_res> = <T_o, R_res> - a^T G^-1 <N, R_res>
+    after -= (norms.nuisance_inverse @ (n * (norms.nuisance @ weighted))) @ norms.nuisance_after
     gain_after *= n
     return StepScan(offset=after, gain=gain_after, norms=norms)
 

@@ -15,7 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..fourier import irfft
+from ..fourier import irfft, rfft
+from ..linalg import cross
 from .step_fit import Bank, TemplateFit, position_fits
 from .step_scan import (
     PARTS,
@@ -187,7 +188,7 @@ class StepSearch:
         carrier_k = carrier(signal_k, 0.5 * f_hwp_hz, fs)
         w_carrier = float(np.median(w[near])) if near.any() else float(np.median(w[w > 0]))
         unprojected = offset_norms(w, n)
-        norms = ScanNorms.of(w, valid, carrier_k, w_carrier, unprojected)
+        norms = ScanNorms.of(w, valid, carrier_k, w_carrier, unprojected if valid.all() else None)
         return cls(
             w=w,
             valid=valid,
@@ -206,7 +207,12 @@ class StepSearch:
 
     def bank(self, rows: np.ndarray | None = None, gram: np.ndarray | None = None) -> Bank:
         """The :class:`Bank` of the linear templates ``rows`` (rfft, Gram matrix ``gram``)
-        fitted beside the steps, with the recording's trend."""
+        fitted beside the steps, with the recording's trend; without ``rows``, where samples
+        are flagged, with the gap offset v too (the scan's nuisance templates; a fit's
+        rows hold it among the nominal model's)."""
+        if rows is None and not self.valid.all():
+            rows = rfft(self.valid * 1.0)[None]
+            gram = cross(rows, rows, self.w)
         return Bank.of(rows, gram, self.norms.trend_f, self.w, self.valid.size)
 
 
