@@ -12,6 +12,7 @@ import pytest
 
 from hwp_tes_systematics.diagnose.effects.step_fit import Bank, fit_templates, position_fits
 from hwp_tes_systematics.diagnose.effects.step_scan import (
+    PARTS,
     RAMP_CENTRES,
     carrier,
     edge_shape,
@@ -23,7 +24,7 @@ from hwp_tes_systematics.diagnose.effects.step_scan import (
     step_scan,
     trend,
 )
-from hwp_tes_systematics.diagnose.effects.step_search import StepSearch
+from hwp_tes_systematics.diagnose.effects.step_search import StepSearch, choose_parts
 from hwp_tes_systematics.diagnose.effects.steps import find_steps, step_tod
 from hwp_tes_systematics.diagnose.fourier import irfft, rfft
 from hwp_tes_systematics.diagnose.linalg import cross
@@ -249,6 +250,40 @@ def test_a_step_is_found_with_its_part_values_and_time(seed, part):
     assert abs(value - truth[part]) < 3 * sigma
     assert abs(event.time_s - times_s[first]) < 3 * event.sigma_time_s
     assert event.n_parameters == 3  # the part and its time (counted twice)
+
+
+def test_a_sharp_part_near_a_broad_parts_peak_sets_the_steps_time():
+    """choose_parts: a broad gain scan (Delta chi^2 190, its peak 300 samples before the
+    step) beside a sharp offset cusp (176 at the step) gives both parts at the offset's
+    sample, not at the gain's peak; an offset of noise (16) within the gain's span leaves
+    the gain alone at its own peak."""
+    ln_n = math.log(2 * N)
+    samples = np.arange(N)
+    gain = 190.0 - 4e-5 * (samples - 9_700.0) ** 2  # within 16 of its peak over +-630 samples
+    cusp = 176.0 - 0.5 * np.abs(samples - 10_000.0)
+    parts_at = choose_parts({"offset": np.clip(cusp, 0, None), "gain": gain}, ln_n)
+    assert parts_at[1:3] == (PARTS, 10_000)
+    noise = np.zeros(N)
+    noise[9_900] = 16.0
+    assert choose_parts({"offset": noise, "gain": gain}, ln_n)[1:3] == (("gain",), 9_700)
+
+
+@pytest.mark.parametrize("seed", range(1, 7))
+def test_a_step_of_both_parts_is_found_at_its_offsets_time(seed):
+    """An offset step of 300 uK (10 sigma) with a gain step of 2.5e-4 at the same time
+    (12 sigma, its time known to tens of seconds): one step, both parts, within 3 sigma,
+    at the offset's time (the offset's scan is the sharper)."""
+    times_s, signal, w, noise_f = _case(seed)
+    rng = np.random.default_rng(200 + seed)
+    first = int(rng.uniform(0.3, 0.7) * N)
+    recorded_f = noise_f + rfft(edge_shape(N, first) * (3e-4 + 2.5e-4 * signal))
+    (event,) = find_steps(
+        recorded_f, _search(w, np.ones(N, bool), signal, times_s), 0, math.log(2 * N)
+    )
+    assert event.parts == PARTS
+    assert abs(event.offset_k - 3e-4) < 3 * event.sigma_offset_k
+    assert abs(event.gain - 2.5e-4) < 3 * event.sigma_gain
+    assert abs(event.time_s - times_s[first]) < 3 * event.sigma_time_s
 
 
 @pytest.mark.parametrize("seed", range(1, 4))

@@ -219,23 +219,51 @@ class StepSearch:
 def choose_parts(scans: dict[str, np.ndarray], ln_n: float) -> tuple:
     """(delta BIC, parts, sample, their scan) of the best candidate: the part whose scan
     pays most beyond its BIC (TIME_PARAMETERS + 1 ln N) at its peak, and the other part
-    beside it where it pays its ln N at that sample; where neither part alone pays, both
-    at the peak of their sum. The second part is tested at the first's time, not at the
-    peak of the sum: over a weak step's time error the sum's peak would pick the other
-    part's largest noise (4 sigma offsets beside gain steps on TOAST's 1/f noise)."""
+    beside it; where neither part alone pays, both at the peak of their sum.
+
+    The other part joins where it pays its ln N at the first's sample, or where it pays a
+    step's whole BIC at its own peak within the first's time error (the span where the
+    first's scan stays within TIME_LEVEL of its peak): both are then put at the peak of
+    their sum in that span, which the sharper part sets (a weak gain part's peak lies
+    tens of seconds from an offset step's time, where the offset part alone would be a
+    ramp's edge, smooth). Not the sum's peak otherwise: over a weak step's time error
+    it would pick the other part's largest noise (4 sigma offsets beside gain steps on
+    TOAST's 1/f noise), which does not pay a step's BIC."""
     singles = []
     for part in PARTS:
         index = int(np.argmax(scans[part]))
         singles.append((scans[part][index] - (TIME_PARAMETERS + 1) * ln_n, (part,), index))
-    delta_bic, parts, index = max(singles, key=lambda c: c[0])
-    if delta_bic >= 0:
-        (other,) = (part for part in PARTS if part not in parts)
-        if scans[other][index] > ln_n:
-            return delta_bic + scans[other][index] - ln_n, PARTS, index, sum(scans.values())
-        return delta_bic, parts, index, scans[parts[0]]
+    (
+        delta_bic,
+        parts,
+        index,
+    ) = max(singles, key=lambda c: c[0])
     both = sum(scans.values())
-    index = int(np.argmax(both))
-    return both[index] - (TIME_PARAMETERS + 2) * ln_n, PARTS, index, both
+    if delta_bic < 0:
+        index = int(np.argmax(both))
+        return both[index] - (TIME_PARAMETERS + 2) * ln_n, PARTS, index, both
+    (first,) = parts
+    (other,) = (part for part in PARTS if part != first)
+    lo, hi = _span_within(scans[first], index, TIME_LEVEL)
+    if scans[other][lo:hi].max() >= (TIME_PARAMETERS + 1) * ln_n:
+        index = lo + int(np.argmax(both[lo:hi]))
+        return both[index] - (TIME_PARAMETERS + 2) * ln_n, PARTS, index, both
+    if scans[other][index] > ln_n:
+        return delta_bic + scans[other][index] - ln_n, PARTS, index, both
+    return delta_bic, parts, index, scans[first]
+
+
+def _span_within(scan: np.ndarray, index: int, level: float) -> tuple[int, int]:
+    """[lo, hi): the samples around ``index`` where ``scan`` stays within ``level`` of
+    its value there."""
+    inside = scan >= scan[index] - level
+    lo = index
+    while lo > 0 and inside[lo - 1]:
+        lo -= 1
+    hi = index + 1
+    while hi < scan.size and inside[hi]:
+        hi += 1
+    return lo, hi
 
 
 def find_steps(
