@@ -1,8 +1,9 @@
 """Joint fit of catalog effects to the residual, and forward stepwise selection with the BIC.
 
 Modules: :mod:`.bank` (the template bank and its normal equations, the linear fit),
-:mod:`.backfit` (nonlinear and event effects, fitted in turn), :mod:`.selection`
-(the stepwise selection), :mod:`.results` (what a fit gives).
+:mod:`.backfit` (nonlinear and event effects, fitted in turn), :mod:`.stepwise`
+(the stepwise selection), :mod:`.results` (what a fit gives), :mod:`.step` (the
+pipeline's step).
 
 Likelihood. Per detector k (detectors' noise independent), with R_f the rfft of the
 masked residual r = valid x (recording - d_nom), M_f the rfft of the masked model of the
