@@ -38,6 +38,21 @@ Finished jobid: 5 (Rule: component_separation)
 """
 
 
+def run_benchmark(repo, script: str, *arguments, timeout: float = 300, **options):
+    """``python benchmarks/<script> <arguments>`` in a child process (``options``: more of
+    ``subprocess.run``'s, ``cwd``), its output as text; a failure raises."""
+    import subprocess
+
+    return subprocess.run(
+        [sys.executable, str(repo / "benchmarks" / script), *map(str, arguments)],
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=timeout,
+        **options,
+    )
+
+
 @pytest.fixture
 def benchmarks(repo, monkeypatch):
     monkeypatch.syspath_prepend(str(repo / "benchmarks"))
@@ -482,18 +497,11 @@ def test_fixed_pass_profile_prints_each_stage_beside_its_floor_and_another_check
     this checkout's own package run in a second process: every stage of a pass with
     systematics gets a line with its floor, the reference's figure beside it, and the
     FFT rows of the notch are counted (8 per detector with one noise realization)."""
-    import subprocess
-
-    done = subprocess.run(
-        [
-            sys.executable,
-            str(repo / "benchmarks" / "fixed_pass_profile.py"),
-            *("--days", "0.02", "--nside", "8", "--noise-realizations", "1"),
-            *("--reference-src", str(repo / "src")),
-        ],
-        capture_output=True,
-        text=True,
-        check=True,
+    done = run_benchmark(
+        repo,
+        "fixed_pass_profile.py",
+        *("--days", "0.02", "--nside", "8", "--noise-realizations", "1"),
+        *("--reference-src", repo / "src"),
         timeout=600,
     )
     lines = {line.split("|")[1].strip(): line for line in done.stdout.splitlines() if "|" in line}
@@ -514,19 +522,11 @@ def test_step_fit_cost_times_each_position_count_beside_another_checkout(repo):
     """benchmarks/step_fit_cost.py on six minutes of a detector, the reference being this
     checkout's package in a second process: a line per position count with both times and
     the same first delta chi^2 in both (the same fit of the same draw)."""
-    import subprocess
-
-    done = subprocess.run(
-        [
-            sys.executable,
-            str(repo / "benchmarks" / "step_fit_cost.py"),
-            *("--hours", "0.1", "--repeats", "1", "--flagged", "10"),
-            *("--reference-src", str(repo / "src")),
-        ],
-        capture_output=True,
-        text=True,
-        check=True,
-        timeout=300,
+    done = run_benchmark(
+        repo,
+        "step_fit_cost.py",
+        *("--hours", "0.1", "--repeats", "1", "--flagged", "10"),
+        *("--reference-src", repo / "src"),
     )
     rows = [line.split() for line in done.stdout.splitlines()[2:]]
     assert [int(row[0]) for row in rows] == [1, 3, 17], done.stdout
@@ -539,16 +539,7 @@ def test_step_fit_cost_times_each_position_count_beside_another_checkout(repo):
 def test_focal_plane_cost_covers_the_ptep_focal_plane(repo):
     """benchmarks/focal_plane_cost.py: a row per channel, 4,508 detectors in all, the
     core-hours the sum of the rows, a one-day job's memory growing with the detectors."""
-    import subprocess
-
-    done = subprocess.run(
-        [sys.executable, str(repo / "benchmarks" / "focal_plane_cost.py")],
-        capture_output=True,
-        text=True,
-        check=True,
-        timeout=300,
-        cwd=repo,
-    )
+    done = run_benchmark(repo, "focal_plane_cost.py", cwd=repo)
     rows = [line.split("|")[1:-1] for line in done.stdout.splitlines() if line.startswith("| ")]
     channels = [[cell.strip() for cell in row] for row in rows[1:] if "**all**" not in row[0]]
     (total,) = [[cell.strip() for cell in row] for row in rows if "**all**" in row[0]]
