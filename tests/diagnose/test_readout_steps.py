@@ -255,8 +255,8 @@ def test_a_step_is_found_with_its_part_values_and_time(seed, part):
 def test_a_sharp_part_near_a_broad_parts_peak_sets_the_steps_time():
     """choose_parts: a broad gain scan (Delta chi^2 190, its peak 300 samples before the
     step) beside a sharp offset cusp (176 at the step) gives both parts at the offset's
-    sample, not at the gain's peak; an offset of noise (16) within the gain's span leaves
-    the gain alone at its own peak."""
+    sample, not at the gain's peak nor at the peak of their sum; an offset of noise (16)
+    within the gain's span leaves the gain alone at its own peak."""
     ln_n = math.log(2 * N)
     samples = np.arange(N)
     gain = 190.0 - 4e-5 * (samples - 9_700.0) ** 2  # within 16 of its peak over +-630 samples
@@ -266,6 +266,12 @@ def test_a_sharp_part_near_a_broad_parts_peak_sets_the_steps_time():
     noise = np.zeros(N)
     noise[9_900] = 16.0
     assert choose_parts({"offset": noise, "gain": gain}, ln_n)[1:3] == (("gain",), 9_700)
+    # a gain peak 9 samples after the offset's, rising over its cusp faster than the cusp
+    # falls: the parts' sum peaks 2 samples off the edge; the step is at the offset's
+    rising = 190.0 - 0.15 * (samples - 10_009.0) ** 2
+    narrow = np.clip(176.0 - 2.0 * np.abs(samples - 10_000.0), 0, None)
+    assert int(np.argmax(narrow + rising)) == 10_002
+    assert choose_parts({"offset": narrow, "gain": rising}, ln_n)[1:3] == (PARTS, 10_000)
 
 
 @pytest.mark.parametrize("seed", range(1, 7))

@@ -59,16 +59,20 @@ def steps_at_shared_time(
     return StepEvent(**{**event.__dict__, **shared})
 
 
-# samples each side of a bias line's strongest step searched for the line's one time
+# samples each side of a bias line's steps searched for the line's one time: from the
+# earliest of its steps within LINE_SPAN of the strongest to the latest
 LINE_WINDOW = 8
+LINE_SPAN = 32
 
 
 def line_time(members: list[tuple], fs: float) -> list[StepEvent]:
     """A bias line's steps at one time. ``members``: (event, residual rfft with that step in
     it and without the detector's other steps, :class:`StepSearch`, :class:`Bank` or None)
     per detector of a group stepping together. The line's sample is where the members'
-    delta chi^2, summed over detectors, peaks (each refitted at every sample within
-    LINE_WINDOW of the strongest step, :func:`position_fits`), each with the line's parts
+    delta chi^2, summed over detectors, peaks (each refitted at every sample from
+    LINE_WINDOW before the earliest member's step to LINE_WINDOW after the latest, of
+    those within LINE_SPAN of the strongest, :func:`position_fits`: a member's step may be
+    timed by a broad gain scan samples off, the strongest's too), each with the line's parts
     (those of any member: one bias step moves the same things in all its detectors, and a
     part too weak to pay in one detector is still there); each member takes its fit there
     and keeps its own time where its delta chi^2 there falls more than TIME_LEVEL short of
@@ -77,11 +81,12 @@ def line_time(members: list[tuple], fs: float) -> list[StepEvent]:
     strongest member; the others have ``shared_time``. Fewer than two joining: unchanged."""
     events = [event for event, *_ in members]
     times_s = members[0][2].times_s
-    # around the strongest step: a member farther than LINE_WINDOW keeps its own time
-    strongest_s = max(events, key=lambda e: e.significance).time_s
-    centre = int(np.searchsorted(times_s, strongest_s - 1e-9))
+    # around the members' steps near the strongest; one farther keeps its own time
+    samples = [int(np.searchsorted(times_s, e.time_s - 1e-9)) for e in events]
+    centre = samples[max(range(len(events)), key=lambda m: events[m].significance)]
+    near = [i for i in samples if abs(i - centre) <= LINE_SPAN]
     edge, n = members[0][2].edge, times_s.size
-    window = range(max(edge, centre - LINE_WINDOW), min(n - edge, centre + LINE_WINDOW + 1))
+    window = range(max(edge, min(near) - LINE_WINDOW), min(n - edge, max(near) + LINE_WINDOW + 1))
     positions = [i for i in window if all(search.valid[i] for _, _, search, _ in members)]
     if not positions:
         return events

@@ -223,12 +223,15 @@ def choose_parts(scans: dict[str, np.ndarray], ln_n: float) -> tuple:
 
     The other part joins where it pays its ln N at the first's sample, or where it pays a
     step's whole BIC at its own peak within the first's time error (the span where the
-    first's scan stays within TIME_LEVEL of its peak): both are then put at the peak of
-    their sum in that span, which the sharper part sets (a weak gain part's peak lies
-    tens of seconds from an offset step's time, where the offset part alone would be a
-    ramp's edge, smooth). Not the sum's peak otherwise: over a weak step's time error
-    it would pick the other part's largest noise (4 sigma offsets beside gain steps on
-    TOAST's 1/f noise), which does not pay a step's BIC."""
+    first's scan stays within TIME_LEVEL of its peak); where that is its own peak and a
+    sharper one (its span within TIME_LEVEL narrower than the first's), both parts go to
+    it: a weak gain part's
+    scan is broad, its peak tens of seconds from an offset step's time, where the
+    offset part alone would be a ramp's edge, smooth. Not the peak of the parts' sum:
+    the broad part's scan, rising over the sharp part's error, moves it off the edge
+    (by 11 samples in a bias line's step on TOAST's noise); nor the other part's peak
+    over a weak step's time error where it does not pay a step's BIC: that is its
+    largest noise (4 sigma offsets beside gain steps on TOAST's 1/f noise)."""
     singles = []
     for part in PARTS:
         index = int(np.argmax(scans[part]))
@@ -245,8 +248,12 @@ def choose_parts(scans: dict[str, np.ndarray], ln_n: float) -> tuple:
     (first,) = parts
     (other,) = (part for part in PARTS if part != first)
     lo, hi = _span_within(scans[first], index, TIME_LEVEL)
-    if scans[other][lo:hi].max() >= (TIME_PARAMETERS + 1) * ln_n:
-        index = lo + int(np.argmax(both[lo:hi]))
+    sharper = lo + int(np.argmax(scans[other][lo:hi]))  # the other part's peak there
+    if scans[other][sharper] >= (TIME_PARAMETERS + 1) * ln_n:
+        other_lo, other_hi = _span_within(scans[other], sharper, TIME_LEVEL)
+        own_peak = other_lo + int(np.argmax(scans[other][other_lo:other_hi])) == sharper
+        if own_peak and other_hi - other_lo < hi - lo:
+            index = sharper  # its own peak, within the first's error: the step's time
         return both[index] - (TIME_PARAMETERS + 2) * ln_n, PARTS, index, both
     if scans[other][index] > ln_n:
         return delta_bic + scans[other][index] - ln_n, PARTS, index, both
