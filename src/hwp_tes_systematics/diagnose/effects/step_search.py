@@ -146,14 +146,8 @@ def time_sigma_s(scan: np.ndarray, index: int, sampling_rate_hz: float) -> float
     delta chi^2 stays within TIME_LEVEL of it, over sqrt(TIME_LEVEL) (at least half a
     sample). A change point's likelihood is a noisy cusp, not a parabola: the span within
     1 of the peak is far too narrow (:data:`TIME_CUSP_SCALE` for the calibration)."""
-    inside = scan >= scan[index] - TIME_LEVEL
-    lo = index
-    while lo > 0 and inside[lo - 1]:
-        lo -= 1
-    hi = index
-    while hi < scan.size - 1 and inside[hi + 1]:
-        hi += 1
-    return max(0.5, 0.5 * (hi - lo) / math.sqrt(TIME_LEVEL)) / sampling_rate_hz
+    lo, hi = _span_within(scan, index, TIME_LEVEL)
+    return max(0.5, 0.5 * (hi - 1 - lo) / math.sqrt(TIME_LEVEL)) / sampling_rate_hz
 
 
 @dataclass(frozen=True)
@@ -225,22 +219,17 @@ def choose_parts(scans: dict[str, np.ndarray], ln_n: float) -> tuple:
     step's whole BIC at its own peak within the first's time error (the span where the
     first's scan stays within TIME_LEVEL of its peak); where that is its own peak and a
     sharper one (its span within TIME_LEVEL narrower than the first's), both parts go to
-    it: a weak gain part's
-    scan is broad, its peak tens of seconds from an offset step's time, where the
-    offset part alone would be a ramp's edge, smooth. Not the peak of the parts' sum:
-    the broad part's scan, rising over the sharp part's error, moves it off the edge
-    (by 11 samples in a bias line's step on TOAST's noise); nor the other part's peak
-    over a weak step's time error where it does not pay a step's BIC: that is its
+    it: a weak gain part's scan is broad, its peak tens of seconds from an offset step's
+    time, where the offset part alone would be a ramp's edge, smooth. Not the peak of the
+    parts' sum: the broad part's scan, rising over the sharp part's error, moves it off
+    the edge (by 11 samples in a bias line's step on TOAST's noise); nor the other part's
+    peak over a weak step's time error where it does not pay a step's BIC: that is its
     largest noise (4 sigma offsets beside gain steps on TOAST's 1/f noise)."""
     singles = []
     for part in PARTS:
         index = int(np.argmax(scans[part]))
         singles.append((scans[part][index] - (TIME_PARAMETERS + 1) * ln_n, (part,), index))
-    (
-        delta_bic,
-        parts,
-        index,
-    ) = max(singles, key=lambda c: c[0])
+    delta_bic, parts, index = max(singles, key=lambda c: c[0])
     both = sum(scans.values())
     if delta_bic < 0:
         index = int(np.argmax(both))
