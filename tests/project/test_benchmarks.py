@@ -591,7 +591,6 @@ def test_same_results_tells_equal_runs_from_changed_ones(tmp_path, repo):
 def test_requirement_vs_notch_orders_the_runs_by_width(repo, tmp_path):
     """benchmarks/requirement_vs_notch.py: a row per run from no notch to the widest, each
     with the run's own numbers, and the figure written."""
-    import subprocess
 
     runs = []
     for divisor, sigma_r in ((50.0, 0.2), (None, 0.01), (100.0, 0.05)):
@@ -603,14 +602,7 @@ def test_requirement_vs_notch_orders_the_runs_by_width(repo, tmp_path):
         path = tmp_path / f"{divisor}.json"
         path.write_text(json.dumps(data))
         runs.append(str(path))
-    done = subprocess.run(
-        [sys.executable, str(repo / "benchmarks" / "requirement_vs_notch.py"), *runs]
-        + ["--figure", str(tmp_path / "notch.png")],
-        capture_output=True,
-        text=True,
-        check=True,
-        timeout=300,
-    )
+    done = run_benchmark(repo, "requirement_vs_notch.py", *runs, "--figure", tmp_path / "notch.png")
     first, *after_fit = done.stdout.split("\n\n")
     rows = [line.split("|")[1:-1] for line in first.splitlines() if line.startswith("| ")]
     widths = [row[0].strip() for row in rows[1:]]
@@ -681,15 +673,12 @@ def test_calibration_vs_length_tests_its_law_on_a_length_it_was_not_fitted_to(re
     a row per length, the law's prediction beside the run, and a calibration five times
     better than the one-year requirement at the nominal A_2 or more (the 4f line of g1 ~
     5e-3 in minutes of data)."""
-    import subprocess
 
-    done = subprocess.run(
-        [sys.executable, str(repo / "benchmarks" / "calibration_vs_length.py")]
-        + ["--channels", "M1-140", "--hours", "0.05", "0.1", "--predict", "0.15", "--seeds", "1"]
-        + ["--json", str(tmp_path / "out.json")],
-        capture_output=True,
-        text=True,
-        check=True,
+    done = run_benchmark(
+        repo,
+        "calibration_vs_length.py",
+        *("--channels", "M1-140", "--hours", "0.05", "0.1", "--predict", "0.15", "--seeds", "1"),
+        *("--json", tmp_path / "out.json"),
         timeout=600,
     )
     assert "at 0.15 h it predicts" in done.stdout
