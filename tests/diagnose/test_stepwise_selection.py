@@ -32,6 +32,7 @@ class Fit:
     selected: tuple
     chi2: float
     n_params: int
+    screened: bool = False
 
     @property
     def effects(self) -> dict:
@@ -52,6 +53,9 @@ class Problem:
 
     def fit(self, templates):
         return Fit(tuple(templates), self.chi2[frozenset(templates)], 3 * len(templates))
+
+    def trial(self, templates, current):  # a forward step's candidate: no screen here
+        return self.fit(templates)
 
 
 DRIFT = Effect("drift", "linear", "signal")

@@ -1,7 +1,8 @@
 """Joint fit of catalog effects to the residual, and forward stepwise selection with the BIC.
 
 Modules: :mod:`.bank` (the template bank and its normal equations, the linear fit),
-:mod:`.backfit` (nonlinear and event effects, fitted in turn), :mod:`.stepwise`
+:mod:`.backfit` (nonlinear and event effects, fitted in turn), :mod:`.frozen` (the
+screen of a step's candidates on a composed fit), :mod:`.stepwise`
 (the stepwise selection), :mod:`.results` (what a fit gives), :mod:`.step` (the
 pipeline's step).
 
@@ -58,6 +59,13 @@ pieces are fitted in turn (backfitting, up to four passes, until chi^2 changes b
 than 0.05). Speed-up: the nonlinear fit is skipped when even
 its linearised template, fitted beside the linear effects, gains less than half of its
 BIC penalty plus |threshold| (a large tau, where the linearisation fails, gains a lot).
+Likewise a forward step's candidate added to a composed fit (linear effects only) is first
+fitted once with the nonlinearity's templates held where the current fit composed them
+(:func:`.frozen.frozen_screen`); if it gains less than half its BIC penalty so, it cannot
+pass and its composed fit is skipped: its entry in the step's table is that screen's
+(``screened``), and every fit the selection keeps is the composed one, so the selection
+and its parameters are those of the full fits, bit for bit
+(``tests/diagnose/test_frozen_screen.py``).
 
 Selection (:func:`stepwise`). Start from the nominal model (no effect); at each step fit
 every remaining effect jointly with the selected ones and compute

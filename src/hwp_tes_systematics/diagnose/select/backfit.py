@@ -15,7 +15,7 @@ import scipy.optimize
 from ..effects import SELECTION_THRESHOLD
 from ..fourier import irfft, rfft
 from ..linalg import cross, realify, solve_normal
-from .results import EffectFit, FitResult
+from .results import Composition, EffectFit, FitResult
 
 BACKFIT_PASSES = 4
 # with the nonlinearity composed: its templates converge by ~2 g1 A_2 per rebuild
@@ -141,7 +141,8 @@ def fit_iterative(problem, selected, initial_extra=None, gain_after=False) -> Fi
     """Backfitting of the linear, nonlinear (time constant) and events (glitches) parts
     (module docstring). ``initial_extra``: with the nonlinearity composed, the signal (per
     detector, time domain) its templates are first built on beside d_nom (None: d_nom
-    alone; :func:`fit_composed` starts from three). ``gain_after``: a relative gain drift
+    alone; :func:`fit_composed` starts from three). A composed fit's result carries what
+    its nonlinearity acts on (:class:`.results.Composition`). ``gain_after``: a relative gain drift
     (READOUT_GAINS) acts after the nonlinearity, (1 + delta)(d + g1 d^2), as a readout
     gain does, rather than before it, D + g1 D^2 with D = (1 + delta) d: to first order in
     delta the nonlinearity is then composed on d + delta d / 2."""
@@ -187,6 +188,7 @@ def fit_iterative(problem, selected, initial_extra=None, gain_after=False) -> Fi
     built_on = [None] * n_det  # the extra signal they were recomputed with (None: none)
     used_nl = [banks[k][nl_rows] for k in range(n_det)]
     nonlinear_parts = [0.0] * n_det
+    offsets = np.zeros(n_det)  # the offset taken out of each detector's extra signal
     first_pass_inflation = np.ones(n_det)  # the nonlinearity's variance inflation, pass 1
     grams = [None] * n_det  # each detector's Gram matrix of its last linear solve
 
@@ -239,7 +241,8 @@ def fit_iterative(problem, selected, initial_extra=None, gain_after=False) -> Fi
                 # recorded mean, which holds the model's mean (g1 <d^2> ~ g1 A_2^2 / 2);
                 # left in, it makes 2 g1 O d, which the gain takes and rescales d^2 by
                 # ~4 g1 O (0.3 % of g1 at g1 A_2 = 0.04). The DC mode is not fitted.
-                extra -= problem.valid_mean(k, model_f)
+                offsets[k] = problem.valid_mean(k, model_f)
+                extra -= offsets[k]
                 # chi^2 of the cross term 2 g1 d_nom x (extra - the extra the templates
                 # were last built with): skip the rebuild when negligible
                 change = extra if built_on[k] is None else extra - built_on[k]
@@ -310,11 +313,11 @@ def fit_iterative(problem, selected, initial_extra=None, gain_after=False) -> Fi
                 list(x) if isinstance(x, list) else dict(x) if isinstance(x, dict) else x
                 for x in (values, covariances, shared, models, used_nl)
                 + (nonlinear_parts, theta, theta_sigma, events, events_f)
-            ] + [{name: list(parts) for name, parts in each_events_f.items()}]
+            ] + [{name: list(parts) for name, parts in each_events_f.items()}, offsets.copy()]
         elif composed and total > lowest + CHI2_RISE:  # walking away from it: back
             (values, covariances, shared, models, used_nl) = kept[:5]
             (nonlinear_parts, theta, theta_sigma, events, events_f) = kept[5:10]
-            each_events_f = kept[10]
+            each_events_f, offsets = kept[10:12]
             break
         # while the nonlinearity's templates still move, chi^2 does not tell: it is
         # blind to the scale of d against g1 (g1 (1 + e)^2 d^2 with the gain taking
@@ -351,6 +354,31 @@ def fit_iterative(problem, selected, initial_extra=None, gain_after=False) -> Fi
         parts=parts,
         first_pass_inflation=first_pass_inflation,
         gain_after=bool(gain_rows.size),
+        composition=_composition(
+            problem, rows, nl_rows, gain_rows, values, nonlinear, theta, offsets
+        )
+        if composed
+        else None,
+    )
+
+
+def _composition(problem, rows, nl_rows, gain_rows, values, nonlinear, theta, offsets):
+    """What the nonlinearity of a composed fit acts on (:class:`.results.Composition`): the
+    fitted coefficients on the whole bank's rows, 0 on the nonlinearity's own and half on
+    a readout gain's, as :func:`fit_iterative` composes them."""
+    coefficients = []
+    for k in range(problem.n_det):
+        local = np.array(values[k], dtype=float)
+        local[nl_rows] = 0.0
+        local[gain_rows] *= 0.5
+        full = np.zeros(problem.bank.shape[1])
+        full[rows] = local
+        coefficients.append(full)
+    return Composition(
+        coefficients=coefficients,
+        nonlinear=None if nonlinear is None else nonlinear.name,
+        theta=list(theta),
+        offsets=offsets.copy(),
     )
 
 

@@ -17,7 +17,7 @@ from ..fourier import irfft, rfft
 from ..linalg import cross, share_across_detectors, solve_normal
 from ..model import Context
 from ..noise import NoiseModel, fitted_modes, independent_fraction, periodogram_scale
-from . import backfit
+from . import backfit, frozen
 from .results import EffectFit, FitResult
 
 DELTA_BIC_THRESHOLD = SELECTION_THRESHOLD  # effects.base: the effects read it too
@@ -151,6 +151,7 @@ class FitProblem:
                 float(cross(self.residual_f[k][None], self.residual_f[k], self.w_nom[k])[0])
             )
         self._cache: dict[tuple, FitResult] = {}
+        self._frozen = None  # the current fit's frozen rows (frozen.FrozenRows), the last asked
         # what an effect derives from the weights once, for every fit (a step search's norms)
         self.derived: dict[tuple, object] = {}
 
@@ -346,6 +347,25 @@ class FitProblem:
                 cached.parts = None
             self._cache[selected] = cached
         return cached
+
+    def trial(self, selected, current: FitResult) -> FitResult:
+        """A forward step's candidate: ``current``'s set and one more effect. Its cached fit
+        if there is one; else its screen where that shows it cannot pass
+        (:func:`.frozen.frozen_screen`: not cached, a later :meth:`fit` fits it in full);
+        else :meth:`fit`."""
+        selected = self._ordered(selected)
+        if selected not in self._cache:
+            screened = frozen.frozen_screen(self, selected, current)
+            if screened is not None:
+                return screened
+        return self.fit(selected)
+
+    def frozen_rows(self, current: FitResult) -> frozen.FrozenRows:
+        """The response rows rebuilt on the composed fit ``current`` (the last asked is
+        kept: every candidate of a step asks for the same)."""
+        if self._frozen is None or self._frozen.composition is not current.composition:
+            self._frozen = frozen.FrozenRows(self, current)
+        return self._frozen
 
     def composed(self, selected) -> bool:
         """Does the nonlinearity act on fitted signal? On the other signal effects, and on

@@ -153,8 +153,11 @@ def select_templates(problem, names, threshold, max_effects, steps: list, initia
         ]
         if not remaining:
             break
-        trials = {n: problem.fit(templates + (n,)) for n in remaining}
-        table = {n: _change(current, trial, ln_n) for n, trial in trials.items()}
+        trials = {n: problem.trial(templates + (n,), current) for n in remaining}
+        table = {
+            n: _change(current, trial, ln_n, **({"screened": True} if trial.screened else {}))
+            for n, trial in trials.items()
+        }
         for n, trial in trials.items():  # an effect with unphysical parameters is not taken
             why = problem.effects[n].unphysical(trial.effects[n])
             if why is not None:
@@ -166,7 +169,7 @@ def select_templates(problem, names, threshold, max_effects, steps: list, initia
             break
         _step(steps, current, trials[best], ln_n, table, added=best)
         templates += (best,)
-        current = trials[best]
+        current = problem.fit(templates)  # the trial's fit (cached: a passing one is not screened)
         templates, current = _backward(problem, templates, current, threshold, removed_sets, steps)
     swapped, current = _swap_look_alikes(problem, names, templates, current, steps)
     if swapped != templates:  # what the newcomer explains may make another redundant

@@ -1,0 +1,129 @@
+"""The screen of a candidate added to a composed fit (the nonlinearity acting on the other
+effects, :func:`.backfit.fit_iterative`): the candidate set fitted once, linearly, with the
+nonlinearity's templates held where the current fit composed them (:func:`frozen_screen`).
+
+A composed fit rebuilds the nonlinearity's templates (d^2, d^3) on d_nom plus the other
+fitted effects until they settle, two or more fits of every detector and a template
+rebuild between them; on a wafer most of a selection's time goes to the forward step's
+candidates, most of which the data do not support. Held at the current fit's composition
+(:class:`.results.Composition`), the set's fit is the linear one of :mod:`.bank` with the
+nonlinearity's rows of the normal equations replaced by those of the rebuilt templates;
+the candidate's Delta chi^2 over the current set, both fitted so, differs from the
+composed fits' by what the candidate's own signal moves in the nonlinearity's templates
+(2 g1 d x its model: second order in the small quantities).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..fourier import irfft, rfft
+from ..linalg import cross, solve_normal
+from .results import Composition, FitResult
+
+# a candidate is screened out when its frozen Delta chi^2 is below this fraction of its
+# BIC penalty (Delta k ln N_eff + its prior penalty): the composed fit would have to find
+# more than twice as much for it to pass, and the screened Delta BIC stays above 0, so it
+# is neither selected nor a look-alike of the effect that is (explain.step.look_alikes)
+SCREEN_FRACTION = 0.5
+
+
+class FrozenRows:
+    """The normal equations' rows of the response effects (the nonlinearity's d^p
+    templates) rebuilt on d_nom + the signal the composed fit ``current`` holds, per
+    detector: ``with_bank`` (n_response x bank rows), ``own`` (n_response x n_response)
+    and ``with_residual`` (n_response); and the current set's chi^2 per detector so fitted."""
+
+    def __init__(self, problem, current: FitResult):
+        composition: Composition = current.composition
+        self.composition = composition
+        names = [n for n in problem.linear_names if problem.effects[n].stage == "response"]
+        self.rows = np.concatenate(
+            [np.arange(problem.slices[n].start, problem.slices[n].stop) for n in names]
+        )
+        self.with_bank, self.own, self.with_residual = [], [], []
+        nonlinear = composition.nonlinear
+        for k in range(problem.n_det):
+            spectrum = composition.coefficients[k] @ problem.bank[k]
+            if nonlinear is not None:
+                theta = composition.theta[k]
+                spectrum = spectrum + problem.nonlinear_model(problem.effects[nonlinear], k, theta)
+            signal = irfft(spectrum, n=problem.n, workers=problem.workers)
+            signal = problem.ctx.d_nom[k] + signal - composition.offsets[k]
+            templates = np.concatenate(
+                [problem.effects[n].response_templates(signal) for n in names]
+            )
+            rebuilt = rfft(templates * problem.valid[k], axis=-1, workers=problem.workers)
+            w = problem.w_nom[k]
+            self.with_bank.append(cross(rebuilt, problem.bank[k], w))
+            self.own.append(cross(rebuilt, rebuilt, w))
+            self.with_residual.append(cross(rebuilt, problem.residual_f[k], w))
+        self.current_chi2 = self.fit(problem, current.selected)[0]
+
+    def fit(self, problem, selected) -> tuple:
+        """(chi^2 per detector, values, covariances, shared) of the linear effects
+        ``selected`` with the response rows held (the linear fit of :mod:`.bank`)."""
+        rows = problem.rows([n for n in selected if n in problem.slices])
+        local = np.flatnonzero(np.isin(rows, self.rows))  # the response rows' places
+        which = np.searchsorted(self.rows, rows[local])
+        solved, grams, rhss = [], [], []
+        for k in range(problem.n_det):
+            gram = problem.gram_nom[k][np.ix_(rows, rows)]
+            rhs = problem.rhs_nom[k][rows]
+            gram[local] = self.with_bank[k][which][:, rows]
+            gram[:, local] = gram[local].T
+            gram[np.ix_(local, local)] = self.own[k][np.ix_(which, which)]
+            rhs[local] = self.with_residual[k][which]
+            grams.append(gram)
+            rhss.append(rhs)
+            solved.append(solve_normal(gram, rhs))
+        values, covariances, shared = problem.share(
+            selected, [a for a, _ in solved], [cov for _, cov in solved]
+        )
+        chi2 = np.array(
+            [
+                problem.yy_nom[k] - 2 * rhss[k] @ values[k] + values[k] @ grams[k] @ values[k]
+                for k in range(problem.n_det)
+            ]
+        )
+        return chi2, values, covariances, shared
+
+
+def frozen_screen(problem, selected, current: FitResult) -> FitResult | None:
+    """The candidate set ``selected`` (``current``'s set and one more linear effect) when
+    it cannot pass: fitted with the nonlinearity's templates held at ``current``'s
+    composition (:class:`FrozenRows`), and the current set so too; if the candidate's
+    Delta chi^2 between them is below SCREEN_FRACTION of its BIC penalty, the result
+    (chi^2 = chi^2(current) - that Delta chi^2, the frozen fit's parameters,
+    ``screened``). None where the full composed fit is needed: the candidate may pass, the
+    current fit is not composed, or the sets hold nonlinear or event effects."""
+    composition = current.composition
+    added = [n for n in selected if n not in current.selected]
+    if composition is None or len(added) != 1 or len(selected) != len(current.selected) + 1:
+        return None
+    if any(problem.effects[n].kind != "linear" for n in selected):
+        return None
+    frozen = problem.frozen_rows(current)
+    chi2_current = frozen.current_chi2
+    chi2, values, covariances, shared = frozen.fit(problem, selected)
+    n_params = problem.count_parameters(selected, {})
+    prior = problem.prior_penalty(selected)
+    penalty = (n_params - current.n_params) * problem.ln_n_eff + prior - current.prior_penalty
+    gain = float(np.sum(chi2_current) - np.sum(chi2))
+    if not math.isfinite(gain) or gain >= SCREEN_FRACTION * penalty:
+        return None
+    per_detector = current.chi2_per_detector - (chi2_current - chi2)
+    return FitResult(
+        selected=selected,
+        chi2=current.chi2 - gain,
+        chi2_per_detector=per_detector,
+        n_params=n_params,
+        prior_penalty=prior,
+        effects=problem.with_shared(
+            problem.linear_effect_fits(selected, values, covariances), shared
+        ),
+        model_f=None,
+        screened=True,
+    )
