@@ -29,7 +29,8 @@ def differences(a, b, path=""):
 
 
 def test_the_screen_leaves_the_diagnosis_as_the_full_fits_give_it(tmp_path, monkeypatch):
-    """A nonlinearity with a gain drift: the candidates screened at each step are the ones
+    """A nonlinearity with a gain drift: the candidates screened at each step (the time
+    constant among them, by its linearised template) are the ones
     whose full composed fit does not pass either (its Delta BIC above the threshold, its
     gain in chi^2 not beyond the screen's by half the penalty); every number of the report
     but the screened candidates' entries is identical."""
@@ -57,6 +58,9 @@ def test_the_screen_leaves_the_diagnosis_as_the_full_fits_give_it(tmp_path, monk
             penalty = entry["delta_bic"] - entry["delta_chi2"]
             assert truth["delta_chi2"] - entry["delta_chi2"] > -0.5 * penalty, (name, entry, truth)
     assert count >= 10, count
+    # the time constant, a nonlinear effect, is screened by its linearised template
+    tau = [step["candidates"].get("detector_time_constant", {}) for step in screened["steps"]]
+    assert any(entry.get("screened") for entry in tau), tau
 
 
 def test_a_screened_candidate_is_fitted_in_full_when_asked_again(tmp_path, monkeypatch):

@@ -10,7 +10,9 @@ candidates, most of which the data do not support. Held at the current fit's com
 nonlinearity's rows of the normal equations replaced by those of the rebuilt templates;
 the candidate's Delta chi^2 over the current set, both fitted so, differs from the
 composed fits' by what the candidate's own signal moves in the nonlinearity's templates
-(2 g1 d x its model: second order in the small quantities).
+(2 g1 d x its model: second order in the small quantities). A nonlinear candidate (the
+time constant) enters by its first-order template (``Effect.linearised_f``), as
+:func:`.backfit.nonlinear_screen` fits it beside linear effects alone.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ import numpy as np
 
 from ..fourier import irfft, rfft
 from ..linalg import cross, solve_normal
-from .results import Composition, FitResult
+from .results import Composition, EffectFit, FitResult
 
 # a candidate is screened out when its frozen Delta chi^2 is below this fraction of its
 # BIC penalty (Delta k ln N_eff + its prior penalty): the composed fit would have to find
@@ -34,7 +36,9 @@ class FrozenRows:
     """The normal equations' rows of the response effects (the nonlinearity's d^p
     templates) rebuilt on d_nom + the signal the composed fit ``current`` holds, per
     detector: ``with_bank`` (n_response x bank rows), ``own`` (n_response x n_response)
-    and ``with_residual`` (n_response); and the current set's chi^2 per detector so fitted."""
+    and ``with_residual`` (n_response), the same of each nonlinear effect's linearised
+    template beside them (``linearised``, as one more row), and the current set's chi^2
+    per detector so fitted."""
 
     def __init__(self, problem, current: FitResult):
         composition: Composition = current.composition
@@ -44,6 +48,7 @@ class FrozenRows:
             [np.arange(problem.slices[n].start, problem.slices[n].stop) for n in names]
         )
         self.with_bank, self.own, self.with_residual = [], [], []
+        self.linearised: dict[str, list[tuple]] = {}
         nonlinear = composition.nonlinear
         for k in range(problem.n_det):
             spectrum = composition.coefficients[k] @ problem.bank[k]
@@ -60,12 +65,24 @@ class FrozenRows:
             self.with_bank.append(cross(rebuilt, problem.bank[k], w))
             self.own.append(cross(rebuilt, rebuilt, w))
             self.with_residual.append(cross(rebuilt, problem.residual_f[k], w))
+            for name, rows in problem.linearised_f.items():
+                row = rows[k][None, :]
+                self.linearised.setdefault(name, []).append(
+                    (
+                        cross(row, problem.bank[k], w)[0],
+                        cross(row, rebuilt, w)[0],
+                        float(cross(row, row, w)[0, 0]),
+                        float(cross(row, problem.residual_f[k], w)[0]),
+                    )
+                )
         self.current_chi2 = self.fit(problem, current.selected)[0]
 
     def fit(self, problem, selected) -> tuple:
-        """(chi^2 per detector, values, covariances, shared) of the linear effects
-        ``selected`` with the response rows held (the linear fit of :mod:`.bank`)."""
+        """(chi^2 per detector, values, covariances, shared) of the effects ``selected``
+        with the response rows held (the linear fit of :mod:`.bank`); a nonlinear effect
+        among them by its linearised template, its parameter last in the values."""
         rows = problem.rows([n for n in selected if n in problem.slices])
+        nonlinear = problem.nonlinear_of(selected)
         local = np.flatnonzero(np.isin(rows, self.rows))  # the response rows' places
         which = np.searchsorted(self.rows, rows[local])
         solved, grams, rhss = [], [], []
@@ -76,6 +93,12 @@ class FrozenRows:
             gram[:, local] = gram[local].T
             gram[np.ix_(local, local)] = self.own[k][np.ix_(which, which)]
             rhs[local] = self.with_residual[k][which]
+            if nonlinear is not None:  # its linearised template, one more row
+                with_bank, with_response, own, with_residual = self.linearised[nonlinear.name][k]
+                column = with_bank[rows]
+                column[local] = with_response[which]
+                gram = np.block([[gram, column[:, None]], [column[None, :], np.array([[own]])]])
+                rhs = np.append(rhs, with_residual)
             grams.append(gram)
             rhss.append(rhs)
             solved.append(solve_normal(gram, rhs))
@@ -92,18 +115,21 @@ class FrozenRows:
 
 
 def frozen_screen(problem, selected, current: FitResult) -> FitResult | None:
-    """The candidate set ``selected`` (``current``'s set and one more linear effect) when
-    it cannot pass: fitted with the nonlinearity's templates held at ``current``'s
-    composition (:class:`FrozenRows`), and the current set so too; if the candidate's
-    Delta chi^2 between them is below SCREEN_FRACTION of its BIC penalty, the result
-    (chi^2 = chi^2(current) - that Delta chi^2, the frozen fit's parameters,
-    ``screened``). None where the full composed fit is needed: the candidate may pass, the
-    current fit is not composed, or the sets hold nonlinear or event effects."""
+    """The candidate set ``selected`` (``current``'s set of linear effects and one more
+    linear or nonlinear effect) when it cannot pass: fitted with the nonlinearity's
+    templates held at ``current``'s composition (:class:`FrozenRows`), and the current set
+    so too; if the candidate's Delta chi^2 between them is below SCREEN_FRACTION of its
+    BIC penalty, the result (chi^2 = chi^2(current) - that Delta chi^2, the frozen fit's
+    parameters, ``screened``). None where the full composed fit is needed: the candidate
+    may pass, the current fit is not composed, or the sets hold event effects (glitches,
+    steps: their detection decides) or the current one a nonlinear effect."""
     composition = current.composition
     added = [n for n in selected if n not in current.selected]
     if composition is None or len(added) != 1 or len(selected) != len(current.selected) + 1:
         return None
-    if any(problem.effects[n].kind != "linear" for n in selected):
+    if any(problem.effects[n].kind not in ("linear", "nonlinear") for n in selected):
+        return None  # events: their detection decides
+    if any(problem.effects[n].kind != "linear" for n in current.selected):
         return None
     frozen = problem.frozen_rows(current)
     chi2_current = frozen.current_chi2
@@ -115,15 +141,22 @@ def frozen_screen(problem, selected, current: FitResult) -> FitResult | None:
     if not math.isfinite(gain) or gain >= SCREEN_FRACTION * penalty:
         return None
     per_detector = current.chi2_per_detector - (chi2_current - chi2)
+    effects = problem.with_shared(problem.linear_effect_fits(selected, values, covariances), shared)
+    nonlinear = problem.nonlinear_of(selected)
+    if nonlinear is not None:  # its linearised value, as backfit.nonlinear_screen reports it
+        (parameter,) = nonlinear.parameters
+        effects[nonlinear.name] = EffectFit(
+            nonlinear.name,
+            values={parameter: np.array([a[-1] for a in values])},
+            sigmas={parameter: np.array([math.sqrt(max(c[-1, -1], 0.0)) for c in covariances])},
+        )
     return FitResult(
         selected=selected,
         chi2=current.chi2 - gain,
         chi2_per_detector=per_detector,
         n_params=n_params,
         prior_penalty=prior,
-        effects=problem.with_shared(
-            problem.linear_effect_fits(selected, values, covariances), shared
-        ),
+        effects=effects,
         model_f=None,
         screened=True,
     )
