@@ -89,3 +89,25 @@ def test_a_screened_candidate_is_fitted_in_full_when_asked_again(tmp_path, monke
     penalty = (fitted.n_params - current.n_params) * problem.ln_n_eff
     assert abs(fitted.chi2 - trial.chi2) < 0.5 * penalty
     assert trial.n_params == fitted.n_params
+
+
+def test_a_screened_candidate_is_said_to_be_in_what_was_tried():
+    """The unexplained structure's text names the effects tried at the last step, a
+    screened one's Delta BIC marked as the screen's."""
+    from types import SimpleNamespace
+
+    from hwp_tes_systematics.diagnose.explain.unexplained import _rejected, _tried_text
+
+    last = SimpleNamespace(
+        added=None,
+        removed=None,
+        chi2_before=100.0,
+        candidates={
+            "gain_drift": {"delta_chi2": -1.0, "delta_bic": 45.0},
+            "pointing_drift": {"delta_chi2": -2.0, "delta_bic": 88.0, "screened": True},
+        },
+    )
+    tried = _rejected([last])
+    assert tried == {"gain_drift": (45.0, False), "pointing_drift": (88.0, True)}
+    text = _tried_text(tried, {})
+    assert text == "gain_drift (Delta BIC +45), pointing_drift (Delta BIC +88, screened)"

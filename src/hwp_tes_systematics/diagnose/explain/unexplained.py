@@ -88,7 +88,8 @@ def _line_time_range(residual, ctx: Context, k: int, freq_hz: float, noise: Nois
 
 
 def _rejected(history) -> dict:
-    """Catalog effects tried at the last selection step and not selected: {name: Delta BIC}.
+    """Catalog effects tried at the last selection step and not selected: {name: (Delta BIC,
+    screened)} (screened: the screen's Delta BIC, :mod:`..select.frozen`).
 
     A pass that offers only the held-out effects on unchanged weights ends on a step that
     tried those alone; the earlier final steps from the same fit (the same chi^2 before
@@ -99,7 +100,7 @@ def _rejected(history) -> dict:
         if not math.isclose(step.chi2_before, final_steps[-1].chi2_before, rel_tol=1e-12):
             break
         for name, candidate in step.candidates.items():
-            tried.setdefault(name, float(candidate["delta_bic"]))
+            tried.setdefault(name, (float(candidate["delta_bic"]), bool(candidate.get("screened"))))
     return tried
 
 
@@ -115,13 +116,14 @@ def _unphysical(history) -> dict:
 
 
 def _tried_text(tried: dict, unphysical: dict) -> str:
-    """The effects tried, in words: "name (Delta BIC +x[, rejected: ...])", ..."""
+    """The effects tried ({name: (Delta BIC, screened)}), in words: "name (Delta BIC +x[,
+    screened][, rejected: ...])", ..."""
     said = []
-    for name, value in sorted(tried.items()):
+    for name, (value, screened) in sorted(tried.items()):
         why = (
             f", rejected: outside physical bounds, {unphysical[name]}" if name in unphysical else ""
         )
-        said.append(f"{name} (Delta BIC {value:+.0f}{why})")
+        said.append(f"{name} (Delta BIC {value:+.0f}{', screened' if screened else ''}{why})")
     return ", ".join(said) or "none left to try"
 
 
@@ -135,8 +137,9 @@ def find_unexplained(
     """Significant structure left after the best fit (module docstring), strongest first.
     ``history`` holds every step of every selection pass (:class:`..select.step.Selection`)."""
     n, fs = ctx.n_samples, ctx.sampling_rate_hz
-    tried = _rejected(history)
-    tried_text = _tried_text(tried, _unphysical(history))
+    rejected = _rejected(history)
+    tried_text = _tried_text(rejected, _unphysical(history))
+    tried = {name: value for name, (value, _) in rejected.items()}
     nominal_signal = ctx.sky + ctx.dipole
     entries: dict[tuple, dict] = {}
     resolution = fs / n
