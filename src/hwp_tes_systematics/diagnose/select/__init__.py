@@ -59,8 +59,9 @@ pieces are fitted in turn (backfitting, up to four passes, until chi^2 changes b
 than 0.05). Speed-up: the nonlinear fit is skipped when even
 its linearised template, fitted beside the linear effects, gains less than half of its
 BIC penalty plus |threshold| (a large tau, where the linearisation fails, gains a lot).
-Likewise a forward step's candidate added to a composed fit (linear effects only) is first
-fitted once with the nonlinearity's templates held where the current fit composed them
+Likewise a forward step's candidate added to a composed fit of linear effects (a linear
+effect, or the time constant by its first-order template) is first fitted once with the
+nonlinearity's templates held where the current fit composed them
 (:func:`.frozen.frozen_screen`); if it gains less than half its BIC penalty so, it cannot
 pass and its composed fit is skipped: its entry in the step's table is that screen's
 (``screened``), and every fit the selection keeps is the composed one, so the selection
