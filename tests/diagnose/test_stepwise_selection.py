@@ -108,3 +108,28 @@ def test_a_swap_is_followed_by_a_backward_step():
     )
     assert set(selected) == {"steps"}
     assert [s.removed for s in steps if s.removed] == ["drift", "harmonic"]
+
+
+class ScreeningProblem(Problem):
+    """A screen that promises more than the full fit gives (a user's threshold above half a
+    penalty lets a screened candidate lead the table)."""
+
+    def __init__(self, effects, chi2, screened_chi2):
+        super().__init__(effects, chi2)
+        self.screened_chi2 = {frozenset(k): v for k, v in screened_chi2.items()}
+
+    def trial(self, templates, current):
+        chi2 = self.screened_chi2[frozenset(templates)]
+        return Fit(tuple(templates), chi2, 3 * len(templates), screened=True)
+
+
+def test_a_screened_candidate_that_leads_is_fitted_in_full_before_it_is_taken():
+    """The screen puts the drift 100 below the nominal model, its full fit 10: the full fit
+    decides (Delta BIC +20 against the threshold: nothing is selected)."""
+    problem = ScreeningProblem(
+        [DRIFT], {(): 1000.0, ("drift",): 990.0}, screened_chi2={("drift",): 900.0}
+    )
+    steps = []
+    assert select_templates(problem, ["drift"], THRESHOLD, 3, steps) == ()
+    assert steps[-1].candidates["drift"]["delta_bic"] == 20.0
+    assert "screened" not in steps[-1].candidates["drift"]

@@ -23,6 +23,7 @@ import numpy as np
 
 from ..fourier import irfft, rfft
 from ..linalg import cross, solve_normal
+from .backfit import DEGENERATE_INFLATION
 from .results import Composition, EffectFit, FitResult
 
 # a candidate is screened out when its frozen Delta chi^2 is below this fraction of its
@@ -78,9 +79,10 @@ class FrozenRows:
         self.current_chi2 = self.fit(problem, current.selected)[0]
 
     def fit(self, problem, selected) -> tuple:
-        """(chi^2 per detector, values, covariances, shared) of the effects ``selected``
-        with the response rows held (the linear fit of :mod:`.bank`); a nonlinear effect
-        among them by its linearised template, its parameter last in the values."""
+        """(chi^2 per detector, values, covariances, shared, g1's largest variance
+        inflation) of the effects ``selected`` with the response rows held (the linear fit
+        of :mod:`.bank`); a nonlinear effect among them by its linearised template, its
+        parameter last in the values."""
         rows = problem.rows([n for n in selected if n in problem.slices])
         nonlinear = problem.nonlinear_of(selected)
         local = np.flatnonzero(np.isin(rows, self.rows))  # the response rows' places
@@ -111,7 +113,13 @@ class FrozenRows:
                 for k in range(problem.n_det)
             ]
         )
-        return chi2, values, covariances, shared
+        # g1's variance inflation, the largest over detectors (as backfit's first pass)
+        g = local[0] if local.size else None
+        inflation = max(
+            (1.0 if g is None else float(covariances[k][g, g] * grams[k][g, g]))
+            for k in range(problem.n_det)
+        )
+        return chi2, values, covariances, shared, inflation
 
 
 def frozen_screen(problem, selected, current: FitResult) -> FitResult | None:
@@ -121,8 +129,10 @@ def frozen_screen(problem, selected, current: FitResult) -> FitResult | None:
     so too; if the candidate's Delta chi^2 between them is below SCREEN_FRACTION of its
     BIC penalty, the result (chi^2 = chi^2(current) - that Delta chi^2, the frozen fit's
     parameters, ``screened``). None where the full composed fit is needed: the candidate
-    may pass, the current fit is not composed, or the sets hold event effects (glitches,
-    steps: their detection decides) or the current one a nonlinear effect."""
+    may pass, it shares a line with the nonlinearity (g1's variance inflated
+    DEGENERATE_INFLATION times: the full fit starts three ways), the current fit is not
+    composed, or the sets hold event effects (glitches, steps: their detection decides) or
+    the current one a nonlinear effect."""
     composition = current.composition
     added = [n for n in selected if n not in current.selected]
     if composition is None or len(added) != 1 or len(selected) != len(current.selected) + 1:
@@ -133,7 +143,9 @@ def frozen_screen(problem, selected, current: FitResult) -> FitResult | None:
         return None
     frozen = problem.frozen_rows(current)
     chi2_current = frozen.current_chi2
-    chi2, values, covariances, shared = frozen.fit(problem, selected)
+    chi2, values, covariances, shared, inflation = frozen.fit(problem, selected)
+    if inflation >= DEGENERATE_INFLATION:
+        return None  # the candidate shares a line with the nonlinearity: the full fit's starts
     n_params = problem.count_parameters(selected, {})
     prior = problem.prior_penalty(selected)
     penalty = (n_params - current.n_params) * problem.ln_n_eff + prior - current.prior_penalty

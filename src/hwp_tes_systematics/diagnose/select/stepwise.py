@@ -159,11 +159,20 @@ def select_templates(problem, names, threshold, max_effects, steps: list, initia
             for n, trial in trials.items()
         }
         for n, trial in trials.items():  # an effect with unphysical parameters is not taken
-            why = problem.effects[n].unphysical(trial.effects[n])
+            why = None if trial.screened else problem.effects[n].unphysical(trial.effects[n])
             if why is not None:
                 table[n]["unphysical"] = why
         allowed = [n for n in table if "unphysical" not in table[n]]
         best = min(allowed, key=lambda n: table[n]["delta_bic"]) if allowed else None
+        while best is not None and trials[best].screened and table[best]["delta_bic"] < threshold:
+            # a threshold above half a penalty: the screen decides nothing, the full fit does
+            trials[best] = problem.fit(templates + (best,))
+            table[best] = _change(current, trials[best], ln_n)
+            why = problem.effects[best].unphysical(trials[best].effects[best])
+            if why is not None:
+                table[best]["unphysical"] = why
+            allowed = [n for n in table if "unphysical" not in table[n]]
+            best = min(allowed, key=lambda n: table[n]["delta_bic"]) if allowed else None
         if best is None or table[best]["delta_bic"] >= threshold:
             _step(steps, current, current, ln_n, table, note="no candidate passes the threshold")
             break
