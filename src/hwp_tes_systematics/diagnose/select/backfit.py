@@ -141,8 +141,8 @@ def fit_iterative(problem, selected, initial_extra=None, gain_after=False) -> Fi
     """Backfitting of the linear, nonlinear (time constant) and events (glitches) parts
     (module docstring). ``initial_extra``: with the nonlinearity composed, the signal (per
     detector, time domain) its templates are first built on beside d_nom (None: d_nom
-    alone; :func:`fit_composed` starts from three). A composed fit's result carries what
-    its nonlinearity acts on (:class:`.results.Composition`). ``gain_after``: a relative gain drift
+    alone; :func:`fit_composed` starts from three). A composed fit of linear effects
+    carries what its nonlinearity acts on (:class:`.results.Composition`). ``gain_after``: a relative gain drift
     (READOUT_GAINS) acts after the nonlinearity, (1 + delta)(d + g1 d^2), as a readout
     gain does, rather than before it, D + g1 D^2 with D = (1 + delta) d: to first order in
     delta the nonlinearity is then composed on d + delta d / 2."""
@@ -354,15 +354,13 @@ def fit_iterative(problem, selected, initial_extra=None, gain_after=False) -> Fi
         parts=parts,
         first_pass_inflation=first_pass_inflation,
         gain_after=bool(gain_rows.size),
-        composition=_composition(
-            problem, rows, nl_rows, gain_rows, values, nonlinear, theta, offsets
-        )
-        if composed
+        composition=_composition(problem, rows, nl_rows, gain_rows, values, offsets)
+        if composed and nonlinear is None
         else None,
     )
 
 
-def _composition(problem, rows, nl_rows, gain_rows, values, nonlinear, theta, offsets):
+def _composition(problem, rows, nl_rows, gain_rows, values, offsets):
     """What the nonlinearity of a composed fit acts on (:class:`.results.Composition`): the
     fitted coefficients on the whole bank's rows, 0 on the nonlinearity's own and half on
     a readout gain's, as :func:`fit_iterative` composes them."""
@@ -374,12 +372,7 @@ def _composition(problem, rows, nl_rows, gain_rows, values, nonlinear, theta, of
         full = np.zeros(problem.bank.shape[1])
         full[rows] = local
         coefficients.append(full)
-    return Composition(
-        coefficients=coefficients,
-        nonlinear=None if nonlinear is None else nonlinear.name,
-        theta=list(theta),
-        offsets=offsets.copy(),
-    )
+    return Composition(coefficients=coefficients, offsets=offsets.copy())
 
 
 def fit_composed(problem, selected) -> FitResult:

@@ -50,12 +50,8 @@ class FrozenRows:
         )
         self.with_bank, self.own, self.with_residual = [], [], []
         self.linearised: dict[str, list[tuple]] = {}
-        nonlinear = composition.nonlinear
         for k in range(problem.n_det):
             spectrum = composition.coefficients[k] @ problem.bank[k]
-            if nonlinear is not None:
-                theta = composition.theta[k]
-                spectrum = spectrum + problem.nonlinear_model(problem.effects[nonlinear], k, theta)
             signal = irfft(spectrum, n=problem.n, workers=problem.workers)
             signal = problem.ctx.d_nom[k] + signal - composition.offsets[k]
             templates = np.concatenate(
@@ -131,16 +127,14 @@ def frozen_screen(problem, selected, current: FitResult) -> FitResult | None:
     parameters, ``screened``). None where the full composed fit is needed: the candidate
     may pass, it shares a line with the nonlinearity (g1's variance inflated
     DEGENERATE_INFLATION times: the full fit starts three ways), the current fit is not
-    composed, or the sets hold event effects (glitches, steps: their detection decides) or
-    the current one a nonlinear effect."""
+    composed on linear effects (:class:`.results.Composition`), or the sets hold event
+    effects (glitches, steps: their detection decides)."""
     composition = current.composition
     added = [n for n in selected if n not in current.selected]
     if composition is None or len(added) != 1 or len(selected) != len(current.selected) + 1:
         return None
     if any(problem.effects[n].kind not in ("linear", "nonlinear") for n in selected):
         return None  # events: their detection decides
-    if any(problem.effects[n].kind != "linear" for n in current.selected):
-        return None
     frozen = problem.frozen_rows(current)
     chi2_current = frozen.current_chi2
     chi2, values, covariances, shared, inflation = frozen.fit(problem, selected)

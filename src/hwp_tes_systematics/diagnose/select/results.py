@@ -31,17 +31,14 @@ class EffectFit:
 
 @dataclass
 class Composition:
-    """What the nonlinearity of a composed fit acts on beside d_nom, per detector k: the
-    signal x_k(t) = irfft(c_k . B_k + m_k) - o_k, with B_k the detector's template bank,
-    c_k the fitted coefficients of its rows (0 for the nonlinearity's own rows, half a
-    readout gain's: ``backfit.fit_iterative``), m_k the nonlinear effect's model at its
-    fitted theta_k and o_k the offset taken out. Kept (a few numbers per detector) so that
-    a candidate added to the fit can be screened with the nonlinearity's templates held
-    there (:mod:`.frozen`)."""
+    """What the nonlinearity of a composed fit of linear effects acts on beside d_nom, per
+    detector k: the signal x_k(t) = irfft(c_k . B_k) - o_k, with B_k the detector's
+    template bank, c_k the fitted coefficients of its rows (0 for the nonlinearity's own
+    rows, half a readout gain's: ``backfit.fit_iterative``) and o_k the offset taken out.
+    Kept (a few numbers per detector) so that a candidate added to the fit can be
+    screened with the nonlinearity's templates held there (:mod:`.frozen`)."""
 
     coefficients: list[np.ndarray]  # per detector, one per row of the whole bank
-    nonlinear: str | None  # the nonlinear effect fitted beside, if any
-    theta: list  # its parameter per detector
     offsets: np.ndarray  # o_k
 
 
@@ -65,7 +62,7 @@ class FitResult:
     alternatives: list[FitResult] = field(default_factory=list, repr=False)
     # with the nonlinearity composed: a relative gain drift fitted after it (a readout gain)
     gain_after: bool = False
-    # with the nonlinearity composed: the signal it acts on (what a candidate's screen holds)
+    # the nonlinearity composed on linear effects: the signal it acts on (a screen holds it)
     composition: Composition | None = field(default=None, repr=False)
     # a candidate's screen, not a fit of the set (:func:`.frozen.frozen_screen`)
     screened: bool = False

@@ -154,25 +154,13 @@ def select_templates(problem, names, threshold, max_effects, steps: list, initia
         if not remaining:
             break
         trials = {n: problem.trial(templates + (n,), current) for n in remaining}
-        table = {
-            n: _change(current, trial, ln_n, **({"screened": True} if trial.screened else {}))
-            for n, trial in trials.items()
-        }
-        for n, trial in trials.items():  # an effect with unphysical parameters is not taken
-            why = None if trial.screened else problem.effects[n].unphysical(trial.effects[n])
-            if why is not None:
-                table[n]["unphysical"] = why
-        allowed = [n for n in table if "unphysical" not in table[n]]
-        best = min(allowed, key=lambda n: table[n]["delta_bic"]) if allowed else None
+        table = {n: _candidate(problem, current, n, trial) for n, trial in trials.items()}
+        best = _best(table)
         while best is not None and trials[best].screened and table[best]["delta_bic"] < threshold:
             # a threshold above half a penalty: the screen decides nothing, the full fit does
             trials[best] = problem.fit(templates + (best,))
-            table[best] = _change(current, trials[best], ln_n)
-            why = problem.effects[best].unphysical(trials[best].effects[best])
-            if why is not None:
-                table[best]["unphysical"] = why
-            allowed = [n for n in table if "unphysical" not in table[n]]
-            best = min(allowed, key=lambda n: table[n]["delta_bic"]) if allowed else None
+            table[best] = _candidate(problem, current, best, trials[best])
+            best = _best(table)
         if best is None or table[best]["delta_bic"] >= threshold:
             _step(steps, current, current, ln_n, table, note="no candidate passes the threshold")
             break
@@ -185,6 +173,24 @@ def select_templates(problem, names, threshold, max_effects, steps: list, initia
         swapped, current = _backward(problem, swapped, current, threshold, removed_sets, steps)
     templates = _one_family_for_a_line(problem, swapped, current, threshold, steps)
     return _without_unphysical(problem, templates, steps)
+
+
+def _candidate(problem, current, name, trial) -> dict:
+    """A forward step's table entry for the candidate ``name``: its changes (:func:`_change`),
+    whether it was screened, and why its parameters are unphysical (an effect with
+    unphysical parameters is not taken; a screen's are not judged)."""
+    entry = _change(current, trial, problem.ln_n_eff)
+    if trial.screened:
+        entry["screened"] = True
+    elif (why := problem.effects[name].unphysical(trial.effects[name])) is not None:
+        entry["unphysical"] = why
+    return entry
+
+
+def _best(table) -> str | None:
+    """The candidate of lowest Delta BIC among those with physical parameters, or None."""
+    allowed = [n for n in table if "unphysical" not in table[n]]
+    return min(allowed, key=lambda n: table[n]["delta_bic"]) if allowed else None
 
 
 def _without_unphysical(problem, templates, steps) -> tuple:
