@@ -13,7 +13,7 @@ import numpy as np
 import scipy.optimize
 
 from ..effects import SELECTION_THRESHOLD
-from ..fourier import irfft, rfft
+from ..fourier import irfft
 from ..linalg import cross, realify, solve_normal
 from .results import Composition, EffectFit, FitResult
 
@@ -196,8 +196,7 @@ def fit_iterative(problem, selected, initial_extra=None, gain_after=False) -> Fi
         """The nonlinearity's template rows of detector k built on d_nom + ``extra``."""
         recomposed[k] = True
         built_on[k] = extra
-        templates = np.concatenate([e.response_templates(ctx.d_nom[k] + extra) for e in responses])
-        banks[k][nl_rows] = rfft(templates * problem.valid[k], axis=-1, workers=problem.workers)
+        banks[k][nl_rows] = problem.response_rows_f(k, extra, responses)
 
     if composed and initial_extra is not None:
         for k in range(n_det):

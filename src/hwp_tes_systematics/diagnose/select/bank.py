@@ -348,6 +348,13 @@ class FitProblem:
             self._cache[selected] = cached
         return cached
 
+    def response_rows_f(self, k: int, extra: np.ndarray, responses) -> np.ndarray:
+        """rfft of valid x the template rows of the response effects ``responses`` (the
+        nonlinearity's d^p) for detector k, built on d_nom + ``extra`` (time domain)."""
+        signal = self.ctx.d_nom[k] + extra
+        templates = np.concatenate([e.response_templates(signal) for e in responses])
+        return rfft(templates * self.valid[k], axis=-1, workers=self.workers)
+
     def trial(self, selected, current: FitResult) -> FitResult:
         """A forward step's candidate: ``current``'s set and one more effect. Its cached fit
         if there is one; else its screen where that shows it cannot pass

@@ -21,7 +21,7 @@ import math
 
 import numpy as np
 
-from ..fourier import irfft, rfft
+from ..fourier import irfft
 from ..linalg import cross, solve_normal
 from .backfit import DEGENERATE_INFLATION
 from .results import Composition, EffectFit, FitResult
@@ -52,12 +52,8 @@ class FrozenRows:
         self.linearised: dict[str, list[tuple]] = {}
         for k in range(problem.n_det):
             spectrum = composition.coefficients[k] @ problem.bank[k]
-            signal = irfft(spectrum, n=problem.n, workers=problem.workers)
-            signal = problem.ctx.d_nom[k] + signal - composition.offsets[k]
-            templates = np.concatenate(
-                [problem.effects[n].response_templates(signal) for n in names]
-            )
-            rebuilt = rfft(templates * problem.valid[k], axis=-1, workers=problem.workers)
+            extra = irfft(spectrum, n=problem.n, workers=problem.workers) - composition.offsets[k]
+            rebuilt = problem.response_rows_f(k, extra, [problem.effects[n] for n in names])
             w = problem.w_nom[k]
             self.with_bank.append(cross(rebuilt, problem.bank[k], w))
             self.own.append(cross(rebuilt, rebuilt, w))
