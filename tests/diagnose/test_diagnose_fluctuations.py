@@ -12,11 +12,12 @@ import pytest
 from hwp_tes_systematics.diagnose import diagnose, simulate
 from hwp_tes_systematics.diagnose.effects.fluctuations import (
     F_REF_HZ,
+    IndependentSidebands,
     WithExcess,
     gain_psd,
     sideband_psd,
 )
-from hwp_tes_systematics.diagnose.noise import NoiseModel
+from hwp_tes_systematics.diagnose.noise import NoiseModel, noise_psd, noise_psd_log_gradient
 from hwp_tes_systematics.diagnose.testbed import A2_K, CHANNEL, MASTER_SEED, sky_map
 
 
@@ -206,3 +207,61 @@ def test_litebird_sims_thermal_gain_has_the_gain_spectrum_of_the_docstring():
     a = math.sqrt(2) * 1e-4 * ratio_t * math.sqrt(params.fknee_drift_mHz * 1e-3 / F_REF_HZ)
     expected = gain_psd(freqs[band], a, 1.0, rate / n)
     assert np.mean(measured[band] / expected) == pytest.approx(1.0, rel=0.02)
+
+
+def _central_differences(function, theta, step=1e-6):
+    out = np.zeros(theta.size)
+    for i in range(theta.size):
+        up, down = theta.copy(), theta.copy()
+        up[i] += step
+        down[i] -= step
+        out[i] = (function(up) - function(down)) / (2 * step)
+    return out
+
+
+def test_the_noise_psd_and_its_log_derivatives_for_detectors_at_once():
+    """S of each detector is noise_psd's; d ln S / d(ln NET, ln f_k, alpha) are the
+    central differences of ln S (ln NET's is 2)."""
+    f = np.geomspace(1e-4, 10.0, 50)
+    theta = np.array([[math.log(5e-5), math.log(0.02), 1.2], [math.log(8e-5), math.log(0.1), 2.5]])
+    fmin = np.array([1e-5, 0.0])
+    psd, d_knee, d_alpha = noise_psd_log_gradient(f, *theta.T, fmin)
+    for k, (log_net, log_fknee, alpha) in enumerate(theta):
+        expected = noise_psd(f, math.exp(log_net), math.exp(log_fknee), alpha, fmin[k])
+        np.testing.assert_allclose(psd[k], expected, rtol=1e-12)
+        for i, analytic in ((0, 2.0), (1, d_knee[k]), (2, d_alpha[k])):
+            up, down = theta[k].copy(), theta[k].copy()
+            up[i] += 1e-6
+            down[i] -= 1e-6
+            numeric = (
+                np.log(noise_psd(f, math.exp(up[0]), math.exp(up[1]), up[2], fmin[k]))
+                - np.log(noise_psd(f, math.exp(down[0]), math.exp(down[1]), down[2], fmin[k]))
+            ) / 2e-6
+            np.testing.assert_allclose(analytic, numeric, rtol=1e-6, atol=1e-8)
+
+
+def test_the_independent_detectors_likelihood_has_its_analytic_gradient():
+    """IndependentSidebands' gradient (what fit_fluctuations' L-BFGS-B steps on for one
+    detector and for three and more) is the central difference of its -2 ln L, with and
+    without the sidebands; rho does not enter."""
+    rng = np.random.default_rng(5)
+    n_det, carrier, resolution = 3, 0.1, 1e-4
+    f = np.sort(rng.uniform(1e-3, 5.0, 200))
+    modes = rng.integers(1, 20, f.size).astype(float)
+    factor = rng.uniform(0.5, 2.0, (n_det, f.size)) * 1e7
+    noise = [NoiseModel(5e-5 * (1 + 0.1 * k), 0.02, 1.0, 1e-5) for k in range(n_det)]
+    power = np.array([modes * factor[k] * noise[k].psd(f) for k in range(n_det)])
+    power *= rng.chisquare(2 * modes) / (2 * modes)
+    likelihood = IndependentSidebands(
+        f, modes, power, factor, np.full(n_det, 1e-5), factor[:, 0] * 0.05, carrier, resolution
+    )
+    theta = np.array(
+        [x for m in noise for x in (math.log(m.net_k_sqrt_s) + 0.1, math.log(0.03), 1.3)]
+        + [math.log(3e-5), 1.2, 0.4]
+    )
+    for with_excess, size in ((True, theta.size), (False, 3 * n_det)):
+        value, gradient = likelihood(theta[:size], with_excess)
+        numeric = _central_differences(lambda t, w=with_excess: likelihood(t, w)[0], theta[:size])
+        np.testing.assert_allclose(gradient, numeric, rtol=1e-5, atol=1e-6 * abs(value))
+        assert np.isfinite(value)
+    assert likelihood(theta, True)[1][-1] == 0.0

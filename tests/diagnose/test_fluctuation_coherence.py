@@ -13,7 +13,8 @@ import pytest
 
 from hwp_tes_systematics.diagnose import diagnose
 from hwp_tes_systematics.diagnose.effects.coherence import contiguous_bins, minus_two_ln_l
-from hwp_tes_systematics.diagnose.effects.fluctuations import _binned, pair_determinant
+from hwp_tes_systematics.diagnose.effects.fluctuations import pair_determinant
+from hwp_tes_systematics.diagnose.effects.sideband_bins import sum_in_bins
 from hwp_tes_systematics.diagnose.recording import read_recording
 from hwp_tes_systematics.diagnose.testbed import sky_map
 
@@ -78,11 +79,11 @@ def test_for_a_pair_it_is_the_pair_likelihood():
 
 
 def test_the_bins_are_those_of_the_independent_fit():
-    """The contiguous runs hold the modes :func:`.fluctuations._binned` sums together."""
+    """The contiguous runs hold the modes :func:`.sideband_bins.sum_in_bins` sums together."""
     f = np.linspace(1e-3, 9.5, 20_000)
     f = f[np.abs(f - 1.3) > 2e-3]
     bins, mean_f, counts = contiguous_bins(f, 1.3)
-    reference_f, reference_counts, _, _ = _binned(f, 1.3, [np.ones_like(f)], None)
+    reference_f, reference_counts, _, _ = sum_in_bins(f, 1.3, [np.ones_like(f)], None)
     assert sorted(counts) == sorted(reference_counts)
     assert np.allclose(np.sort(mean_f), np.sort(reference_f))
     assert bins[0][0] == 0 and bins[-1][1] == f.size

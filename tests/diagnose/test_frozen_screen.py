@@ -1,5 +1,6 @@
-"""The screen of a forward step's candidates on a composed fit (select.frozen): it skips
-only candidates that cannot pass, and the diagnosis is otherwise the same to the bit."""
+"""The screen of the candidates on a composed fit, added at a forward step or put in an
+effect's place at a swap (select.frozen): it skips only candidates that cannot pass, and
+the diagnosis is otherwise the same to the bit."""
 
 from __future__ import annotations
 
@@ -30,13 +31,25 @@ def differences(a, b, path=""):
 
 def test_the_screen_leaves_the_diagnosis_as_the_full_fits_give_it(tmp_path, monkeypatch):
     """A nonlinearity with a gain drift: the candidates screened at each step (the time
-    constant among them, by its linearised template) are the ones
+    constant among them, by its linearised template) and the swaps screened in the
+    drift's place are the ones
     whose full composed fit does not pass either (its Delta BIC above the threshold, its
     gain in chi^2 not beyond the screen's by half the penalty); every number of the report
     but the screened candidates' entries is identical."""
     effects = [("gain_drift", {"g1": [0.03, 0.02]}), ("tes_nonlinearity", {"g1": -0.04})]
     recording, _ = recorded(tmp_path, effects, noise_seed=110, hours=1.0)
-    screened = run(recording).to_dict()
+    swaps = []  # the swaps the screen left out (a set without one of the current effects)
+    screen = frozen.frozen_screen
+
+    def spy(problem, selected, current):
+        result = screen(problem, selected, current)
+        if result is not None and not set(current.selected) <= set(selected):
+            swaps.append(selected)
+        return result
+
+    with monkeypatch.context() as patch:
+        patch.setattr(frozen, "frozen_screen", spy)
+        screened = run(recording).to_dict()
     with monkeypatch.context() as patch:
         patch.setattr(frozen, "frozen_screen", lambda *args: None)
         full = run(recording).to_dict()
@@ -58,6 +71,10 @@ def test_the_screen_leaves_the_diagnosis_as_the_full_fits_give_it(tmp_path, monk
             penalty = entry["delta_bic"] - entry["delta_chi2"]
             assert truth["delta_chi2"] - entry["delta_chi2"] > -0.5 * penalty, (name, entry, truth)
     assert count >= 10, count
+    # the swap step's trials of the drift's look-alikes in its place were screened too; the
+    # final swap margins (full fits) are among the identical numbers above
+    assert len(swaps) >= 5, swaps
+    assert screened["swap_margins"]["effects"]["gain_drift"]
     # the time constant, a nonlinear effect, is screened by its linearised template
     tau = [step["candidates"].get("detector_time_constant", {}) for step in screened["steps"]]
     assert any(entry.get("screened") for entry in tau), tau

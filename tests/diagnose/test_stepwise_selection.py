@@ -54,7 +54,7 @@ class Problem:
     def fit(self, templates):
         return Fit(tuple(templates), self.chi2[frozenset(templates)], 3 * len(templates))
 
-    def trial(self, templates, current):  # a forward step's candidate: no screen here
+    def trial(self, templates, current):  # a candidate set: no screen here
         return self.fit(templates)
 
 

@@ -81,6 +81,30 @@ def noise_psd(freqs_hz, net_k_sqrt_s, fknee_hz, alpha, fmin_hz) -> np.ndarray:
     )
 
 
+def noise_psd_log_gradient(freqs_hz, log_net, log_fknee, alpha, fmin_hz):
+    """:func:`noise_psd` of several detectors at once and its logarithmic derivatives, for
+    the fits that take a gradient: from (n_det,) arrays of ln NET, ln f_knee, alpha and
+    f_min, on positive frequencies (n_f,), S (n_det, n_f) and (d ln S / d ln f_knee,
+    d ln S / d alpha), d ln S / d ln NET being 2:
+
+        d ln S / d ln f_k = alpha f_k^alpha / (f^alpha + f_k^alpha),
+        d ln S / d alpha = (f^alpha ln f + f_k^alpha ln f_k) / (f^alpha + f_k^alpha)
+                         - (f^alpha ln f + f_min^alpha ln f_min) / (f^alpha + f_min^alpha).
+    """
+    ln_f = np.log(np.asarray(freqs_hz, dtype=float))[None, :]
+    alpha = np.asarray(alpha, dtype=float)[:, None]
+    ln_knee = np.asarray(log_fknee, dtype=float)[:, None]
+    ln_min = np.log(np.maximum(np.asarray(fmin_hz, dtype=float), 1e-30))[:, None]
+    f_alpha, knee_alpha, min_alpha = (np.exp(alpha * x) for x in (ln_f, ln_knee, ln_min))
+    upper, lower = f_alpha + knee_alpha, f_alpha + min_alpha
+    psd = 2.0 * np.exp(2.0 * np.asarray(log_net, dtype=float))[:, None] * upper / lower
+    d_knee = alpha * knee_alpha / upper
+    d_alpha = (f_alpha * ln_f + knee_alpha * ln_knee) / upper - (
+        f_alpha * ln_f + min_alpha * ln_min
+    ) / lower
+    return psd, d_knee, d_alpha
+
+
 def rolloff(freqs_hz, tau_squared_s2) -> np.ndarray:
     """|H(f)|^2 = 1 / (1 + (2 pi f)^2 tau^2) of a single pole."""
     return 1.0 / (1.0 + (2 * np.pi * np.asarray(freqs_hz, dtype=float)) ** 2 * tau_squared_s2)

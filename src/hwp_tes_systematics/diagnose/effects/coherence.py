@@ -38,6 +38,7 @@ import scipy.optimize
 
 from ..model import Context
 from .base import detector_partitions
+from .sideband_bins import bin_labels
 
 RHO_STARTS = (0.0, 0.5, 0.9, 1.0)
 
@@ -70,10 +71,8 @@ def binned_cross(rows, bins) -> np.ndarray:
 
 def contiguous_bins(f, carrier_hz: float):
     """(start, stop) runs of consecutive modes of ``f`` (ascending) in one sideband bin
-    (:func:`.fluctuations.bin_labels`, as the independent fit bins them); each run's mean
+    (:func:`.sideband_bins.bin_labels`, as the independent fit bins them); each run's mean
     frequency and its modes."""
-    from .fluctuations import bin_labels
-
     key = np.stack(bin_labels(f, carrier_hz))
     starts = np.concatenate([[0], np.flatnonzero(np.any(np.diff(key, axis=1) != 0, axis=0)) + 1])
     stops = np.append(starts[1:], f.size)

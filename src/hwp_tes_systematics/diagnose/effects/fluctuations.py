@@ -45,10 +45,12 @@ from ..noise import (
     knee_bound_hz,
     line_exclusion_mask,
     noise_psd,
+    noise_psd_log_gradient,
     periodogram_scale,
     rolloff,
 )
 from .coherence import CoherenceFit, fit_coherence
+from .sideband_bins import sum_in_bins
 
 F_REF_HZ = 0.01  # the frequency at which the gain PSD's amplitude a is quoted
 # the likelihood leaves out the modes within this of 2 f_HWP: the deterministic effects
@@ -56,7 +58,6 @@ F_REF_HZ = 0.01  # the frequency at which the gain PSD's amplitude a is quoted
 # the fluctuation claims only the broadband sidebands beyond it
 INNER_HZ = 2e-3
 SLOPE_BOUNDS = (0.0, 3.0)
-GRADIENT_STEP = 1e-8  # the forward difference of the fit's gradient (L-BFGS-B's own default)
 # the second differences of the errors: (ln a, beta, rho), (ln NET, ln f_knee, alpha) per
 # detector, and a pair's white correlation x
 EXCESS_STEPS = (0.02, 0.02, 0.01)
@@ -124,6 +125,68 @@ class FluctuationFit:
         return float(self.amplitude * math.sqrt(F_REF_HZ**self.slope * integral))
 
 
+@dataclass
+class IndependentSidebands:
+    """-2 ln L of independent detectors' binned periodograms (one detector, or three and more
+    in :func:`fit_fluctuations`) and its gradient in theta = (ln NET, ln f_knee, alpha per
+    detector, ln a, beta, rho):
+
+        -2 ln L = sum_k 2 sum_b [P_kb / T_kb + m_b ln T_kb],  T_k = S_k + x_k (L + U),
+
+    S_k = c_kb noise_psd, L and U the gain's P_g(|f - f_0|) and P_g(f + f_0); the gradient is
+    d(-2 ln L) / dT = 2 (m / T - P / T^2) times dS = S d ln S for detector k's noise
+    parameters (:func:`.noise.noise_psd_log_gradient`), dT / d ln a = 2 x_k (L + U) and
+    dT / d beta = x_k [L ln(f_ref / |f - f_0|) + U ln(f_ref / (f + f_0))]; rho does not
+    enter (its derivative is 0)."""
+
+    f_hz: np.ndarray  # (n_b,) the bins' mean frequencies
+    modes: np.ndarray  # (n_b,) m_b, the modes summed in each bin
+    power: np.ndarray  # (n_det, n_b) P_kb, the summed periodograms
+    noise_factor: np.ndarray  # (n_det, n_b) c_kb, the periodogram scale times the held pole
+    fmin_hz: np.ndarray  # (n_det,)
+    sideband_factor: np.ndarray  # (n_det,) x_k = s_k A_k^2 / 4
+    carrier_hz: float
+    resolution_hz: float
+
+    def __post_init__(self):
+        self.n_det = self.power.shape[0]
+        self.ln_offsets = [
+            np.log(F_REF_HZ / np.maximum(np.abs(offset), self.resolution_hz))
+            for offset in (self.f_hz - self.carrier_hz, self.f_hz + self.carrier_hz)
+        ]
+
+    def __call__(self, theta, with_excess: bool) -> tuple[float, np.ndarray]:
+        """(-2 ln L, its gradient) at theta; without the excess theta is the noise's alone."""
+        n_noise = 3 * self.n_det
+        log_net, log_fknee, alpha = np.asarray(theta[:n_noise]).reshape(self.n_det, 3).T
+        noise, d_knee, d_alpha = noise_psd_log_gradient(
+            self.f_hz, log_net, log_fknee, alpha, self.fmin_hz
+        )
+        noise *= self.noise_factor
+        total = noise
+        x = self.sideband_factor[:, None]
+        if with_excess:
+            gain = math.exp(theta[n_noise])
+            lower, upper = (
+                gain_psd(offset, gain, theta[n_noise + 1], self.resolution_hz)
+                for offset in (self.f_hz - self.carrier_hz, self.f_hz + self.carrier_hz)
+            )
+            total = noise + x * (lower + upper)
+        value = 2 * float(np.sum(self.power / total + self.modes * np.log(total)))
+        d_total = 2 * (self.modes / total - self.power / total**2)
+        d_noise = d_total * noise
+        gradient = np.zeros(len(theta))
+        gradient[0:n_noise:3] = 2 * d_noise.sum(axis=1)
+        gradient[1:n_noise:3] = np.sum(d_noise * d_knee, axis=1)
+        gradient[2:n_noise:3] = np.sum(d_noise * d_alpha, axis=1)
+        if with_excess:
+            d_excess = np.sum(d_total * x, axis=0)
+            ln_lower, ln_upper = self.ln_offsets
+            gradient[n_noise] = 2 * float(np.dot(d_excess, lower + upper))
+            gradient[n_noise + 1] = float(np.dot(d_excess, lower * ln_lower + upper * ln_upper))
+        return value, gradient
+
+
 def carrier_phases(ctx: Context, carrier_hz: float) -> np.ndarray:
     """psi_k of each detector's 2f carrier cos(2 pi f_0 t + psi_k) in numpy's FFT convention
     (X_f0 = (n / 2) e^{i psi}), from the adjusted nominal HWPSS."""
@@ -183,7 +246,7 @@ def fit_fluctuations(
     pair = n_det == 2
     # the periodograms summed in bins 1/2 % wide in f and in |f - f_0|, over which S, E and C
     # are constant to ~1e-2 of themselves (the likelihood then needs the sums only)
-    f, counts, power, cross = _binned(
+    f, counts, power, cross = sum_in_bins(
         freqs[used],
         carrier,
         [r.real**2 + r.imag**2 for r in rows],
@@ -236,64 +299,46 @@ def fit_fluctuations(
             gain_psd(f + carrier, math.exp(log_a), slope, resolution),
         )
 
-    def term(k, total_k):
-        """Detector k's part of -2 ln L when the detectors are independent (no pair)."""
-        return 2 * float(np.sum(power[k] / total_k + counts * np.log(total_k)))
-
-    def spectra(theta, with_excess):
-        """(S_k + E_k per detector, the cross term C or None)."""
+    def pair_spectra(theta, with_excess):
+        """The pair's S_k + E_k per detector, cross term C + X (X = x sqrt(S_A S_B)) and
+        determinant per bin."""
         total = [noise_of(theta, k) for k in range(n_det)]
-        leak = theta[3 * n_det] * np.sqrt(total[0] * total[1]) if pair else None
+        leak = theta[3 * n_det] * np.sqrt(total[0] * total[1])
         if not with_excess:
-            return total, leak, None if leak is None else total[0] * total[1] - leak**2
+            return total, leak, total[0] * total[1] - leak**2
         rho = theta[n_noise + 2]
         lower, upper = sidebands(theta)
-        c = det = None
-        if pair:
-            d_psi = psi[0] - psi[1]
-            c = (
-                rho
-                * math.sqrt(excess_scales[0] * excess_scales[1])
-                * (lower * np.exp(1j * d_psi) + upper * np.exp(-1j * d_psi))
-            )
-            det = pair_determinant(total, excess_scales, lower, upper, rho, d_psi)
-            det = det - 2 * (c.real * leak) - leak**2  # |C + X|^2, X = x sqrt(S_A S_B)
-            c = c + leak
+        d_psi = psi[0] - psi[1]
+        c = (
+            rho
+            * math.sqrt(excess_scales[0] * excess_scales[1])
+            * (lower * np.exp(1j * d_psi) + upper * np.exp(-1j * d_psi))
+        )
+        det = pair_determinant(total, excess_scales, lower, upper, rho, d_psi)
+        det = det - 2 * (c.real * leak) - leak**2  # |C + X|^2
         for k in range(n_det):
             total[k] = total[k] + excess_scales[k] * (lower + upper)
-        return total, c, det
+        return total, c + leak, det
 
     def minus_two_ln_l(theta, with_excess: bool):
-        total, c, det = spectra(theta, with_excess)
-        if c is None:
-            return sum(term(k, total[k]) for k in range(n_det))
+        if not pair:
+            return independent_likelihood(theta, with_excess)[0]
+        total, c, det = pair_spectra(theta, with_excess)
         det = np.maximum(det, 1e-12 * total[0] * total[1])  # (a far corner of x, rho)
         quadratic = (total[1] * power[0] + total[0] * power[1] - 2 * (c * cross).real) / det
         return 2 * float(np.sum(counts * np.log(det) + quadratic))
 
-    def with_gradient(theta, with_excess: bool, upper_bounds):
-        """-2 ln L and its forward differences (steps of GRADIENT_STEP, backward at an upper
-        bound, as L-BFGS-B's own), for three or more detectors: -2 ln L = sum_k L_k, and
-        detector k's noise parameters move L_k alone, so each costs one detector's term
-        (not all of them): 3 n_det + 3 evaluations of every term become ~9."""
-        excess = sum(sidebands(theta)) if with_excess else 0.0
-        terms = [term(k, noise_of(theta, k) + excess_scales[k] * excess) for k in range(n_det)]
-        value = sum(terms)
-        gradient = np.zeros(theta.size)
-        moved = theta.copy()
-        for i in range(theta.size):
-            if with_excess and i == n_noise + 2:  # rho: independent detectors do not see it
-                continue
-            step = GRADIENT_STEP if theta[i] + GRADIENT_STEP <= upper_bounds[i] else -GRADIENT_STEP
-            moved[i] = theta[i] + step
-            if i < n_noise:
-                k = i // 3
-                changed = term(k, noise_of(moved, k) + excess_scales[k] * excess) - terms[k]
-            else:
-                changed = minus_two_ln_l(moved, True) - value
-            gradient[i] = changed / step
-            moved[i] = theta[i]
-        return value, gradient
+    # one detector or three and more: independent detectors
+    independent_likelihood = IndependentSidebands(
+        f,
+        counts,
+        np.array(power),
+        np.array(scales)[:, None] * np.array(poles),
+        np.array(fmins),
+        np.array(excess_scales),
+        carrier,
+        resolution,
+    )
 
     def minimise(x0, with_excess):
         bounds = noise_bounds + (excess_bounds if with_excess else [])
@@ -303,9 +348,9 @@ def fit_fluctuations(
                 minus_two_ln_l, x0, args=(with_excess,), method="L-BFGS-B", bounds=bounds
             )
         return scipy.optimize.minimize(
-            with_gradient,
+            independent_likelihood,
             x0,
-            args=(with_excess, np.array([b[1] for b in bounds])),
+            args=(with_excess,),
             jac=True,
             method="L-BFGS-B",
             bounds=bounds,
@@ -413,37 +458,6 @@ def fit_fluctuations(
         carriers_k=carriers,
         carrier_hz=carrier,
     )
-
-
-BIN_WIDTH = 0.005  # the sideband bins' relative width in f and in |f - f_0|
-
-
-def bin_labels(f, carrier_hz):
-    """(bin in f, bin in |f - f_0|, the side of f_0) of each mode: the sidebands' bins,
-    BIN_WIDTH wide in ln f and in ln |f - f_0|, over which S, E and C are constant to ~1e-2
-    of themselves."""
-    offset = f - carrier_hz
-    in_f = np.floor(np.log(f) / BIN_WIDTH).astype(np.int64)
-    in_offset = np.floor(np.log(np.abs(offset)) / BIN_WIDTH).astype(np.int64)
-    return in_f, in_offset, (offset > 0).astype(np.int64)
-
-
-def _binned(f, carrier_hz, powers, cross):
-    """(mean f, modes, summed periodograms, summed cross-periodogram) per bin
-    (:func:`bin_labels`)."""
-    in_f, in_offset, side = bin_labels(f, carrier_hz)
-    key = (
-        (in_f - in_f.min()) * 4 * (np.abs(in_offset).max() + 2)
-        + 2 * (in_offset - in_offset.min())
-        + side
-    )
-    _, index = np.unique(key, return_inverse=True)
-    counts = np.bincount(index).astype(float)
-    mean_f = np.bincount(index, weights=f) / counts
-    summed = [np.bincount(index, weights=p) for p in powers]
-    if cross is not None:
-        cross = np.bincount(index, weights=cross.real) + 1j * np.bincount(index, weights=cross.imag)
-    return mean_f, counts, summed, cross
 
 
 def dipole_signature(ctx: Context, fit: FluctuationFit, noise) -> float:

@@ -356,10 +356,10 @@ class FitProblem:
         return rfft(templates * self.valid[k], axis=-1, workers=self.workers)
 
     def trial(self, selected, current: FitResult) -> FitResult:
-        """A forward step's candidate: ``current``'s set and one more effect. Its cached fit
-        if there is one; else its screen where that shows it cannot pass
-        (:func:`.frozen.frozen_screen`: not cached, a later :meth:`fit` fits it in full);
-        else :meth:`fit`."""
+        """A candidate set: ``current``'s set with one more effect (a forward step) or with
+        one in the place of one of its effects (a swap). Its cached fit if there is one;
+        else its screen where that shows it cannot pass (:func:`.frozen.frozen_screen`: not
+        cached, a later :meth:`fit` fits it in full); else :meth:`fit`."""
         selected = self._ordered(selected)
         if selected not in self._cache:
             screened = frozen.frozen_screen(self, selected, current)

@@ -1,6 +1,7 @@
 """The screen of a candidate added to a composed fit (the nonlinearity acting on the other
-effects, :func:`.backfit.fit_iterative`): the candidate set fitted once, linearly, with the
-nonlinearity's templates held where the current fit composed them (:func:`frozen_screen`).
+effects, :func:`.backfit.fit_iterative`), or put in the place of one of its effects: the
+candidate set fitted once, linearly, with the nonlinearity's templates held where the
+current fit composed them (:func:`frozen_screen`).
 
 A composed fit rebuilds the nonlinearity's templates (d^2, d^3) on d_nom plus the other
 fitted effects until they settle, two or more fits of every detector and a template
@@ -10,9 +11,13 @@ candidates, most of which the data do not support. Held at the current fit's com
 nonlinearity's rows of the normal equations replaced by those of the rebuilt templates;
 the candidate's Delta chi^2 over the current set, both fitted so, differs from the
 composed fits' by what the candidate's own signal moves in the nonlinearity's templates
-(2 g1 d x its model: second order in the small quantities). A nonlinear candidate (the
-time constant) enters by its first-order template (``Effect.linearised_f``), as
-:func:`.backfit.nonlinear_screen` fits it beside linear effects alone.
+(2 g1 d x its model: second order in the small quantities). In a swap the templates also
+hold the signal of the effect the candidate replaces, which its composed fit would not: the
+held fit keeps the nonlinearity's response to that signal (2 g1 d x the replaced model,
+real since the replaced effect was selected), so it fits the swap at least as well as the
+composed fit to first order and its Delta BIC errs towards taking the swap. A nonlinear
+candidate (the time constant) enters by its first-order template (``Effect.linearised_f``),
+as :func:`.backfit.nonlinear_screen` fits it beside linear effects alone.
 """
 
 from __future__ import annotations
@@ -27,9 +32,10 @@ from .backfit import DEGENERATE_INFLATION
 from .results import Composition, EffectFit, FitResult
 
 # a candidate is screened out when its frozen Delta chi^2 is below this fraction of its
-# BIC penalty (Delta k ln N_eff + its prior penalty): the composed fit would have to find
-# more than twice as much for it to pass, and the screened Delta BIC stays above 0, so it
-# is neither selected nor a look-alike of the effect that is (explain.step.look_alikes)
+# BIC penalty (Delta k ln N_eff + its prior penalty; in a swap, when the frozen Delta BIC
+# exceeds the rest of that penalty): the composed fit would have to find more than twice as
+# much for it to pass, and the screened Delta BIC stays above 0, so it is neither selected
+# nor a look-alike of the effect that is (explain.step.look_alikes)
 SCREEN_FRACTION = 0.5
 
 
@@ -115,19 +121,21 @@ class FrozenRows:
 
 
 def frozen_screen(problem, selected, current: FitResult) -> FitResult | None:
-    """The candidate set ``selected`` (``current``'s set of linear effects and one more
-    linear or nonlinear effect) when it cannot pass: fitted with the nonlinearity's
-    templates held at ``current``'s composition (:class:`FrozenRows`), and the current set
-    so too; if the candidate's Delta chi^2 between them is below SCREEN_FRACTION of its
-    BIC penalty, the result (chi^2 = chi^2(current) - that Delta chi^2, the frozen fit's
-    parameters, ``screened``). None where the full composed fit is needed: the candidate
-    may pass, it shares a line with the nonlinearity (g1's variance inflated
-    DEGENERATE_INFLATION times: the full fit starts three ways), the current fit is not
-    composed on linear effects (:class:`.results.Composition`), or the sets hold event
-    effects (glitches, steps: their detection decides)."""
+    """The candidate set ``selected`` (``current``'s set of linear effects with one more
+    linear or nonlinear effect c, or with c in the place of one of them) when it cannot
+    pass: fitted with the nonlinearity's templates held at ``current``'s composition
+    (:class:`FrozenRows`), and the current set so too; if their Delta BIC exceeds
+    (1 - SCREEN_FRACTION) of c's own penalty (for an added c: its Delta chi^2 is below
+    SCREEN_FRACTION of its penalty), the result (chi^2 = chi^2(current) - that Delta
+    chi^2, the frozen fit's parameters, ``screened``). None where the full composed fit is
+    needed: the candidate may pass, it shares a line with the nonlinearity (g1's variance
+    inflated DEGENERATE_INFLATION times: the full fit starts three ways), the current fit
+    is not composed on linear effects (:class:`.results.Composition`), or the sets hold
+    event effects (glitches, steps: their detection decides)."""
     composition = current.composition
     added = [n for n in selected if n not in current.selected]
-    if composition is None or len(added) != 1 or len(selected) != len(current.selected) + 1:
+    removed = [n for n in current.selected if n not in selected]
+    if composition is None or len(added) != 1 or len(removed) > 1:
         return None
     if any(problem.effects[n].kind not in ("linear", "nonlinear") for n in selected):
         return None  # events: their detection decides
@@ -140,7 +148,11 @@ def frozen_screen(problem, selected, current: FitResult) -> FitResult | None:
     prior = problem.prior_penalty(selected)
     penalty = (n_params - current.n_params) * problem.ln_n_eff + prior - current.prior_penalty
     gain = float(np.sum(chi2_current) - np.sum(chi2))
-    if not math.isfinite(gain) or gain >= SCREEN_FRACTION * penalty:
+    without = [n for n in selected if n not in added]  # c's own penalty
+    own_penalty = (
+        n_params - problem.count_parameters(without, {})
+    ) * problem.ln_n_eff + problem.effects[added[0]].prior_penalty
+    if not math.isfinite(gain) or penalty - gain <= (1 - SCREEN_FRACTION) * own_penalty:
         return None
     per_detector = current.chi2_per_detector - (chi2_current - chi2)
     effects = problem.with_shared(problem.linear_effect_fits(selected, values, covariances), shared)

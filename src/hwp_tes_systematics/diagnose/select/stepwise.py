@@ -253,7 +253,8 @@ def _swap_look_alikes(problem, names, templates, current, steps):
     seen = {frozenset(templates)}
     while True:
         best = None
-        for out, candidate, trial, gain in _swap_trials(problem, names, templates, current, seen):
+        trials = _swap_trials(problem, names, templates, current, seen, screen=True)
+        for out, candidate, trial, gain in trials:
             if gain < 0 and (best is None or gain < best[3]):
                 best = (out, candidate, trial, gain)
         if best is None:
@@ -274,10 +275,11 @@ def _swap_look_alikes(problem, names, templates, current, steps):
         current = trial
 
 
-def _swap_trials(problem, names, templates, current, seen=frozenset()):
+def _swap_trials(problem, names, templates, current, seen=frozenset(), screen=False):
     """(out, candidate, trial fit, BIC(trial) - BIC(current)) for each selected linear
     signal effect ``out`` and each unselected one of ``names`` put in its place, whose fit
-    is physical; sets in ``seen`` are not fitted again."""
+    is physical; sets in ``seen`` are not fitted again. With ``screen``, a swap the screen
+    shows cannot lower the BIC (:meth:`.bank.FitProblem.trial`) is left out."""
     ln_n = problem.ln_n_eff
     for out in [n for n in templates if _swappable(problem.effects[n])]:
         kept = tuple(t for t in templates if t != out)
@@ -286,7 +288,12 @@ def _swap_trials(problem, names, templates, current, seen=frozenset()):
                 continue
             if frozenset(kept + (candidate,)) in seen:
                 continue
-            trial = problem.fit(kept + (candidate,))
+            if screen:
+                trial = problem.trial(kept + (candidate,), current)
+                if trial.screened:
+                    continue
+            else:
+                trial = problem.fit(kept + (candidate,))
             if problem.effects[candidate].unphysical(trial.effects[candidate]):
                 continue
             yield out, candidate, trial, trial.bic(ln_n) - current.bic(ln_n)
@@ -296,8 +303,9 @@ def final_swap_margins(problem, final) -> dict[str, dict[str, float]]:
     """{selected: {alternative: BIC(alternative in its place) - BIC(final)}} for each
     selected linear signal effect of the ``final`` fit and each unselected one of the
     catalog whose fit in its place is physical, under ``problem``'s noise weights: > 0 the
-    data prefer the selected effect by that much. The fits the swap step tried (cached),
-    so that recordings diagnosed in parts compare margins of one kind."""
+    data prefer the selected effect by that much. Full fits (the swap step's cached, the
+    ones its screen left out fitted now), so that recordings diagnosed in parts compare
+    margins of one kind."""
     margins: dict[str, dict[str, float]] = {
         out: {} for out in final.selected if _swappable(problem.effects[out])
     }
