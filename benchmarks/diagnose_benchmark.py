@@ -49,7 +49,7 @@ from hwp_tes_systematics.diagnose import (
     write_recording,
 )
 from hwp_tes_systematics.diagnose.effects import family_of
-from hwp_tes_systematics.io import reuse_freed_memory
+from hwp_tes_systematics.io import reuse_freed_memory, use_base_pages
 
 EFFECTS = {
     "none": [],
@@ -666,6 +666,7 @@ def main() -> None:
         return
 
     reuse_freed_memory()  # as the diagnose command does
+    use_base_pages()
     sky_map = sky.cmb_map(arguments.nside, 3 * arguments.nside - 1, 0.0, 1, 0, 30.8)
     started = time.perf_counter()
     recording = simulate_recording(

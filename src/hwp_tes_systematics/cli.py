@@ -88,10 +88,11 @@ def run_diagnose(
     from .diagnose.recording import nominal_a2, read_recording
     from .diagnose.recording_checks import MIN_SAMPLES, recording_size
     from .diagnose.segments import diagnose_segments, needs_segments
-    from .io import reuse_freed_memory
+    from .io import reuse_freed_memory, use_base_pages
     from .simulation.channel_inputs import channel_a2_k_cmb
 
     reuse_freed_memory()  # the fits' spectra of a row each: no page faults (io.reuse_freed_memory)
+    use_base_pages()  # the first touch of ~10 GB without compaction stalls (io.use_base_pages)
     config = load_config(*config_paths) if config is None else config
     budget = None if memory_gb is None else memory_gb * 2**30
     n_detectors, n_samples, rate_hz = recording_size(recording_path)

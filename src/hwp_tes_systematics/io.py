@@ -69,6 +69,31 @@ def use_threads(threads: int) -> None:
     numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
 
 
+def use_base_pages() -> bool:
+    """Let numpy's large arrays take the kernel's base pages rather than transparent huge
+    pages; returns whether the setting took effect (False where numpy's own switch,
+    ``NUMPY_MADVISE_HUGEPAGE``, is set: it decides, as numpy documents).
+
+    On Linux >= 4.6 numpy asks for huge pages (``madvise(MADV_HUGEPAGE)``) for every array
+    of 4 MB and more; where the kernel's THP policy is ``madvise`` with ``defrag``
+    ``madvise``, the first touch of each 2 MiB page waits for the kernel to compact memory
+    for it. On the machine the diagnosis is measured on, 4 GiB written once take 14-28 s
+    so against 1.6-2.0 s in base pages, and a diagnosis touches ~10 GB in its first
+    segment (``docs/diagnosis/rates.md``). The numbers computed are the same bit for bit.
+    Call it once at the start of a job's process, before its large arrays."""
+    if "NUMPY_MADVISE_HUGEPAGE" in os.environ:
+        return False
+    try:
+        from numpy._core import multiarray
+    except ImportError:  # numpy < 2
+        from numpy.core import multiarray
+    switch = getattr(multiarray, "_set_madvise_hugepage", None)
+    if switch is None:
+        return False
+    switch(False)
+    return True
+
+
 # glibc's mallopt parameters (malloc.h)
 _M_TRIM_THRESHOLD, _M_MMAP_MAX = -1, -4
 _KEPT_FREE_BYTES = 2**31 - 1  # the largest trim threshold mallopt takes (a C int)

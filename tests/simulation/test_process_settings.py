@@ -1,7 +1,10 @@
-"""The process settings of a compute job (io.use_threads, io.reuse_freed_memory)."""
+"""The process settings of a compute job (io.use_threads, io.reuse_freed_memory,
+io.use_base_pages)."""
 
+import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -39,3 +42,45 @@ def test_freed_memory_serves_the_next_array_without_page_faults():
     default, reused = faults_of_a_reallocation("default"), faults_of_a_reallocation("reuse")
     assert default > 100, default
     assert reused < default / 10, (reused, default)
+
+
+# a 256 MB array written once: the process's anonymous memory in transparent huge pages
+HUGE_PAGES_OF_AN_ARRAY = """
+import os, sys
+import numpy as np
+from hwp_tes_systematics.io import use_base_pages
+print(use_base_pages() if sys.argv[1] == "base" else None)
+array = np.ones(2**25)
+with open("/proc/self/smaps_rollup") as rollup:
+    print(next(int(l.split()[1]) for l in rollup if l.startswith("AnonHugePages:")))
+"""
+
+
+def huge_pages_of_an_array(mode: str, **environment) -> tuple[str, int]:
+    done = subprocess.run(
+        [sys.executable, "-c", HUGE_PAGES_OF_AN_ARRAY, mode],
+        capture_output=True,
+        text=True,
+        check=True,
+        env={**os.environ, **environment},
+    )
+    took, kib = done.stdout.split()
+    return took, int(kib)
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/smaps_rollup"), reason="Linux only")
+def test_base_pages_keep_numpys_arrays_out_of_huge_pages_unless_numpy_is_told():
+    """numpy asks for transparent huge pages for large arrays; after use_base_pages the
+    array is in base pages (none of the process's memory in huge pages). Where the user
+    set numpy's own switch (NUMPY_MADVISE_HUGEPAGE), it decides."""
+    environment = {k: v for k, v in os.environ.items() if k != "NUMPY_MADVISE_HUGEPAGE"}
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(os, "environ", environment)
+        took, huge_kib = huge_pages_of_an_array("base")
+        assert took == "True" and huge_kib == 0
+        _, default_kib = huge_pages_of_an_array("default")
+        policy = Path("/sys/kernel/mm/transparent_hugepage/enabled")
+        if policy.exists() and "[never]" not in policy.read_text():  # given where asked
+            assert default_kib > 0
+        took, _ = huge_pages_of_an_array("base", NUMPY_MADVISE_HUGEPAGE="1")
+        assert took == "False"

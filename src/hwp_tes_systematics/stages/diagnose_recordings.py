@@ -18,7 +18,7 @@ from ..diagnose.recording import read_recording, write_recording
 from ..diagnose.report.diagnosis import ReportPaths
 from ..diagnose.simulate import simulate_recording
 from ..instrument.channels import check_channel_name
-from ..io import reuse_freed_memory
+from ..io import reuse_freed_memory, use_base_pages
 from ..simulation.channel_inputs import (
     channel_a2_k_cmb,
     channel_conversion,
@@ -77,6 +77,7 @@ def make_example(config: dict, out_h5: str, out_sky: str) -> None:
 def run(config: dict, recording_h5: str, sky_fits: str, out_json: str, out_md: str) -> None:
     """Diagnose one recording; writes ``out_json``, ``out_md`` and the figures beside it."""
     reuse_freed_memory()  # the fits' spectra of a row each: no page faults (io.reuse_freed_memory)
+    use_base_pages()  # the first touch without compaction stalls (io.use_base_pages)
     recording = read_recording(recording_h5)
     # channel_a2_k_cmb gives 0 for a name outside the systematics channels: a name the
     # instrument model does not know is an error here, not an ideal HWP

@@ -64,8 +64,10 @@ effect, or the time constant by its first-order template) is first fitted once w
 nonlinearity's templates held where the current fit composed them
 (:func:`.frozen.frozen_screen`); if it gains less than half its BIC penalty so, it cannot
 pass and its composed fit is skipped: its entry in the step's table is that screen's
-(``screened``), and every fit the selection keeps is the composed one, so the selection
-and its parameters are those of the full fits, bit for bit
+(``screened``). A swap step's trial (an unselected effect in a selected one's place) is
+screened so too and left out where its held Delta BIC exceeds half the newcomer's
+penalty; the final swap margins are full fits. Every fit the selection keeps is the
+composed one, so the selection and its parameters are those of the full fits, bit for bit
 (``tests/diagnose/test_frozen_screen.py``).
 
 Selection (:func:`stepwise`). Start from the nominal model (no effect); at each step fit
