@@ -81,8 +81,8 @@ def use_base_pages() -> bool:
     so against 1.6-2.0 s in base pages, and a diagnosis touches ~10 GB in its first
     segment (``docs/diagnosis/rates.md``). The numbers computed are the same bit for bit.
     Call it once at the start of a job's process, before its large arrays."""
-    if "NUMPY_MADVISE_HUGEPAGE" in os.environ:
-        return False
+    if not sys.platform.startswith("linux") or "NUMPY_MADVISE_HUGEPAGE" in os.environ:
+        return False  # (numpy asks for huge pages on Linux only)
     try:
         from numpy._core import multiarray
     except ImportError:  # numpy < 2
