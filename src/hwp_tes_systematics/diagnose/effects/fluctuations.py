@@ -150,9 +150,10 @@ class IndependentSidebands:
 
     def __post_init__(self):
         self.n_det = self.power.shape[0]
+        self.offsets = (self.f_hz - self.carrier_hz, self.f_hz + self.carrier_hz)
         self.ln_offsets = [
             np.log(F_REF_HZ / np.maximum(np.abs(offset), self.resolution_hz))
-            for offset in (self.f_hz - self.carrier_hz, self.f_hz + self.carrier_hz)
+            for offset in self.offsets
         ]
 
     def __call__(self, theta, with_excess: bool) -> tuple[float, np.ndarray]:
@@ -169,7 +170,7 @@ class IndependentSidebands:
             gain = math.exp(theta[n_noise])
             lower, upper = (
                 gain_psd(offset, gain, theta[n_noise + 1], self.resolution_hz)
-                for offset in (self.f_hz - self.carrier_hz, self.f_hz + self.carrier_hz)
+                for offset in self.offsets
             )
             total = noise + x * (lower + upper)
         value = 2 * float(np.sum(self.power / total + self.modes * np.log(total)))
